@@ -1,0 +1,56 @@
+"""The link interface: one byte transport to one arm.
+
+A link moves bytes and nothing else: it never parses. The driver task that owns it is the
+only caller (ARCHITECTURE rule 2). HID links are packetised (each read returns one report);
+serial links are streams (a read returns whatever bytes have arrived).
+"""
+
+from __future__ import annotations
+
+import abc
+import enum
+
+
+class LinkState(str, enum.Enum):
+    CONNECTING = "connecting"
+    UP = "up"
+    DOWN = "down"
+
+
+class LinkError(Exception):
+    """The transport failed (cannot open, lost, closed). The link is DOWN afterwards."""
+
+
+class Link(abc.ABC):
+    """One transport. `open` may be called again after a failure to reconnect."""
+
+    kind: str = "link"
+    #: True where each `read` returns exactly one device packet (HID reports).
+    packetized: bool = False
+
+    def __init__(self, address: str = "") -> None:
+        self.address = address
+        self.state = LinkState.DOWN
+        self.last_error: str | None = None
+
+    @abc.abstractmethod
+    async def open(self) -> None:
+        """Open the transport; raise LinkError with a reason a person can act on."""
+
+    @abc.abstractmethod
+    async def write(self, data: bytes) -> None:
+        """Send bytes (a whole packet for packetised links); raise LinkError if lost."""
+
+    @abc.abstractmethod
+    async def read(self, timeout: float) -> bytes:
+        """Bytes received (one packet if packetised), or b"" after `timeout` seconds of
+        silence; raise LinkError if the link is lost."""
+
+    @abc.abstractmethod
+    async def close(self) -> None:
+        """Release the transport. Safe to call twice."""
+
+    def _down(self, reason: str) -> LinkError:
+        self.state = LinkState.DOWN
+        self.last_error = reason
+        return LinkError(reason)

@@ -1,0 +1,321 @@
+"""Pydantic models of the public contract (../shared/API.md). SI units throughout,
+except under the protocol pass-through models, whose raw fields say so in their names.
+
+Every float is finite (NaN and infinities are refused with 422), every list has bounds.
+The client (`app.client`) imports these same models.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Unit = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
+
+
+class Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+# ---------------------------------------------------------------- errors
+
+
+class ErrorBody(Model):
+    detail: str | list[dict[str, object]]
+    code: str
+
+
+# ---------------------------------------------------------------- arms
+
+
+class Vec3(Model):
+    x: Finite
+    y: Finite
+    z: Finite
+
+
+class JointInfo(Model):
+    name: str
+    kind: Literal["revolute", "prismatic"]
+    min: float
+    max: float
+    max_velocity: float
+    max_acceleration: float
+
+
+class LinkStatus(Model):
+    kind: Literal["sim", "hid", "serial"]
+    address: str
+    state: Literal["connecting", "up", "down"]
+    connected: bool
+    last_error: str | None = None
+
+
+class Capabilities(Model):
+    gripper: bool
+    force_sensing: bool
+    protocol: Literal["rbe3001", "dynamixel"]
+    paths: list[Literal["joint", "line"]] = ["joint", "line"]
+
+
+class ArmSummary(Model):
+    name: str
+    model: str
+    description: str
+    link: LinkStatus
+    capabilities: Capabilities
+
+
+class ArmDetail(ArmSummary):
+    joints: list[JointInfo]
+    geometry: dict[str, float]
+    estop: bool
+    poll_hz: float
+
+
+class Health(Model):
+    status: Literal["ok", "degraded"]
+    arms: dict[str, LinkStatus]
+    auth: bool
+
+
+# ---------------------------------------------------------------- telemetry
+
+
+class MotionBrief(Model):
+    id: str
+    status: Literal["queued", "running", "done", "stopped", "failed"]
+    progress: float
+
+
+class Sample(Model):
+    """One device sample, as in `/state` and in every telemetry message."""
+
+    seq: int
+    time: float = Field(description="Unix time the device sample was taken, s")
+    positions: list[float]
+    velocities: list[float]
+    torques: list[float] | None = None
+    tip: Vec3
+    tip_velocity: Vec3
+    tip_force: Vec3 | None = None
+    gripper: float | None = None
+    motion: MotionBrief | None = None
+    estop: bool = False
+    link: Literal["connecting", "up", "down"] = "up"
+    stale: bool = False
+
+
+class TelemetryMessage(Model):
+    type: Literal["telemetry"] = "telemetry"
+    arm: str
+    samples: list[Sample]
+    dropped: int = 0
+
+
+class EventMessage(Model):
+    type: Literal["event"] = "event"
+    arm: str
+    event: str = Field(description="motion_started, motion_ended, estop, estop_released, "
+                       "link_lost, link_back, lease_expired, watchdog")
+    time: float
+    data: dict[str, object] = {}
+
+
+# ---------------------------------------------------------------- motion
+
+QueueMode = Literal["queue", "replace"]
+
+
+class MoveJoints(Model):
+    positions: list[Finite] = Field(min_length=1, max_length=16)
+    duration: Annotated[float, Field(gt=0.0, le=600.0, allow_inf_nan=False)] | None = None
+    speed: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 1.0
+    mode: QueueMode = "queue"
+    wait: bool = False
+
+
+class MovePose(Model):
+    x: Finite
+    y: Finite
+    z: Finite
+    path: Literal["joint", "line"] = "joint"
+    branch: int | None = Field(None, ge=0, le=16, description="IK solution index; default: the "
+                               "within-limits solution nearest the current joints")
+    ik_case: Literal["dx_zero", "dx_used"] | None = Field(
+        None, description="angler only: fix dx at 0 (theta3 reaches x) or use dx (theta3 kept)")
+    duration: Annotated[float, Field(gt=0.0, le=600.0, allow_inf_nan=False)] | None = None
+    speed: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 1.0
+    mode: QueueMode = "queue"
+    wait: bool = False
+
+
+class Motion(Model):
+    id: str
+    arm: str
+    kind: Literal["joints", "pose"]
+    path: Literal["joint", "line"]
+    status: Literal["queued", "running", "done", "stopped", "failed"]
+    progress: float
+    planned_duration: float
+    target_positions: list[float]
+    target_tip: Vec3
+    reason: str | None = None
+    code: str | None = None
+    created: float
+    started: float | None = None
+    ended: float | None = None
+    final_positions: list[float] | None = None
+    final_tip: Vec3 | None = None
+    planned_path: list[Vec3] = Field(default_factory=list, description="tip path preview, "
+                                     "up to 50 points")
+
+
+class StopResult(Model):
+    stopped: list[str]
+    estop: bool
+
+
+class EstopState(Model):
+    estop: bool
+
+
+class GripperCommand(Model):
+    value: Unit
+
+
+class GripperState(Model):
+    value: float
+
+
+# ---------------------------------------------------------------- kinematics
+
+
+class JointVector(Model):
+    positions: list[Finite] = Field(min_length=1, max_length=16)
+
+
+class ForwardResult(Model):
+    tip: Vec3
+    jacobian: list[list[float]]
+
+
+class InverseRequest(Vec3):
+    ik_case: Literal["dx_zero", "dx_used"] | None = None
+    theta3: Finite | None = Field(None, description="angler dx_used case: theta3 to keep, rad")
+
+
+class IKSolution(Model):
+    positions: list[float]
+    within_limits: bool
+    violations: list[str] = []
+    branch: int
+
+
+class InverseResult(Model):
+    solutions: list[IKSolution]
+
+
+class Workspace(Model):
+    lower: Vec3
+    upper: Vec3
+    points: list[Vec3]
+    joint_lower: list[float]
+    joint_upper: list[float]
+
+
+# ---------------------------------------------------------------- rbe3001 pass-through
+
+
+class PidSetpoint(Model):
+    position_ticks: Finite
+    velocity_ticks_s: Finite = 0.0
+    force: Finite = 0.0
+
+
+class SetPid(Model):
+    joints: list[PidSetpoint] = Field(min_length=3, max_length=3)
+
+
+class SetPidReply(Model):
+    position_ticks: list[float]
+
+
+class Rbe3001Status(Model):
+    position_ticks: list[float]
+    velocity_ticks_s: list[float]
+    strain_adc: list[float]
+
+
+class SetGain(Model):
+    axis: int = Field(ge=0, le=2)
+    kp: Finite
+    ki: Finite
+    kd: Finite
+
+
+class SetClaw(Model):
+    value: Unit
+
+
+class Ack(Model):
+    ok: bool = True
+    command: str
+
+
+# ---------------------------------------------------------------- dynamixel pass-through
+
+
+class PingRequest(Model):
+    id: int | None = Field(None, ge=0, le=252, description="one id, or none for every id")
+
+
+class PingDevice(Model):
+    id: int
+    model_number: int
+    firmware_version: int
+
+
+class PingResult(Model):
+    devices: list[PingDevice]
+
+
+class RegisterValue(Model):
+    id: int
+    name: str
+    address: int
+    size: int
+    raw: int
+    unit: str | None = None
+    value: float | None = Field(None, description="raw converted to the item's unit, if any")
+
+
+class RegisterWrite(Model):
+    raw: int
+
+
+class SyncReadRequest(Model):
+    name: str
+    ids: list[Annotated[int, Field(ge=0, le=252)]] = Field(min_length=1, max_length=32)
+
+
+class SyncReadResult(Model):
+    name: str
+    values: dict[int, int]
+
+
+class SyncWriteRequest(Model):
+    name: str
+    values: dict[Annotated[int, Field(ge=0, le=252)], int] = Field(min_length=1, max_length=32)
+
+
+# ---------------------------------------------------------------- lease
+
+
+class Lease(Model):
+    id: str
+    arm: str
+    expires: float = Field(description="Unix time the lease lapses unless renewed")
+    ttl: float
