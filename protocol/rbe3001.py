@@ -1,0 +1,283 @@
+"""RBE3001 (Gen A) 64-byte HID packet codec: framing and the SET_PID/STATUS/SET_GAIN/SET_CLAW set.
+
+Wire facts (WPIRoboticsEngineering/RBE3001_nucleo_firmware, SimplePacketComs framing):
+a packet is 64 bytes, little-endian: bytes 0-3 a uint32 command id, bytes 4-63 fifteen
+float32. The firmware looks the id up, lets the matching server rewrite the float buffer in
+place and sends the same 64 bytes back, so a reply carries the request's id; an unknown id
+gets no reply. The hidapi report-id byte (0) is the HID link's business, not this codec's.
+
+Sans-IO: bytes in, dataclasses out; no I/O, no awaits. Positions and velocities are encoder
+ticks and ticks/s (AS5050, 4096 a turn); strain gauges are raw ADC fractions 0..1.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import ClassVar
+
+PACKET_SIZE = 64
+N_FLOATS = 15
+_PACKET = struct.Struct("<I15f")
+_MAX_ID = 0xFFFF_FFFF
+
+
+class CommandId(IntEnum):
+    SET_PID = 37
+    STATUS = 38
+    SET_GAIN = 39
+    SET_CLAW = 40
+
+
+class DecodeError(ValueError):
+    """The bytes are not a valid packet or reply (a remote protocol error)."""
+
+
+class UnknownCommand(DecodeError):
+    """A well-framed packet whose id no server handles; the firmware stays silent."""
+
+    def __init__(self, command_id: int) -> None:
+        super().__init__(f"unknown command id {command_id}")
+        self.command_id = command_id
+
+
+@dataclass(frozen=True)
+class RawPacket:
+    command_id: int
+    values: tuple[float, ...]  # always N_FLOATS long
+
+
+def encode_packet(command_id: int, values: Sequence[float] = ()) -> bytes:
+    """One 64-byte packet: uint32 id then up to 15 float32, the rest zero."""
+    if not 0 <= command_id <= _MAX_ID:
+        raise ValueError(f"command id {command_id} is outside uint32")
+    if len(values) > N_FLOATS:
+        raise ValueError(f"a packet holds {N_FLOATS} floats, got {len(values)}")
+    padded = [float(v) for v in values] + [0.0] * (N_FLOATS - len(values))
+    try:
+        return _PACKET.pack(command_id, *padded)
+    except OverflowError as exc:  # a finite double too large for float32
+        raise ValueError(f"value does not fit a float32: {exc}") from exc
+
+
+def decode_packet(data: bytes | bytearray | memoryview) -> RawPacket:
+    """Split a 64-byte packet into its id and 15 floats; DecodeError on any other length."""
+    if len(data) != PACKET_SIZE:
+        kind = "short" if len(data) < PACKET_SIZE else "long"
+        raise DecodeError(f"{kind} packet: {len(data)} bytes, expected {PACKET_SIZE}")
+    command_id, *values = _PACKET.unpack(bytes(data))
+    return RawPacket(command_id, tuple(values))
+
+
+# --- commands (host -> firmware) -------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class JointSetpoint:
+    """One joint's SET_PID slot; the firmware uses only the position (velocity and force are
+    carried but 'currently unused' in PidServer.cpp)."""
+
+    position_ticks: float
+    velocity_ticks_s: float = 0.0
+    force: float = 0.0
+
+
+@dataclass(frozen=True)
+class SetPid:
+    """Position setpoints for the three joints, joint i at floats 3i, 3i+1, 3i+2."""
+
+    setpoints: tuple[JointSetpoint, JointSetpoint, JointSetpoint]
+    command_id: ClassVar[int] = CommandId.SET_PID
+
+
+@dataclass(frozen=True)
+class Status:
+    """Read positions, velocities and strain gauges without moving."""
+
+    command_id: ClassVar[int] = CommandId.STATUS
+
+
+@dataclass(frozen=True)
+class SetGain:
+    """PID gains of one joint (axis 0-2), firmware units: kp in output fraction per tick."""
+
+    axis: int
+    kp: float
+    ki: float
+    kd: float
+    command_id: ClassVar[int] = CommandId.SET_GAIN
+
+
+@dataclass(frozen=True)
+class SetClaw:
+    """Claw setpoint, 0.0 open .. 1.0 closed."""
+
+    value: float
+    command_id: ClassVar[int] = CommandId.SET_CLAW
+
+
+Command = SetPid | Status | SetGain | SetClaw
+
+
+# --- replies (firmware -> host) --------------------------------------------------------
+
+Triple = tuple[float, float, float]
+Triple3 = tuple[Triple, Triple, Triple]
+
+
+@dataclass(frozen=True)
+class SetPidReply:
+    """PidServer rewrites joint i's floats as position [3i], velocity [3i+1], load cell [3i+2]."""
+
+    position_ticks: Triple
+    velocity_ticks_s: Triple
+    strain_adc: Triple
+
+
+@dataclass(frozen=True)
+class StatusReply:
+    """Positions at floats 0-2, velocities (ticks/s) at 3-5, strain ADC at 6-8."""
+
+    position_ticks: Triple
+    velocity_ticks_s: Triple
+    strain_adc: Triple
+
+
+@dataclass(frozen=True)
+class Ack:
+    """SET_GAIN and SET_CLAW: the firmware echoes the buffer; the values carry nothing."""
+
+    command_id: int
+
+
+Reply = SetPidReply | StatusReply | Ack
+
+
+def _finite(name: str, values: Sequence[float]) -> None:
+    for i, v in enumerate(values):
+        if not math.isfinite(v):
+            raise ValueError(f"{name}[{i}] must be finite, got {v}")
+
+
+def _validate(cmd: Command) -> None:
+    if isinstance(cmd, SetPid):
+        if len(cmd.setpoints) != 3:
+            raise ValueError(f"SET_PID needs 3 setpoints, got {len(cmd.setpoints)}")
+        for i, sp in enumerate(cmd.setpoints):
+            _finite(f"setpoints[{i}]", (sp.position_ticks, sp.velocity_ticks_s, sp.force))
+    elif isinstance(cmd, SetGain):
+        if isinstance(cmd.axis, bool) or cmd.axis not in (0, 1, 2):
+            raise ValueError(f"SET_GAIN axis must be 0, 1 or 2, got {cmd.axis!r}")
+        _finite("gains", (cmd.kp, cmd.ki, cmd.kd))
+    elif isinstance(cmd, SetClaw):
+        _finite("claw", (cmd.value,))
+        if not 0.0 <= cmd.value <= 1.0:
+            raise ValueError(f"SET_CLAW value must be within 0..1, got {cmd.value}")
+
+
+def _floats(cmd: Command) -> list[float]:
+    if isinstance(cmd, SetPid):
+        return [x for sp in cmd.setpoints for x in (sp.position_ticks, sp.velocity_ticks_s, sp.force)]
+    if isinstance(cmd, SetGain):
+        return [float(cmd.axis), cmd.kp, cmd.ki, cmd.kd]
+    if isinstance(cmd, SetClaw):
+        return [cmd.value]
+    return []
+
+
+def encode_command(cmd: Command) -> bytes:
+    """The 64-byte packet for a command; ValueError if a field is out of range or not finite."""
+    _validate(cmd)
+    return encode_packet(cmd.command_id, _floats(cmd))
+
+
+def _triple(raw: RawPacket, name: str, indices: Sequence[int]) -> Triple:
+    out: list[float] = []
+    for k, idx in enumerate(indices):
+        v = raw.values[idx]
+        if not math.isfinite(v):
+            raise DecodeError(f"{name}[{k}] is {v} (float {idx}), expected a finite number")
+        out.append(v)
+    return (out[0], out[1], out[2])
+
+
+def _sensors(raw: RawPacket, pos: Sequence[int], vel: Sequence[int], adc: Sequence[int]) -> Triple3:
+    return (
+        _triple(raw, "position_ticks", pos),
+        _triple(raw, "velocity_ticks_s", vel),
+        _triple(raw, "strain_adc", adc),
+    )
+
+
+def decode_reply(request: Command | int, data: bytes | bytearray | memoryview) -> Reply:
+    """Decode the firmware's answer to `request` (a command or its id).
+
+    DecodeError if the packet is malformed, carries another id, or has a NaN/inf where a
+    reading is required. An id outside CommandId decodes as an Ack (its floats stay raw)."""
+    expected = request if isinstance(request, int) else request.command_id
+    raw = decode_packet(data)
+    if raw.command_id != expected:
+        raise DecodeError(f"reply id {raw.command_id} does not match request {expected}")
+    if expected == CommandId.SET_PID:
+        return SetPidReply(*_sensors(raw, (0, 3, 6), (1, 4, 7), (2, 5, 8)))
+    if expected == CommandId.STATUS:
+        return StatusReply(*_sensors(raw, (0, 1, 2), (3, 4, 5), (6, 7, 8)))
+    return Ack(raw.command_id)
+
+
+# --- the simulator's side --------------------------------------------------------------
+
+
+def decode_command(data: bytes | bytearray | memoryview) -> Command:
+    """Parse a host packet as the firmware would; UnknownCommand for an id no server has,
+    DecodeError for a malformed packet or out-of-range field."""
+    raw = decode_packet(data)
+    v = raw.values
+    cid = raw.command_id
+    cmd: Command
+    if cid == CommandId.SET_PID:
+        cmd = SetPid(
+            (
+                JointSetpoint(v[0], v[1], v[2]),
+                JointSetpoint(v[3], v[4], v[5]),
+                JointSetpoint(v[6], v[7], v[8]),
+            )
+        )
+    elif cid == CommandId.STATUS:
+        cmd = Status()
+    elif cid == CommandId.SET_GAIN:
+        if v[0] not in (0.0, 1.0, 2.0):
+            raise DecodeError(f"SET_GAIN axis {v[0]} is not 0, 1 or 2")
+        cmd = SetGain(int(v[0]), v[1], v[2], v[3])
+    elif cid == CommandId.SET_CLAW:
+        cmd = SetClaw(v[0])
+    else:
+        raise UnknownCommand(cid)
+    try:
+        _validate(cmd)
+    except ValueError as exc:
+        raise DecodeError(str(exc)) from exc
+    return cmd
+
+
+def encode_reply(reply: Reply, request: bytes | None = None) -> bytes:
+    """The firmware's answer. PidServer zeroes the buffer and writes nine readings; the STATUS
+    server writes floats 0-8 and leaves the rest as received; SET_GAIN/SET_CLAW echo the
+    request unchanged. `request` is that received packet (zeros when None)."""
+    base = list(decode_packet(request).values) if request is not None else [0.0] * N_FLOATS
+    if isinstance(reply, SetPidReply):
+        out = [0.0] * N_FLOATS
+        for i in range(3):
+            out[3 * i : 3 * i + 3] = [
+                reply.position_ticks[i],
+                reply.velocity_ticks_s[i],
+                reply.strain_adc[i],
+            ]
+        return encode_packet(CommandId.SET_PID, out)
+    if isinstance(reply, StatusReply):
+        base[0:9] = [*reply.position_ticks, *reply.velocity_ticks_s, *reply.strain_adc]
+        return encode_packet(CommandId.STATUS, base)
+    return encode_packet(reply.command_id, base)
