@@ -1,0 +1,128 @@
+"""MX-28 (Protocol 2.0 firmware) control table as plain data: name -> address, size, access,
+default, unit and valid write range.
+
+Source: ROBOTIS e-manual, https://emanual.robotis.com/docs/en/dxl/mx/mx-28-2/ (model number 30).
+EEPROM items (address < 64) are writable only while Torque Enable is 0. `min_raw`/`max_raw`
+are the widest valid write range; items whose range depends on another item (Goal Position
+within the position limits in position mode, Goal Velocity within Velocity Limit, Goal PWM
+within PWM Limit, Profile Acceleration within Acceleration Limit) carry the widest range here
+and the device (or simulator) enforces the dependent limit. The Indirect Address/Data items
+(168-251, 578-661) are not listed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+MODEL_NUMBER = 30
+E_MANUAL = "https://emanual.robotis.com/docs/en/dxl/mx/mx-28-2/"
+#: Present/Goal Position resolution: 4096 ticks per revolution, 0.088 deg per tick
+TICKS_PER_REV = 4096
+
+
+@dataclass(frozen=True)
+class ControlItem:
+    """One control-table item. `scale` is unit per raw count (e.g. 0.088 deg per tick);
+    `to_unit` gives raw * scale. `default` is None where the e-manual gives none ('-')."""
+
+    name: str
+    address: int
+    size: int
+    area: Literal["eeprom", "ram"]
+    access: Literal["r", "rw"]
+    default: int | None
+    unit: str | None
+    scale: float
+    signed: bool
+    min_raw: int
+    max_raw: int
+
+    @property
+    def writable(self) -> bool:
+        return self.access == "rw"
+
+
+_I32 = 2**31 - 1
+# name, address, size, access, default, unit, scale, signed, min, max
+_ROWS: tuple[tuple[str, int, int, str, int | None, str | None, float, bool, int, int], ...] = (
+    ("model_number", 0, 2, "r", 30, None, 1.0, False, 0, 0xFFFF),
+    ("model_information", 2, 4, "r", None, None, 1.0, False, 0, 0xFFFFFFFF),
+    ("firmware_version", 6, 1, "r", None, None, 1.0, False, 0, 0xFF),
+    ("id", 7, 1, "rw", 1, None, 1.0, False, 0, 252),
+    ("baud_rate", 8, 1, "rw", 1, None, 1.0, False, 0, 7),
+    ("return_delay_time", 9, 1, "rw", 250, "us", 2.0, False, 0, 254),
+    ("drive_mode", 10, 1, "rw", 0, None, 1.0, False, 0, 5),
+    ("operating_mode", 11, 1, "rw", 3, None, 1.0, False, 0, 16),
+    ("secondary_id", 12, 1, "rw", 255, None, 1.0, False, 0, 255),
+    ("protocol_version", 13, 1, "rw", 2, None, 1.0, False, 1, 2),
+    ("homing_offset", 20, 4, "rw", 0, "deg", 0.088, True, -1_044_479, 1_044_479),
+    ("moving_threshold", 24, 4, "rw", 10, "rpm", 0.229, False, 0, 1023),
+    ("temperature_limit", 31, 1, "rw", 80, "C", 1.0, False, 0, 100),
+    ("max_voltage_limit", 32, 2, "rw", 160, "V", 0.1, False, 95, 160),
+    ("min_voltage_limit", 34, 2, "rw", 95, "V", 0.1, False, 95, 160),
+    ("pwm_limit", 36, 2, "rw", 885, "percent", 0.113, False, 0, 885),
+    ("acceleration_limit", 40, 4, "rw", 32767, "rev/min^2", 214.577, False, 0, 32767),
+    ("velocity_limit", 44, 4, "rw", 380, "rpm", 0.229, False, 0, 1023),
+    ("max_position_limit", 48, 4, "rw", 4095, "deg", 0.088, False, 0, 4095),
+    ("min_position_limit", 52, 4, "rw", 0, "deg", 0.088, False, 0, 4095),
+    ("shutdown", 63, 1, "rw", 52, None, 1.0, False, 0, 0xFF),
+    ("torque_enable", 64, 1, "rw", 0, None, 1.0, False, 0, 1),
+    ("led", 65, 1, "rw", 0, None, 1.0, False, 0, 1),
+    ("status_return_level", 68, 1, "rw", 2, None, 1.0, False, 0, 2),
+    ("registered_instruction", 69, 1, "r", 0, None, 1.0, False, 0, 1),
+    ("hardware_error_status", 70, 1, "r", 0, None, 1.0, False, 0, 0xFF),
+    ("velocity_i_gain", 76, 2, "rw", 1920, None, 1.0, False, 0, 16383),
+    ("velocity_p_gain", 78, 2, "rw", 100, None, 1.0, False, 0, 16383),
+    ("position_d_gain", 80, 2, "rw", 0, None, 1.0, False, 0, 16383),
+    ("position_i_gain", 82, 2, "rw", 0, None, 1.0, False, 0, 16383),
+    ("position_p_gain", 84, 2, "rw", 850, None, 1.0, False, 0, 16383),
+    ("feedforward_2nd_gain", 88, 2, "rw", 0, None, 1.0, False, 0, 16383),
+    ("feedforward_1st_gain", 90, 2, "rw", 0, None, 1.0, False, 0, 16383),
+    ("bus_watchdog", 98, 1, "rw", 0, "ms", 20.0, False, 0, 127),
+    ("goal_pwm", 100, 2, "rw", None, "percent", 0.113, True, -885, 885),
+    ("goal_velocity", 104, 4, "rw", None, "rpm", 0.229, True, -1023, 1023),
+    ("profile_acceleration", 108, 4, "rw", 0, "rev/min^2", 214.577, False, 0, 32767),
+    ("profile_velocity", 112, 4, "rw", 0, "rpm", 0.229, False, 0, 32767),
+    ("goal_position", 116, 4, "rw", None, "deg", 0.088, True, -1_048_575, 1_048_575),
+    ("realtime_tick", 120, 2, "r", None, "ms", 1.0, False, 0, 32767),
+    ("moving", 122, 1, "r", 0, None, 1.0, False, 0, 1),
+    ("moving_status", 123, 1, "r", 0, None, 1.0, False, 0, 0xFF),
+    ("present_pwm", 124, 2, "r", None, "percent", 0.113, True, -885, 885),
+    ("present_load", 126, 2, "r", None, "percent", 0.1, True, -1000, 1000),
+    ("present_velocity", 128, 4, "r", None, "rpm", 0.229, True, -_I32 - 1, _I32),
+    ("present_position", 132, 4, "r", None, "deg", 0.088, True, -_I32 - 1, _I32),
+    ("velocity_trajectory", 136, 4, "r", None, "rpm", 0.229, True, -_I32 - 1, _I32),
+    ("position_trajectory", 140, 4, "r", None, "deg", 0.088, True, -_I32 - 1, _I32),
+    ("present_input_voltage", 144, 2, "r", None, "V", 0.1, False, 0, 0xFFFF),
+    ("present_temperature", 146, 1, "r", None, "C", 1.0, False, 0, 0xFF),
+)
+
+TABLE: dict[str, ControlItem] = {
+    r[0]: ControlItem(r[0], r[1], r[2], "eeprom" if r[1] < 64 else "ram",
+                      "rw" if r[3] == "rw" else "r", r[4], r[5], r[6], r[7], r[8], r[9])
+    for r in _ROWS
+}
+BY_ADDRESS: dict[int, ControlItem] = {it.address: it for it in TABLE.values()}
+#: one past the last address of the table (the simulator's control-table size)
+TABLE_END = max(it.address + it.size for it in TABLE.values())
+
+
+def item(name: str) -> ControlItem:
+    """The item called `name` (snake_case); KeyError naming the close matches otherwise."""
+    try:
+        return TABLE[name]
+    except KeyError:
+        key = name.lower().replace(" ", "_")
+        if key in TABLE:
+            return TABLE[key]
+        near = [n for n in TABLE if key in n or n in key]
+        hint = f"; did you mean {', '.join(near)}?" if near else ""
+        raise KeyError(f"no MX-28 control item {name!r}{hint} (see {E_MANUAL})") from None
+
+
+def to_unit(it: ControlItem, raw: int) -> float | None:
+    """Raw register value in the item's unit (e.g. ticks -> deg), None for unitless items."""
+    if it.unit is None:
+        return None
+    return raw * it.scale
