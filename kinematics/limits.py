@@ -1,0 +1,104 @@
+"""Joint-limit checks and human-readable violation messages.
+
+Limits are arguments (they come from the arm profile), never constants.
+Positions are radians for revolute joints and metres for prismatic ones;
+``kinds`` says which, so that messages carry the right unit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["first_violation", "unit", "violations", "within"]
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+def unit(kind: str) -> str:
+    """Unit of a joint kind: ``"rad"`` for revolute, ``"m"`` for prismatic."""
+    if kind == "revolute":
+        return "rad"
+    if kind == "prismatic":
+        return "m"
+    raise ValueError(f"unknown joint kind {kind!r}: expected 'revolute' or 'prismatic'")
+
+
+def within(
+    q: npt.ArrayLike, lower: npt.ArrayLike, upper: npt.ArrayLike, tol: float = 1e-9
+) -> BoolArray:
+    """True where every joint of ``q`` lies in ``[lower - tol, upper + tol]``.
+
+    q: (..., n) joint positions; lower, upper: (n,). Returns (...,) bool;
+    NaN joints count as outside.
+    """
+    qa = np.asarray(q, dtype=np.float64)
+    lo = np.asarray(lower, dtype=np.float64)
+    hi = np.asarray(upper, dtype=np.float64)
+    ok = (qa >= lo - tol) & (qa <= hi + tol)
+    return np.asarray(np.all(ok, axis=-1))
+
+
+def _fmt(value: float, kind: str) -> str:
+    return f"{value:.2f} rad" if kind == "revolute" else f"{value:.3f} m"
+
+
+def violations(
+    q: npt.ArrayLike,
+    names: Sequence[str],
+    lower: npt.ArrayLike,
+    upper: npt.ArrayLike,
+    kinds: Sequence[str] | None = None,
+    tol: float = 1e-9,
+) -> list[str]:
+    """Messages for every joint of one configuration ``q`` (n,) outside its limits.
+
+    e.g. ``"shoulder 1.90 rad is above its limit 1.75 rad by 0.15 rad"``.
+    ``kinds`` defaults to all revolute. An empty list means ``q`` is inside.
+    """
+    qa = np.asarray(q, dtype=np.float64).reshape(-1)
+    lo = np.broadcast_to(np.asarray(lower, dtype=np.float64), qa.shape)
+    hi = np.broadcast_to(np.asarray(upper, dtype=np.float64), qa.shape)
+    ks = list(kinds) if kinds is not None else ["revolute"] * qa.size
+    if len(names) != qa.size or len(ks) != qa.size:
+        raise ValueError(f"{qa.size} joints but {len(names)} names and {len(ks)} kinds")
+    out: list[str] = []
+    for i in range(qa.size):
+        v, k, u = float(qa[i]), ks[i], unit(ks[i])
+        if np.isnan(v):
+            out.append(f"{names[i]} has no value (NaN)")
+        elif v > hi[i] + tol:
+            out.append(
+                f"{names[i]} {_fmt(v, k)} is above its limit {_fmt(float(hi[i]), k)}"
+                f" by {v - float(hi[i]):.3g} {u}"
+            )
+        elif v < lo[i] - tol:
+            out.append(
+                f"{names[i]} {_fmt(v, k)} is below its limit {_fmt(float(lo[i]), k)}"
+                f" by {float(lo[i]) - v:.3g} {u}"
+            )
+    return out
+
+
+def first_violation(
+    q: npt.ArrayLike,
+    names: Sequence[str],
+    lower: npt.ArrayLike,
+    upper: npt.ArrayLike,
+    kinds: Sequence[str] | None = None,
+    tol: float = 1e-9,
+) -> tuple[int, list[str]] | None:
+    """Index of the first row of ``q`` (m, n) outside the limits and its messages.
+
+    Returns None when every row is inside. The check is vectorised; only the
+    offending row is formatted.
+    """
+    qa = np.atleast_2d(np.asarray(q, dtype=np.float64))
+    bad = np.flatnonzero(~within(qa, lower, upper, tol))
+    if bad.size == 0:
+        return None
+    i = int(bad[0])
+    return i, violations(qa[i], names, lower, upper, kinds, tol)
