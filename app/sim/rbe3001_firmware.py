@@ -1,0 +1,279 @@
+"""A simulated RBE3001 Gen A firmware: the same 64-byte packets as the Nucleo, a 400 Hz PID
+loop per joint and simple joint dynamics, so the driver cannot tell it from the arm.
+
+Behaviour copied from WPIRoboticsEngineering/RBE3001_nucleo_firmware (see
+/work/shared/reference/rbe3001.md):
+- SET_PID (PidServer.cpp): setpoint of joint i in float[3i]; a setpoint within 0.01 tick of
+  the last one is ignored (so re-sending is a status poll); the reply buffer is zeroed, then
+  float[3i] position, [3i+1] velocity (ticks/s), [3i+2] load-cell ADC (0..1).
+- STATUS (this team's id 38): positions 0-2, velocities 3-5, ADC 6-8; the rest echoed.
+- SET_GAIN: disable that joint's controller, set kp/ki/kd, re-enable (integral and
+  derivative history cleared); the buffer is echoed. SET_CLAW: claw setpoint 0..1; echoed.
+- Unknown ids, packets that are not 64 bytes and packets with out-of-range fields: silence.
+- Encoder: whole ticks, firmware 4-sample moving average (so readings move in 1/4 ticks).
+- Velocity: position difference over 61 PID cycles (~152 ms), stale between updates.
+- Controller output: 0.5 +- 0.2 (clamped 0.3..0.7) from stop, kp 0.005, ki 0, kd 0.
+
+Gain mapping (firmware units -> SI). The PID output `u` is a servo command around stop 0.5,
+clamped to +-0.2; the sim reads it as the motor voltage fraction v = u / 0.2 of a geared DC
+motor: torque = stall_torque * (v - omega / free_speed). With error e in ticks, kp in
+output/tick, ki in output/(tick s), kd in output/(tick/s), the small-signal stiffness is
+    K [N m/rad] = kp * (stall_torque / 0.2) * ticks_per_rev / (2 pi)
+= 0.005 * 20 * 651.9 ~ 65 N m/rad for the defaults (4 N m stall): a 1 rad step runs at the
+speed limit (~3 rad/s) and settles in ~0.4-0.6 s with back-EMF damping (zeta ~ 0.8) and a
+gravity droop of ~10 ticks on the shoulder (the firmware's ki = 0 leaves it).
+
+Joint convention: base q1 about the vertical; shoulder q2 elevation of link 2 above the
+horizontal; elbow q3 of link 3 relative to link 2. q = 0 is the arm stretched out level, so
+gravity loads the shoulder and elbow most there. ticks = offset + sign * q * tpr / (2 pi).
+Strain ADC = offset + torque / scale (the profile's [force] table), averaged over 5 cycles.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Sequence
+
+from app.config import ArmProfile
+from protocol.rbe3001 import (
+    Ack,
+    DecodeError,
+    SetClaw,
+    SetGain,
+    SetPid,
+    SetPidReply,
+    Status,
+    StatusReply,
+    decode_command,
+    encode_reply,
+)
+
+PACKET_SIZE = 64
+CYCLE_S = 0.0025  # firmware PID period since Jan 2018 (400 Hz)
+VELOCITY_CYCLES = 61  # firmware velocity update period, cycles
+ENCODER_AVERAGE = 4  # firmware moving average of the AS5050 reading, samples
+STRAIN_AVERAGE = 5  # samples in the reported load-cell average
+SETPOINT_DEADBAND_TICKS = 0.01  # PidServer ignores setpoints this close to the last one
+OUTPUT_SPAN = 0.2  # output clamp 0.3..0.7 around stop 0.5
+MAX_CATCHUP_S = 2.0  # beyond this gap, older simulated time is skipped rather than computed
+REPLY_DELAY_S = 0.0005  # firmware turnaround (the reference says round trip <= 2 ms)
+ADC_STEPS = 4095  # 12-bit AnalogIn
+GRAVITY = 9.81  # m/s^2
+
+DEFAULT_GEOMETRY = (0.2032, 0.1651, 0.206375)  # l1, l2, l3 in m (design documents)
+
+
+class Rbe3001Firmware:
+    """SimDevice for the RBE3001 arm (packetised: one 64-byte packet a write)."""
+
+    packetized = True
+
+    def __init__(
+        self,
+        profile: ArmProfile | None = None,
+        *,
+        ticks_per_rev: Sequence[int] = (4096, 4096, 4096),
+        offset_ticks: Sequence[float] = (0.0, 0.0, 0.0),
+        sign: Sequence[int] = (1, 1, 1),
+        geometry: Sequence[float] = DEFAULT_GEOMETRY,
+        adc_scale: Sequence[float] = (5.0, 5.0, 5.0),
+        adc_offset: Sequence[float] = (0.5, 0.5, 0.5),
+        start_q: Sequence[float] = (0.0, 0.0, 0.0),
+        link_masses: Sequence[float] = (0.25, 0.15, 0.10),
+        stall_torque: float = 4.0,
+        free_speed: float = 3.0,
+        claw_rate: float = 2.0,
+    ) -> None:
+        """`link_masses` (kg): link 2, link 3, claw at the tip. `stall_torque` (N m) and
+        `free_speed` (rad/s) are at the joint, after the gearbox. `claw_rate` in 1/s."""
+        if profile is not None:
+            ticks_per_rev = [j.ticks_per_rev for j in profile.joints]
+            offset_ticks = [j.offset_ticks for j in profile.joints]
+            sign = [j.sign for j in profile.joints]
+            geometry = (profile.geometry["l1"], profile.geometry["l2"], profile.geometry["l3"])
+            if profile.force is not None:
+                adc_scale, adc_offset = profile.force.adc_scale, profile.force.adc_offset
+        self.tpr = [float(t) for t in ticks_per_rev]
+        self.offset = [float(o) for o in offset_ticks]
+        self.sign = [float(s) for s in sign]
+        self.l1, self.l2, self.l3 = (float(x) for x in geometry)
+        self.adc_scale = [float(s) for s in adc_scale]
+        self.adc_offset = [float(o) for o in adc_offset]
+        self.m2, self.m3, self.m_tip = (float(m) for m in link_masses)
+        self.stall_torque = stall_torque
+        self.free_speed = free_speed
+        self.claw_rate = claw_rate
+        self.reflected_inertia = 0.01  # kg m^2, gearbox and motor seen at the joint
+        self.viscous = 0.02  # N m s/rad, bearing friction besides the motor's back-EMF
+        self.coulomb = 0.05  # N m
+
+        self.q = [float(x) for x in start_q]  # rad
+        self.qd = [0.0, 0.0, 0.0]  # rad/s
+        self.torque = [0.0, 0.0, 0.0]  # motor torque at the joint, N m
+        start = [self._encoder(i) for i in range(3)]
+        self._samples = [deque([s] * ENCODER_AVERAGE, ENCODER_AVERAGE) for s in start]
+        self._strain = [deque([self._adc(i)] * STRAIN_AVERAGE, STRAIN_AVERAGE) for i in range(3)]
+        self.setpoint = [float(s) for s in start]  # ticks
+        self.gains = [[0.005, 0.0, 0.0] for _ in range(3)]  # kp, ki, kd (firmware units)
+        self.enabled = [True, True, True]
+        self._integral = [0.0, 0.0, 0.0]  # tick s
+        self._last_error: list[float | None] = [None, None, None]
+        self.velocity_ticks_s = [0.0, 0.0, 0.0]
+        self._vel_ref = list(start)
+        self._vel_count = 0
+        self.claw = 0.0
+        self.claw_setpoint = 0.0
+        self._t: float | None = None
+        self.cycles = 0
+
+    # --- SimDevice --------------------------------------------------------------------
+
+    def receive(self, data: bytes, now: float) -> list[tuple[float, bytes]]:
+        """Handle one host packet at time `now` (s); silence for anything the firmware drops."""
+        self.advance(now)
+        if len(data) != PACKET_SIZE:
+            return []
+        try:
+            cmd = decode_command(data)
+        except DecodeError:
+            return []
+        return [(REPLY_DELAY_S, self._handle(cmd, bytes(data)))]
+
+    def advance(self, now: float) -> None:
+        """Run whole 2.5 ms PID cycles up to `now` (s); a gap over MAX_CATCHUP_S is cut."""
+        if self._t is None:
+            self._t = now
+            return
+        if now - self._t > MAX_CATCHUP_S:
+            self._t = now - MAX_CATCHUP_S
+        while self._t + CYCLE_S <= now + 1e-12:
+            self._cycle()
+            self._t += CYCLE_S
+
+    # --- readings ---------------------------------------------------------------------
+
+    @property
+    def position_ticks(self) -> tuple[float, float, float]:
+        """What GetPIDPosition returns: the 4-sample average of whole-tick encoder reads."""
+        p = [sum(s) / ENCODER_AVERAGE for s in self._samples]
+        return (p[0], p[1], p[2])
+
+    @property
+    def strain_adc(self) -> tuple[float, float, float]:
+        a = [sum(s) / STRAIN_AVERAGE for s in self._strain]
+        return (a[0], a[1], a[2])
+
+    def _encoder(self, i: int) -> int:
+        return round(self.offset[i] + self.sign[i] * self.q[i] * self.tpr[i] / (2 * math.pi))
+
+    def _adc(self, i: int) -> float:
+        v = self.adc_offset[i] + self.torque[i] / self.adc_scale[i]
+        return round(min(1.0, max(0.0, v)) * ADC_STEPS) / ADC_STEPS
+
+    # --- commands ---------------------------------------------------------------------
+
+    def _handle(self, cmd: SetPid | Status | SetGain | SetClaw, request: bytes) -> bytes:
+        if isinstance(cmd, SetPid):
+            for i, sp in enumerate(cmd.setpoints):
+                if abs(sp.position_ticks - self.setpoint[i]) > SETPOINT_DEADBAND_TICKS:
+                    self.setpoint[i] = sp.position_ticks
+                    self.enabled[i] = True
+            reading = (self.position_ticks, self._velocity(), self.strain_adc)
+            return encode_reply(SetPidReply(*reading), request)
+        if isinstance(cmd, Status):
+            reading = (self.position_ticks, self._velocity(), self.strain_adc)
+            return encode_reply(StatusReply(*reading), request)
+        if isinstance(cmd, SetGain):
+            i = cmd.axis
+            self.enabled[i] = False
+            self.gains[i] = [cmd.kp, cmd.ki, cmd.kd]
+            self._integral[i] = 0.0
+            self._last_error[i] = None
+            self.enabled[i] = True
+            return encode_reply(Ack(cmd.command_id), request)
+        self.claw_setpoint = cmd.value
+        return encode_reply(Ack(cmd.command_id), request)
+
+    def _velocity(self) -> tuple[float, float, float]:
+        v = self.velocity_ticks_s
+        return (v[0], v[1], v[2])
+
+    # --- one 2.5 ms cycle -------------------------------------------------------------
+
+    def _cycle(self) -> None:
+        dt = CYCLE_S
+        measured = self.position_ticks
+        gravity = self._gravity()
+        inertia = self._inertia()
+        for i in range(3):
+            u = self._pid(i, measured[i], dt) if self.enabled[i] else 0.0
+            # Motor: voltage fraction u/span, torque falls with speed (back-EMF).
+            drive = self.stall_torque * u / OUTPUT_SPAN * self.sign[i]
+            damping = self.stall_torque / self.free_speed + self.viscous
+            self.torque[i] = drive - self.stall_torque / self.free_speed * self.qd[i]
+            push = drive + gravity[i]
+            w = self.qd[i]
+            if w == 0.0 and abs(push) <= self.coulomb:
+                continue  # static friction holds
+            friction = self.coulomb * (math.copysign(1.0, w) if w != 0.0 else math.copysign(1.0, push))
+            # Semi-implicit: the speed-proportional terms are integrated implicitly (stable).
+            w_new = (w + dt * (push - friction) / inertia[i]) / (1.0 + dt * damping / inertia[i])
+            if w != 0.0 and w_new * w < 0.0:
+                w_new = 0.0  # Coulomb friction stops, never reverses, the joint within a step
+            self.qd[i] = w_new
+            self.q[i] += w_new * dt
+        for i in range(3):
+            self._samples[i].append(self._encoder(i))
+            self._strain[i].append(self._adc(i))
+        self._update_velocity()
+        step = self.claw_rate * dt
+        self.claw += max(-step, min(step, self.claw_setpoint - self.claw))
+        self.cycles += 1
+
+    def _pid(self, i: int, measured: float, dt: float) -> float:
+        kp, ki, kd = self.gains[i]
+        error = self.setpoint[i] - measured
+        last = self._last_error[i]
+        derivative = 0.0 if last is None else (error - last) / dt
+        self._last_error[i] = error
+        if ki != 0.0:
+            self._integral[i] += error * dt
+            limit = OUTPUT_SPAN / abs(ki)
+            self._integral[i] = max(-limit, min(limit, self._integral[i]))
+        u = kp * error + ki * self._integral[i] + kd * derivative
+        return max(-OUTPUT_SPAN, min(OUTPUT_SPAN, u))
+
+    def _update_velocity(self) -> None:
+        self._vel_count += 1
+        if self._vel_count < VELOCITY_CYCLES:
+            return
+        now = self.position_ticks
+        span = VELOCITY_CYCLES * CYCLE_S
+        self.velocity_ticks_s = [(now[i] - self._vel_ref[i]) / span for i in range(3)]
+        self._vel_ref = list(now)
+        self._vel_count = 0
+
+    def _gravity(self) -> list[float]:
+        """Gravity torque on each joint (N m, positive raises the joint)."""
+        c2 = math.cos(self.q[1])
+        c23 = math.cos(self.q[1] + self.q[2])
+        forearm = (self.m3 * self.l3 / 2 + self.m_tip * self.l3) * c23
+        upper = (self.m2 * self.l2 / 2 + (self.m3 + self.m_tip) * self.l2) * c2
+        return [0.0, -GRAVITY * (upper + forearm), -GRAVITY * forearm]
+
+    def _inertia(self) -> list[float]:
+        """Diagonal joint inertia (kg m^2) at the present pose; coupling terms ignored."""
+        l2, l3 = self.l2, self.l3
+        c2 = math.cos(self.q[1])
+        c23 = math.cos(self.q[1] + self.q[2])
+        r2 = l2 / 2 * c2
+        r3 = l2 * c2 + l3 / 2 * c23
+        rt = l2 * c2 + l3 * c23
+        base = self.m2 * r2**2 + self.m3 * r3**2 + self.m_tip * rt**2
+        elbow = self.m3 * l3**2 / 3 + self.m_tip * l3**2
+        cos3 = math.cos(self.q[2])
+        shoulder = self.m2 * l2**2 / 3 + elbow + (self.m3 + self.m_tip) * l2**2
+        shoulder += 2 * l2 * (self.m3 * l3 / 2 + self.m_tip * l3) * cos3
+        r = self.reflected_inertia
+        return [r + base, r + shoulder, r + elbow]

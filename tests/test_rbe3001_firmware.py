@@ -1,0 +1,185 @@
+"""The RBE3001 firmware simulator, driven only by bytes through the codec."""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import pytest
+
+from app.config import load_profile
+from app.sim.rbe3001_firmware import CYCLE_S, Rbe3001Firmware
+from protocol.rbe3001 import (
+    Ack,
+    JointSetpoint,
+    SetClaw,
+    SetGain,
+    SetPid,
+    SetPidReply,
+    Status,
+    StatusReply,
+    decode_reply,
+    encode_command,
+)
+
+TICKS_PER_RAD = 4096 / (2 * math.pi)
+
+
+def make() -> Rbe3001Firmware:
+    fw = Rbe3001Firmware(load_profile("rbe3001"))
+    fw.advance(0.0)
+    return fw
+
+
+def ask(fw: Rbe3001Firmware, cmd: SetPid | Status | SetGain | SetClaw, now: float):
+    replies = fw.receive(encode_command(cmd), now)
+    assert len(replies) == 1
+    delay, data = replies[0]
+    assert 0.0 <= delay <= 0.002
+    assert len(data) == 64
+    return decode_reply(cmd, data)
+
+
+def set_pid(*ticks: float) -> SetPid:
+    a, b, c = (JointSetpoint(t) for t in ticks)
+    return SetPid((a, b, c))
+
+
+def run(fw: Rbe3001Firmware, start: float, seconds: float, cmd=None) -> list[StatusReply]:
+    """Poll STATUS every 10 ms of simulated time; return the replies."""
+    out = []
+    steps = round(seconds / 0.01)
+    for k in range(1, steps + 1):
+        out.append(ask(fw, cmd or Status(), start + k * 0.01))
+    return out
+
+
+def test_status_at_rest() -> None:
+    fw = make()
+    reply = ask(fw, Status(), 0.0)
+    assert isinstance(reply, StatusReply)
+    assert reply.position_ticks == (0.0, 0.0, 0.0)
+    assert reply.velocity_ticks_s == (0.0, 0.0, 0.0)
+    assert all(0.0 <= a <= 1.0 for a in reply.strain_adc)
+
+
+def test_status_echoes_spare_floats_and_set_pid_zeroes_them() -> None:
+    fw = make()
+    status = struct.pack("<I15f", 38, *([7.0] * 15))
+    _, data = fw.receive(status, 0.0)[0]
+    assert struct.unpack("<6f", data[40:]) == (7.0,) * 6
+    pid = struct.pack("<I15f", 37, *([0.0] * 9 + [7.0] * 6))
+    _, data = fw.receive(pid, 0.0)[0]
+    assert data[40:] == bytes(24)
+
+
+def test_gravity_loads_the_shoulder_when_extended() -> None:
+    fw = make()
+    reply = ask(fw, Status(), 1.0)
+    base, shoulder, elbow = reply.strain_adc
+    assert base == pytest.approx(0.5, abs=0.001)
+    # ~1 N m of gravity at scale 5 N m per ADC unit.
+    assert shoulder - 0.5 > 0.1
+    assert 0.0 < elbow - 0.5 < shoulder - 0.5
+    # The shoulder droops a few ticks under gravity (ki = 0) and holds there.
+    assert -20.0 < reply.position_ticks[1] < 0.0
+
+
+def test_set_pid_moves_over_time_and_converges() -> None:
+    fw = make()
+    target = 1.0 * TICKS_PER_RAD
+    first = ask(fw, set_pid(target, 0.0, 0.0), 0.0)
+    assert isinstance(first, SetPidReply)
+    assert first.position_ticks[0] == 0.0  # nothing moved yet
+    one_cycle = ask(fw, Status(), CYCLE_S)
+    assert 0.0 <= one_cycle.position_ticks[0] < 5.0  # no jump
+    trace = run(fw, CYCLE_S, 1.5)
+    base = [r.position_ticks[0] for r in trace]
+    assert 50.0 < base[9] < target - 100.0  # after 0.1 s: under way, far from done
+    assert all(b2 >= b1 - 30.0 for b1, b2 in zip(base, base[1:]))  # no violent reversal
+    assert max(base) < target * 1.1  # overshoot under 10 %
+    assert abs(base[-1] - target) < 10.0
+    moving = [r.velocity_ticks_s[0] for r in trace[:30]]
+    assert max(moving) > 500.0  # ticks/s: ~1-3 rad/s while moving
+    assert trace[-1].velocity_ticks_s[0] == pytest.approx(0.0, abs=20.0)
+
+
+def test_set_pid_reply_carries_readings() -> None:
+    fw = make()
+    ask(fw, set_pid(300.0, 0.0, 0.0), 0.0)
+    reply = ask(fw, set_pid(300.0, 0.0, 0.0), 0.2)
+    assert isinstance(reply, SetPidReply)
+    status = ask(fw, Status(), 0.2)
+    assert reply.position_ticks == status.position_ticks
+    assert reply.velocity_ticks_s == status.velocity_ticks_s
+    assert reply.strain_adc == status.strain_adc
+
+
+def test_setpoint_within_deadband_is_ignored() -> None:
+    fw = make()
+    ask(fw, set_pid(100.0, 0.0, 0.0), 0.0)
+    ask(fw, set_pid(100.005, 0.0, 0.0), 0.01)
+    assert fw.setpoint[0] == 100.0
+    ask(fw, set_pid(100.5, 0.0, 0.0), 0.02)
+    assert fw.setpoint[0] == 100.5
+
+
+def test_set_gain_echo_and_kp_zero_stops_tracking() -> None:
+    fw = make()
+    cmd = SetGain(0, 0.0, 0.0, 0.0)
+    raw = encode_command(cmd)
+    replies = fw.receive(raw, 0.0)
+    assert replies[0][1] == raw  # the firmware echoes the buffer
+    assert decode_reply(cmd, replies[0][1]) == Ack(39)
+    ask(fw, set_pid(500.0, 0.0, 0.0), 0.0)
+    end = run(fw, 0.0, 0.5)[-1]
+    assert end.position_ticks[0] == 0.0  # base has no gravity: with no drive it stays put
+    # Restoring a gain makes it track again.
+    ask(fw, SetGain(0, 0.005, 0.0, 0.0), 0.5)
+    assert run(fw, 0.5, 1.0)[-1].position_ticks[0] == pytest.approx(500.0, abs=10.0)
+
+
+def test_integral_gain_removes_gravity_droop() -> None:
+    fw = make()
+    ask(fw, SetGain(1, 0.005, 0.05, 0.0), 0.0)
+    end = run(fw, 0.0, 2.0)[-1]
+    assert abs(end.position_ticks[1]) <= 1.0
+
+
+def test_set_claw_moves_at_a_finite_rate() -> None:
+    fw = make()
+    cmd = SetClaw(1.0)
+    raw = encode_command(cmd)
+    assert fw.receive(raw, 0.0)[0][1] == raw
+    fw.advance(0.1)
+    assert 0.1 < fw.claw < 0.5
+    fw.advance(1.0)
+    assert fw.claw == 1.0
+    ask(fw, SetClaw(0.25), 1.0)
+    fw.advance(2.0)
+    assert fw.claw == pytest.approx(0.25)
+
+
+def test_unknown_id_and_wrong_length_are_silent() -> None:
+    fw = make()
+    assert fw.receive(struct.pack("<I15f", 65, *([0.0] * 15)), 0.0) == []
+    assert fw.receive(encode_command(Status())[:63], 0.0) == []
+    assert fw.receive(b"\x00" + encode_command(Status()), 0.0) == []  # report id not stripped
+    assert fw.receive(struct.pack("<I15f", 40, 2.0, *([0.0] * 14)), 0.0) == []  # claw 2.0
+
+
+def test_long_gap_is_capped_and_deterministic() -> None:
+    a, b = make(), make()
+    for fw in (a, b):
+        ask(fw, set_pid(800.0, -200.0, 300.0), 0.0)
+        fw.advance(1e6)  # a huge gap must not hang
+    assert a.cycles == b.cycles <= 801
+    assert ask(a, Status(), 1e6) == ask(b, Status(), 1e6)
+
+
+def test_encoder_readings_are_quarter_ticks() -> None:
+    fw = make()
+    ask(fw, set_pid(700.0, 0.0, 0.0), 0.0)
+    for r in run(fw, 0.0, 0.3):
+        for p in r.position_ticks:
+            assert (p * 4) == int(p * 4)  # 4-sample average of whole ticks
