@@ -74,15 +74,25 @@ def test_status_echoes_spare_floats_and_set_pid_zeroes_them() -> None:
 
 
 def test_gravity_loads_the_shoulder_when_extended() -> None:
+    # q = 0: upper arm level, forearm hanging straight down (kinematics/rrr.py convention).
     fw = make()
     reply = ask(fw, Status(), 1.0)
     base, shoulder, elbow = reply.strain_adc
     assert base == pytest.approx(0.5, abs=0.001)
-    # ~1 N m of gravity at scale 5 N m per ADC unit.
-    assert shoulder - 0.5 > 0.1
-    assert 0.0 < elbow - 0.5 < shoulder - 0.5
+    assert elbow == pytest.approx(0.5, abs=0.001)
+    assert shoulder - 0.5 > 0.05  # ~0.6 N m at 5 N m per ADC unit
     # The shoulder droops a few ticks under gravity (ki = 0) and holds there.
     assert -20.0 < reply.position_ticks[1] < 0.0
+
+
+def test_gravity_loads_shoulder_and_elbow_more_when_stretched_out() -> None:
+    hanging = make()
+    stretched = Rbe3001Firmware(load_profile("rbe3001"), start_q=(0.0, 0.0, -1.2))
+    stretched.advance(0.0)
+    a = ask(hanging, Status(), 1.0).strain_adc
+    b = ask(stretched, Status(), 1.0).strain_adc
+    assert b[1] - 0.5 > a[1] - 0.5 + 0.03
+    assert 0.5 - b[2] > 0.03  # the motor holds the forearm up: negative q2 torque
 
 
 def test_set_pid_moves_over_time_and_converges() -> None:

@@ -21,11 +21,12 @@ output/tick, ki in output/(tick s), kd in output/(tick/s), the small-signal stif
     K [N m/rad] = kp * (stall_torque / 0.2) * ticks_per_rev / (2 pi)
 = 0.005 * 20 * 651.9 ~ 65 N m/rad for the defaults (4 N m stall): a 1 rad step runs at the
 speed limit (~3 rad/s) and settles in ~0.4-0.6 s with back-EMF damping (zeta ~ 0.8) and a
-gravity droop of ~10 ticks on the shoulder (the firmware's ki = 0 leaves it).
+gravity droop of a few ticks on the shoulder (the firmware's ki = 0 leaves it).
 
-Joint convention: base q1 about the vertical; shoulder q2 elevation of link 2 above the
-horizontal; elbow q3 of link 3 relative to link 2. q = 0 is the arm stretched out level, so
-gravity loads the shoulder and elbow most there. ticks = offset + sign * q * tpr / (2 pi).
+Joint convention (kinematics/rrr.py, the course notes): base q0 about the vertical;
+shoulder q1 the elevation of link 2 above the horizontal; link 3 points along
+(sin(q1 - q2), -cos(q1 - q2)) in the arm's vertical plane, so at q = 0 link 2 is level and
+link 3 hangs straight down. ticks = offset + sign * q * tpr / (2 pi).
 Strain ADC = offset + torque / scale (the profile's [force] table), averaged over 5 cycles.
 """
 
@@ -255,25 +256,22 @@ class Rbe3001Firmware:
         self._vel_count = 0
 
     def _gravity(self) -> list[float]:
-        """Gravity torque on each joint (N m, positive raises the joint)."""
-        c2 = math.cos(self.q[1])
-        c23 = math.cos(self.q[1] + self.q[2])
-        forearm = (self.m3 * self.l3 / 2 + self.m_tip * self.l3) * c23
-        upper = (self.m2 * self.l2 / 2 + (self.m3 + self.m_tip) * self.l2) * c2
-        return [0.0, -GRAVITY * (upper + forearm), -GRAVITY * forearm]
+        """Gravity torque on each joint (N m, positive drives the joint positive)."""
+        q1, q2 = self.q[1], self.q[2]
+        upper = (self.m2 * self.l2 / 2 + (self.m3 + self.m_tip) * self.l2) * math.cos(q1)
+        forearm = (self.m3 * self.l3 / 2 + self.m_tip * self.l3) * math.sin(q1 - q2)
+        return [0.0, -GRAVITY * (upper + forearm), GRAVITY * forearm]
 
     def _inertia(self) -> list[float]:
         """Diagonal joint inertia (kg m^2) at the present pose; coupling terms ignored."""
-        l2, l3 = self.l2, self.l3
-        c2 = math.cos(self.q[1])
-        c23 = math.cos(self.q[1] + self.q[2])
-        r2 = l2 / 2 * c2
-        r3 = l2 * c2 + l3 / 2 * c23
-        rt = l2 * c2 + l3 * c23
-        base = self.m2 * r2**2 + self.m3 * r3**2 + self.m_tip * rt**2
-        elbow = self.m3 * l3**2 / 3 + self.m_tip * l3**2
-        cos3 = math.cos(self.q[2])
-        shoulder = self.m2 * l2**2 / 3 + elbow + (self.m3 + self.m_tip) * l2**2
-        shoulder += 2 * l2 * (self.m3 * l3 / 2 + self.m_tip * l3) * cos3
+        q1, q2 = self.q[1], self.q[2]
+        ex, ez = self.l2 * math.cos(q1), self.l2 * math.sin(q1)  # elbow, from the shoulder
+        dx, dz = math.sin(q1 - q2), -math.cos(q1 - q2)  # forearm direction
+        cx, cz = ex + self.l3 / 2 * dx, ez + self.l3 / 2 * dz  # forearm centre of mass
+        tx, tz = ex + self.l3 * dx, ez + self.l3 * dz  # tip
+        m2, m3, mt, l2, l3 = self.m2, self.m3, self.m_tip, self.l2, self.l3
+        base = m2 * (ex / 2) ** 2 + m3 * cx**2 + mt * tx**2
+        shoulder = m2 * l2**2 / 3 + m3 * (cx**2 + cz**2 + l3**2 / 12) + mt * (tx**2 + tz**2)
+        elbow = m3 * l3**2 / 3 + mt * l3**2
         r = self.reflected_inertia
         return [r + base, r + shoulder, r + elbow]
