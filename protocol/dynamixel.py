@@ -88,12 +88,14 @@ class ParseError:
     """A framing problem seen by `Parser`: an event, never raised.
 
     kind: "garbage" (bytes before a header), "length" (absurd LEN), "crc" (bad checksum),
-    "overflow" (fed past the buffer limit without draining). `dropped` counts bytes discarded.
+    "overflow" (fed past the buffer limit without draining). `dropped` counts bytes discarded;
+    `id` is the frame's id byte where one was read (kind "crc"), else None.
     """
 
     kind: str
     detail: str
     dropped: int
+    id: int | None = None
 
 
 def describe_error(error: int) -> str:
@@ -402,7 +404,7 @@ class Parser:
         raw = bytes(buf[:end])
         if crc16(raw[:-2]) != from_bytes(raw[-2:], False):
             del buf[:1]
-            return ParseError("crc", f"CRC mismatch in a {end}-byte frame from id {raw[4]}", 1)
+            return ParseError("crc", f"CRC mismatch in a {end}-byte frame", 1, raw[4])
         del buf[:end]
         body = unstuff(raw[PREFIX_LEN:-2])
         if body[0] == Instruction.STATUS:
