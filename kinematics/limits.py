@@ -42,8 +42,11 @@ def within(
     return np.asarray(np.all(ok, axis=-1))
 
 
-def _fmt(value: float, kind: str) -> str:
-    return f"{value:.2f} rad" if kind == "revolute" else f"{value:.3f} m"
+def _fmt(value: float, kind: str, excess: float) -> str:
+    """Enough decimals that a small excess still shows between value and limit."""
+    base = 2 if kind == "revolute" else 3
+    extra = int(np.ceil(-np.log10(excess))) + 1 if excess > 0 else 0
+    return f"{value:.{min(max(base, extra), 6)}f} {unit(kind)}"
 
 
 def violations(
@@ -71,14 +74,16 @@ def violations(
         if np.isnan(v):
             out.append(f"{names[i]} has no value (NaN)")
         elif v > hi[i] + tol:
+            e = v - float(hi[i])
             out.append(
-                f"{names[i]} {_fmt(v, k)} is above its limit {_fmt(float(hi[i]), k)}"
-                f" by {v - float(hi[i]):.3g} {u}"
+                f"{names[i]} {_fmt(v, k, e)} is above its limit {_fmt(float(hi[i]), k, e)}"
+                f" by {e:.3g} {u}"
             )
         elif v < lo[i] - tol:
+            e = float(lo[i]) - v
             out.append(
-                f"{names[i]} {_fmt(v, k)} is below its limit {_fmt(float(lo[i]), k)}"
-                f" by {float(lo[i]) - v:.3g} {u}"
+                f"{names[i]} {_fmt(v, k, e)} is below its limit {_fmt(float(lo[i]), k, e)}"
+                f" by {e:.3g} {u}"
             )
     return out
 

@@ -188,9 +188,11 @@ def ik_near(
 ) -> FloatArray:
     """The solution nearest ``q_prev`` (..., 3), unwrapped next to it; (..., 3) rad.
 
-    Nearness is the wrapped joint distance. With limits given, in-limit
-    solutions are preferred, but an out-of-limit one is still returned when no
-    other exists, so the caller can say which joint is out. NaN if unreachable.
+    Nearness is the wrapped joint distance, so tracking a path point by point
+    stays on one branch. With limits given, in-limit solutions are preferred
+    (use that to pick a start, not to track a path: it may jump branches), but
+    an out-of-limit one is still returned when no other exists, so the caller
+    can say which joint is out. NaN if unreachable.
     """
     sols = ik(p, g)
     qp = np.asarray(q_prev, dtype=np.float64)[..., None, :]
