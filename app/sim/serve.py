@@ -1,0 +1,266 @@
+"""Serve any SimDevice over a real byte stream: a pseudo-terminal or a TCP socket.
+
+This lets unmodified host software (DynamixelSDK, pyserial, our serial link) talk to a
+simulator exactly as to hardware: `serve_pty` makes a path that opens like /dev/ttyUSB0,
+`serve_tcp` a `socket://host:port` endpoint. Host bytes go to `device.receive(data, now)`;
+each reply is written `delay` seconds after `now`, strictly in order (a FIFO with one
+writer, so a later reply never overtakes an earlier one). Packetized devices (HID-style,
+64-byte packets) get the host's stream cut into 64-byte packets. A physics tick task calls
+`device.advance(now)` every `tick_s` so state evolves between requests. `now` is
+`time.monotonic()` in seconds.
+
+Command: `armserver sim dynamixel (--pty PATH | --listen tcp://127.0.0.1:PORT)
+[--ids 1,2,3,4] [--baudrate 1000000] [--mode ID:MODE ...]` (see `main`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import os
+import signal
+import time
+import tty
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from urllib.parse import urlsplit
+
+from app.sim.base import SimDevice
+
+log = logging.getLogger(__name__)
+
+PACKET_SIZE = 64  # host packet size of packetized devices (rbe3001 HID reports), bytes
+TICK_S = 0.01  # physics tick, s: 100 Hz keeps Present* fresh between requests
+REPLY_BACKLOG = 1024  # replies waiting to be written; beyond this they are dropped (logged)
+READ_CHUNK = 4096  # bytes per read from the pty or socket
+
+
+class _Pump:
+    """Host bytes -> device -> timed, ordered replies through `write`."""
+
+    def __init__(self, device: SimDevice, write: Callable[[bytes], None]) -> None:
+        self.device = device
+        self._write = write
+        self._pending = bytearray()
+        self._queue: asyncio.Queue[tuple[float, bytes]] = asyncio.Queue(REPLY_BACKLOG)
+        self._task = asyncio.get_running_loop().create_task(self._writer())
+
+    def on_data(self, data: bytes) -> None:
+        now = time.monotonic()
+        chunks = [data]
+        if self.device.packetized:
+            self._pending += data
+            n = len(self._pending) // PACKET_SIZE * PACKET_SIZE
+            chunks = [bytes(self._pending[k:k + PACKET_SIZE]) for k in range(0, n, PACKET_SIZE)]
+            del self._pending[:n]
+        for chunk in chunks:
+            for delay, reply in self.device.receive(chunk, now):
+                try:
+                    self._queue.put_nowait((now + delay, reply))
+                except asyncio.QueueFull:
+                    log.warning("reply backlog full (%d); reply dropped", REPLY_BACKLOG)
+
+    async def _writer(self) -> None:
+        while True:
+            due, reply = await self._queue.get()
+            wait = due - time.monotonic()
+            if wait > 0:
+                await asyncio.sleep(wait)
+            try:
+                self._write(reply)
+            except OSError as exc:
+                log.warning("reply not written: %s", exc)
+
+    async def close(self) -> None:
+        self._task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._task
+
+
+async def _ticker(device: SimDevice, period: float) -> None:
+    while True:
+        device.advance(time.monotonic())
+        await asyncio.sleep(period)
+
+
+class PtyServer:
+    """A device behind a pseudo-terminal; `link_path` is a symlink to the slave tty."""
+
+    def __init__(self, device: SimDevice, link_path: str | os.PathLike[str],
+                 tick_s: float | None = TICK_S) -> None:
+        self.device = device
+        self.link_path = Path(link_path)
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)  # at once: a cooked pty echoes and turns LF into CRLF
+        os.set_blocking(self.master, False)
+        self.tty_name = os.ttyname(self.slave)
+        if self.link_path.is_symlink():
+            self.link_path.unlink()
+        self.link_path.symlink_to(self.tty_name)
+        self._loop = asyncio.get_running_loop()
+        self._pump = _Pump(device, self._write)
+        self._loop.add_reader(self.master, self._on_readable)
+        self._tick = self._loop.create_task(_ticker(device, tick_s)) if tick_s else None
+        self._closed = False
+
+    def _on_readable(self) -> None:
+        try:
+            data = os.read(self.master, READ_CHUNK)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:  # EIO cannot happen while we hold the slave, but be safe
+            log.warning("pty read failed: %s", exc)
+            return
+        if data:
+            self._pump.on_data(data)
+
+    def _write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            try:
+                view = view[os.write(self.master, view):]
+            except BlockingIOError:
+                log.warning("pty full (host not reading); %d reply bytes dropped", len(view))
+                return
+
+    async def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._loop.remove_reader(self.master)
+        if self._tick is not None:
+            self._tick.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._tick
+        await self._pump.close()
+        for fd in (self.master, self.slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        if self.link_path.is_symlink():
+            self.link_path.unlink()
+
+
+class TcpServer:
+    """A device behind a TCP listener; every connection feeds the same device."""
+
+    def __init__(self, device: SimDevice, tick_s: float | None = TICK_S) -> None:
+        self.device = device
+        self.server: asyncio.Server | None = None
+        self._conns: set[asyncio.Task[None]] = set()
+        loop = asyncio.get_running_loop()
+        self._tick = loop.create_task(_ticker(device, tick_s)) if tick_s else None
+
+    @property
+    def port(self) -> int:
+        assert self.server is not None
+        return int(self.server.sockets[0].getsockname()[1])
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.current_task()
+        assert task is not None
+        self._conns.add(task)
+        pump = _Pump(self.device, writer.write)
+        try:
+            while data := await reader.read(READ_CHUNK):
+                pump.on_data(data)
+        except ConnectionError as exc:
+            log.info("connection lost: %s", exc)
+        finally:
+            self._conns.discard(task)
+            await pump.close()
+            writer.close()
+            with contextlib.suppress(ConnectionError):
+                await writer.wait_closed()
+
+    async def close(self) -> None:
+        if self.server is not None:
+            self.server.close()
+        for t in [*self._conns, *([self._tick] if self._tick else [])]:
+            t.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await t
+        self._tick = None
+        if self.server is not None:
+            await self.server.wait_closed()
+            self.server = None
+
+
+async def serve_pty(device: SimDevice, link_path: str | os.PathLike[str],
+                    tick_s: float | None = TICK_S) -> PtyServer:
+    """Serve `device` on a new pseudo-terminal reachable at the symlink `link_path`."""
+    return PtyServer(device, link_path, tick_s)
+
+
+async def serve_tcp(device: SimDevice, host: str = "127.0.0.1", port: int = 0,
+                    tick_s: float | None = TICK_S) -> TcpServer:
+    """Serve `device` on a TCP listener (port 0: any free port; see `.port`)."""
+    srv = TcpServer(device, tick_s)
+    srv.server = await asyncio.start_server(srv._serve, host, port)
+    return srv
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="armserver sim", description="Serve a simulated device.")
+    p.add_argument("device", choices=["dynamixel"])
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--pty", metavar="PATH", help="symlink to create for the pseudo-terminal")
+    where.add_argument("--listen", metavar="URL", help="tcp://HOST:PORT to listen on")
+    p.add_argument("--ids", default="1,2,3,4", help="servo ids, comma separated")
+    p.add_argument("--baudrate", type=int, default=1_000_000, help="bus baud rate, bit/s")
+    p.add_argument("--mode", action="append", default=[], metavar="ID:MODE",
+                   help="operating mode of a servo (1 velocity, 3 position, 4 extended, 16 PWM)")
+    return p
+
+
+def _pairs(items: Sequence[str]) -> dict[int, int]:
+    out: dict[int, int] = {}
+    for item in items:
+        a, _, b = item.partition(":")
+        out[int(a)] = int(b)
+    return out
+
+
+async def _run(args: argparse.Namespace) -> None:
+    from app.sim.dynamixel_bus import DynamixelBus
+
+    ids = [int(i) for i in args.ids.split(",") if i.strip()]
+    device = DynamixelBus(ids, args.baudrate, _pairs(args.mode))
+    server: PtyServer | TcpServer
+    if args.pty:
+        server = await serve_pty(device, args.pty)
+        where = f"{args.pty} -> {server.tty_name}"
+    else:
+        url = urlsplit(args.listen)
+        if url.scheme != "tcp" or not url.hostname or url.port is None:
+            raise ValueError(f"--listen wants tcp://HOST:PORT, got {args.listen!r}")
+        server = await serve_tcp(device, url.hostname, url.port)
+        where = f"tcp://{url.hostname}:{server.port} (socket://{url.hostname}:{server.port})"
+    print(f"dynamixel bus ids {ids} at {args.baudrate} bit/s on {where}", flush=True)
+    stop = asyncio.Event()
+    with contextlib.suppress(NotImplementedError):  # SIGTERM: close cleanly (remove the link)
+        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
+    try:
+        await stop.wait()
+    finally:
+        await server.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`armserver sim ...`: run a simulated device until interrupted; 0 on a clean stop,
+    2 on bad arguments."""
+    args = _parser().parse_args(argv)
+    try:
+        _pairs(args.mode)
+        asyncio.run(_run(args))
+    except KeyboardInterrupt:
+        return 0
+    except (ValueError, OSError) as exc:
+        print(f"armserver sim: {exc}", flush=True)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
