@@ -63,6 +63,9 @@ class JointConfig(_Strict):
     sign: Literal[1, -1] = 1
     lead_m: float | None = Field(None, gt=0.0, description="metres per motor revolution (prismatic)")
     operating_mode: int | None = None
+    stall_torque_nm: float | None = Field(
+        None, gt=0.0, description="motor stall torque, N m (Dynamixel Present Load is 0.1 % of it)"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> JointConfig:
@@ -86,6 +89,16 @@ class ForceConfig(_Strict):
     adc_offset: list[float]
 
 
+class CartesianLimits(_Strict):
+    """Tip limits for straight-line moves."""
+
+    max_velocity: float = Field(0.1, gt=0.0, description="m/s")
+    max_acceleration: float = Field(0.5, gt=0.0, description="m/s^2")
+    max_jerk: float = Field(5.0, gt=0.0, description="m/s^3")
+    line_tolerance: float = Field(0.005, gt=0.0, description="how far the measured tip may "
+                                  "stray from a line move's segment, m (reported, tested)")
+
+
 class ArmProfile(_Strict):
     name: str = Field(pattern=r"^[a-z0-9][a-z0-9_-]{0,31}$")
     model: Literal["rbe3001", "angler"]
@@ -95,6 +108,8 @@ class ArmProfile(_Strict):
     joints: list[JointConfig]
     gripper: GripperConfig = Field(default_factory=GripperConfig)
     force: ForceConfig | None = None
+    cartesian: CartesianLimits = Field(default_factory=CartesianLimits)
+    home: list[float] | None = Field(None, description="joint positions of the home pose")
     raw_access: bool = Field(False, description="allow pass-through commands outside the limits")
 
     @field_validator("geometry")

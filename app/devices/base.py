@@ -1,0 +1,301 @@
+"""The driver base: one asyncio task owns an arm's link (ARCHITECTURE rule 2).
+
+Everyone else calls `submit(message)` and awaits a future. The owner task takes requests from a
+bounded queue one at a time, writes, reads until the matching reply or the timeout, and resolves
+the future with a typed reply or a typed error (DeviceTimeout, CorruptReply, DeviceError,
+LinkDown). Between requests it polls the device at the profile's rate and publishes samples.
+
+A lost link fails every pending request with `link_down`, is reported once (state, event, log),
+and is reopened with capped exponential backoff; while it is down `submit` fails at once.
+"""
+
+from __future__ import annotations
+
+import abc
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from app.arm_model import ArmModel
+from app.config import ArmProfile
+from app.errors import ArmError, Busy, DeviceTimeout, LinkDown
+from app.links.base import Link, LinkError, LinkState
+from app.telemetry import TelemetryHub
+
+log = logging.getLogger(__name__)
+
+#: First and last reconnect delay, s: quick enough to recover a replugged cable within a second,
+#: slow enough not to spin on a port that is gone.
+BACKOFF_FIRST_S = 0.1
+BACKOFF_MAX_S = 2.0
+#: Consecutive failed polls before samples are marked stale and an event is sent.
+STALE_AFTER = 3
+
+
+@dataclass
+class _Request:
+    message: Any
+    future: asyncio.Future[Any]
+    timeout: float
+    queued_at: float = field(default_factory=time.monotonic)
+
+
+class Driver(abc.ABC):
+    """Base of the per-model drivers. Subclasses implement the protocol exchange."""
+
+    def __init__(self, profile: ArmProfile, link: Link, hub: TelemetryHub) -> None:
+        self.profile = profile
+        self.link = link
+        self.hub = hub
+        self.model = ArmModel(profile)
+        self.timeout = profile.link.timeout_s
+        self._queue: asyncio.Queue[_Request] = asyncio.Queue(maxsize=profile.link.queue_size)
+        self._task: asyncio.Task[None] | None = None
+        self._seq = 0
+        self._poll_failures = 0
+        self.stale = True
+        self.last_error: str | None = None
+        self.stats = {"requests": 0, "replies": 0, "timeouts": 0, "corrupt": 0, "stale_replies": 0,
+                      "polls": 0, "poll_failures": 0, "reconnects": 0}
+        #: Filled in by the arm service: adds motion, estop and gripper fields to each sample.
+        self.annotate: Callable[[dict[str, Any]], None] = lambda s: None
+        self.gripper: float | None = None
+        self.positions: np.ndarray | None = None
+        self.velocities: np.ndarray | None = None
+
+    # ------------------------------------------------------------ public
+
+    @property
+    def name(self) -> str:
+        return self.profile.name
+
+    @property
+    def state(self) -> LinkState:
+        return self.link.state
+
+    async def start(self) -> None:
+        if self._task is None:
+            self._task = asyncio.create_task(self._run(), name=f"link:{self.name}")
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except asyncio.CancelledError:
+                pass
+            self._task = None
+        self._fail_pending(LinkDown(f"{self.name}: server shutting down"))
+        await self.link.close()
+
+    async def submit(self, message: Any, timeout: float | None = None) -> Any:
+        """Queue `message` for the owner task and await its reply (or its typed error)."""
+        if self.link.state is not LinkState.UP:
+            raise LinkDown(f"{self.name} link is {self.link.state.value}: "
+                           f"{self.link.last_error or 'not connected yet'}")
+        fut: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        req = _Request(message, fut, timeout if timeout is not None else self.timeout)
+        try:
+            self._queue.put_nowait(req)
+        except asyncio.QueueFull:
+            raise Busy(f"{self.name}: {self._queue.maxsize} requests already queued") from None
+        return await fut
+
+    def wait_connected(self, timeout: float) -> asyncio.Future[bool]:
+        async def _wait() -> bool:
+            deadline = time.monotonic() + timeout
+            while time.monotonic() < deadline:
+                if self.link.state is LinkState.UP and not self.stale:
+                    return True
+                await asyncio.sleep(0.01)
+            return False
+        return asyncio.ensure_future(_wait())
+
+    # ------------------------------------------------------------ for subclasses
+
+    @abc.abstractmethod
+    async def _exchange(self, message: Any, timeout: float) -> Any:
+        """Write one request and read its reply, in the owner task. Raise DeviceTimeout,
+        CorruptReply or DeviceError for that request, LinkError if the link is lost."""
+
+    @abc.abstractmethod
+    async def _poll(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Read the device state in the owner task: joint positions, velocities (SI) and
+        joint torques (N m or N) where sensed."""
+
+    async def _on_connected(self) -> None:
+        """Prepare the device after the link opens (modes, torque); in the owner task."""
+
+    def _reset_reader(self) -> None:
+        """Forget partial input (after a timeout or reconnect)."""
+
+    # ------------------------------------------------------------ owner task
+
+    async def _run(self) -> None:
+        delay = BACKOFF_FIRST_S
+        was_up = False
+        while True:
+            self.link.state = LinkState.CONNECTING
+            try:
+                await self.link.open()
+                self._reset_reader()
+                await self._on_connected()
+            except LinkError as exc:
+                self._lost(str(exc), was_up)
+                was_up = False
+                await self.link.close()
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, BACKOFF_MAX_S)
+                continue
+            except ArmError as exc:  # device did not answer its set-up: retry like a lost link
+                self.link.state = LinkState.DOWN
+                self.link.last_error = f"device set-up failed: {exc.detail}"
+                self._lost(self.link.last_error, was_up)
+                was_up = False
+                await self.link.close()
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, BACKOFF_MAX_S)
+                continue
+            delay = BACKOFF_FIRST_S
+            self.link.state = LinkState.UP
+            self.link.last_error = None
+            self.last_error = None
+            log.info("%s: link up (%s %s)", self.name, self.link.kind, self.link.address)
+            if self.stats["reconnects"] or was_up:
+                self.hub.event("link_back", kind=self.link.kind)
+            was_up = True
+            try:
+                await self._session()
+            except LinkError as exc:
+                self.stats["reconnects"] += 1
+                self._lost(str(exc), True)
+                await self.link.close()
+                await asyncio.sleep(delay)
+
+    def _lost(self, reason: str, announce: bool) -> None:
+        self.link.state = LinkState.DOWN
+        self.link.last_error = reason
+        changed = self.last_error != reason
+        self.last_error = reason
+        self.stale = True
+        self._fail_pending(LinkDown(f"{self.name} link lost: {reason}"))
+        if announce:
+            log.warning("%s: link lost: %s", self.name, reason)
+            self.hub.event("link_lost", reason=reason)
+        elif changed:
+            log.warning("%s: cannot open link: %s", self.name, reason)
+        self._publish_stale()
+
+    def _fail_pending(self, exc: ArmError) -> None:
+        while not self._queue.empty():
+            req = self._queue.get_nowait()
+            if not req.future.done():
+                req.future.set_exception(exc)
+
+    async def _session(self) -> None:
+        period = 1.0 / self.profile.link.poll_hz
+        loop = asyncio.get_running_loop()
+        next_poll = loop.time()
+        while True:
+            now = loop.time()
+            if now >= next_poll:
+                await self._do_poll()
+                next_poll += period
+                if next_poll < loop.time() - period:  # fell behind: skip, do not burst
+                    next_poll = loop.time() + period
+                continue
+            try:
+                req = self._queue.get_nowait()
+            except asyncio.QueueEmpty:
+                try:
+                    req = await asyncio.wait_for(self._queue.get(), next_poll - now)
+                except TimeoutError:
+                    continue
+            await self._serve(req)
+
+    async def _serve(self, req: _Request) -> None:
+        if req.future.done():  # the caller gave up (cancelled) while queued
+            return
+        self.stats["requests"] += 1
+        try:
+            reply = await self._exchange(req.message, req.timeout)
+        except LinkError:
+            if not req.future.done():
+                req.future.set_exception(LinkDown(f"{self.name} link lost during the request"))
+            raise
+        except ArmError as exc:
+            if isinstance(exc, DeviceTimeout):
+                self.stats["timeouts"] += 1
+                self._reset_reader()
+            if not req.future.done():
+                req.future.set_exception(exc)
+            return
+        self.stats["replies"] += 1
+        if not req.future.done():
+            req.future.set_result(reply)
+
+    async def _do_poll(self) -> None:
+        self.stats["polls"] += 1
+        try:
+            q, qd, tau = await self._poll()
+        except ArmError as exc:
+            self.stats["poll_failures"] += 1
+            if isinstance(exc, DeviceTimeout):
+                self._reset_reader()
+            self._poll_failures += 1
+            if self._poll_failures == STALE_AFTER:
+                self.stale = True
+                self.last_error = exc.detail
+                log.warning("%s: device not answering polls: %s", self.name, exc.detail)
+                self.hub.event("device_stale", reason=exc.detail, code=exc.code)
+                self._publish_stale()
+            return
+        if self._poll_failures >= STALE_AFTER:
+            log.info("%s: device answering again", self.name)
+            self.hub.event("device_back")
+        self._poll_failures = 0
+        self.stale = False
+        self.positions, self.velocities = q, qd
+        self._publish(q, qd, tau, stale=False)
+
+    # ------------------------------------------------------------ samples
+
+    def _publish(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray | None, stale: bool) -> None:
+        self._seq += 1
+        m = self.model
+        tip = m.fk(q)
+        tip_v = m.jacobian(q) @ qd
+        sample: dict[str, Any] = {
+            "seq": self._seq,
+            "time": time.time(),
+            "positions": [float(v) for v in q],
+            "velocities": [float(v) for v in qd],
+            "torques": None if tau is None else [float(v) for v in tau],
+            "tip": _vec(tip),
+            "tip_velocity": _vec(tip_v),
+            "tip_force": None,
+            "gripper": self.gripper,
+            "motion": None,
+            "estop": False,
+            "link": self.link.state.value,
+            "stale": stale,
+        }
+        if tau is not None:
+            f = m.tip_force(q, tau)
+            if f is not None and np.all(np.isfinite(f)):
+                sample["tip_force"] = _vec(f)
+        self.annotate(sample)
+        self.hub.publish(sample)
+
+    def _publish_stale(self) -> None:
+        if self.positions is not None and self.velocities is not None:
+            self._publish(self.positions, np.zeros_like(self.velocities), None, stale=True)
+
+
+def _vec(v: np.ndarray) -> dict[str, float]:
+    return {"x": float(v[0]), "y": float(v[1]), "z": float(v[2])}

@@ -1,0 +1,452 @@
+"""Per-arm motion queue and executor.
+
+A move is checked and planned when it is submitted (joint limits, reachability, every point of
+a line), so a bad move is refused with 422 before anything is sent. It is planned again from the
+arm's commanded state when it starts, time-parameterised by ruckig under the profile's velocity,
+acceleration and jerk limits, and streamed to the driver as setpoints at the profile's control
+rate. It ends `done` only when the measured joints settle at the target; a device that stops
+answering fails it with the device's error code (the watchdog), and the arm is told to hold.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+import time
+import uuid
+from collections import OrderedDict, deque
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+
+from app import schemas as s
+from app.errors import ArmError, Busy, InvalidRequest, JointLimit, Unreachable, UnknownMotion
+from kinematics import trajectory
+from kinematics.errors import KinematicsError, LimitViolation
+
+if TYPE_CHECKING:
+    from app.service import ArmService
+
+log = logging.getLogger(__name__)
+
+MAX_QUEUED = 32
+HISTORY = 256
+#: Consecutive failed setpoints before a motion fails (3 control periods: a single dropped or
+#: corrupt reply is ridden through, a device that stopped answering is not).
+MAX_SETPOINT_FAILURES = 3
+#: How long a finished trajectory may take to settle before the motion fails, s.
+SETTLE_TIMEOUT_S = 2.0
+PREVIEW_POINTS = 50
+
+Status = Literal["queued", "running", "done", "stopped", "failed"]
+
+
+@dataclass
+class Plan:
+    traj: Any  # JointTrajectory or SampledTrajectory: .duration, .sample(t) -> (q, qd, qdd)
+    start: np.ndarray
+    target: np.ndarray
+    path: Literal["joint", "line"]
+
+
+@dataclass
+class MotionRecord:
+    id: str
+    arm: str
+    kind: Literal["joints", "pose"]
+    path: Literal["joint", "line"]
+    request: Any
+    target: np.ndarray
+    target_tip: np.ndarray
+    planned_duration: float
+    planned_path: list[dict[str, float]]
+    status: Status = "queued"
+    progress: float = 0.0
+    reason: str | None = None
+    code: str | None = None
+    created: float = field(default_factory=time.time)
+    started: float | None = None
+    ended: float | None = None
+    final_positions: list[float] | None = None
+    final_tip: dict[str, float] | None = None
+    cancel: str | None = None  # "stop" (decelerate), "replace" (hand over now)
+    done: asyncio.Event = field(default_factory=asyncio.Event)
+
+    async def wait(self) -> MotionRecord:
+        await self.done.wait()
+        return self
+
+    def to_schema(self) -> s.Motion:
+        return s.Motion(
+            id=self.id, arm=self.arm, kind=self.kind, path=self.path, status=self.status,
+            progress=round(self.progress, 4), planned_duration=self.planned_duration,
+            target_positions=[float(v) for v in self.target], target_tip=_vec(self.target_tip),
+            reason=self.reason, code=self.code, created=self.created, started=self.started,
+            ended=self.ended, final_positions=self.final_positions,
+            final_tip=None if self.final_tip is None else s.Vec3(**self.final_tip),
+            planned_path=[s.Vec3(**p) for p in self.planned_path])
+
+
+class MotionExecutor:
+    def __init__(self, svc: ArmService) -> None:
+        self.svc = svc
+        self.model = svc.model
+        self._queue: deque[MotionRecord] = deque()
+        self._records: OrderedDict[str, MotionRecord] = OrderedDict()
+        self._wake = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+        self.current: MotionRecord | None = None
+        self.last: MotionRecord | None = None
+        #: Commanded state (q, qd, qdd) of the last setpoint sent, for blending and holding.
+        self._cmd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._halt = False
+        self._ids = itertools.count(1)
+
+    def start(self) -> None:
+        if self._task is None:
+            self._task = asyncio.create_task(self._run(), name=f"motion:{self.svc.name}")
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except asyncio.CancelledError:
+                pass
+            self._task = None
+        for rec in [*self._queue, *( [self.current] if self.current else [])]:
+            self._finish(rec, "stopped", "server shutting down")
+
+    # --------------------------------------------------------- requests
+
+    def get(self, motion_id: str) -> MotionRecord:
+        rec = self._records.get(motion_id)
+        if rec is None:
+            raise UnknownMotion(f"{self.svc.name} has no motion {motion_id!r}")
+        return rec
+
+    def brief(self) -> dict[str, Any] | None:
+        rec = self.current or self.last
+        if rec is None:
+            return None
+        return {"id": rec.id, "status": rec.status, "progress": round(rec.progress, 4)}
+
+    async def move_joints(self, req: s.MoveJoints) -> MotionRecord:
+        q1 = self._joint_vector(req.positions)
+        return self._submit("joints", "joint", req, q1, self._plan_joint_from, q1)
+
+    async def move_pose(self, req: s.MovePose) -> MotionRecord:
+        p = np.array([req.x, req.y, req.z])
+        return self._submit("pose", req.path, req, None, self._plan_pose_from, p)
+
+    def preview_joints(self, req: s.MoveJoints) -> s.Motion:
+        q1 = self._joint_vector(req.positions)
+        return self._preview("joints", "joint", req, self._plan_joint_from, q1)
+
+    def preview_pose(self, req: s.MovePose) -> s.Motion:
+        p = np.array([req.x, req.y, req.z])
+        return self._preview("pose", req.path, req, self._plan_pose_from, p)
+
+    async def cancel(self, motion_id: str) -> MotionRecord:
+        rec = self.get(motion_id)
+        if rec.status == "queued":
+            self._queue.remove(rec)
+            self._finish(rec, "stopped", "cancelled before it started")
+        elif rec.status == "running":
+            rec.cancel = rec.cancel or "stop"
+            await rec.wait()
+        return rec
+
+    async def stop_all(self, reason: str) -> list[str]:
+        stopped = [r.id for r in self._queue]
+        while self._queue:
+            self._finish(self._queue.popleft(), "stopped", reason)
+        cur = self.current
+        if cur is not None and cur.status == "running":
+            cur.cancel = "stop"
+            stopped.append(cur.id)
+            await cur.wait()
+        return stopped
+
+    async def emergency_stop(self) -> None:
+        """Stop streaming now, clear the queue and command a hold at the measured position."""
+        self._halt = True
+        while self._queue:
+            self._finish(self._queue.popleft(), "stopped", "emergency stop")
+        cur = self.current
+        if cur is not None and not cur.done.is_set():
+            self._finish(cur, "stopped", "emergency stop")
+        await self._hold()
+        self._halt = False
+
+    # --------------------------------------------------------- planning
+
+    def _joint_vector(self, positions: list[float]) -> np.ndarray:
+        if len(positions) != self.model.n:
+            raise InvalidRequest(f"{self.svc.name} has {self.model.n} joints "
+                                 f"({', '.join(self.model.names)}), got {len(positions)} positions")
+        q = np.array(positions, dtype=float)
+        self.svc.check_joint_target(q)
+        return q
+
+    def _start_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self._cmd is not None:
+            return self._cmd
+        q = self.svc.driver.positions
+        if q is None:
+            raise ArmError(f"{self.svc.name}: no joint positions from the device yet",
+                           code="link_down", status_code=503)
+        z = np.zeros_like(q)
+        return q.copy(), z, z.copy()
+
+    def _plan_joint_from(self, start: tuple[np.ndarray, ...], q1: np.ndarray, req: Any,
+                         at_rest: bool) -> Plan:
+        q0, v0, a0 = start
+        m = self.model
+        try:
+            traj = trajectory.plan_joint(q0, q1, m.vmax, m.amax, m.jmax,
+                                         v0=None if at_rest else v0, a0=None if at_rest else a0,
+                                         duration=req.duration, speed=req.speed)
+        except KinematicsError as exc:
+            raise InvalidRequest(f"cannot plan the move: {exc}") from None
+        return Plan(traj, q0, q1, "joint")
+
+    def _plan_pose_from(self, start: tuple[np.ndarray, ...], p: np.ndarray, req: Any,
+                        at_rest: bool) -> Plan:
+        q0 = start[0]
+        m = self.model
+        theta3 = float(q0[2]) if (not m.is_rrr and req.ik_case == "dx_used") else None
+        best = m.ik_best(p, q0, req.branch, req.ik_case, theta3)
+        if req.path == "joint":
+            return self._plan_joint_from(start, best.positions, req, at_rest)
+        cart = self.svc.profile.cartesian
+
+        def ik_near(point: np.ndarray, q_prev: np.ndarray) -> np.ndarray:
+            th = float(q_prev[2]) if theta3 is not None else None
+            sols = m.ik(point, req.ik_case, th)
+            return min(sols, key=lambda sol: float(np.sum((sol.positions - q_prev) ** 2))).positions
+
+        try:
+            traj, _tips = trajectory.plan_line(
+                m.fk(q0), p, ik_near, m.fk, cart.max_velocity, cart.max_acceleration,
+                cart.max_jerk, 1.0 / self.svc.profile.link.control_hz, m.vmax, m.lower, m.upper,
+                m.names, m.kinds, q0=q0, speed=req.speed)
+        except LimitViolation as exc:
+            raise JointLimit(f"line path leaves the joint limits: {exc}") from None
+        except KinematicsError as exc:
+            raise Unreachable(f"line path leaves the workspace: {exc}") from None
+        end = traj.sample(traj.duration)[0]
+        return Plan(traj, q0, np.asarray(end, dtype=float), "line")
+
+    def _tail_state(self, mode: str) -> tuple[tuple[np.ndarray, ...], bool]:
+        """Where a new motion will start: after the queue (at rest) or from now (replace)."""
+        if mode == "queue":
+            pending = list(self._queue) or ([self.current] if self.current else [])
+            if pending:
+                q = pending[-1].target
+                return (q, np.zeros_like(q), np.zeros_like(q)), True
+        st = self._start_state()
+        return st, not np.any(st[1])
+
+    def _preview_path(self, plan: Plan) -> list[dict[str, float]]:
+        t = np.linspace(0.0, plan.traj.duration, PREVIEW_POINTS)
+        q = np.array([plan.traj.sample(float(ti))[0] for ti in t])
+        return [_vec(p) for p in self.model.fk(q)]
+
+    def _preview(self, kind: str, path: str, req: Any, planner: Any, target: np.ndarray) -> s.Motion:
+        self.svc.require_motion_allowed()
+        start, at_rest = self._tail_state(req.mode)
+        plan = planner(start, target, req, at_rest or path == "line")
+        rec = self._record(kind, path, req, plan, "preview")
+        return rec.to_schema()
+
+    def _record(self, kind: str, path: str, req: Any, plan: Plan, mid: str) -> MotionRecord:
+        return MotionRecord(id=mid, arm=self.svc.name, kind=kind, path=path,  # type: ignore[arg-type]
+                            request=req, target=plan.target, target_tip=self.model.fk(plan.target),
+                            planned_duration=float(plan.traj.duration),
+                            planned_path=self._preview_path(plan))
+
+    def _submit(self, kind: str, path: str, req: Any, _q: Any, planner: Any,
+                target: np.ndarray) -> MotionRecord:
+        self.svc.require_motion_allowed()
+        if req.mode == "queue" and len(self._queue) >= MAX_QUEUED:
+            raise Busy(f"{self.svc.name}: {MAX_QUEUED} motions already queued")
+        start, at_rest = self._tail_state(req.mode)
+        plan = planner(start, target, req, at_rest or path == "line")
+        rec = self._record(kind, path, req, plan, f"m{next(self._ids)}-{uuid.uuid4().hex[:8]}")
+        rec._planner = planner  # type: ignore[attr-defined]
+        rec._goal = target  # type: ignore[attr-defined]
+        self._records[rec.id] = rec
+        while len(self._records) > HISTORY:
+            self._records.popitem(last=False)
+        if req.mode == "replace":
+            while self._queue:
+                self._finish(self._queue.popleft(), "stopped", f"replaced by {rec.id}")
+            if self.current is not None and self.current.status == "running":
+                self.current.cancel = "replace"
+            self._queue.appendleft(rec)
+        else:
+            self._queue.append(rec)
+        self._wake.set()
+        return rec
+
+    # --------------------------------------------------------- execution
+
+    async def _run(self) -> None:
+        while True:
+            if not self._queue:
+                self._wake.clear()
+                await self._wake.wait()
+                continue
+            rec = self._queue.popleft()
+            self.current = rec
+            try:
+                await self._execute(rec)
+            except ArmError as exc:
+                self._finish(rec, "failed", exc.detail, exc.code)
+            except Exception as exc:  # a planner bug must not kill the executor
+                log.exception("%s: motion %s crashed", self.svc.name, rec.id)
+                self._finish(rec, "failed", f"internal error: {type(exc).__name__}", "internal")
+            finally:
+                self.last = rec
+                self.current = None
+
+    async def _execute(self, rec: MotionRecord) -> None:
+        self.svc.require_motion_allowed()
+        start = self._start_state()
+        at_rest = not np.any(start[1]) or rec.path == "line"
+        if rec.path == "line" and np.any(start[1]):
+            await self._brake()
+            start = self._start_state()
+        plan = rec._planner(start, rec._goal, rec.request, at_rest)  # type: ignore[attr-defined]
+        rec.target, rec.target_tip = plan.target, self.model.fk(plan.target)
+        rec.planned_duration = float(plan.traj.duration)
+        rec.status, rec.started = "running", time.time()
+        self.svc.hub.event("motion_started", id=rec.id, duration=rec.planned_duration)
+        outcome = await self._stream(rec, plan.traj)
+        if outcome == "replace":
+            self._finish(rec, "stopped", "replaced by a new motion")
+            return
+        if outcome == "stop":
+            await self._brake()
+            self._finish(rec, "stopped", "cancelled" if rec.reason is None else rec.reason)
+            return
+        if outcome == "halt":
+            return
+        await self._settle(rec)
+
+    async def _stream(self, rec: MotionRecord, traj: Any) -> str:
+        loop = asyncio.get_running_loop()
+        dt = 1.0 / self.svc.profile.link.control_hz
+        t0 = loop.time()
+        failures = 0
+        duration = float(traj.duration)
+        while True:
+            if self._halt or rec.done.is_set():
+                return "halt"
+            if rec.cancel:
+                return rec.cancel
+            t = min(loop.time() - t0, duration)
+            q, qd, qdd = (np.asarray(v, dtype=float) for v in traj.sample(t))
+            try:
+                await self.svc.driver.command_joints(q)  # type: ignore[attr-defined]
+                failures = 0
+            except ArmError as exc:
+                failures += 1
+                if exc.code == "link_down" or failures >= MAX_SETPOINT_FAILURES:
+                    await self._watchdog(rec, exc)
+                    return "halt"
+            if self._halt:
+                return "halt"
+            self._cmd = (q, qd, qdd)
+            rec.progress = t / duration if duration > 0 else 1.0
+            if t >= duration:
+                self._cmd = (q, np.zeros_like(q), np.zeros_like(q))
+                return "end"
+            await asyncio.sleep(max(0.0, t0 + (int((loop.time() - t0) / dt) + 1) * dt - loop.time()))
+
+    async def _brake(self) -> None:
+        """Decelerate from the commanded state to rest under the acceleration and jerk limits."""
+        if self._cmd is None or not np.any(self._cmd[1]):
+            return
+        q, qd, qdd = self._cmd
+        m = self.model
+        traj = trajectory.plan_stop(q, qd, qdd, m.amax, m.jmax, m.vmax)
+        loop = asyncio.get_running_loop()
+        dt = 1.0 / self.svc.profile.link.control_hz
+        t0 = loop.time()
+        while not self._halt:
+            t = min(loop.time() - t0, float(traj.duration))
+            qs = np.clip(np.asarray(traj.sample(t)[0], dtype=float), m.lower, m.upper)
+            try:
+                await self.svc.driver.command_joints(qs)  # type: ignore[attr-defined]
+            except ArmError:
+                break
+            self._cmd = (qs, np.zeros_like(qs), np.zeros_like(qs))
+            if t >= traj.duration:
+                break
+            await asyncio.sleep(dt)
+
+    async def _settle(self, rec: MotionRecord) -> None:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + SETTLE_TIMEOUT_S
+        tol = self._tolerance()
+        err = np.full(self.model.n, np.inf)
+        while loop.time() < deadline:
+            if self._halt or rec.done.is_set():
+                return
+            q = self.svc.driver.positions
+            if q is not None and not self.svc.driver.stale:
+                err = np.abs(q - rec.target)
+                if np.all(err <= tol):
+                    self._finish(rec, "done", None)
+                    return
+            await asyncio.sleep(0.01)
+        worst = int(np.argmax(err / tol))
+        self._finish(rec, "failed", f"did not settle at the target within {SETTLE_TIMEOUT_S} s: "
+                     f"{self.model.names[worst]} is {err[worst]:.4f} off (tolerance "
+                     f"{tol[worst]:.4f})", "not_settled")
+
+    def _tolerance(self) -> np.ndarray:
+        return np.array([0.03 if k == "revolute" else 0.002 for k in self.model.kinds])
+
+    async def _watchdog(self, rec: MotionRecord, exc: ArmError) -> None:
+        log.warning("%s: motion %s failed: %s", self.svc.name, rec.id, exc.detail)
+        self._finish(rec, "failed", exc.detail, exc.code)
+        self.svc.hub.event("watchdog", id=rec.id, code=exc.code, reason=exc.detail)
+        await self._hold()
+
+    async def _hold(self) -> None:
+        """Command the arm to hold at its measured position, where the link still allows."""
+        q = self.svc.driver.positions
+        if q is None:
+            self._cmd = None
+            return
+        q = np.clip(q, self.model.lower, self.model.upper)
+        try:
+            await self.svc.driver.command_joints(q)  # type: ignore[attr-defined]
+            self._cmd = (q.copy(), np.zeros_like(q), np.zeros_like(q))
+        except ArmError as exc:
+            log.warning("%s: could not command a hold: %s", self.svc.name, exc.detail)
+            self._cmd = None
+
+    def _finish(self, rec: MotionRecord, status: Status, reason: str | None,
+                code: str | None = None) -> None:
+        if rec.done.is_set():
+            return
+        rec.status, rec.reason, rec.code, rec.ended = status, reason, code, time.time()
+        if status == "done":
+            rec.progress = 1.0
+        q = self.svc.driver.positions
+        if q is not None:
+            rec.final_positions = [float(v) for v in q]
+            rec.final_tip = _vec(self.model.fk(q))
+        rec.done.set()
+        if rec.started is not None or status != "stopped":
+            self.svc.hub.event("motion_ended", id=rec.id, status=status, reason=reason, code=code)
+
+
+def _vec(v: np.ndarray) -> dict[str, float]:
+    return {"x": float(v[0]), "y": float(v[1]), "z": float(v[2])}
