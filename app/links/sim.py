@@ -1,0 +1,154 @@
+"""An in-process link to a simulated device, with fault injection.
+
+The device (app/sim/) sees the same bytes a real link would carry; this link only adds
+time: each reply is delivered at `write time + device delay + latency`, in order. Faults
+(app.config.FaultConfig) can be changed while running: drop or corrupt a fraction of
+replies (seeded RNG, so a run repeats), add latency, and cut the link `disconnect_after_s`
+after each open for `reconnect_after_s` seconds, as an unplugged cable would.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import random
+from collections import deque
+
+from app.config import FaultConfig
+from app.links.base import Link, LinkError, LinkState
+from app.sim.base import SimDevice
+
+DISCONNECTED = "simulated disconnect"
+
+
+class SimLink(Link):
+    """Carries bytes to and from a SimDevice on the running event loop's clock."""
+
+    kind = "sim"
+
+    def __init__(
+        self,
+        device: SimDevice,
+        faults: FaultConfig | None = None,
+        address: str = "sim:rbe3001",
+        seed: int | None = 0,
+    ) -> None:
+        super().__init__(address)
+        self.device = device
+        self.packetized = device.packetized
+        self.faults = faults or FaultConfig()
+        self._rng = random.Random(seed)
+        self._replies: deque[tuple[float, bytes]] = deque()  # (delivery time, bytes), in order
+        self._arrived = asyncio.Event()
+        self._down_at: float | None = None  # loop time of the next scheduled disconnect
+        self._up_at = float("-inf")  # loop time the "cable" is back after a disconnect
+
+    # --- faults ------------------------------------------------------------------------
+
+    def set_faults(self, faults: FaultConfig) -> None:
+        """Replace the fault settings; a disconnect timer restarts from now."""
+        self.faults = faults
+        if self.state is LinkState.UP:
+            self._schedule_disconnect(self._now())
+
+    def disconnect(self) -> None:
+        """Cut the link now (call from the event loop); it can be reopened after
+        `faults.reconnect_after_s`. A pending read raises LinkError at once."""
+        now = self._now()
+        if self.state is LinkState.UP:
+            self._down_at = now
+            self._check()
+        else:
+            self._up_at = max(self._up_at, now + self.faults.reconnect_after_s)
+        self._arrived.set()
+
+    # --- Link --------------------------------------------------------------------------
+
+    async def open(self) -> None:
+        now = self._now()
+        if now < self._up_at:
+            raise self._down(f"{DISCONNECTED}: back in {self._up_at - now:.3f} s")
+        self.state = LinkState.UP
+        self.last_error = None
+        self._replies.clear()
+        self._schedule_disconnect(now)
+
+    async def write(self, data: bytes) -> None:
+        self._require()
+        now = self._now()
+        last = self._replies[-1][0] if self._replies else now
+        for delay, reply in self.device.receive(bytes(data), now):
+            if self._rng.random() < self.faults.drop:
+                continue
+            if self._rng.random() < self.faults.corrupt:
+                reply = self._flip(reply)
+            last = max(last, now + delay + self.faults.latency_s)  # never reorder
+            self._replies.append((last, reply))
+        self._arrived.set()
+
+    async def read(self, timeout: float) -> bytes:
+        self._require()
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            self._require()
+            now = loop.time()
+            if self._replies and self._replies[0][0] <= now:
+                return self._take(now)
+            wake = deadline
+            if self._replies:
+                wake = min(wake, self._replies[0][0])
+            if self._down_at is not None:
+                wake = min(wake, self._down_at)
+            if now >= deadline:
+                return b""
+            self._arrived.clear()
+            try:
+                await asyncio.wait_for(self._arrived.wait(), max(0.0, wake - now))
+            except TimeoutError:
+                pass
+
+    async def close(self) -> None:
+        self.state = LinkState.DOWN
+        self._replies.clear()
+        self._down_at = None
+        self._arrived.set()
+
+    # --- internals ---------------------------------------------------------------------
+
+    def _take(self, now: float) -> bytes:
+        """One packet if packetised; else every due chunk of the stream, joined."""
+        if self.packetized:
+            return self._replies.popleft()[1]
+        chunks = []
+        while self._replies and self._replies[0][0] <= now:
+            chunks.append(self._replies.popleft()[1])
+        return b"".join(chunks)
+
+    def _flip(self, reply: bytes) -> bytes:
+        if not reply:
+            return reply
+        out = bytearray(reply)
+        out[self._rng.randrange(len(out))] ^= self._rng.randrange(1, 256)
+        return bytes(out)
+
+    def _schedule_disconnect(self, now: float) -> None:
+        after = self.faults.disconnect_after_s
+        self._down_at = None if after is None else now + after
+
+    def _check(self) -> None:
+        """Apply a due disconnect: state DOWN and the link unusable for a while."""
+        if self.state is LinkState.UP and self._down_at is not None:
+            if self._now() >= self._down_at:
+                self._up_at = self._down_at + self.faults.reconnect_after_s
+                self._down_at = None
+                self._replies.clear()
+                self._down(DISCONNECTED)
+
+    def _require(self) -> None:
+        self._check()
+        if self.state is not LinkState.UP:
+            raise LinkError(self.last_error or f"sim link {self.address} is not open")
+
+    @staticmethod
+    def _now() -> float:
+        return asyncio.get_running_loop().time()
