@@ -25,6 +25,7 @@ from app import schemas as s
 from app.errors import ArmError, Busy, InvalidRequest, JointLimit, Unreachable, UnknownMotion
 from kinematics import trajectory
 from kinematics.errors import KinematicsError, LimitViolation
+from kinematics.errors import Unreachable as KinematicsUnreachable
 
 if TYPE_CHECKING:
     from app.service import ArmService
@@ -223,16 +224,20 @@ class MotionExecutor:
             return self._plan_joint_from(start, best.positions, req, at_rest)
         cart = self.svc.profile.cartesian
 
-        def ik_near(point: np.ndarray, q_prev: np.ndarray) -> np.ndarray:
-            th = float(q_prev[2]) if theta3 is not None else None
-            sols = m.ik(point, req.ik_case, th)
-            return min(sols, key=lambda sol: float(np.sum((sol.positions - q_prev) ** 2))).positions
+        def ik_near(point: np.ndarray, q_prev: np.ndarray | None) -> np.ndarray:
+            ref = q0 if q_prev is None else q_prev
+            th = float(ref[2]) if theta3 is not None else None
+            try:
+                sols = m.ik(point, req.ik_case, th)
+            except ArmError as exc:
+                raise KinematicsUnreachable(exc.detail) from None
+            return min(sols, key=lambda sol: float(np.sum((sol.positions - ref) ** 2))).positions
 
         try:
             traj, _tips = trajectory.plan_line(
                 m.fk(q0), p, ik_near, m.fk, cart.max_velocity, cart.max_acceleration,
                 cart.max_jerk, 1.0 / self.svc.profile.link.control_hz, m.vmax, m.lower, m.upper,
-                m.names, m.kinds, q0=q0, speed=req.speed)
+                m.names, m.kinds, q_start=q0, speed=req.speed)
         except LimitViolation as exc:
             raise JointLimit(f"line path leaves the joint limits: {exc}") from None
         except KinematicsError as exc:

@@ -33,6 +33,9 @@ log = logging.getLogger(__name__)
 #: slow enough not to spin on a port that is gone.
 BACKOFF_FIRST_S = 0.1
 BACKOFF_MAX_S = 2.0
+#: A poll may run this much before its slot: epoll rounds waits up to whole milliseconds, so
+#: waiting for the exact slot would stretch a 2 ms period to 3. The schedule stays absolute.
+POLL_EARLY_S = 0.001
 #: Consecutive failed polls before samples are marked stale and an event is sent.
 STALE_AFTER = 3
 
@@ -203,7 +206,7 @@ class Driver(abc.ABC):
         next_poll = loop.time()
         while True:
             now = loop.time()
-            if now >= next_poll:
+            if now >= next_poll - POLL_EARLY_S:
                 await self._do_poll()
                 next_poll += period
                 if next_poll < loop.time() - period:  # fell behind: skip, do not burst
@@ -213,7 +216,7 @@ class Driver(abc.ABC):
                 req = self._queue.get_nowait()
             except asyncio.QueueEmpty:
                 try:
-                    req = await asyncio.wait_for(self._queue.get(), next_poll - now)
+                    req = await asyncio.wait_for(self._queue.get(), next_poll - POLL_EARLY_S - now)
                 except TimeoutError:
                     continue
             await self._serve(req)

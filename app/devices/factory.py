@@ -14,7 +14,7 @@ def make_sim_device(profile: ArmProfile) -> object:
     if profile.model == "rbe3001":
         from app.sim.rbe3001_firmware import Rbe3001Firmware
 
-        return Rbe3001Firmware.from_profile(profile)
+        return Rbe3001Firmware(profile)
     from app.sim.dynamixel_bus import DynamixelBus
 
     modes = {int(j.motor_id): j.operating_mode for j in profile.joints  # type: ignore[arg-type]
@@ -34,7 +34,7 @@ def make_link(profile: ArmProfile) -> Link:
         from app.links.hid import HidLink
 
         return HidLink(vid=cfg.vid, pid=cfg.pid, serial_number=cfg.serial_number,
-                       path=cfg.address or None)
+                       address=cfg.address)
     from app.links.serial import SerialLink
 
     return SerialLink(cfg.address, baudrate=cfg.baudrate)

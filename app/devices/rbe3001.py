@@ -1,10 +1,11 @@
 """RBE3001 driver: the 64-byte HID packet protocol (protocol/rbe3001.py) over any link.
 
 Reply matching: the firmware sends the request buffer back with only the floats its server
-writes replaced (STATUS and SET_PID write floats 0-8; SET_GAIN and SET_CLAW write none), so
-float 14 carries a request tag and floats 9-13 zeros, both echoed. A reply whose id or tag is
-not the outstanding request's is stale (a late answer to an earlier request) and is discarded,
-so a late reply can never complete the wrong request. The protocol has no checksum: a reply is
+writes replaced (STATUS writes floats 0-8; SET_GAIN and SET_CLAW write none; PidServer zeroes
+the buffer and writes floats 0-8), so float 14 carries a request tag and floats 9-13 zeros. A
+reply whose id or tag is not the outstanding request's is stale (a late answer to an earlier
+request) and is discarded. SET_PID replies carry no tag, so after any timeout the input is
+drained before the next request: a late reply cannot complete the wrong request. The protocol has no checksum: a reply is
 refused as corrupt when its echoed zeros changed, or a value is not finite or not plausible.
 """
 
@@ -33,6 +34,7 @@ class Rbe3001Driver(Driver):
         super().__init__(*args, **kwargs)
         self._tag = 0
         self._buf = bytearray()
+        self._dirty = False
         f = self.profile.force
         self._adc_scale = np.array(f.adc_scale if f else [0.0] * 3)
         self._adc_offset = np.array(f.adc_offset if f else [0.0] * 3)
@@ -70,6 +72,14 @@ class Rbe3001Driver(Driver):
 
     def _reset_reader(self) -> None:
         self._buf.clear()
+        self._dirty = True
+
+    async def _drain(self) -> None:
+        """Discard input that arrived after an earlier request timed out."""
+        while await self.link.read(0):
+            pass
+        self._buf.clear()
+        self._dirty = False
 
     async def _poll(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         reply: rb.StatusReply = await self._exchange(rb.Status(), self.timeout)
@@ -86,12 +96,16 @@ class Rbe3001Driver(Driver):
         packet = bytearray(rb.encode_command(message))
         packet[_TAG_OFFSET:_TAG_OFFSET + 4] = _TAG.pack(float(self._tag))
         want_id = int(rb.CommandId[_command_name(message)])
+        tags = (float(self._tag), 0.0) if want_id == rb.CommandId.SET_PID else (float(self._tag),)
+        if self._dirty:
+            await self._drain()
         await self.link.write(bytes(packet))
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
         while True:
             left = deadline - loop.time()
             if left <= 0:
+                self._dirty = True
                 raise DeviceTimeout(f"{self.name}: no reply to {_command_name(message)} "
                                     f"within {timeout * 1000:.0f} ms")
             frame = await self._next_frame(left)
@@ -99,7 +113,7 @@ class Rbe3001Driver(Driver):
                 continue
             rid = int.from_bytes(frame[0:4], "little")
             tag = _TAG.unpack_from(frame, _TAG_OFFSET)[0]
-            if rid != want_id or tag != float(self._tag):
+            if rid != want_id or tag not in tags:
                 self.stats["stale_replies"] += 1
                 continue
             if frame[_ECHO] != bytes(20):
