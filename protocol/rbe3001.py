@@ -180,7 +180,9 @@ def _validate(cmd: Command) -> None:
 
 def _floats(cmd: Command) -> list[float]:
     if isinstance(cmd, SetPid):
-        return [x for sp in cmd.setpoints for x in (sp.position_ticks, sp.velocity_ticks_s, sp.force)]
+        return [
+            x for sp in cmd.setpoints for x in (sp.position_ticks, sp.velocity_ticks_s, sp.force)
+        ]
     if isinstance(cmd, SetGain):
         return [float(cmd.axis), cmd.kp, cmd.ki, cmd.kd]
     if isinstance(cmd, SetClaw):

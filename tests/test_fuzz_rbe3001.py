@@ -1,4 +1,4 @@
-"""Malformed input at the RBE3001 codec and firmware simulator: DecodeError or silence, nothing else."""
+"""Malformed input at the RBE3001 codec and firmware simulator: DecodeError or silence."""
 
 from __future__ import annotations
 

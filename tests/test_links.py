@@ -281,7 +281,9 @@ def test_u2d2_latency_warning(tmp_path: Path) -> None:
 def test_format_and_list_devices() -> None:
     rows = [
         DeviceInfo("hid", "/dev/hidraw0", "WPI RBE3001", 0x3742, 0x0007, None, "rbe3001"),
-        DeviceInfo("serial", "/dev/ttyUSB0", "U2D2", 0x0403, 0x6014, "FT1", "dynamixel-u2d2", "slow"),
+        DeviceInfo(
+            "serial", "/dev/ttyUSB0", "U2D2", 0x0403, 0x6014, "FT1", "dynamixel-u2d2", "slow"
+        ),
     ]
     text = format_devices(rows).splitlines()
     assert text[0].split() == ["KIND", "ADDRESS", "VID:PID", "SERIAL", "MATCH", "DESCRIPTION"]

@@ -91,7 +91,10 @@ def test_encode_status_gain_claw_bytes() -> None:
         (SetClaw(1.5), "0..1"),
         (SetClaw(-0.01), "0..1"),
         (SetClaw(math.nan), "finite"),
-        (SetPid((JointSetpoint(0.0), JointSetpoint(math.inf), JointSetpoint(0.0))), r"setpoints\[1\]"),
+        (
+            SetPid((JointSetpoint(0.0), JointSetpoint(math.inf), JointSetpoint(0.0))),
+            r"setpoints\[1\]",
+        ),
     ],
 )
 def test_encode_validation(cmd: SetPid | SetGain | SetClaw, match: str) -> None:
@@ -164,7 +167,8 @@ def test_encode_reply_matches_firmware_buffers() -> None:
     # PidServer zeroes the whole buffer before writing its nine readings.
     pid = SetPidReply((10.0, 20.0, 30.0), (1.0, 2.0, 3.0), (0.5, 0.25, 0.75))
     request = packet(37, 5.0, 5.0, 5.0, 5.0, 5.0, 5.0, 5.0, 5.0, 5.0, 7.0, 7.0)
-    assert encode_reply(pid, request) == packet(37, 10.0, 1.0, 0.5, 20.0, 2.0, 0.25, 30.0, 3.0, 0.75)
+    expected = packet(37, 10.0, 1.0, 0.5, 20.0, 2.0, 0.25, 30.0, 3.0, 0.75)
+    assert encode_reply(pid, request) == expected
     # STATUS writes floats 0-8 and leaves the rest as received.
     status = StatusReply((1.0, 2.0, 3.0), (4.0, 5.0, 6.0), (0.5, 0.5, 0.5))
     assert encode_reply(status, packet(38, *[9.0] * 15)) == packet(

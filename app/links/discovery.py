@@ -66,11 +66,14 @@ def _serial_devices(sysfs: Path) -> list[DeviceInfo]:
     try:
         from serial.tools import list_ports
     except ImportError as exc:
-        return [DeviceInfo("serial", "", "serial ports not listed", warning=f"pyserial not available: {exc}")]
+        why = f"pyserial not available: {exc}"
+        return [DeviceInfo("serial", "", "serial ports not listed", warning=why)]
     out = []
     for port in sorted(list_ports.comports(), key=lambda p: p.device):
         match = match_device("serial", port.vid, port.pid)
-        warning = latency_warning(Path(port.device).name, sysfs) if match == "dynamixel-u2d2" else None
+        warning = None
+        if match == "dynamixel-u2d2":
+            warning = latency_warning(Path(port.device).name, sysfs)
         out.append(
             DeviceInfo(
                 kind="serial",
@@ -92,7 +95,8 @@ def _hid_devices() -> list[DeviceInfo]:
 
         found: list[dict[str, Any]] = hid.enumerate()
     except (ImportError, OSError) as exc:
-        return [DeviceInfo("hid", "", "HID devices not listed", warning=f"hidapi not available: {exc}")]
+        why = f"hidapi not available: {exc}"
+        return [DeviceInfo("hid", "", "HID devices not listed", warning=why)]
     out, seen = [], set()
     for d in found:
         path = d.get("path", b"")

@@ -38,6 +38,7 @@ from collections.abc import Sequence
 
 from app.config import ArmProfile
 from protocol.rbe3001 import (
+    PACKET_SIZE,
     Ack,
     DecodeError,
     SetClaw,
@@ -50,7 +51,6 @@ from protocol.rbe3001 import (
     encode_reply,
 )
 
-PACKET_SIZE = 64
 CYCLE_S = 0.0025  # firmware PID period since Jan 2018 (400 Hz)
 VELOCITY_CYCLES = 61  # firmware velocity update period, cycles
 ENCODER_AVERAGE = 4  # firmware moving average of the AS5050 reading, samples
@@ -217,7 +217,7 @@ class Rbe3001Firmware:
             w = self.qd[i]
             if w == 0.0 and abs(push) <= self.coulomb:
                 continue  # static friction holds
-            friction = self.coulomb * (math.copysign(1.0, w) if w != 0.0 else math.copysign(1.0, push))
+            friction = self.coulomb * math.copysign(1.0, w if w != 0.0 else push)
             # Semi-implicit: the speed-proportional terms are integrated implicitly (stable).
             w_new = (w + dt * (push - friction) / inertia[i]) / (1.0 + dt * damping / inertia[i])
             if w != 0.0 and w_new * w < 0.0:
