@@ -24,8 +24,7 @@ from protocol import mx28
 #: Present Load (2) + Present Velocity (4) + Present Position (4), e-manual MX-28 (2.0).
 _POLL_ADDR = mx28.TABLE["present_load"].address
 _POLL_LEN = 10
-#: MX-28 stall torque at 12 V, N m (e-manual) -- Present Load is in 0.1 % of it.
-#: 0.229 rpm per Present Velocity unit.
+#: 0.229 rpm per Present Velocity unit (e-manual MX-28 (2.0), address 128).
 _RPM_PER_UNIT = 0.229
 
 
@@ -41,15 +40,14 @@ class AnglerDriver(Driver):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._parser = dxl.Parser()
+        self._dirty = False
         self.ids = tuple(int(j.motor_id) for j in self.profile.joints)  # type: ignore[arg-type]
-        tr = self.model.transmission
         self._ticks_per_rev = np.array([j.ticks_per_rev for j in self.profile.joints], float)
         # Load (0.1 % of stall torque) -> joint effort: N m at the motor, N on a lead.
         stall = np.array([j.stall_torque_nm or 0.0 for j in self.profile.joints], float)
         per_rev = np.array([j.lead_m if j.lead_m else 2 * math.pi for j in self.profile.joints])
         self._effort_per_load = stall / 1000.0 * (2 * math.pi / per_rev)
         self._sensed = bool(np.any(stall > 0))
-        del tr
 
     # --------------------------------------------------------- pass-through
 
@@ -104,6 +102,7 @@ class AnglerDriver(Driver):
 
     def _reset_reader(self) -> None:
         self._parser = dxl.Parser()
+        self._dirty = True
 
     async def _on_connected(self) -> None:
         """Torque off, operating mode from the profile, goal = present, torque on: the arm
@@ -175,6 +174,7 @@ class AnglerDriver(Driver):
             if left <= 0:
                 if req.broadcast_ping:
                     return sorted(got, key=lambda p: p.id)
+                self._dirty = True
                 missing = req.expect[len(got):]
                 raise DeviceTimeout(f"{self.name}: {req.what}: no status from id "
                                     f"{', '.join(map(str, missing))} within {timeout * 1000:.0f} ms")
@@ -183,12 +183,14 @@ class AnglerDriver(Driver):
                 self._parser.feed(data)
 
     async def _drain(self) -> None:
-        """Discard input already received: a late reply must not answer this request."""
-        while True:
-            data = await self.link.read(0)
-            if not data:
-                break
+        """Discard input already received (as DynamixelSDK flushes before each send). After a
+        timeout, wait until the bus has been quiet for one timeout: status packets carry no
+        request tag, so this is what keeps a late reply from answering the next request."""
+        wait = self.timeout if self._dirty else 0.0
+        while await self.link.read(wait):
+            pass
         self._parser = dxl.Parser()
+        self._dirty = False
 
 
 def _check_len(p: dxl.Packet, size: int) -> None:

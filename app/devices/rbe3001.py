@@ -75,8 +75,9 @@ class Rbe3001Driver(Driver):
         self._dirty = True
 
     async def _drain(self) -> None:
-        """Discard input that arrived after an earlier request timed out."""
-        while await self.link.read(0):
+        """After a timeout, discard input until the link has been quiet for one timeout: a reply
+        later than that is as good as lost, and one sooner is swallowed here."""
+        while await self.link.read(self.timeout):
             pass
         self._buf.clear()
         self._dirty = False
@@ -116,6 +117,10 @@ class Rbe3001Driver(Driver):
             if rid != want_id or tag not in tags:
                 self.stats["stale_replies"] += 1
                 continue
+            if want_id in _ECHOED and frame[4:_TAG_OFFSET] != packet[4:_TAG_OFFSET]:
+                self.stats["corrupt"] += 1
+                raise CorruptReply(f"{self.name}: reply to {_command_name(message)} is not the "
+                                   "echo of the request")
             if frame[_ECHO] != bytes(20):
                 self.stats["corrupt"] += 1
                 raise CorruptReply(f"{self.name}: reply to {_command_name(message)} corrupted "
@@ -163,6 +168,8 @@ class Rbe3001Driver(Driver):
 
 
 _KNOWN_IDS = {int(c) for c in rb.CommandId}
+#: Commands whose reply is the request sent back unchanged (no reply values).
+_ECHOED = {int(rb.CommandId.SET_GAIN), int(rb.CommandId.SET_CLAW)}
 
 
 def _command_name(message: Any) -> str:
