@@ -284,9 +284,9 @@ def plan_line(
         step = np.abs(np.diff(q, axis=0))
         jump = step > 10.0 * qv * dt
         if np.any(jump):
-            k, j = np.argwhere(jump)[0]
+            k, j = (int(v) for v in np.argwhere(jump)[0])
             raise Unreachable(
-                f"line refused at {_where(int(k), q.shape[0], pts[k], s[k], length)}: {names[j]}"
+                f"line refused at {_where(k, q.shape[0], pts[k], s[k], length)}: {names[j]}"
                 f" jumps by {step[k, j]:.3g} {unit(kinds[j])} to the next point; the line"
                 " crosses a singularity or the IK changes branch"
             )
@@ -299,10 +299,10 @@ def plan_line(
         if attempt < retries:
             vt *= 0.95 / worst
             continue
-        k, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+        k, j = (int(v) for v in np.unravel_index(int(np.argmax(ratio)), ratio.shape))
         un = unit(kinds[j])
         raise LimitViolation(
-            f"line refused at {_where(int(k), q.shape[0], pts[k], s[k], length)}: {names[j]}"
+            f"line refused at {_where(k, q.shape[0], pts[k], s[k], length)}: {names[j]}"
             f" would need {abs(qd[k, j]):.3g} {un}/s, above its limit {qv[j]:.3g} {un}/s, even"
             f" with the tip slowed to {vt:.3g} m/s"
         )

@@ -33,8 +33,8 @@ def test_dh_product_equals_closed_form(seed: int) -> None:
     q = np.random.default_rng(seed).uniform(-3, 3, size=(N, 4))
     np.testing.assert_allclose(pprp.fk(q, G), closed_form(q), atol=1e-12)
     rot = pprp.fk_pose(q, G)[..., :3, :3]
-    np.testing.assert_allclose(rot @ np.swapaxes(rot, -1, -2), np.broadcast_to(np.eye(3), rot.shape),
-                               atol=1e-12)
+    eye = np.broadcast_to(np.eye(3), rot.shape)
+    np.testing.assert_allclose(rot @ np.swapaxes(rot, -1, -2), eye, atol=1e-12)
     np.testing.assert_allclose(np.linalg.det(rot), 1.0, atol=1e-12)
 
 

@@ -158,7 +158,8 @@ def test_line_through_a_limit_names_the_joint() -> None:
 
 def test_line_out_of_reach_names_the_point_and_reason() -> None:
     # wide limits so reach, not a joint limit, is the first problem on the way out
-    with pytest.raises(Unreachable, match=r"point \d+ .* out of reach: 0\.37\d m from the shoulder"):
+    msg = r"point \d+ .* out of reach: 0\.37\d m from the shoulder"
+    with pytest.raises(Unreachable, match=msg):
         tr.plan_line([0.2, 0.1, 0.2], [0.5, 0.1, 0.2], rrr_ik, rrr_fk, 0.1, 0.5, 5.0, 0.005, VJ,
                      [-4, -4, -4], [4, 4, 4], NAMES, KINDS, q_start=[0.46, 0.9, 0.4])
 
@@ -174,7 +175,8 @@ def test_line_slows_down_for_joint_velocity_then_refuses() -> None:
     fast, _ = line([0.2, 0.1, 0.2], [0.2, -0.1, 0.2])
     traj, _ = line([0.2, 0.1, 0.2], [0.2, -0.1, 0.2], vj=slow)
     assert traj.duration > fast.duration and np.all(np.abs(traj.qd) <= slow)
-    with pytest.raises(LimitViolation, match=r"base would need .* rad/s, above its limit 0\.3 rad/s"):
+    msg = r"base would need .* rad/s, above its limit 0\.3 rad/s"
+    with pytest.raises(LimitViolation, match=msg):
         line([0.2, 0.1, 0.2], [0.2, -0.1, 0.2], vj=slow, retries=0)
 
 
