@@ -113,7 +113,7 @@ def describe_error(error: int) -> str:
 
 
 def _make_table() -> tuple[int, ...]:
-    table = []
+    table: list[int] = []
     for i in range(256):
         crc = i << 8
         for _ in range(8):
@@ -210,7 +210,8 @@ def ping(id: int) -> bytes:
 
 
 def read(id: int, address: int, length: int) -> bytes:
-    return encode_instruction(id, Instruction.READ, _u16(address, "address") + _u16(length, "length"))
+    params = _u16(address, "address") + _u16(length, "length")
+    return encode_instruction(id, Instruction.READ, params)
 
 
 def write(id: int, address: int, data: bytes) -> bytes:
@@ -315,8 +316,8 @@ def decode_bulk_read(params: bytes) -> list[tuple[int, int, int]]:
     """BULK_READ params -> [(id, address, length)] in the order listed."""
     if not params or len(params) % 5:
         raise ProtocolError(f"BULK_READ: {len(params)} bytes is not a whole number of 5")
-    return [(params[k], from_bytes(params[k + 1:k + 3], False), from_bytes(params[k + 3:k + 5], False))
-            for k in range(0, len(params), 5)]
+    return [(params[k], from_bytes(params[k + 1:k + 3], False),
+             from_bytes(params[k + 3:k + 5], False)) for k in range(0, len(params), 5)]
 
 
 def decode_bulk_write(params: bytes) -> list[tuple[int, int, bytes]]:
@@ -328,7 +329,7 @@ def decode_bulk_write(params: bytes) -> list[tuple[int, int, bytes]]:
         length = from_bytes(params[k + 3:k + 5], False)
         data = params[k + 5:k + 5 + length]
         if len(data) != length:
-            raise ProtocolError(f"BULK_WRITE: id {params[k]} declares {length} bytes, has {len(data)}")
+            raise ProtocolError(f"BULK_WRITE: id {params[k]}: {len(data)} of {length} bytes")
         out.append((params[k], from_bytes(params[k + 1:k + 3], False), data))
         k += 5 + length
     if not out:

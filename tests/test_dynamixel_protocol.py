@@ -67,7 +67,7 @@ def test_reference_vectors() -> None:
     assert dxl.HEADER == H("FFFFFD00") and dxl.BROADCAST_ID == 0xFE
 
 
-def test_crc_table_is_the_sdks(sdk: tuple[Protocol2PacketHandler, RecordingPort]) -> None:
+def test_crc_table_is_the_sdks(sdk: SDK) -> None:
     ph, _ = sdk
     assert [ph.updateCRC(0, [i], 1) for i in range(256)][1:4] == [0x8005, 0x800F, 0x000A]
     assert all(dxl.CRC_TABLE[i] == ph.updateCRC(0, [i], 1) for i in range(256))
@@ -93,7 +93,7 @@ def test_instruction_and_error_codes() -> None:
 
 # our builders equal the SDK's bytes ---------------------------------------------------------
 
-def _sdk_bytes(sdk: tuple[Protocol2PacketHandler, RecordingPort], call: object, reply: bytes = b"") -> bytes:
+def _sdk_bytes(sdk: SDK, call: object, reply: bytes = b"") -> bytes:
     ph, port = sdk
     port.sent.clear()
     port.rx[:] = reply
@@ -115,23 +115,28 @@ OK1 = dxl.encode_status(1, 0)
     (lambda ph, p: ph.clearMultiTurn(p, 3), dxl.clear(3), dxl.encode_status(3, 0)),
     (lambda ph, p: ph.factoryReset(p, 1, 0x02), dxl.factory_reset(1, 0x02), OK1),
     (lambda ph, p: ph.factoryReset(p, 1, 0xFF), dxl.factory_reset(1), OK1),
-    (lambda ph, p: ph.read1ByteTxRx(p, 1, 64), dxl.read(1, 64, 1), dxl.encode_status(1, 0, b"\x01")),
-    (lambda ph, p: ph.read2ByteTxRx(p, 1, 126), dxl.read(1, 126, 2), dxl.encode_status(1, 0, b"\1\2")),
-    (lambda ph, p: ph.read4ByteTxRx(p, 1, 132), dxl.read(1, 132, 4), dxl.encode_status(1, 0, b"1234")),
+    (lambda ph, p: ph.read1ByteTxRx(p, 1, 64), dxl.read(1, 64, 1),
+     dxl.encode_status(1, 0, b"\x01")),
+    (lambda ph, p: ph.read2ByteTxRx(p, 1, 126), dxl.read(1, 126, 2),
+     dxl.encode_status(1, 0, b"\1\2")),
+    (lambda ph, p: ph.read4ByteTxRx(p, 1, 132), dxl.read(1, 132, 4),
+     dxl.encode_status(1, 0, b"1234")),
     (lambda ph, p: ph.write1ByteTxRx(p, 1, 64, 1), dxl.write(1, 64, b"\x01"), OK1),
     (lambda ph, p: ph.write2ByteTxRx(p, 1, 100, 300), dxl.write(1, 100, dxl.to_bytes(300, 2)), OK1),
     (lambda ph, p: ph.write4ByteTxRx(p, 1, 116, 2**32 - 4000),
      dxl.write(1, 116, dxl.to_bytes(-4000, 4)), OK1),
-    (lambda ph, p: ph.write4ByteTxOnly(p, 0xFE, 116, 1024), dxl.write(0xFE, 116, dxl.to_bytes(1024, 4)), b""),
-    (lambda ph, p: ph.regWriteTxRx(p, 1, 116, 4, [0, 8, 0, 0]), dxl.reg_write(1, 116, H("00080000")), OK1),
+    (lambda ph, p: ph.write4ByteTxOnly(p, 0xFE, 116, 1024),
+     dxl.write(0xFE, 116, dxl.to_bytes(1024, 4)), b""),
+    (lambda ph, p: ph.regWriteTxRx(p, 1, 116, 4, [0, 8, 0, 0]),
+     dxl.reg_write(1, 116, H("00080000")), OK1),
     (lambda ph, p: ph.regWriteTxOnly(p, 1, 64, 1, [1]), dxl.reg_write(1, 64, b"\x01"), b""),
 ])
-def test_builders_equal_sdk(sdk: tuple[Protocol2PacketHandler, RecordingPort], call: object,
+def test_builders_equal_sdk(sdk: SDK, call: object,
                             ours: bytes, reply: bytes) -> None:
     assert _sdk_bytes(sdk, call, reply) == ours
 
 
-def test_group_builders_equal_sdk(sdk: tuple[Protocol2PacketHandler, RecordingPort]) -> None:
+def test_group_builders_equal_sdk(sdk: SDK) -> None:
     ph, port = sdk
 
     def sync_read(ph: Protocol2PacketHandler, p: RecordingPort) -> None:
@@ -170,7 +175,7 @@ def test_group_builders_equal_sdk(sdk: tuple[Protocol2PacketHandler, RecordingPo
 
 
 def test_sdk_sends_unstuffed_and_parser_still_decodes(
-        sdk: tuple[Protocol2PacketHandler, RecordingPort]) -> None:
+        sdk: SDK) -> None:
     ph, _ = sdk
     goal = dxl.to_bytes(-131073, 4)
     assert goal == H("FFFFFDFF")
@@ -205,7 +210,8 @@ def test_stuffing_vectors(raw: bytes, stuffed: bytes) -> None:
 @given(st.lists(st.sampled_from([0xFF, 0xFD, 0x00, 0x55]), max_size=40).map(bytes))
 def test_stuffing_round_trip_and_matches_sdk(body: bytes) -> None:
     assert dxl.unstuff(dxl.stuff(body)) == body
-    packet = list(H("FFFFFD00 01") + (len(body) + 3).to_bytes(2, "little") + b"\x03" + body + b"\0\0")
+    length = (len(body) + 3).to_bytes(2, "little")
+    packet = list(H("FFFFFD00 01") + length + b"\x03" + body + b"\0\0")
     sdk_stuffed = bytes(Protocol2PacketHandler().addStuffing(packet))
     assert sdk_stuffed[8:-2] == dxl.stuff(b"\x03" + body)[1:]
 
@@ -248,16 +254,18 @@ def test_decoders_round_trip_and_reject_bad_lengths() -> None:
         (1, 132, 4), (9, 64, 1)]
     assert dxl.decode_bulk_write(params(dxl.bulk_write([(1, 116, b"wxyz"), (2, 64, b"\1")]))) == [
         (1, 116, b"wxyz"), (2, 64, b"\1")]
-    for decode, bad in [(dxl.decode_read, b"\1\2\3"), (dxl.decode_write, b"\1\2"),
-                        (dxl.decode_sync_read, b"\1\2\3\4"), (dxl.decode_sync_write, b"\1\0\2\0\1a"),
-                        (dxl.decode_bulk_read, b"\1\2\3\4"), (dxl.decode_bulk_write, b"\1\2\0\3\0ab")]:
+    bad_params = [(dxl.decode_read, b"\1\2\3"), (dxl.decode_write, b"\1\2"),
+                  (dxl.decode_sync_read, b"\1\2\3\4"), (dxl.decode_sync_write, b"\1\0\2\0\1a"),
+                  (dxl.decode_bulk_read, b"\1\2\3\4"), (dxl.decode_bulk_write, b"\1\2\0\3\0ab")]
+    for decode, bad in bad_params:
         with pytest.raises(dxl.ProtocolError):
             decode(bad)  # type: ignore[operator]
 
 
 # the parser ---------------------------------------------------------------------------------
 
-STREAM = [dxl.ping(1), dxl.encode_status(1, 0, H("1E002D")), dxl.write(1, 116, dxl.to_bytes(-131073, 4)),
+STREAM = [dxl.ping(1), dxl.encode_status(1, 0, H("1E002D")),
+          dxl.write(1, 116, dxl.to_bytes(-131073, 4)),
           dxl.encode_status(3, 0x87), dxl.sync_write(116, 4, {1: H("FFFFFDFF"), 2: H("00FFFFFD")})]
 PACKETS = [Packet(1, 1, b""), Packet(1, 0x55, H("1E002D"), 0), Packet(1, 3, H("7400FFFFFDFF")),
            Packet(3, 0x55, b"", 0x87),

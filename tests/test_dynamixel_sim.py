@@ -11,7 +11,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHandler, PortHandler
+from dynamixel_sdk import (
+    COMM_RX_TIMEOUT,
+    COMM_SUCCESS,
+    GroupSyncRead,
+    GroupSyncWrite,
+    PacketHandler,
+    PortHandler,
+)
 
 from app.sim.dynamixel_bus import DynamixelBus
 from app.sim.serve import PtyServer, serve_pty, serve_tcp
@@ -52,7 +59,8 @@ def test_broadcast_ping_every_servo_in_id_order_each_later() -> None:
 def test_sync_read_answers_in_listed_order_and_skips_absent_ids() -> None:
     bus = DynamixelBus()
     replies = _decode(bus.receive(dxl.sync_read(132, 4, [3, 9, 1]), 0.0))
-    assert replies == [Packet(3, 0x55, dxl.to_bytes(2048, 4), 0), Packet(1, 0x55, dxl.to_bytes(2048, 4), 0)]
+    home = dxl.to_bytes(2048, 4)
+    assert replies == [Packet(3, 0x55, home, 0), Packet(1, 0x55, home, 0)]
 
 
 def test_bulk_read_and_bulk_write() -> None:
@@ -188,8 +196,11 @@ class LoopThread:
         self.loop.close()
 
 
+SdkBus = tuple[PortHandler, Any, DynamixelBus]
+
+
 @pytest.fixture()
-def sdk_bus(tmp_path: Path) -> Iterator[tuple[PortHandler, Any, DynamixelBus]]:
+def sdk_bus(tmp_path: Path) -> Iterator[SdkBus]:
     lt = LoopThread()
     bus = DynamixelBus(ids=(1, 2, 3, 4), operating_modes={1: 4})
     link = tmp_path / "ttyDXL"
@@ -205,14 +216,14 @@ def sdk_bus(tmp_path: Path) -> Iterator[tuple[PortHandler, Any, DynamixelBus]]:
         assert not link.exists()
 
 
-def test_sdk_ping_and_broadcast_ping(sdk_bus: tuple[PortHandler, Any, DynamixelBus]) -> None:
+def test_sdk_ping_and_broadcast_ping(sdk_bus: SdkBus) -> None:
     port, ph, _ = sdk_bus
     assert ph.ping(port, 1) == (30, COMM_SUCCESS, 0)
     assert ph.ping(port, 9)[1] == COMM_RX_TIMEOUT
     assert ph.broadcastPing(port) == ({i: [30, 45] for i in (1, 2, 3, 4)}, COMM_SUCCESS)
 
 
-def test_sdk_read_write_1_2_4_and_eeprom_refusal(sdk_bus: tuple[PortHandler, Any, DynamixelBus]) -> None:
+def test_sdk_read_write_1_2_4_and_eeprom_refusal(sdk_bus: SdkBus) -> None:
     port, ph, _ = sdk_bus
     assert ph.write1ByteTxRx(port, 2, 65, 1) == (COMM_SUCCESS, 0)
     assert ph.read1ByteTxRx(port, 2, 65) == (1, COMM_SUCCESS, 0)
@@ -227,14 +238,14 @@ def test_sdk_read_write_1_2_4_and_eeprom_refusal(sdk_bus: tuple[PortHandler, Any
     assert ph.write1ByteTxRx(port, 2, 68, 9) == (COMM_SUCCESS, 4)  # data range error
 
 
-def test_sdk_extended_goal_with_ff_ff_fd(sdk_bus: tuple[PortHandler, Any, DynamixelBus]) -> None:
+def test_sdk_extended_goal_with_ff_ff_fd(sdk_bus: SdkBus) -> None:
     """The SDK sends -131073 (FF FF FD FF) unstuffed; the sim frames by LEN and accepts it."""
     port, ph, _ = sdk_bus
     assert ph.write4ByteTxRx(port, 1, 116, -131073 & 0xFFFFFFFF) == (COMM_SUCCESS, 0)
     assert ph.read4ByteTxRx(port, 1, 116) == (-131073 & 0xFFFFFFFF, COMM_SUCCESS, 0)
 
 
-def test_sdk_group_sync_read_and_write_converge(sdk_bus: tuple[PortHandler, Any, DynamixelBus]) -> None:
+def test_sdk_group_sync_read_and_write_converge(sdk_bus: SdkBus) -> None:
     port, ph, _ = sdk_bus
     reader = GroupSyncRead(port, ph, 132, 4)
     for i in (1, 2, 3, 4):
@@ -251,7 +262,8 @@ def test_sdk_group_sync_read_and_write_converge(sdk_bus: tuple[PortHandler, Any,
     deadline = time.monotonic() + 20.0
     while True:
         assert reader.txRxPacket() == COMM_SUCCESS
-        present = {i: dxl.from_bytes(dxl.to_bytes(reader.getData(i, 132, 4), 4), True) for i in goals}
+        raw = {i: dxl.to_bytes(reader.getData(i, 132, 4), 4) for i in goals}
+        present = {i: dxl.from_bytes(b, signed=True) for i, b in raw.items()}
         if all(abs(present[i] - g) <= 1 for i, g in goals.items()) or time.monotonic() > deadline:
             break
         time.sleep(0.05)

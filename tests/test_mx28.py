@@ -66,10 +66,12 @@ def test_items_do_not_overlap_and_fit_their_ranges() -> None:
 
 
 def test_ranges_of_goal_items() -> None:
-    assert (mx28.item("goal_position").min_raw, mx28.item("goal_position").max_raw) == (-1_048_575, 1_048_575)
+    goal = mx28.item("goal_position")
+    assert (goal.min_raw, goal.max_raw) == (-1_048_575, 1_048_575)
     assert mx28.item("goal_position").signed and mx28.item("present_load").signed
     assert (mx28.item("present_load").min_raw, mx28.item("present_load").max_raw) == (-1000, 1000)
-    assert (mx28.item("homing_offset").min_raw, mx28.item("homing_offset").max_raw) == (-1_044_479, 1_044_479)
+    offset = mx28.item("homing_offset")
+    assert (offset.min_raw, offset.max_raw) == (-1_044_479, 1_044_479)
 
 
 def test_units() -> None:

@@ -41,7 +41,8 @@ class DynamixelBus:
                  operating_modes: Mapping[int, int] | None = None) -> None:
         codes = [c for c, b in BAUD_CODES.items() if b == baudrate]
         if not codes:
-            raise ValueError(f"baudrate {baudrate} is not an MX-28 rate {sorted(BAUD_CODES.values())}")
+            rates = sorted(BAUD_CODES.values())
+            raise ValueError(f"baudrate {baudrate} is not an MX-28 rate {rates}")
         modes = dict(operating_modes or {})
         self.baudrate = baudrate
         self.servos = [Mx28Servo(i, modes.get(i, 3), codes[0]) for i in sorted(set(ids))]
