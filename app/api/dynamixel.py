@@ -1,0 +1,166 @@
+"""Dynamixel Protocol 2.0 pass-through: ping, registers by control-table name, SYNC read and
+write, reboot. Raw register values (`raw`), named by the MX-28 table (protocol/mx28.py).
+
+Every check happens before anything is sent: the name must be in the table (422
+`unknown_register`), a write must be to a writable item (422 `read_only`) and within the item's
+raw range (422 `out_of_range`), and a `goal_position` must be for one of the arm's motors and
+obey its joint limits (unless the profile allows raw access). Writes and reboots are refused
+while the estop is latched, except the safe ones: torque off and the LED. Reads may name any id
+(the bus may carry other servos).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Body, Path
+
+from app import schemas as s
+from app.api.common import DEVICE, errors
+from app.deps import ControlArm
+from app.errors import InvalidRequest
+from app.service import ArmService
+from protocol import mx28
+
+router = APIRouter(prefix="/arms/{arm}/dynamixel", tags=["dynamixel"])
+
+DxlId = Annotated[int, Path(ge=0, le=252, description="Dynamixel id")]
+RegName = Annotated[str, Path(max_length=64, description="control-table item, e.g. goal_position")]
+
+_NOT_SUPPORTED = "409 `not_supported` on an arm that does not speak Dynamixel."
+
+
+def _driver(svc: ArmService):  # type: ignore[no-untyped-def]
+    svc.require_protocol("dynamixel")
+    return svc.driver
+
+
+def _item(name: str) -> mx28.ControlItem:
+    try:
+        return mx28.item(name)
+    except KeyError as exc:
+        raise InvalidRequest(str(exc.args[0]), code="unknown_register") from None
+
+
+def _joint_of(svc: ArmService, dxl_id: int) -> int:
+    for k, j in enumerate(svc.profile.joints):
+        if j.motor_id == dxl_id:
+            return k
+    ids = ", ".join(str(j.motor_id) for j in svc.profile.joints)
+    raise InvalidRequest(f"id {dxl_id} is not a motor of {svc.name} (its ids: {ids}); "
+                         "goal_position writes go only to the arm's own motors",
+                         code="unknown_id")
+
+
+def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int) -> None:
+    """Everything a write must pass before it is queued."""
+    if not item.writable:
+        raise InvalidRequest(f"{item.name} is read-only", code="read_only")
+    if not item.min_raw <= raw <= item.max_raw:
+        raise InvalidRequest(f"{item.name} takes raw values {item.min_raw}..{item.max_raw}, "
+                             f"got {raw}", code="out_of_range")
+    if item.name == "goal_position":
+        svc.check_passthrough_joint_ticks(_joint_of(svc, dxl_id), float(raw))
+    elif not (item.name == "led" or (item.name == "torque_enable" and raw == 0)):
+        svc.require_motion_allowed()
+
+
+def _value(dxl_id: int, item: mx28.ControlItem, raw: int) -> s.RegisterValue:
+    return s.RegisterValue(id=dxl_id, name=item.name, address=item.address, size=item.size,
+                           raw=raw, unit=item.unit, value=mx28.to_unit(item, raw))
+
+
+@router.post(
+    "/ping",
+    response_model=s.PingResult,
+    summary="PING one id, or every id on the bus",
+    description="With `id`: that servo's model number and firmware version (504 "
+    "`device_timeout` if it does not answer). Without (or with no body): a broadcast ping, "
+    "answering every servo that replied. " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def ping(svc: ControlArm, req: Annotated[s.PingRequest | None, Body()] = None) -> s.PingResult:
+    found = await _driver(svc).ping(req.id if req is not None else None)
+    return s.PingResult(devices=[s.PingDevice(id=i, model_number=m, firmware_version=f)
+                                 for i, m, f in found])
+
+
+@router.get(
+    "/{dxl_id}/registers/{name}",
+    response_model=s.RegisterValue,
+    summary="READ one control-table item",
+    description="The raw value and, where the item has a unit, the value in it (e.g. deg). "
+    "422 `unknown_register` for a name not in the MX-28 table. Operator token (it uses the "
+    "bus). " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def read_register(svc: ControlArm, dxl_id: DxlId, name: RegName) -> s.RegisterValue:
+    drv = _driver(svc)
+    item = _item(name)
+    return _value(dxl_id, item, await drv.read_register(dxl_id, item))
+
+
+@router.put(
+    "/{dxl_id}/registers/{name}",
+    response_model=s.RegisterValue,
+    summary="WRITE one control-table item",
+    description="Writes `raw`. 422 `unknown_register`, `read_only`, `out_of_range`; "
+    "`goal_position` only to the arm's motors (422 `unknown_id`) and within the joint limits "
+    "(422 `joint_limit`); 409 `estop_latched` for anything but torque off and the LED while the "
+    "estop is latched. Answers the value written. " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def write_register(svc: ControlArm, dxl_id: DxlId, name: RegName,
+                         req: s.RegisterWrite) -> s.RegisterValue:
+    drv = _driver(svc)
+    item = _item(name)
+    _check_write(svc, item, dxl_id, req.raw)
+    await drv.write_register(dxl_id, item, req.raw)
+    return _value(dxl_id, item, req.raw)
+
+
+@router.post(
+    "/sync-read",
+    response_model=s.SyncReadResult,
+    summary="SYNC_READ one item from several ids",
+    description="One instruction, one status packet per id (ids answered in the order asked, "
+    "duplicates removed). " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def sync_read(svc: ControlArm, req: s.SyncReadRequest) -> s.SyncReadResult:
+    drv = _driver(svc)
+    item = _item(req.name)
+    ids = list(dict.fromkeys(req.ids))
+    return s.SyncReadResult(name=item.name, values=await drv.sync_read(item, ids))
+
+
+@router.post(
+    "/sync-write",
+    response_model=s.Ack,
+    summary="SYNC_WRITE one item to several ids",
+    description="Every value is checked as for a single write before the one instruction is "
+    "sent (all or nothing). " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def sync_write(svc: ControlArm, req: s.SyncWriteRequest) -> s.Ack:
+    drv = _driver(svc)
+    item = _item(req.name)
+    for dxl_id, raw in req.values.items():
+        _check_write(svc, item, dxl_id, raw)
+    await drv.sync_write(item, dict(req.values))
+    return s.Ack(command=f"SYNC_WRITE {item.name}")
+
+
+@router.post(
+    "/{dxl_id}/reboot",
+    response_model=s.Ack,
+    summary="REBOOT one servo",
+    description="The servo restarts with torque off until it is enabled again (write "
+    "`torque_enable`). Refused while the estop is latched. " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def reboot(svc: ControlArm, dxl_id: DxlId) -> s.Ack:
+    drv = _driver(svc)
+    svc.require_motion_allowed()
+    await drv.reboot(dxl_id)
+    return s.Ack(command=f"REBOOT {dxl_id}")

@@ -1,0 +1,102 @@
+"""RBE3001 protocol pass-through: SET_PID 37, STATUS 38, SET_GAIN 39, SET_CLAW 40.
+
+Raw device units (encoder ticks). These bypass the motion planner but never the emergency stop,
+and a SET_PID position obeys the joint limits unless the profile allows raw access. Each command
+is encoded here once before it is queued, so a value the packet cannot carry (a float32
+overflow) is a 422 for the caller, not a failure inside the task that owns the link.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+from fastapi import APIRouter
+
+from app import schemas as s
+from app.api.common import DEVICE, errors
+from app.deps import ControlArm
+from app.errors import InvalidRequest
+from app.service import ArmService
+from protocol import rbe3001 as rb
+
+router = APIRouter(prefix="/arms/{arm}/rbe3001", tags=["rbe3001"])
+
+_NOT_SUPPORTED = "409 `not_supported` on an arm that does not speak the RBE3001 protocol."
+
+
+def _driver(svc: ArmService):  # type: ignore[no-untyped-def]
+    svc.require_protocol("rbe3001")
+    return svc.driver
+
+
+def _encodable(cmd: rb.Command) -> None:
+    try:
+        rb.encode_command(cmd)
+    except (ValueError, OverflowError, struct.error) as exc:
+        raise InvalidRequest(f"{type(cmd).__name__} cannot be encoded: {exc}") from None
+
+
+@router.post(
+    "/set-pid",
+    response_model=s.SetPidReply,
+    summary="SET_PID (37): joint position setpoints in encoder ticks",
+    description="Three setpoints (position ticks; velocity and force are carried but unused by "
+    "the firmware). Refused with 422 `joint_limit` outside the joint limits unless the profile "
+    "allows raw access, and 409 `estop_latched` while the estop is latched. Answers the "
+    "positions the firmware reported. " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def set_pid(svc: ControlArm, req: s.SetPid) -> s.SetPidReply:
+    drv = _driver(svc)
+    setpoints = [(j.position_ticks, j.velocity_ticks_s, j.force) for j in req.joints]
+    _encodable(rb.SetPid(tuple(rb.JointSetpoint(*sp) for sp in setpoints)))  # type: ignore[arg-type]
+    svc.check_passthrough_ticks(np.array([sp[0] for sp in setpoints], dtype=float))
+    reply = await drv.set_pid(setpoints)
+    return s.SetPidReply(position_ticks=[float(x) for x in reply.position_ticks])
+
+
+@router.get(
+    "/status",
+    response_model=s.Rbe3001Status,
+    summary="STATUS (38): positions, velocities, strain gauges",
+    description="One STATUS exchange with the firmware (not the cached telemetry): positions "
+    "(ticks), velocities (ticks/s) and raw strain-gauge ADC fractions. Operator token (it "
+    "uses the bus). " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def status(svc: ControlArm) -> s.Rbe3001Status:
+    reply = await _driver(svc).status()
+    return s.Rbe3001Status(position_ticks=[float(x) for x in reply.position_ticks],
+                           velocity_ticks_s=[float(x) for x in reply.velocity_ticks_s],
+                           strain_adc=[float(x) for x in reply.strain_adc])
+
+
+@router.post(
+    "/set-gain",
+    response_model=s.Ack,
+    summary="SET_GAIN (39): PID gains of one joint",
+    description="kp, ki, kd in firmware units for axis 0-2. Refused while the estop is latched "
+    "(new gains can move a joint). " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def set_gain(svc: ControlArm, req: s.SetGain) -> s.Ack:
+    drv = _driver(svc)
+    _encodable(rb.SetGain(req.axis, req.kp, req.ki, req.kd))
+    svc.require_motion_allowed()
+    await drv.set_gain(req.axis, req.kp, req.ki, req.kd)
+    return s.Ack(command="SET_GAIN")
+
+
+@router.post(
+    "/set-claw",
+    response_model=s.Ack,
+    summary="SET_CLAW (40): claw setpoint",
+    description="0.0 open .. 1.0 closed. Refused while the estop is latched. " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def set_claw(svc: ControlArm, req: s.SetClaw) -> s.Ack:
+    drv = _driver(svc)
+    svc.require_motion_allowed()
+    await drv.set_claw(req.value)
+    return s.Ack(command="SET_CLAW")

@@ -1,0 +1,90 @@
+"""Bearer-token access: who may read, who may move.
+
+Tokens come from the settings (ARMSERVER_OPERATOR_TOKENS, ARMSERVER_VIEWER_TOKENS, comma
+separated). With none configured the server is open: every client is an operator. With any
+configured, a request must carry `Authorization: Bearer <token>` (a WebSocket may instead pass
+`?token=`), and
+
+- a viewer token reads: health, arms, state, telemetry, kinematics, plans, motions, and may
+  latch the emergency stop (the stop is open to every authenticated client);
+- an operator token may also move the arm and send protocol commands.
+
+Every presented token is compared against every configured one with `hmac.compare_digest` over
+SHA-256 digests, so the time taken says neither which token nor how much of one matched.
+"""
+
+from __future__ import annotations
+
+import enum
+import hashlib
+import hmac
+import logging
+
+from app.config import Settings
+from app.errors import Forbidden, Unauthorized
+
+log = logging.getLogger(__name__)
+
+
+class Role(enum.IntEnum):
+    VIEWER = 1
+    OPERATOR = 2
+
+
+def _digest(token: str) -> bytes:
+    return hashlib.sha256(token.encode("utf-8", "surrogatepass")).digest()
+
+
+class Access:
+    """The configured tokens of one server and the checks against them."""
+
+    def __init__(self, settings: Settings) -> None:
+        self._operators = [_digest(t) for t in sorted(settings.operator_set)]
+        self._viewers = [_digest(t) for t in sorted(settings.viewer_set)]
+        self.enabled = bool(self._operators or self._viewers)
+
+    def describe(self) -> str:
+        """A start-up line saying whether the server is open (never the tokens)."""
+        if not self.enabled:
+            return "no tokens configured: the server is OPEN to anyone who can reach it"
+        return (f"token-protected: {len(self._operators)} operator and "
+                f"{len(self._viewers)} viewer token(s)")
+
+    def role_of(self, token: str | None) -> Role | None:
+        """The role a token grants, None if it grants none. Open servers grant operator."""
+        if not self.enabled:
+            return Role.OPERATOR
+        if not token:
+            return None
+        d = _digest(token)
+        operator = False
+        viewer = False
+        for t in self._operators:  # no early exit: constant time over the token list
+            operator |= hmac.compare_digest(d, t)
+        for t in self._viewers:
+            viewer |= hmac.compare_digest(d, t)
+        if operator:
+            return Role.OPERATOR
+        if viewer:
+            return Role.VIEWER
+        return None
+
+    def require(self, token: str | None, need: Role) -> Role:
+        """The caller's role, or 401 (no or unknown token) / 403 (viewer where operator needed)."""
+        role = self.role_of(token)
+        if role is None:
+            raise Unauthorized("missing bearer token" if not token else "invalid bearer token")
+        if role < need:
+            raise Forbidden("this needs an operator token; a viewer token may read state and "
+                            "telemetry and latch the emergency stop")
+        return role
+
+
+def bearer_token(authorization: str | None) -> str | None:
+    """The token of an `Authorization: Bearer <token>` header value, else None."""
+    if not authorization:
+        return None
+    scheme, _, token = authorization.strip().partition(" ")
+    if scheme.lower() != "bearer":
+        return None
+    return token.strip() or None

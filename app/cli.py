@@ -1,0 +1,105 @@
+"""`armserver` command line.
+
+    armserver serve [--config FILE] [--host 127.0.0.1] [--port 8000] [--log-level info]
+    armserver devices                 list USB serial and HID devices that look like arms
+    armserver sim ...                 run a simulated device on a pty or TCP port (app.sim.serve)
+    armserver call ... / watch ...    client commands (app.client_cli), where installed
+
+Settings come from the environment (ARMSERVER_*); flags override them. The server binds to
+127.0.0.1 unless told otherwise: reaching it from other hosts is a decision, best taken with
+tokens configured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import logging
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+log = logging.getLogger("armserver")
+
+LOOPBACK = {"127.0.0.1", "::1", "localhost"}
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="armserver", description="Networked robot-arm server.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="command")
+
+    serve = sub.add_parser("serve", help="run the REST and WebSocket server",
+                           description="Run the server (settings from ARMSERVER_*; flags win).")
+    serve.add_argument("--config", help="server config TOML ([[arms]] tables); default: the "
+                       "simulated rbe3001 and angler")
+    serve.add_argument("--host", help="address to bind (default 127.0.0.1: this machine only)")
+    serve.add_argument("--port", type=int, help="TCP port (default 8000)")
+    serve.add_argument("--log-level", choices=["critical", "error", "warning", "info", "debug"])
+    serve.set_defaults(func=_serve)
+
+    devices = sub.add_parser("devices", help="list attached serial and HID devices",
+                             description="List USB serial and HID devices that look like arms.")
+    devices.set_defaults(func=_devices)
+
+    # Parsed by app.sim.serve itself (see main); listed here for --help.
+    sub.add_parser("sim", help="run a simulated arm device on a pty or TCP port "
+                   "(armserver sim --help)", add_help=False)
+
+    register_client_commands(sub)
+    return p
+
+
+def register_client_commands(subparsers: Any) -> None:
+    """Hook for the client commands (`call`, `watch`): added from app.client_cli if present."""
+    if importlib.util.find_spec("app.client_cli") is None:
+        return
+    from app.client_cli import register_client_commands as register
+
+    register(subparsers)
+
+
+def _settings(args: argparse.Namespace) -> Any:
+    from app.config import Settings
+
+    settings = Settings()
+    over = {k: v for k, v in (("config", args.config), ("host", args.host), ("port", args.port),
+                              ("log_level", args.log_level)) if v is not None}
+    return settings.model_copy(update=over)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from app.main import create_app
+
+    settings = _settings(args)
+    logging.basicConfig(level=settings.log_level.upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    app = create_app(settings)
+    if settings.host not in LOOPBACK and not settings.auth_enabled:
+        log.warning("binding %s with no tokens: anyone who can reach this port may move the "
+                    "arms (set ARMSERVER_OPERATOR_TOKENS)", settings.host)
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level=settings.log_level,
+                ws_max_size=settings.max_ws_message_bytes, proxy_headers=False)
+    return 0
+
+
+def _devices(args: argparse.Namespace) -> int:
+    from app.links.discovery import format_devices, list_devices
+
+    print(format_devices(list_devices()))
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "sim":  # app.sim.serve owns its own flags
+        from app.sim.serve import main as sim_main
+
+        return int(sim_main(argv[1:]) or 0)
+    args = _parser().parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

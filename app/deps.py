@@ -1,0 +1,100 @@
+"""Request dependencies as `Annotated` aliases (full-stack-fastapi-template style).
+
+A route names what it needs and the access that implies:
+
+- `ViewerArm`: the arm, for any authenticated client (reads, kinematics, estop latch);
+- `OperatorArm`: the arm, operator token (stop, cancel: stopping is always allowed, lease or
+  not);
+- `ControlArm`: the arm, operator token and, while a lease is held on it, that lease's id in
+  `X-Arm-Lease` (moves, gripper, protocol commands).
+
+Access is checked before the arm is looked up, so an unauthenticated client learns nothing
+about which arms exist.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import Depends, Header, Path, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from app.auth import Access, Role
+from app.config import Settings
+from app.errors import UnknownArm
+from app.lease import LeaseManager
+from app.service import ArmService
+
+_bearer = HTTPBearer(auto_error=False, description="viewer or operator token (only when the "
+                     "server is configured with tokens)")
+Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+ArmName = Annotated[str, Path(description="arm name, as in GET /api/v1/arms", max_length=64)]
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings  # type: ignore[no-any-return]
+
+
+def get_services(request: Request) -> dict[str, ArmService]:
+    return request.app.state.services  # type: ignore[no-any-return]
+
+
+def get_access(request: Request) -> Access:
+    return request.app.state.access  # type: ignore[no-any-return]
+
+
+def get_leases(request: Request) -> LeaseManager:
+    return request.app.state.leases  # type: ignore[no-any-return]
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+ServicesDep = Annotated[dict[str, ArmService], Depends(get_services)]
+LeasesDep = Annotated[LeaseManager, Depends(get_leases)]
+
+
+def lookup_arm(services: dict[str, ArmService], name: str) -> ArmService:
+    svc = services.get(name)
+    if svc is None:
+        raise UnknownArm(f"no arm {name!r}; this server hosts {', '.join(sorted(services))}")
+    return svc
+
+
+def _token(cred: HTTPAuthorizationCredentials | None) -> str | None:
+    return cred.credentials if cred is not None else None
+
+
+def require_viewer(request: Request, cred: Credentials) -> Role:
+    return get_access(request).require(_token(cred), Role.VIEWER)
+
+
+def require_operator(request: Request, cred: Credentials) -> Role:
+    return get_access(request).require(_token(cred), Role.OPERATOR)
+
+
+ViewerRole = Annotated[Role, Depends(require_viewer)]
+OperatorRole = Annotated[Role, Depends(require_operator)]
+
+
+def viewer_arm(_: ViewerRole, services: ServicesDep, arm: ArmName) -> ArmService:
+    return lookup_arm(services, arm)
+
+
+def operator_arm(_: OperatorRole, services: ServicesDep, arm: ArmName) -> ArmService:
+    return lookup_arm(services, arm)
+
+
+OperatorArm = Annotated[ArmService, Depends(operator_arm)]
+
+
+async def control_arm(
+    svc: OperatorArm,
+    leases: LeasesDep,
+    x_arm_lease: Annotated[str | None, Header(description="the lease id, while a lease is "
+                                              "held on the arm", max_length=128)] = None,
+) -> ArmService:
+    await leases.check(svc.name, x_arm_lease)
+    return svc
+
+
+ViewerArm = Annotated[ArmService, Depends(viewer_arm)]
+ControlArm = Annotated[ArmService, Depends(control_arm)]

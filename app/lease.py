@@ -1,0 +1,154 @@
+"""Control leases: one client at a time may move an arm (API.md, "Control lease").
+
+A lease is a bearer capability: whoever presents its id in `X-Arm-Lease` holds it. While one
+is held on an arm, requests that move it or send protocol commands without that id get 409
+`leased`; the emergency stop stays open to every authenticated client. A lease not renewed
+within its ttl lapses: the arm is brought to a controlled stop (`ArmService.stop`), a
+`lease_expired` event goes to telemetry subscribers, and the lease is gone.
+
+A lapsed lease is expired by whichever comes first: the watcher task (which wakes at the
+earliest expiry) or the next request that looks at it, so a request can never slip a motion in
+between the expiry and its stop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import logging
+import secrets
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+from app import schemas as s
+from app.errors import ArmError, Leased, NotFound
+from app.service import ArmService
+
+log = logging.getLogger(__name__)
+
+
+class UnknownLease(NotFound):
+    code = "unknown_lease"
+
+
+@dataclass
+class _Lease:
+    id: str
+    arm: str
+    ttl: float
+    deadline: float  # loop-independent monotonic time, s
+
+    def expired(self, now: float) -> bool:
+        return now >= self.deadline
+
+    def to_schema(self) -> s.Lease:
+        wall = time.time() + (self.deadline - time.monotonic())
+        return s.Lease(id=self.id, arm=self.arm, expires=wall, ttl=self.ttl)
+
+
+class LeaseManager:
+    """The leases of every arm of one server, and the watcher that expires them."""
+
+    def __init__(self, services: Mapping[str, ArmService], ttl: float) -> None:
+        self._services = services
+        self.ttl = ttl
+        self._leases: dict[str, _Lease] = {}
+        self._changed = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+
+    def start(self) -> None:
+        if self._task is None:
+            self._task = asyncio.create_task(self._watch(), name="lease-watcher")
+
+    async def close(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+
+    # ------------------------------------------------------------ requests
+
+    def held(self, arm: str) -> s.Lease | None:
+        lease = self._leases.get(arm)
+        return None if lease is None else lease.to_schema()
+
+    async def acquire(self, arm: str) -> s.Lease:
+        await self._expire_if_due(arm)
+        if arm in self._leases:
+            raise Leased(f"{arm} is leased by another client; wait for it to be released or "
+                         "to lapse, or latch the emergency stop")
+        lease = _Lease(secrets.token_urlsafe(16), arm, self.ttl, time.monotonic() + self.ttl)
+        self._leases[arm] = lease
+        self._changed.set()
+        log.info("%s: lease taken (ttl %.1f s)", arm, self.ttl)
+        return lease.to_schema()
+
+    async def renew(self, arm: str, lease_id: str) -> s.Lease:
+        lease = await self._find(arm, lease_id)
+        lease.deadline = time.monotonic() + lease.ttl
+        self._changed.set()
+        return lease.to_schema()
+
+    async def release(self, arm: str, lease_id: str) -> None:
+        lease = await self._find(arm, lease_id)
+        del self._leases[lease.arm]
+        self._changed.set()
+        log.info("%s: lease released", arm)
+
+    async def check(self, arm: str, lease_id: str | None) -> None:
+        """Let a request that moves `arm` through, or 409 `leased` if another holds it."""
+        await self._expire_if_due(arm)
+        lease = self._leases.get(arm)
+        if lease is None:
+            return
+        if lease_id is None or not hmac.compare_digest(lease_id.encode(), lease.id.encode()):
+            raise Leased(f"{arm} is leased: send the lease id in the X-Arm-Lease header "
+                         "(only the emergency stop is open without it)")
+
+    # ------------------------------------------------------------ expiry
+
+    async def _find(self, arm: str, lease_id: str) -> _Lease:
+        await self._expire_if_due(arm)
+        lease = self._leases.get(arm)
+        if lease is None or not hmac.compare_digest(lease_id.encode(), lease.id.encode()):
+            raise UnknownLease(f"no lease {lease_id!r} on {arm} (released, lapsed or never "
+                               "taken)")
+        return lease
+
+    async def _expire_if_due(self, arm: str) -> None:
+        lease = self._leases.get(arm)
+        if lease is not None and lease.expired(time.monotonic()):
+            await self._expire(lease)
+
+    async def _expire(self, lease: _Lease) -> None:
+        if self._leases.get(lease.arm) is not lease:
+            return  # released or expired meanwhile
+        del self._leases[lease.arm]
+        svc = self._services.get(lease.arm)
+        log.warning("%s: lease lapsed (not renewed within %.1f s): stopping the arm",
+                    lease.arm, lease.ttl)
+        stopped: list[str] = []
+        if svc is not None:
+            try:
+                stopped = (await svc.stop()).stopped
+            except ArmError as exc:  # stop failed on the device: still report the lapse
+                log.warning("%s: stop after lease lapse failed: %s", lease.arm, exc.detail)
+            svc.hub.event("lease_expired", lease=lease.id, stopped=stopped)
+
+    async def _watch(self) -> None:
+        while True:
+            self._changed.clear()
+            now = time.monotonic()
+            for lease in list(self._leases.values()):
+                if lease.expired(now):
+                    try:
+                        await self._expire(lease)
+                    except Exception:  # keep watching the other arms' leases
+                        log.exception("%s: expiring the lease failed", lease.arm)
+            deadlines = [lease.deadline for lease in self._leases.values()]
+            timeout = None if not deadlines else max(0.0, min(deadlines) - time.monotonic())
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._changed.wait(), timeout)

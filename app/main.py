@@ -1,0 +1,271 @@
+"""The app factory: routers, error handlers, middleware and the lifespan that runs the arms.
+
+Errors: every error body is `{"detail": ..., "code": ...}`.
+
+- `ArmError` (and subclasses): its own status and code.
+- Validation: 422 `invalid_request` with pydantic's error list (JSON-safe: `ctx` values as
+  strings, `input` dropped where it is not plain JSON, e.g. a NaN). Malformed JSON is 422
+  `invalid_json` (one code for "the body is not JSON", same status as any other bad body).
+- Starlette's 404/405: `not_found` / `method_not_allowed`.
+- A body over `max_body_bytes`: 413 `too_large`, before the app reads it.
+- Anything else is a bug: logged with its traceback, counted in `app.state.internal_errors`
+  (tests assert it stays 0) and answered 502 `internal_error`, never a 500 (API.md).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match, Mount
+from starlette.staticfiles import StaticFiles
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from app.api import arms, dynamixel, kinematics, lease, motion, rbe3001, telemetry
+from app.auth import Access
+from app.config import ArmProfile, Settings, load_arms
+from app.errors import ArmError, Unauthorized
+from app.lease import LeaseManager
+from app.service import ArmService
+
+log = logging.getLogger("armserver")
+
+API_PREFIX = "/api/v1"
+STATIC_DIR = Path(__file__).parent / "static"
+
+
+def create_app(settings: Settings | None = None,
+               profiles: list[ArmProfile] | None = None) -> FastAPI:
+    """The server for `profiles` (default: the arms of `settings.config`, else the two
+    simulated arms). The arms start in the lifespan, not here."""
+    settings = settings if settings is not None else Settings()
+    profiles = profiles if profiles is not None else load_arms(settings.config)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        services: dict[str, ArmService] = {}
+        leases = LeaseManager(services, settings.lease_ttl_s)
+        app.state.services = services
+        app.state.leases = leases
+        try:
+            for p in profiles:
+                svc = ArmService(p)
+                services[p.name] = svc
+                await svc.start()
+                log.info("arm %s (%s) on %s link %s", p.name, p.model, p.link.kind,
+                         svc.driver.link.address or "-")
+            leases.start()
+            log.info("access: %s", app.state.access.describe())
+            yield
+        finally:
+            await leases.close()
+            for svc in services.values():
+                try:
+                    await svc.close()
+                except Exception:  # close the other arms all the same
+                    log.exception("%s: close failed", svc.name)
+
+    app = FastAPI(
+        title="armserver",
+        version="1.0.0",
+        summary="REST and WebSocket API over RBE3001 (USB HID) and Dynamixel (serial) arms",
+        description="SI units on the wire (m, rad, s, N, N m); raw device units only under the "
+        "protocol pass-through routes, named so. Errors are `{detail, code}`.",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.access = Access(settings)
+    app.state.services = {}
+    app.state.internal_errors = 0
+
+    for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry):
+        app.include_router(r.router, prefix=API_PREFIX)
+    _install_error_handlers(app)
+
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    origins = [o.strip() for o in settings.cors_origins.split(",") if o.strip()]
+    if origins:
+        app.add_middleware(CORSMiddleware, allow_origins=origins, allow_methods=["*"],
+                           allow_headers=["*"])
+    # Outermost of our middleware: nothing below it escapes as a bare 500.
+    app.add_middleware(InternalErrors, app_ref=app)
+
+    if (STATIC_DIR / "index.html").is_file():
+        app.router.routes.append(_Dashboard("/", StaticFiles(directory=STATIC_DIR, html=True),
+                                            name="dashboard"))
+    return app
+
+
+class _Dashboard(Mount):
+    """The static dashboard at "/", never answering under /api (so the API keeps its own 404
+    and 405 answers instead of the file server's)."""
+
+    def matches(self, scope: Scope) -> tuple[Match, Scope]:
+        if scope.get("path", "").startswith(API_PREFIX + "/") or scope["type"] != "http":
+            return Match.NONE, {}
+        return super().matches(scope)
+
+
+# ---------------------------------------------------------------- errors
+
+
+def _body(detail: Any, code: str) -> dict[str, Any]:
+    return {"detail": detail, "code": code}
+
+
+def _json_safe(value: Any) -> bool:
+    try:
+        json.dumps(value, allow_nan=False)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def validation_errors(errors: Any) -> list[dict[str, Any]]:
+    """Pydantic's errors, made JSON-safe: ctx values as strings, unsafe inputs dropped."""
+    out = []
+    for e in errors:
+        item: dict[str, Any] = {"type": e.get("type"), "loc": list(e.get("loc", ())),
+                                "msg": e.get("msg")}
+        if "ctx" in e:
+            item["ctx"] = {k: v if isinstance(v, (int, str)) and not isinstance(v, bool)
+                           else str(v) for k, v in e["ctx"].items()}
+        if "input" in e and _json_safe(e["input"]) and len(repr(e["input"])) <= 256:
+            item["input"] = e["input"]
+        out.append(item)
+    return out
+
+
+_HTTP_CODES = {400: "bad_request", 404: "not_found", 405: "method_not_allowed",
+               413: "too_large", 415: "unsupported_media_type"}
+
+
+def _install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(ArmError)
+    async def arm_error(request: Request, exc: ArmError) -> JSONResponse:
+        headers = {"WWW-Authenticate": "Bearer"} if isinstance(exc, Unauthorized) else None
+        return JSONResponse(_body(exc.detail, exc.code), exc.status_code, headers=headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        errs = validation_errors(exc.errors())
+        code = ("invalid_json" if any(e["type"] == "json_invalid" for e in errs)
+                else "invalid_request")
+        return JSONResponse(_body(errs, code), 422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        code = _HTTP_CODES.get(exc.status_code, "http_error")
+        detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        return JSONResponse(_body(detail, code), exc.status_code,
+                            headers=getattr(exc, "headers", None))
+
+
+class InternalErrors:
+    """Last resort for bugs: log with traceback, count, answer 502 `internal_error` (if the
+    response has not started). Fix the cause; tests assert the count stays 0."""
+
+    def __init__(self, app: ASGIApp, app_ref: FastAPI) -> None:
+        self.app = app
+        self.ref = app_ref
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def _send(message: Message) -> None:
+            nonlocal started
+            if message["type"] in ("http.response.start", "websocket.accept"):
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, receive, _send)
+        except Exception:
+            self.ref.state.internal_errors += 1
+            log.exception("internal error on %s %s", scope.get("method", "WS"), scope.get("path"))
+            if scope["type"] == "http" and not started:
+                body = json.dumps(_body("internal error (logged); please report it",
+                                        "internal_error")).encode()
+                await send({"type": "http.response.start", "status": 502,
+                            "headers": [(b"content-type", b"application/json"),
+                                        (b"content-length", str(len(body)).encode())]})
+                await send({"type": "http.response.body", "body": body})
+
+
+class BodyLimit:
+    """413 `too_large` for a request body over `max_bytes`, declared or streamed. The body is
+    read here (it is small by definition) and replayed to the app."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope.get("headers", ())).get(b"content-length")
+        if declared is not None:
+            try:
+                if int(declared) > self.max_bytes:
+                    await self._too_large(send)
+                    return
+            except ValueError:
+                pass
+        chunks: list[bytes] = []
+        size = 0
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":  # disconnect: let the app see it
+                chunks = []
+                replay: Message | None = message
+                break
+            size += len(message.get("body", b""))
+            if size > self.max_bytes:
+                await self._too_large(send)
+                return
+            chunks.append(message.get("body", b""))
+            if not message.get("more_body", False):
+                replay = None
+                break
+        body = b"".join(chunks)
+        sent = False
+
+        async def _receive() -> Message:
+            nonlocal sent
+            if replay is not None:
+                return replay
+            if not sent:
+                sent = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()
+
+        await self.app(scope, _receive, send)
+
+    async def _too_large(self, send: Send) -> None:
+        body = json.dumps(_body(f"request body over {self.max_bytes} bytes",
+                                "too_large")).encode()
+        await send({"type": "http.response.start", "status": 413,
+                    "headers": [(b"content-type", b"application/json"),
+                                (b"content-length", str(len(body)).encode())]})
+        await send({"type": "http.response.body", "body": body})
+
+
+def cli() -> None:
+    """Console entry point `armserver` (see app.cli)."""
+    from app.cli import main
+
+    raise SystemExit(main())
+
