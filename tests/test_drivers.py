@@ -1,0 +1,253 @@
+"""Both drivers against the simulators over real transports (pseudo-terminal, loopback
+socket:// and the in-process sim link), and under every injected fault: no request is lost
+(each ends with a reply or a typed error, in bounded time) and none is answered wrongly."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+
+from app.config import FaultConfig, load_profile
+from app.devices.angler import AnglerDriver
+from app.devices.factory import make_sim_device
+from app.devices.rbe3001 import Rbe3001Driver
+from app.errors import ArmError, CorruptReply, DeviceTimeout, LinkDown
+from app.links.serial import SerialLink
+from app.links.sim import SimLink
+from app.sim.serve import serve_pty, serve_tcp
+from app.telemetry import TelemetryHub
+from protocol import mx28
+from protocol import rbe3001 as rb
+
+DRIVERS = {"rbe3001": Rbe3001Driver, "angler": AnglerDriver}
+
+
+async def started(name: str, link, timeout: float = 5.0):
+    profile = load_profile(name)
+    driver = DRIVERS[name](profile, link, TelemetryHub(name))
+    await driver.start()
+    assert await driver.wait_connected(timeout), f"{name} never connected: {link.last_error}"
+    return driver
+
+
+def sim_link(name: str, faults: FaultConfig | None = None, seed: int = 1) -> SimLink:
+    return SimLink(make_sim_device(load_profile(name)), faults=faults, address=f"sim:{name}",
+                   seed=seed)
+
+
+# ------------------------------------------------------------------ real transports
+
+
+async def test_angler_over_a_real_pty(tmp_path):
+    device = make_sim_device(load_profile("angler"))
+    path = tmp_path / "ttyDXL"
+    server = await serve_pty(device, path)
+    driver = await started("angler", SerialLink(str(path)))
+    try:
+        pings = await driver.ping(None)
+        assert [p[0] for p in pings] == [1, 2, 3, 4]
+        assert {p[1] for p in pings} == {mx28.MODEL_NUMBER}
+        assert await driver.read_register(3, mx28.TABLE["id"]) == 3
+        seq0 = driver.hub.latest["seq"]
+        await asyncio.sleep(0.3)
+        assert driver.hub.latest["seq"] > seq0 + 10  # polling at the profile's rate
+        assert driver.hub.latest["link"] == "up"
+    finally:
+        await driver.close()
+        await server.close()
+
+
+async def test_angler_moves_over_socket_url():
+    device = make_sim_device(load_profile("angler"))
+    server = await serve_tcp(device)
+    driver = await started("angler", SerialLink(f"socket://127.0.0.1:{server.port}"))
+    try:
+        target = np.array([0.01, -0.02, 0.3, 0.05])
+        await driver.command_joints(target)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and not np.allclose(driver.positions, target, atol=2e-3):
+            await asyncio.sleep(0.05)
+        np.testing.assert_allclose(driver.positions, target, atol=2e-3)
+        tip = driver.hub.latest["tip"]
+        np.testing.assert_allclose([tip["x"], tip["y"], tip["z"]],
+                                   driver.model.fk(driver.positions), atol=1e-9)
+    finally:
+        await driver.close()
+        await server.close()
+
+
+async def test_rbe3001_over_socket_url_with_stream_framing():
+    device = make_sim_device(load_profile("rbe3001"))
+    server = await serve_tcp(device)
+    driver = await started("rbe3001", SerialLink(f"socket://127.0.0.1:{server.port}"))
+    try:
+        status = await driver.status()
+        assert isinstance(status, rb.StatusReply) and len(status.position_ticks) == 3
+        await driver.set_pid([(300.0, 0, 0), (500.0, 0, 0), (200.0, 0, 0)])
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            if np.allclose((await driver.status()).position_ticks, [300, 500, 200], atol=15):
+                break
+            await asyncio.sleep(0.05)
+        np.testing.assert_allclose((await driver.status()).position_ticks, [300, 500, 200], atol=15)
+    finally:
+        await driver.close()
+        await server.close()
+
+
+async def test_samples_are_numbered_and_converted_to_si():
+    driver = await started("rbe3001", sim_link("rbe3001"))
+    hub = driver.hub
+    sub = hub.subscribe()
+    try:
+        await asyncio.sleep(0.2)
+        samples, _, dropped = sub.take()
+        import json
+        seqs = [json.loads(x)["seq"] for x in samples]
+        assert dropped == 0 and len(seqs) > 50
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+        s = json.loads(samples[-1])
+        status = await driver.status()
+        q_expected = driver.model.transmission.from_ticks(np.array(status.position_ticks))
+        np.testing.assert_allclose(s["positions"], q_expected, atol=0.01)
+        assert s["torques"] is not None and s["tip_force"] is not None
+    finally:
+        sub.close()
+        await driver.close()
+
+
+# ------------------------------------------------------------------ faults
+
+
+async def _hammer(calls, n_tasks: int = 4, per_task: int = 40, bound_s: float = 30.0):
+    """Run request coroutines from several tasks; classify every outcome."""
+    outcomes: dict[str, int] = {"ok": 0, "wrong": 0}
+    errors: dict[str, int] = {}
+
+    async def worker(k: int) -> None:
+        for i in range(per_task):
+            make, check = calls[(k + i) % len(calls)]
+            try:
+                value = await make()
+            except ArmError as exc:
+                errors[exc.code] = errors.get(exc.code, 0) + 1
+                continue
+            outcomes["ok" if check(value) else "wrong"] += 1
+
+    await asyncio.wait_for(asyncio.gather(*(worker(k) for k in range(n_tasks))), bound_s)
+    total = outcomes["ok"] + outcomes["wrong"] + sum(errors.values())
+    assert total == n_tasks * per_task  # nothing lost: every request ended
+    return outcomes, errors
+
+
+def _angler_calls(driver):
+    item = mx28.TABLE["id"]
+    calls = [(lambda i=i: driver.read_register(i, item), lambda v, i=i: v == i) for i in (1, 2, 3, 4)]
+    calls.append((lambda: driver.read_register(2, mx28.TABLE["model_number"]),
+                  lambda v: v == mx28.MODEL_NUMBER))
+    calls.append((lambda: driver.sync_read(mx28.TABLE["id"], [4, 1, 3]),
+                  lambda v: v == {4: 4, 1: 1, 3: 3}))
+    return calls
+
+
+def _rbe_calls(driver):
+    return [
+        (driver.status, lambda v: isinstance(v, rb.StatusReply)
+         and np.all(np.abs(v.position_ticks) < 4096)),
+        (lambda: driver.set_gain(1, 0.005, 0.0, 0.0), lambda v: v is None),
+        (lambda: driver.set_claw(0.25), lambda v: v is None),
+    ]
+
+
+@pytest.mark.parametrize("name", ["angler", "rbe3001"])
+@pytest.mark.parametrize("fault", ["drop", "corrupt"])
+async def test_drop_and_corrupt_fail_clearly_never_wrongly(name, fault):
+    link = sim_link(name, seed=7)
+    driver = await started(name, link)
+    try:
+        link.set_faults(FaultConfig(**{fault: 0.3}))
+        calls = _angler_calls(driver) if name == "angler" else _rbe_calls(driver)
+        outcomes, errors = await _hammer(calls)
+        assert outcomes["wrong"] == 0
+        assert outcomes["ok"] > 20  # most still get through
+        expected = {"device_timeout"} if fault == "drop" else {"corrupt_reply", "device_timeout"}
+        assert errors and set(errors) <= expected, errors
+        link.set_faults(FaultConfig())
+        outcomes, errors = await _hammer(calls, n_tasks=2, per_task=10)
+        assert outcomes == {"ok": 20, "wrong": 0} and not errors  # recovered
+    finally:
+        await driver.close()
+
+
+@pytest.mark.parametrize("name", ["angler", "rbe3001"])
+async def test_late_replies_never_answer_a_later_request(name):
+    link = sim_link(name)
+    driver = await started(name, link)
+    try:
+        link.set_faults(FaultConfig(latency_s=driver.timeout * 1.3))  # every reply too late
+        calls = _angler_calls(driver) if name == "angler" else _rbe_calls(driver)
+        outcomes, errors = await _hammer(calls, n_tasks=2, per_task=6)
+        assert outcomes == {"ok": 0, "wrong": 0}
+        assert set(errors) == {"device_timeout"}
+        link.set_faults(FaultConfig(latency_s=driver.timeout * 0.3))  # late but in time
+        outcomes, errors = await _hammer(calls, n_tasks=2, per_task=6)
+        assert outcomes["wrong"] == 0 and outcomes["ok"] == 12, (outcomes, errors)
+    finally:
+        await driver.close()
+
+
+@pytest.mark.parametrize("name", ["angler", "rbe3001"])
+async def test_disconnect_fails_fast_reports_and_recovers(name):
+    link = sim_link(name)
+    driver = await started(name, link)
+    sub = driver.hub.subscribe()
+    try:
+        link.set_faults(FaultConfig(reconnect_after_s=0.5))
+        link.disconnect()
+        await asyncio.sleep(0.05)
+        assert driver.state.value in ("down", "connecting")
+        t0 = time.monotonic()
+        with pytest.raises(LinkDown):
+            await (driver.status() if name == "rbe3001" else driver.ping(1))
+        assert time.monotonic() - t0 < 0.05  # fails at once, does not wait for a timeout
+        assert driver.hub.latest["stale"] is True
+        assert await driver.wait_connected(5.0)
+        _, events, _ = sub.take()
+        names = [e.split('"event":"')[1].split('"')[0] for e in events]
+        assert names.index("link_lost") < names.index("link_back")
+        calls = _angler_calls(driver) if name == "angler" else _rbe_calls(driver)
+        outcomes, errors = await _hammer(calls, n_tasks=2, per_task=5)
+        assert outcomes == {"ok": 10, "wrong": 0} and not errors
+    finally:
+        sub.close()
+        await driver.close()
+
+
+async def test_device_error_byte_is_reported_with_its_meaning():
+    driver = await started("angler", sim_link("angler"))
+    try:
+        with pytest.raises(ArmError) as info:  # EEPROM write with torque on: access error
+            await driver.write_register(1, mx28.TABLE["operating_mode"], 3)
+        assert info.value.code == "device_error"
+        assert "access" in info.value.detail
+    finally:
+        await driver.close()
+
+
+async def test_requests_queue_is_bounded():
+    driver = await started("rbe3001", sim_link("rbe3001"))
+    try:
+        n = driver._queue.maxsize + 20
+        results = await asyncio.gather(*(driver.status() for _ in range(n)), return_exceptions=True)
+        busy = [r for r in results if isinstance(r, ArmError) and r.code == "busy"]
+        ok = [r for r in results if isinstance(r, rb.StatusReply)]
+        assert busy and ok and len(busy) + len(ok) == n
+    finally:
+        await driver.close()
+
+
+def test_unused_imports_are_used():
+    assert CorruptReply.code == "corrupt_reply" and DeviceTimeout.code == "device_timeout"
