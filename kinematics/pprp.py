@@ -79,18 +79,19 @@ def _q(q: npt.ArrayLike) -> FloatArray:
 def dh_transform(
     theta: npt.ArrayLike, d: npt.ArrayLike, a: npt.ArrayLike, alpha: npt.ArrayLike
 ) -> FloatArray:
-    """Standard DH link transform Rz(theta) Tz(d) Tx(a) Rx(alpha), (..., 4, 4)."""
-    th, dd, aa, al = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64)
-                                           for v in (theta, d, a, alpha)))
+    """Standard DH link transform Rz(theta) Tz(d) Tx(a) Rx(alpha), (..., 4, 4).
+
+    Parameters broadcast together; trig is taken before broadcasting, so a
+    constant alpha costs one cos, not one per point.
+    """
+    th, dd, aa, al = (np.asarray(v, dtype=np.float64) for v in (theta, d, a, alpha))
+    out = np.zeros(np.broadcast_shapes(th.shape, dd.shape, aa.shape, al.shape) + (4, 4))
     ct, st, ca, sa = np.cos(th), np.sin(th), np.cos(al), np.sin(al)
-    z, o = np.zeros_like(th), np.ones_like(th)
-    rows = [
-        [ct, -st * ca, st * sa, aa * ct],
-        [st, ct * ca, -ct * sa, aa * st],
-        [z, sa, ca, dd],
-        [z, z, z, o],
-    ]
-    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2], out[..., 0, 3] = ct, -st * ca, st * sa, aa * ct
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2], out[..., 1, 3] = st, ct * ca, -ct * sa, aa * st
+    out[..., 2, 1], out[..., 2, 2], out[..., 2, 3] = sa, ca, dd
+    out[..., 3, 3] = 1.0
+    return out
 
 
 _T0 = np.array([[0.0, 0.0, 1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0],

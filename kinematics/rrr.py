@@ -34,6 +34,7 @@ __all__ = [
     "inverse_velocity_one",
     "jacobian",
     "tip_force",
+    "tip_force_one",
     "workspace",
     "wrap",
 ]
@@ -260,6 +261,21 @@ def tip_force(
     """
     jt = np.swapaxes(jacobian(q, g), -1, -2)
     f, _ = _guarded_solve(jt, np.asarray(tau, dtype=np.float64), max_cond)
+    return f
+
+
+def tip_force_one(
+    q: npt.ArrayLike, tau: npt.ArrayLike, g: RRR = RRR(), max_cond: float = 1e4
+) -> FloatArray:
+    """Single-configuration :func:`tip_force` (3,) N; raises :class:`Singular`."""
+    f = tip_force(np.reshape(q, 3), np.reshape(tau, 3), g, max_cond)
+    if not np.all(np.isfinite(f)):
+        cond = float(_cond(jacobian(np.reshape(q, 3), g)))
+        raise Singular(
+            f"singular: Jacobian condition number {cond:.3g} exceeds {max_cond:.3g}; the"
+            " torques do not determine a unique tip force here",
+            cond,
+        )
     return f
 
 

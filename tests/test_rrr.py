@@ -157,6 +157,8 @@ def test_singular_configurations() -> None:
         rrr.inverse_velocity_one(on_axis, [0.01, 0.0, 0.0], G)
     assert info.value.cond > 1e4
     assert np.isnan(rrr.tip_force(stretched, [1.0, 1.0, 1.0], G)).all()
+    with pytest.raises(Singular, match="condition number"):
+        rrr.tip_force_one(stretched, [1.0, 1.0, 1.0], G)
 
 
 def test_inverse_velocity_one_matches_batch() -> None:
@@ -179,7 +181,8 @@ def test_tip_force_balances_torques(seed: int) -> None:
 def test_tip_force_seed() -> None:
     # q = 0: J^T = [[0, L2, 0], [L3, 0, L2], [-L3, 0, 0]]; a pure downward tip force -1 N
     # loads the shoulder only: tau = J^T (0, 0, -1) = (0, -L2, 0)
-    np.testing.assert_allclose(rrr.tip_force([0, 0, 0], [0.0, -L2, 0.0], G), [0, 0, -1], atol=1e-12)
+    np.testing.assert_allclose(rrr.tip_force_one([0, 0, 0], [0.0, -L2, 0.0], G), [0, 0, -1],
+                               atol=1e-12)
 
 
 def test_workspace_and_bounds() -> None:
