@@ -1,0 +1,151 @@
+"""Fixtures for the API tests: the real app over the simulated arms, in process (httpx over
+ASGI, lifespan running) and over a real uvicorn server on a loopback port (for WebSockets).
+
+No part of our code is mocked: the simulators sit behind the links and answer the bytes the
+hardware would. Every app fixture asserts at teardown that the last-resort error handler was
+never hit (a request that reaches it is a bug, whatever status it got).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import socket
+import threading
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import httpx
+import pytest
+import uvicorn
+from fastapi import FastAPI
+
+from app.config import Settings
+from app.main import create_app
+
+#: How long the simulated arms may take to answer their first poll, s.
+READY_TIMEOUT_S = 10.0
+OPERATOR = "op-token-1"
+VIEWER = "viewer-token-1"
+
+
+def make_settings(**over: Any) -> Settings:
+    """Settings independent of the environment the tests run in."""
+    base: dict[str, Any] = {"config": None, "operator_tokens": "", "viewer_tokens": "",
+                            "cors_origins": "", "lease_ttl_s": 5.0}
+    base.update(over)
+    return Settings(**base)
+
+
+async def wait_ready(app: FastAPI, timeout: float = READY_TIMEOUT_S) -> None:
+    """Until every arm has published a fresh sample."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        services = getattr(app.state, "services", {})
+        if services and all(s.hub.latest is not None and not s.driver.stale
+                            for s in services.values()):
+            return
+        await asyncio.sleep(0.02)
+    raise TimeoutError("the simulated arms did not answer in time")
+
+
+@contextlib.asynccontextmanager
+async def running_client(settings: Settings | None = None,
+                         headers: dict[str, str] | None = None
+                         ) -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
+    app = create_app(settings or make_settings())
+    async with app.router.lifespan_context(app):
+        await wait_ready(app)
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://armserver.test",
+                                     headers=headers, timeout=30.0) as client:
+            yield app, client
+    assert app.state.internal_errors == 0, "the last-resort error handler was hit"
+
+
+@pytest.fixture
+async def app_and_client() -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
+    async with running_client() as pair:
+        yield pair
+
+
+@pytest.fixture
+async def app_client(app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> httpx.AsyncClient:
+    """httpx client over the default app (simulated rbe3001 and angler, no tokens)."""
+    return app_and_client[1]
+
+
+@pytest.fixture
+def client_factory() -> Callable[..., Any]:
+    """`async with client_factory(settings, headers) as (app, client)`."""
+    return running_client
+
+
+# ---------------------------------------------------------------- live server
+
+
+@dataclass
+class LiveServer:
+    url: str
+    ws_url: str
+    app: FastAPI
+    server: uvicorn.Server
+    loop: asyncio.AbstractEventLoop
+
+    def call(self, fn: Callable[[], Awaitable[Any]], timeout: float = 10.0) -> Any:
+        """Run a coroutine in the server's own loop (services belong to it)."""
+        return asyncio.run_coroutine_threadsafe(fn(), self.loop).result(timeout)
+
+
+def _free_socket(sndbuf: int | None) -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    if sndbuf is not None:  # inherited by accepted sockets: a small pipe to each client
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, sndbuf)
+    sock.bind(("127.0.0.1", 0))
+    return sock
+
+
+@contextlib.contextmanager
+def serve_live(settings: Settings | None = None, sndbuf: int | None = None) -> Iterator[LiveServer]:
+    settings = settings or make_settings()
+    app = create_app(settings)
+    sock = _free_socket(sndbuf)
+    port = sock.getsockname()[1]
+    config = uvicorn.Config(app, log_level="warning", lifespan="on",
+                            ws_max_size=settings.max_ws_message_bytes)
+    server = uvicorn.Server(config)
+    loop_box: dict[str, asyncio.AbstractEventLoop] = {}
+
+    def run() -> None:
+        async def main() -> None:
+            loop_box["loop"] = asyncio.get_running_loop()
+            await server.serve(sockets=[sock])
+        asyncio.run(main())
+
+    thread = threading.Thread(target=run, name="live-uvicorn", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + READY_TIMEOUT_S
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            raise RuntimeError("uvicorn did not start")
+        time.sleep(0.01)
+    live = LiveServer(f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}", app, server,
+                      loop_box["loop"])
+    live.call(lambda: wait_ready(app))
+    try:
+        yield live
+    finally:
+        server.should_exit = True
+        thread.join(10)
+        sock.close()
+    assert app.state.internal_errors == 0, "the last-resort error handler was hit"
+
+
+@pytest.fixture
+def live_server() -> Iterator[LiveServer]:
+    """A real uvicorn server on 127.0.0.1 (a free port) over the default simulated arms."""
+    with serve_live() as live:
+        yield live

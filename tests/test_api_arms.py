@@ -1,0 +1,179 @@
+"""Health, arms, state and the error contract (shapes, codes, never a 500), over the real app."""
+
+from __future__ import annotations
+
+import httpx
+import pytest
+
+from app.main import create_app
+from app.schemas import ArmDetail, Health, Sample
+from tests.conftest import make_settings
+
+API = "/api/v1"
+
+
+async def test_health_lists_every_arm_up(app_client: httpx.AsyncClient) -> None:
+    r = await app_client.get(f"{API}/health")
+    assert r.status_code == 200
+    h = Health.model_validate(r.json())
+    assert h.status == "ok" and h.auth is False
+    assert set(h.arms) == {"rbe3001", "angler"}
+    assert all(link.connected and link.state == "up" for link in h.arms.values())
+
+
+async def test_arms_list_and_detail(app_client: httpx.AsyncClient) -> None:
+    r = await app_client.get(f"{API}/arms")
+    assert r.status_code == 200
+    by_name = {a["name"]: a for a in r.json()}
+    assert by_name["rbe3001"]["capabilities"] == {"gripper": True, "force_sensing": True,
+                                                  "protocol": "rbe3001", "paths": ["joint", "line"]}
+    assert by_name["angler"]["capabilities"]["protocol"] == "dynamixel"
+    assert by_name["angler"]["capabilities"]["gripper"] is False
+
+    d = ArmDetail.model_validate((await app_client.get(f"{API}/arms/rbe3001")).json())
+    assert [j.name for j in d.joints] == ["base", "shoulder", "elbow"]
+    assert d.joints[1].min == pytest.approx(-0.35) and d.joints[1].max == pytest.approx(1.75)
+    assert d.poll_hz == 500.0 and d.estop is False
+    assert d.link.kind == "sim" and d.link.connected
+    a = ArmDetail.model_validate((await app_client.get(f"{API}/arms/angler")).json())
+    assert [j.kind for j in a.joints] == ["prismatic", "prismatic", "revolute", "prismatic"]
+
+
+async def test_state_is_a_fresh_sample(app_client: httpx.AsyncClient) -> None:
+    s1 = Sample.model_validate((await app_client.get(f"{API}/arms/rbe3001/state")).json())
+    s2 = Sample.model_validate((await app_client.get(f"{API}/arms/rbe3001/state")).json())
+    assert len(s1.positions) == 3 and s1.link == "up" and not s1.stale
+    assert s2.seq >= s1.seq
+    assert s1.tip_force is not None  # the rbe3001 senses joint torques
+    ang = Sample.model_validate((await app_client.get(f"{API}/arms/angler/state")).json())
+    assert len(ang.positions) == 4
+
+
+async def test_unknown_arm_is_404_with_code(app_client: httpx.AsyncClient) -> None:
+    for method, path in [("GET", "/arms/nope"), ("GET", "/arms/nope/state"),
+                         ("POST", "/arms/nope/stop"), ("GET", "/arms/nope/workspace")]:
+        r = await app_client.request(method, API + path)
+        assert r.status_code == 404, path
+        assert r.json()["code"] == "unknown_arm"
+        assert "rbe3001" in r.json()["detail"]
+
+
+async def test_unknown_path_and_method_have_the_error_shape(app_client: httpx.AsyncClient) -> None:
+    r = await app_client.get(f"{API}/nowhere")
+    assert r.status_code == 404 and r.json()["code"] == "not_found"
+    r = await app_client.delete(f"{API}/health")
+    assert r.status_code == 405 and r.json()["code"] == "method_not_allowed"
+    r = await app_client.get(f"{API}/arms/rbe3001/move/joints")
+    assert r.status_code == 405 and r.json()["code"] == "method_not_allowed"
+
+
+async def test_nan_in_a_body_is_422_with_json_safe_detail(app_client: httpx.AsyncClient) -> None:
+    r = await app_client.post(f"{API}/arms/rbe3001/kinematics/inverse",
+                              content=b'{"x": NaN, "y": 0, "z": 0.2}',
+                              headers={"content-type": "application/json"})
+    assert r.status_code == 422
+    body = r.json()
+    assert body["code"] == "invalid_request"
+    assert body["detail"][0]["loc"] == ["body", "x"]
+    assert "input" not in body["detail"][0]  # NaN is not JSON
+    r = await app_client.post(f"{API}/arms/rbe3001/move/joints",
+                              content=b'{"positions": [0, Infinity, 0]}',
+                              headers={"content-type": "application/json"})
+    assert r.status_code == 422 and r.json()["code"] == "invalid_request"
+
+
+@pytest.mark.parametrize("raw", [b'{"positions": [', b"not json", b'{"positions": [0,0,0]}}'])
+async def test_malformed_json_is_422_invalid_json(app_client: httpx.AsyncClient,
+                                                  raw: bytes) -> None:
+    r = await app_client.post(f"{API}/arms/rbe3001/kinematics/forward", content=raw,
+                              headers={"content-type": "application/json"})
+    assert r.status_code == 422
+    assert r.json()["code"] == "invalid_json"
+
+
+async def test_validation_errors_name_the_field(app_client: httpx.AsyncClient) -> None:
+    r = await app_client.post(f"{API}/arms/rbe3001/gripper", json={"value": 1.5})
+    assert r.status_code == 422
+    d = r.json()["detail"][0]
+    assert d["loc"] == ["body", "value"] and d["ctx"] == {"le": "1.0"}
+    r = await app_client.post(f"{API}/arms/rbe3001/move/joints", json={"positions": [0, 0, 0],
+                                                                       "bogus": 1})
+    assert r.status_code == 422 and r.json()["detail"][0]["type"] == "extra_forbidden"
+
+
+async def test_body_over_the_limit_is_413() -> None:
+    from tests.conftest import running_client
+
+    async with running_client(make_settings(max_body_bytes=1024)) as (_, client):
+        r = await client.post(f"{API}/arms/rbe3001/kinematics/forward",
+                              content=b'{"positions": [' + b"0," * 1000 + b"0]}",
+                              headers={"content-type": "application/json"})
+        assert r.status_code == 413 and r.json()["code"] == "too_large"
+
+        async def chunks():  # no Content-Length: counted as it streams
+            for _ in range(20):
+                yield b" " * 100
+
+        r = await client.post(f"{API}/arms/rbe3001/kinematics/forward", content=chunks(),
+                              headers={"content-type": "application/json"})
+        assert r.status_code == 413 and r.json()["code"] == "too_large"
+        r = await client.post(f"{API}/arms/rbe3001/kinematics/forward",
+                              json={"positions": [0, 0, 0]})
+        assert r.status_code == 200
+
+
+async def test_cors_allows_only_the_configured_origins() -> None:
+    from tests.conftest import running_client
+
+    async with running_client(make_settings(cors_origins="http://lab.example")) as (_, client):
+        r = await client.get(f"{API}/health", headers={"Origin": "http://lab.example"})
+        assert r.headers["access-control-allow-origin"] == "http://lab.example"
+        r = await client.get(f"{API}/health", headers={"Origin": "http://evil.example"})
+        assert "access-control-allow-origin" not in r.headers
+
+
+async def test_openapi_documents_every_route(app_client: httpx.AsyncClient) -> None:
+    spec = (await app_client.get("/openapi.json")).json()
+    paths = spec["paths"]
+    expected = {
+        "/api/v1/health", "/api/v1/arms", "/api/v1/arms/{arm}", "/api/v1/arms/{arm}/state",
+        "/api/v1/arms/{arm}/move/joints", "/api/v1/arms/{arm}/move/pose",
+        "/api/v1/arms/{arm}/plan/joints", "/api/v1/arms/{arm}/plan/pose",
+        "/api/v1/arms/{arm}/motions/{motion_id}", "/api/v1/arms/{arm}/stop",
+        "/api/v1/arms/{arm}/estop", "/api/v1/arms/{arm}/gripper",
+        "/api/v1/arms/{arm}/kinematics/forward", "/api/v1/arms/{arm}/kinematics/inverse",
+        "/api/v1/arms/{arm}/workspace",
+        "/api/v1/arms/{arm}/rbe3001/set-pid", "/api/v1/arms/{arm}/rbe3001/status",
+        "/api/v1/arms/{arm}/rbe3001/set-gain", "/api/v1/arms/{arm}/rbe3001/set-claw",
+        "/api/v1/arms/{arm}/dynamixel/ping",
+        "/api/v1/arms/{arm}/dynamixel/{dxl_id}/registers/{name}",
+        "/api/v1/arms/{arm}/dynamixel/sync-read", "/api/v1/arms/{arm}/dynamixel/sync-write",
+        "/api/v1/arms/{arm}/dynamixel/{dxl_id}/reboot",
+        "/api/v1/arms/{arm}/lease", "/api/v1/arms/{arm}/lease/{lease_id}",
+    }
+    assert expected <= set(paths)
+    for path, ops in paths.items():
+        for method, op in ops.items():
+            assert op.get("summary") and op.get("description"), (method, path)
+            for code, resp in op["responses"].items():
+                if int(code) >= 400:  # every error documented as {detail, code}
+                    ref = resp["content"]["application/json"]["schema"]["$ref"]
+                    assert ref.endswith("/ErrorBody"), (method, path, code)
+    assert "ErrorBody" in spec["components"]["schemas"]
+    assert "HTTPBearer" in spec["components"]["securitySchemes"]
+
+
+async def test_dashboard_is_served_when_present(app_client: httpx.AsyncClient) -> None:
+    from app.main import STATIC_DIR
+
+    if not (STATIC_DIR / "index.html").is_file():
+        pytest.skip("no dashboard in app/static")
+    r = await app_client.get("/")
+    assert r.status_code == 200 and "text/html" in r.headers["content-type"]
+
+
+def test_create_app_takes_explicit_profiles() -> None:
+    from app.config import load_profile
+
+    app = create_app(make_settings(), [load_profile("angler")])
+    assert app.title == "armserver"

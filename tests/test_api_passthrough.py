@@ -1,0 +1,155 @@
+"""Protocol pass-through routes: RBE3001 packets and Dynamixel registers, against the simulated
+firmware and MX-28 bus, with every refusal checked before anything is sent."""
+
+from __future__ import annotations
+
+import asyncio
+
+import httpx
+import numpy as np
+from fastapi import FastAPI
+
+API = "/api/v1"
+RB = f"{API}/arms/rbe3001/rbe3001"
+DX = f"{API}/arms/angler/dynamixel"
+
+
+async def test_rbe3001_status(app_client: httpx.AsyncClient) -> None:
+    r = await app_client.get(f"{RB}/status")
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert len(body["position_ticks"]) == 3 and len(body["strain_adc"]) == 3
+    assert all(0.0 <= a <= 1.0 for a in body["strain_adc"])
+
+
+async def test_rbe3001_set_pid_moves_within_limits(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    app, client = app_and_client
+    tr = app.state.services["rbe3001"].model.transmission
+    ticks = tr.to_ticks(np.array([0.2, 0.6, 0.3]))
+    r = await client.post(f"{RB}/set-pid", json={"joints": [{"position_ticks": float(t)}
+                                                            for t in ticks]})
+    assert r.status_code == 200, r.text
+    assert len(r.json()["position_ticks"]) == 3
+    for _ in range(100):
+        await asyncio.sleep(0.02)
+        st = (await client.get(f"{API}/arms/rbe3001/state")).json()
+        if np.allclose(st["positions"], [0.2, 0.6, 0.3], atol=0.02):
+            break
+    assert np.allclose(st["positions"], [0.2, 0.6, 0.3], atol=0.02)
+    # outside the shoulder limit: refused before anything is sent
+    far = tr.to_ticks(np.array([0.0, 3.0, 0.0]))
+    r = await client.post(f"{RB}/set-pid", json={"joints": [{"position_ticks": float(t)}
+                                                            for t in far]})
+    assert r.status_code == 422 and r.json()["code"] == "joint_limit"
+    r = await client.post(f"{RB}/set-pid", json={"joints": [{"position_ticks": 1e300}] * 3})
+    assert r.status_code == 422
+
+
+async def test_rbe3001_gain_and_claw(app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    app, client = app_and_client
+    r = await client.post(f"{RB}/set-gain", json={"axis": 1, "kp": 0.01, "ki": 0.0, "kd": 0.001})
+    assert r.status_code == 200 and r.json() == {"ok": True, "command": "SET_GAIN"}
+    r = await client.post(f"{RB}/set-claw", json={"value": 0.3})
+    assert r.status_code == 200 and r.json()["command"] == "SET_CLAW"
+    assert app.state.services["rbe3001"].driver.gripper == 0.3
+    r = await client.post(f"{RB}/set-gain", json={"axis": 3, "kp": 0, "ki": 0, "kd": 0})
+    assert r.status_code == 422
+
+
+async def test_protocol_mismatch_is_409_not_supported(app_client: httpx.AsyncClient) -> None:
+    r = await app_client.get(f"{API}/arms/angler/rbe3001/status")
+    assert r.status_code == 409 and r.json()["code"] == "not_supported"
+    r = await app_client.post(f"{API}/arms/rbe3001/dynamixel/ping", json={})
+    assert r.status_code == 409 and r.json()["code"] == "not_supported"
+    r = await app_client.get(f"{API}/arms/rbe3001/dynamixel/1/registers/model_number")
+    assert r.status_code == 409 and r.json()["code"] == "not_supported"
+
+
+async def test_dynamixel_ping(app_client: httpx.AsyncClient) -> None:
+    r = await app_client.post(f"{DX}/ping", json={"id": 2})
+    assert r.status_code == 200
+    assert r.json()["devices"] == [{"id": 2, "model_number": 30,
+                                    "firmware_version": r.json()["devices"][0]["firmware_version"]}]
+    r = await app_client.post(f"{DX}/ping")  # no body: broadcast
+    assert r.status_code == 200
+    assert [d["id"] for d in r.json()["devices"]] == [1, 2, 3, 4]
+    r = await app_client.post(f"{DX}/ping", json={"id": 77})
+    assert r.status_code == 504 and r.json()["code"] == "device_timeout"
+
+
+async def test_dynamixel_register_read(app_client: httpx.AsyncClient) -> None:
+    r = await app_client.get(f"{DX}/1/registers/model_number")
+    assert r.status_code == 200
+    assert r.json() == {"id": 1, "name": "model_number", "address": 0, "size": 2, "raw": 30,
+                        "unit": None, "value": None}
+    r = await app_client.get(f"{DX}/3/registers/present_position")
+    assert r.status_code == 200 and r.json()["unit"] == "deg"
+    assert r.json()["value"] == r.json()["raw"] * 0.088
+
+
+async def test_dynamixel_register_refusals(app_client: httpx.AsyncClient) -> None:
+    r = await app_client.get(f"{DX}/1/registers/no_such_thing")
+    assert r.status_code == 422 and r.json()["code"] == "unknown_register"
+    r = await app_client.put(f"{DX}/1/registers/goal_positon", json={"raw": 0})
+    assert r.status_code == 422 and r.json()["code"] == "unknown_register"
+    r = await app_client.put(f"{DX}/1/registers/present_position", json={"raw": 0})
+    assert r.status_code == 422 and r.json()["code"] == "read_only"
+    r = await app_client.put(f"{DX}/1/registers/led", json={"raw": 2})
+    assert r.status_code == 422 and r.json()["code"] == "out_of_range"
+    r = await app_client.put(f"{DX}/9/registers/goal_position", json={"raw": 2048})
+    assert r.status_code == 422 and r.json()["code"] == "unknown_id"
+    r = await app_client.put(f"{DX}/3/registers/goal_position", json={"raw": 10**30})
+    assert r.status_code == 422 and r.json()["code"] == "out_of_range"
+    r = await app_client.get(f"{DX}/253/registers/led")
+    assert r.status_code == 422 and r.json()["code"] == "invalid_request"
+
+
+async def test_dynamixel_goal_position_obeys_the_joint_limits(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    app, client = app_and_client
+    svc = app.state.services["angler"]
+    k = next(i for i, j in enumerate(svc.profile.joints) if j.motor_id == 3)
+    q = svc.driver.positions.copy()
+    q[k] = svc.model.upper[k] + 0.5
+    too_far = int(round(svc.model.transmission.to_ticks(q)[k]))
+    r = await client.put(f"{DX}/3/registers/goal_position", json={"raw": too_far})
+    assert r.status_code == 422 and r.json()["code"] == "joint_limit"
+    q[k] = (svc.model.lower[k] + svc.model.upper[k]) / 2
+    ok = int(round(svc.model.transmission.to_ticks(q)[k]))
+    r = await client.put(f"{DX}/3/registers/goal_position", json={"raw": ok})
+    assert r.status_code == 200 and r.json()["raw"] == ok
+    r = await client.get(f"{DX}/3/registers/goal_position")
+    assert r.json()["raw"] == ok
+
+
+async def test_dynamixel_sync_read_write_and_reboot(app_client: httpx.AsyncClient) -> None:
+    r = await app_client.post(f"{DX}/sync-read", json={"name": "model_number", "ids": [1, 2, 2, 4]})
+    assert r.status_code == 200
+    assert r.json() == {"name": "model_number", "values": {"1": 30, "2": 30, "4": 30}}
+    r = await app_client.post(f"{DX}/sync-write", json={"name": "led", "values": {"1": 1, "2": 1}})
+    assert r.status_code == 200 and r.json()["command"] == "SYNC_WRITE led"
+    r = await app_client.post(f"{DX}/sync-read", json={"name": "led", "ids": [1, 2, 3]})
+    assert r.json()["values"] == {"1": 1, "2": 1, "3": 0}
+    r = await app_client.post(f"{DX}/sync-write", json={"name": "led", "values": {"1": 0, "2": 5}})
+    assert r.status_code == 422 and r.json()["code"] == "out_of_range"
+    r = await app_client.post(f"{DX}/sync-read", json={"name": "led", "ids": [1]})
+    assert r.json()["values"] == {"1": 1}  # all or nothing: nothing was sent
+    r = await app_client.post(f"{DX}/sync-write", json={"name": "goal_position",
+                                                        "values": {"8": 2048}})
+    assert r.status_code == 422 and r.json()["code"] == "unknown_id"
+    r = await app_client.post(f"{DX}/1/reboot")
+    assert r.status_code == 200 and r.json()["command"] == "REBOOT 1"
+
+
+async def test_estop_blocks_writes_but_not_reads_or_torque_off(
+        app_client: httpx.AsyncClient) -> None:
+    assert (await app_client.post(f"{API}/arms/angler/estop")).status_code == 200
+    r = await app_client.put(f"{DX}/1/registers/profile_velocity", json={"raw": 10})
+    assert r.status_code == 409 and r.json()["code"] == "estop_latched"
+    r = await app_client.post(f"{DX}/1/reboot")
+    assert r.status_code == 409 and r.json()["code"] == "estop_latched"
+    r = await app_client.get(f"{DX}/1/registers/model_number")
+    assert r.status_code == 200
+    r = await app_client.put(f"{DX}/1/registers/led", json={"raw": 1})
+    assert r.status_code == 200
