@@ -27,13 +27,18 @@ DEFAULT_URL = "http://127.0.0.1:8000"
 Action = Callable[[ArmClient, argparse.Namespace], Any]
 
 
-def _add_connection(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--url", default=os.environ.get("ARMSERVER_URL", DEFAULT_URL),
-                   help="server base URL (env ARMSERVER_URL; default %(default)s)")
-    p.add_argument("--token", default=os.environ.get("ARMSERVER_TOKEN"),
+def _add_connection(p: argparse.ArgumentParser, suppress: bool = False) -> None:
+    """The connection options; `suppress` on a sub-command's parser so they may be given after
+    the command too (`call rbe3001 state --url ...`) without overriding those given before."""
+    def d(value: Any) -> Any:
+        return argparse.SUPPRESS if suppress else value
+
+    p.add_argument("--url", default=d(os.environ.get("ARMSERVER_URL", DEFAULT_URL)),
+                   help="server base URL (env ARMSERVER_URL; default http://127.0.0.1:8000)")
+    p.add_argument("--token", default=d(os.environ.get("ARMSERVER_TOKEN")),
                    help="bearer token (env ARMSERVER_TOKEN)")
-    p.add_argument("--lease", default=None, help="lease id to send as X-Arm-Lease")
-    p.add_argument("--timeout", type=float, default=10.0, help="request timeout, s")
+    p.add_argument("--lease", default=d(None), help="lease id to send as X-Arm-Lease")
+    p.add_argument("--timeout", type=float, default=d(10.0), help="request timeout, s")
 
 
 def _move_options(p: argparse.ArgumentParser) -> None:
@@ -63,6 +68,7 @@ def _add_call(sub: Any) -> None:
     def cmd(name: str, action: Action, help: str) -> argparse.ArgumentParser:
         c = cmds.add_parser(name, help=help, description=help)
         c.set_defaults(action=action)
+        _add_connection(c, suppress=True)
         return c
 
     cmd("info", lambda c, a: c.arm(a.arm), "describe the arm (joints, link, capabilities)")
