@@ -1,0 +1,336 @@
+"""End to end: the dashboard (app/static) in Debian's headless Chromium against the real server
+(uvicorn on a loopback port, the default simulated arms), driven through Playwright.
+
+What the operator sees is compared with what the server says: the tip the page draws (computed
+in JS from the joints and the arm's geometry) against GET /state, the newest plotted joint
+positions against the telemetry, the emergency stop against GET /arms/{arm}, and refusals in
+words next to the control that caused them. The page's test hook is `window.armDashboard`.
+
+Screenshots go to test-output/ (git-ignored); one of them is copied to docs/dashboard.png for
+the README. Never runs `playwright install`: it uses /usr/bin/chromium or skips.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import shutil
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import uvicorn
+
+from app.main import create_app
+from conftest import OPERATOR, make_settings
+
+pytestmark = pytest.mark.browser
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic",
+                 "--no-first-run", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync"]
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "test-output"
+DOCS_SHOT = ROOT / "docs" / "dashboard.png"
+VIEWPORT = {"width": 1440, "height": 1000}
+
+#: The drawn tip may lag the server by one telemetry batch (1/30 s) plus a frame; at rest the
+#: only difference is float32 vs float64 rounding.
+TIP_TOL_REST_M = 0.002
+#: While moving (tip speed <= 0.15 m/s on the rbe3001): a batch, a frame and the HTTP round trip.
+TIP_TOL_MOVING_M = 0.03
+POS_TOL_RAD = 1e-3
+#: A reachable target for the rbe3001 (mm), and one a metre away.
+TARGET_MM = (150.0, 150.0, 250.0)
+FAR_MM = (1000.0, 0.0, 200.0)
+
+if not Path(CHROMIUM).exists():
+    pytest.skip(f"{CHROMIUM} is missing: install Debian's chromium (`make test` does, as root, "
+                "via apt-get install chromium); the dashboard test needs it",
+                allow_module_level=True)
+sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing")
+
+
+# ---------------------------------------------------------------- server (restartable, fixed port)
+
+
+class Server:
+    """uvicorn in a thread over `create_app()`; can be stopped and started again on its port."""
+
+    def __init__(self, settings: Any = None) -> None:
+        self.settings = settings or make_settings()
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            self.port = s.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        self._server: uvicorn.Server | None = None
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        app = create_app(self.settings)
+        config = uvicorn.Config(app, host="127.0.0.1", port=self.port, log_level="warning",
+                                lifespan="on")
+        self._server = server = uvicorn.Server(config)
+        self._thread = threading.Thread(target=server.run, name="dashboard-uvicorn", daemon=True)
+        self._thread.start()
+        wait_for(lambda: server.started, 15, "uvicorn did not start")
+        headers = {"Authorization": f"Bearer {OPERATOR}"} if self.settings.auth_enabled else {}
+        wait_for(lambda: httpx.get(f"{self.url}/api/v1/arms/rbe3001/state", headers=headers,
+                                   timeout=2).status_code == 200, 15, "no sample from the arm")
+
+    def stop(self) -> None:
+        if self._server is not None:
+            self._server.should_exit = True
+            assert self._thread is not None
+            self._thread.join(15)
+            self._server = None
+
+
+@contextlib.contextmanager
+def serving(settings: Any = None) -> Iterator[Server]:
+    server = Server(settings)
+    server.start()
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
+def wait_for(fn: Callable[[], Any], timeout: float, what: str, every: float = 0.05) -> Any:
+    deadline = time.monotonic() + timeout
+    last_exc: Exception | None = None
+    while time.monotonic() < deadline:
+        try:
+            value = fn()
+        except Exception as exc:  # noqa: BLE001 - retried until the deadline, then reported
+            last_exc = exc
+            value = None
+        if value:
+            return value
+        time.sleep(every)
+    raise AssertionError(f"timed out: {what}" + (f" (last error: {last_exc})" if last_exc else ""))
+
+
+# ---------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="module")
+def server() -> Iterator[Server]:
+    OUT.mkdir(exist_ok=True)
+    with serving() as srv:
+        yield srv
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    with sync_api.sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def page(server: Server, browser: Any) -> Iterator[Any]:
+    pg = browser.new_page(viewport=VIEWPORT)
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.goto(server.url + "/")
+    wait_for(lambda: dash(pg, "rbe3001") and dash(pg, "rbe3001")["lastSeq"] is not None
+             and dash(pg, "angler")["lastSeq"] is not None, 15, "telemetry on the page")
+    yield pg
+    pg.close()
+    assert not errors, f"uncaught errors in the page: {errors}"
+
+
+def dash(pg: Any, arm: str) -> dict[str, Any] | None:
+    return pg.evaluate("(a) => window.armDashboard && window.armDashboard.state(a)", arm)
+
+
+def api(server: Server, method: str, path: str, **kw: Any) -> Any:
+    r = httpx.request(method, f"{server.url}/api/v1{path}", timeout=10, **kw)
+    r.raise_for_status()
+    return r.json()
+
+
+def at_rest(server: Server, arm: str = "rbe3001") -> dict[str, Any]:
+    def still() -> dict[str, Any] | None:
+        st = api(server, "GET", f"/arms/{arm}/state")
+        m = st["motion"]
+        busy = m is not None and m["status"] in ("queued", "running")
+        return None if busy or max(map(abs, st["velocities"])) > 1e-3 else st
+    return wait_for(still, 15, f"{arm} at rest")
+
+
+def tip_error(drawn: dict[str, float], tip: dict[str, float]) -> float:
+    return math.dist([drawn[k] for k in "xyz"], [tip[k] for k in "xyz"])
+
+
+def assert_page_matches_server(pg: Any, server: Server) -> None:
+    """At rest: the drawn tip and the newest plotted positions equal the server's state."""
+    st = at_rest(server)
+    frames = dash(pg, "rbe3001")["frames"]
+    # wait for telemetry newer than the state read, then for a frame drawn from it
+    wait_for(lambda: dash(pg, "rbe3001")["lastSeq"] > st["seq"], 5, "newer telemetry")
+    wait_for(lambda: dash(pg, "rbe3001")["frames"] > frames + 2, 5, "frames drawn")
+    d = dash(pg, "rbe3001")
+    assert tip_error(d["tipDrawn"], st["tip"]) < TIP_TOL_REST_M, (d["tipDrawn"], st["tip"])
+    for plotted, actual in zip(d["plotted"]["positions"], st["positions"], strict=True):
+        assert plotted is not None and abs(plotted - actual) < POS_TOL_RAD, (d["plotted"], st)
+
+
+def shot(pg: Any, name: str, full_page: bool = False) -> Path:
+    path = OUT / f"{name}.png"
+    pg.screenshot(path=str(path), full_page=full_page)
+    return path
+
+
+# ---------------------------------------------------------------- tests (in order, one page)
+
+
+def test_page_draws_and_plots_the_telemetry(page: Any, server: Server) -> None:
+    d0 = dash(page, "rbe3001")
+    assert d0["ws"] == "live"
+    time.sleep(0.5)
+    d1 = dash(page, "rbe3001")
+    # drawn once per animation frame, not once per sample: 500 Hz of samples, ~60 frames a second
+    samples = d1["lastSeq"] - d0["lastSeq"]
+    frames = d1["frames"] - d0["frames"]
+    assert samples > 100, "telemetry is not flowing at the arm's rate"
+    assert 5 < frames < samples
+    # a break in the plotted line is a real gap: lost samples or a stall of the device's clock
+    for b in d1["breaks"]:
+        assert b["seq"] != b["prevSeq"] + 1 or b["dt"] > 0.19, b
+    assert_page_matches_server(page, server)
+    # both arms are drawn, and the sensed torques and tip force are plotted
+    assert dash(page, "angler")["tipDrawn"] is not None
+    assert len(d1["plotted"]["torques"]) == 3 and len(d1["plotted"]["tip_force"]) == 3
+    assert "estop clear" in page.inner_text("#rbe3001-estop")
+    assert "link up" in page.inner_text("#rbe3001-link")
+
+
+def test_jog_buttons_move_the_joint(page: Any, server: Server) -> None:
+    before = at_rest(server)["positions"]
+    page.click("#rbe3001-jog-0-plus")
+    page.click("#rbe3001-jog-0-plus")  # a quick second click adds to the first
+    want = before[0] + 2 * math.radians(5)
+    wait_for(lambda: abs(api(server, "GET", "/arms/rbe3001/state")["positions"][0] - want) < 0.01,
+             10, f"base at {want:.3f} rad")
+    after = at_rest(server)["positions"]
+    assert abs(after[0] - want) < 0.01 and all(abs(a - b) < 0.01 for a, b in
+                                               zip(after[1:], before[1:], strict=True))
+    assert page.inner_text("#rbe3001-jog-error") == ""
+    assert_page_matches_server(page, server)
+
+
+def test_plan_shows_the_path_then_run_moves_the_arm(page: Any, server: Server) -> None:
+    x, y, z = TARGET_MM
+    page.fill("#rbe3001-target-x", str(x))
+    page.fill("#rbe3001-target-y", str(y))
+    page.fill("#rbe3001-target-z", str(z))
+    page.select_option("#rbe3001-path", "line")
+    page.click("#rbe3001-plan")
+    wait_for(lambda: dash(page, "rbe3001")["plannedPath"] > 1, 5, "planned path drawn")
+    assert page.is_enabled("#rbe3001-run")
+    assert "straight line" in page.inner_text("#rbe3001-plan-text")
+    shot(page, "01-planned")
+
+    page.click("#rbe3001-run")
+    # while it moves, the drawn tip follows the server's
+    worst = 0.0
+    moving_seen = False
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        st = api(server, "GET", "/arms/rbe3001/state")
+        d = dash(page, "rbe3001")
+        if st["motion"] and st["motion"]["status"] == "running":
+            moving_seen = True
+            worst = max(worst, tip_error(d["tipDrawn"], st["tip"]))
+        elif moving_seen:
+            break
+        time.sleep(0.05)
+    assert moving_seen, "the motion was never seen running"
+    assert worst < TIP_TOL_MOVING_M, f"drawn tip lagged the server by {worst * 1000:.1f} mm"
+    st = at_rest(server)
+    assert st["motion"]["status"] == "done"
+    assert tip_error({"x": x / 1000, "y": y / 1000, "z": z / 1000}, st["tip"]) < 0.005
+    assert_page_matches_server(page, server)
+    time.sleep(0.3)
+    path = shot(page, "02-after-run")
+    DOCS_SHOT.parent.mkdir(exist_ok=True)
+    shutil.copyfile(path, DOCS_SHOT)
+
+
+def test_unreachable_target_is_refused_in_words(page: Any) -> None:
+    x, y, z = FAR_MM
+    page.fill("#rbe3001-target-x", str(x))
+    page.fill("#rbe3001-target-y", str(y))
+    page.fill("#rbe3001-target-z", str(z))
+    page.click("#rbe3001-plan")
+    err = page.locator("#rbe3001-pose-error")
+    wait_for(lambda: err.inner_text() != "", 5, "error shown")
+    assert err.get_attribute("data-code") == "unreachable"
+    text = err.inner_text()
+    assert text.startswith("Out of reach:") and len(text) > len("Out of reach: ") + 10, text
+    assert page.is_disabled("#rbe3001-run")
+    shot(page, "03-unreachable")
+
+
+def test_emergency_stop_latches_shows_and_releases(page: Any, server: Server) -> None:
+    page.click("#estop-button")
+    wait_for(lambda: api(server, "GET", "/arms/rbe3001")["estop"], 5, "estop latched on the server")
+    assert api(server, "GET", "/arms/angler")["estop"]
+    wait_for(lambda: "LATCHED" in page.inner_text("#rbe3001-estop"), 5, "estop shown on the arm")
+    assert "rbe3001" in page.inner_text("#estop-status")
+    # a move while latched is refused, in words, next to the control
+    page.click("#rbe3001-jog-1-minus")
+    err = page.locator("#rbe3001-jog-error")
+    wait_for(lambda: err.get_attribute("data-code") == "estop_latched", 5, "estop refusal shown")
+    assert "Emergency stop latched" in err.inner_text()
+    shot(page, "04-estop")
+
+    page.click("#estop-release")
+    wait_for(lambda: not api(server, "GET", "/arms/rbe3001")["estop"], 5, "estop released")
+    wait_for(lambda: "estop clear" in page.inner_text("#rbe3001-estop"), 5, "release shown")
+    assert page.inner_text("#estop-status") == "not latched"
+    # the estop panel is fixed: still on screen when the page is scrolled to the end
+    page.mouse.wheel(0, 5000)
+    time.sleep(0.2)
+    box = page.locator("#estop-button").bounding_box()
+    assert box is not None and 0 <= box["y"] < VIEWPORT["height"]
+
+
+def test_survives_a_server_restart(page: Any, server: Server) -> None:
+    gaps = dash(page, "rbe3001")["gaps"]
+    server.stop()
+    wait_for(lambda: dash(page, "rbe3001")["ws"] == "reconnecting", 10, "reconnecting shown")
+    assert "reconnecting" in page.inner_text("#rbe3001-ws")
+    time.sleep(1.0)
+    shot(page, "05-reconnecting")
+    server.start()
+    wait_for(lambda: dash(page, "rbe3001")["ws"] == "live", 20, "live again")
+    wait_for(lambda: dash(page, "rbe3001")["gaps"] > gaps, 5, "the gap is marked in the plots")
+    assert_page_matches_server(page, server)
+
+
+def test_asks_for_a_token_when_the_server_needs_one(browser: Any) -> None:
+    with serving(make_settings(operator_tokens=OPERATOR)) as srv:
+        pg = browser.new_page(viewport=VIEWPORT)
+        try:
+            pg.goto(srv.url + "/")
+            pg.wait_for_selector("#token-dialog[open]", timeout=10_000)
+            pg.fill("#token-input", OPERATOR)
+            pg.click("#token-form button[type=submit]")
+            wait_for(lambda: (dash(pg, "rbe3001") or {}).get("ws") == "live", 15, "live with token")
+            assert pg.evaluate("sessionStorage.getItem('armserver.token')") == OPERATOR
+            # an operator request from the page carries the token
+            pg.click("#rbe3001-stop")
+            time.sleep(0.5)
+            assert pg.inner_text("#rbe3001-stop-error") == ""
+        finally:
+            pg.close()
