@@ -75,7 +75,7 @@ def plot(arm: str, pts: np.ndarray, home: np.ndarray, out: Path, source: str) ->
                  f"({source})\nx {lo[0]:.0f}..{hi[0]:.0f}, y {lo[1]:.0f}..{hi[1]:.0f}, "
                  f"z {lo[2]:.0f}..{hi[2]:.0f} mm")
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    fig.savefig(out, dpi=90)
     plt.close(fig)
 
 
