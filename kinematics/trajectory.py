@@ -31,6 +31,7 @@ __all__ = [
     "TrajectoryLike",
     "plan_joint",
     "plan_line",
+    "plan_stop",
     "time_grid",
 ]
 
@@ -177,6 +178,43 @@ def plan_joint(
             f"requested duration {duration:.3f} s is shorter than the fastest move within"
             f" the limits, {traj.duration:.3f} s"
         )
+    return JointTrajectory(traj=traj, dofs=n, duration=float(traj.duration))
+
+
+def plan_stop(
+    q0: npt.ArrayLike,
+    v0: npt.ArrayLike,
+    a0: npt.ArrayLike,
+    amax: npt.ArrayLike,
+    jmax: npt.ArrayLike,
+    vmax: npt.ArrayLike,
+) -> JointTrajectory:
+    """Bring a moving state (q0, v0, a0) to rest as fast as the acceleration and jerk limits
+    allow: ruckig's velocity interface with a target velocity of zero. Where the joints end is
+    whatever braking needs; the caller clips to the joint limits. Used to cancel a motion
+    ("decelerates, holds") and to stop before a new straight line."""
+    a_start = np.atleast_1d(np.asarray(q0, dtype=np.float64))
+    n = a_start.size
+    inp = ruckig.InputParameter(n)
+    inp.control_interface = ruckig.ControlInterface.Velocity
+    inp.current_position = _vec("q0", a_start, n).tolist()
+    inp.current_velocity = _vec("v0", v0, n).tolist()
+    inp.current_acceleration = _vec("a0", a0, n).tolist()
+    inp.target_velocity = [0.0] * n
+    inp.target_acceleration = [0.0] * n
+    # ruckig needs a velocity limit that the current state does not exceed
+    vlim = np.maximum(_vec("vmax", vmax, n, True), np.abs(np.asarray(inp.current_velocity)))
+    inp.max_velocity = vlim.tolist()
+    inp.max_acceleration = np.maximum(_vec("amax", amax, n, True),
+                                      np.abs(np.asarray(inp.current_acceleration))).tolist()
+    inp.max_jerk = _vec("jmax", jmax, n, True).tolist()
+    traj = ruckig.Trajectory(n)
+    try:
+        result = ruckig.Ruckig(n).calculate(inp, traj)
+    except ruckig.RuckigError as exc:
+        raise KinematicsError(f"no stopping trajectory: {exc}") from exc
+    if result not in (ruckig.Result.Working, ruckig.Result.Finished):
+        raise KinematicsError(f"no stopping trajectory: ruckig returned {result}")
     return JointTrajectory(traj=traj, dofs=n, duration=float(traj.duration))
 
 

