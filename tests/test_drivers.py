@@ -193,7 +193,7 @@ async def test_late_replies_never_answer_a_later_request(name):
         outcomes, errors = await _hammer(calls, n_tasks=2, per_task=6)
         assert outcomes == {"ok": 0, "wrong": 0}
         assert set(errors) == {"device_timeout"}
-        link.set_faults(FaultConfig(latency_s=driver.timeout * 0.3))  # late but in time
+        link.set_faults(FaultConfig(latency_s=driver.timeout * 0.1))  # late but in time
         outcomes, errors = await _hammer(calls, n_tasks=2, per_task=6)
         assert outcomes["wrong"] == 0 and outcomes["ok"] == 12, (outcomes, errors)
     finally:
