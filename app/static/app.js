@@ -44,7 +44,10 @@ function showError(el, err) {
   el.replaceChildren();
   if (!err) return;
   const words = CODE_WORDS[err.code] || (err.code ? err.code.replace(/_/g, " ") : "Error");
-  el.append(h("strong", {}, words + ": "), err.detail || "");
+  let detail = err.detail || "";
+  const lead = err.code ? `${err.code.replace(/_/g, " ")}: ` : "";
+  if (lead && detail.toLowerCase().startsWith(lead)) detail = detail.slice(lead.length);
+  el.append(h("strong", {}, words + ": "), detail);
   el.dataset.code = err.code || "";
 }
 
@@ -345,6 +348,9 @@ class Arm {
         h("span", { class: "muted" }, "Motion"),
         (this.el.motionText = h("span", { id: id("motion") }, "idle")),
         h("div", { class: "progress" }, (this.el.progress = h("div", { class: "bar", id: id("progress") }))),
+        h("button", { type: "button", class: "stop", id: id("stop"), title: "Stop all motion: decelerate, hold, clear the queue",
+          onclick: () => this.stop() }, "Stop motion"),
+        (this.el.stopError = h("span", { class: "err inline", id: id("stop-error"), role: "alert" })),
         (this.el.eventText = h("span", { class: "muted small event", id: id("event") }, ""))),
       h("div", { class: "arm-body" },
         h("div", { class: "views" },
@@ -367,12 +373,7 @@ class Arm {
               (this.el.runBtn = h("button", { type: "button", class: "go", id: id("run"), disabled: true, onclick: () => this.runPose() }, "Run")),
               (this.el.planText = h("span", { class: "muted small", id: id("plan-text") }, "Plan to preview the path"))),
             (this.el.poseError = h("div", { class: "err", id: id("pose-error"), role: "alert" }))),
-          gripper,
-          h("section", { class: "ctl" },
-            h("div", { class: "row" },
-              h("button", { type: "button", class: "stop", id: id("stop"), onclick: () => this.stop() }, "Stop motion"),
-              h("span", { class: "muted small" }, "decelerates and holds; clears the queue")),
-            (this.el.stopError = h("div", { class: "err", id: id("stop-error"), role: "alert" }))))));
+          gripper)));
     this.el.tq = this.el["plot-tq"];
     this.el.f = this.el["plot-f"];
     if (this.el.tq) this.el.tq.hidden = true;
@@ -926,13 +927,17 @@ class Arm {
       ctx.stroke();
     }
     // mark gaps: a faint band where samples are missing
-    ctx.fillStyle = "rgba(248, 113, 113, 0.18)";
+    ctx.fillStyle = "rgba(248, 113, 113, 0.10)";
+    ctx.strokeStyle = "rgba(248, 113, 113, 0.45)";
+    ctx.setLineDash([2, 3]);
     for (let k = Math.max(k0 + 1, 1); k <= k1; k++) {
       const i = r.at(k);
       if (!r.brk[i]) continue;
       const a = X(r.t[r.at(k - 1)]), b = X(r.t[i]);
       ctx.fillRect(a, T, Math.max(2, b - a), ph);
+      ctx.beginPath(); ctx.moveTo(a, T); ctx.lineTo(a, T + ph); ctx.stroke();
     }
+    ctx.setLineDash([]);
     ctx.restore();
     return newest;
   }
