@@ -379,6 +379,10 @@ class Arm {
     if (this.el.tq) this.el.tq.hidden = true;
     if (this.el.f) this.el.f.hidden = true;
     $("#arms").append(this.el.card);
+    // an arm scrolled out of sight is not drawn (its buffers still fill)
+    this.visible = true;
+    new IntersectionObserver((entries) => { this.visible = entries[entries.length - 1].isIntersecting; })
+      .observe(this.el.card);
     this.renderBadges();
   }
 
@@ -686,6 +690,7 @@ class Arm {
       this.tipDrawn = { x: tip[0], y: tip[1], z: tip[2] };
       this.el.tipText.textContent = `tip  x ${(tip[0] * 1000).toFixed(1)}  y ${(tip[1] * 1000).toFixed(1)}  z ${(tip[2] * 1000).toFixed(1)} mm`;
     }
+    if (!this.visible) return;
     this.drawView(this.el.top, 0, 1, pts, "top");
     this.drawView(this.el.side, this.sideAxis, 2, pts, "side");
     this.drawPlots();
@@ -948,6 +953,7 @@ class Arm {
       tipDrawn: this.tipDrawn,
       plotted: this.plotted,
       frames: this.frames,
+      visible: this.visible,
       ws: this.wsState,
       link: this.link,
       estop: this.estop,
