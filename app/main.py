@@ -64,7 +64,9 @@ def create_app(settings: Settings | None = None,
                 log.info("arm %s (%s) on %s link %s", p.name, p.model, p.link.kind,
                          svc.driver.link.address or "-")
             leases.start()
-            log.info("access: %s", app.state.access.describe())
+            access: Access = app.state.access
+            log.log(logging.INFO if access.enabled else logging.WARNING, "access: %s",
+                    access.describe())
             yield
         finally:
             await leases.close()

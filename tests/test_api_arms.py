@@ -7,7 +7,7 @@ import pytest
 
 from app.main import create_app
 from app.schemas import ArmDetail, Health, Sample
-from tests.conftest import make_settings
+from conftest import make_settings
 
 API = "/api/v1"
 
@@ -102,7 +102,7 @@ async def test_validation_errors_name_the_field(app_client: httpx.AsyncClient) -
 
 
 async def test_body_over_the_limit_is_413() -> None:
-    from tests.conftest import running_client
+    from conftest import running_client
 
     async with running_client(make_settings(max_body_bytes=1024)) as (_, client):
         r = await client.post(f"{API}/arms/rbe3001/kinematics/forward",
@@ -123,7 +123,7 @@ async def test_body_over_the_limit_is_413() -> None:
 
 
 async def test_cors_allows_only_the_configured_origins() -> None:
-    from tests.conftest import running_client
+    from conftest import running_client
 
     async with running_client(make_settings(cors_origins="http://lab.example")) as (_, client):
         r = await client.get(f"{API}/health", headers={"Origin": "http://lab.example"})

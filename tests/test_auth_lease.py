@@ -5,11 +5,10 @@ from __future__ import annotations
 import asyncio
 import time
 
-import httpx
 import pytest
 
 from app.auth import Access, Role, bearer_token
-from tests.conftest import OPERATOR, VIEWER, make_settings, running_client
+from conftest import OPERATOR, VIEWER, make_settings, running_client
 
 API = "/api/v1"
 ARM = f"{API}/arms/rbe3001"

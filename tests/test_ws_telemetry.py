@@ -16,7 +16,7 @@ import pytest
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
-from tests.conftest import OPERATOR, VIEWER, LiveServer, make_settings, serve_live
+from conftest import OPERATOR, VIEWER, LiveServer, make_settings, serve_live
 
 WS = "/api/v1/arms/{arm}/telemetry"
 

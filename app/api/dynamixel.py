@@ -79,7 +79,8 @@ def _value(dxl_id: int, item: mx28.ControlItem, raw: int) -> s.RegisterValue:
     "answering every servo that replied. " + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
-async def ping(svc: ControlArm, req: Annotated[s.PingRequest | None, Body()] = None) -> s.PingResult:
+async def ping(svc: ControlArm,
+               req: Annotated[s.PingRequest | None, Body()] = None) -> s.PingResult:
     found = await _driver(svc).ping(req.id if req is not None else None)
     return s.PingResult(devices=[s.PingDevice(id=i, model_number=m, firmware_version=f)
                                  for i, m, f in found])

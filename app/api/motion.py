@@ -26,7 +26,8 @@ _MOVE_DOC = (
 )
 
 
-async def _answer(svc: ControlArm, record: object, wait: bool, response: Response) -> s.Motion:
+async def _answer(record: object, wait: bool, response: Response) -> s.Motion:
+    """202 with the motion now, or (wait) 200 with its final state when it ends."""
     if wait:
         await record.wait()  # type: ignore[attr-defined]
         response.status_code = status.HTTP_200_OK
@@ -47,7 +48,7 @@ async def _answer(svc: ControlArm, record: object, wait: bool, response: Respons
 async def move_joints(svc: ControlArm, req: s.MoveJoints, response: Response) -> s.Motion:
     check_joint_count(svc, req.positions)
     record = await svc.motion.move_joints(req)
-    return await _answer(svc, record, req.wait, response)
+    return await _answer(record, req.wait, response)
 
 
 @router.post(
@@ -63,7 +64,7 @@ async def move_joints(svc: ControlArm, req: s.MoveJoints, response: Response) ->
 )
 async def move_pose(svc: ControlArm, req: s.MovePose, response: Response) -> s.Motion:
     record = await svc.motion.move_pose(req)
-    return await _answer(svc, record, req.wait, response)
+    return await _answer(record, req.wait, response)
 
 
 @router.post(

@@ -50,7 +50,8 @@ def _encodable(cmd: rb.Command) -> None:
 async def set_pid(svc: ControlArm, req: s.SetPid) -> s.SetPidReply:
     drv = _driver(svc)
     setpoints = [(j.position_ticks, j.velocity_ticks_s, j.force) for j in req.joints]
-    _encodable(rb.SetPid(tuple(rb.JointSetpoint(*sp) for sp in setpoints)))  # type: ignore[arg-type]
+    joints = tuple(rb.JointSetpoint(*sp) for sp in setpoints)
+    _encodable(rb.SetPid(joints))  # type: ignore[arg-type]
     svc.check_passthrough_ticks(np.array([sp[0] for sp in setpoints], dtype=float))
     reply = await drv.set_pid(setpoints)
     return s.SetPidReply(position_ticks=[float(x) for x in reply.position_ticks])
