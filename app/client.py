@@ -431,6 +431,29 @@ def ws_handshake_error(exc: Exception) -> ArmServerError:
     return ConnectionFailed("connection_failed", f"telemetry: {type(exc).__name__}: {exc}", 0)
 
 
+#: Telemetry close codes that carry an error (app/api/telemetry.py): code -> (code, status).
+WS_CLOSE = {4401: ("unauthorized", 401), 4403: ("forbidden", 403), 4404: ("unknown_arm", 404),
+            1008: ("invalid_request", 422), 1009: ("too_large", 413)}
+
+
+def ws_close_error(exc: Exception) -> ArmServerError | None:
+    """The error a closed telemetry socket stands for, or None for a normal close (1000, 1001).
+
+    The server accepts the WebSocket before it checks the token and the arm, so that the
+    client learns why: a refusal arrives as a close code, not as an HTTP status."""
+    frame = getattr(exc, "rcvd", None)
+    code = getattr(frame, "code", None)
+    reason = getattr(frame, "reason", "") or ""
+    if code in (1000, 1001):
+        return None
+    if code in WS_CLOSE:
+        name, status = WS_CLOSE[code]
+        return make_error(name, reason or name, status)
+    if code is not None and 4000 <= code < 5000:
+        return make_error(_STATUS_CODES.get(code - 4000, "error"), reason, code - 4000)
+    return ConnectionFailed("connection_failed", f"telemetry closed: {exc}", 0)
+
+
 # ---------------------------------------------------------------- the asyncio client
 
 
@@ -673,7 +696,7 @@ class AsyncArmClient:
                                  ) -> AsyncIterator[s.TelemetryMessage | s.EventMessage]:
         """Every WebSocket message, parsed: telemetry batches (with `dropped`) and events."""
         from websockets.asyncio.client import connect
-        from websockets.exceptions import ConnectionClosedOK, InvalidHandshake
+        from websockets.exceptions import ConnectionClosed, InvalidHandshake
 
         headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
         url = ws_url(self.base_url, arm, rate, None)
@@ -683,23 +706,33 @@ class AsyncArmClient:
         except (InvalidHandshake, OSError, TimeoutError) as exc:
             raise ws_handshake_error(exc) from exc
         try:
-            async for raw in ws:
+            while True:
+                try:
+                    raw = await ws.recv()
+                except ConnectionClosed as exc:
+                    err = ws_close_error(exc)
+                    if err is not None:
+                        raise err from exc
+                    return
                 yield parse_ws_message(raw)
-        except ConnectionClosedOK:
-            return
         finally:
             await ws.close()
 
     async def telemetry(self, arm: str, rate: float | None = None, events: bool = False
                         ) -> AsyncIterator[s.Sample | s.EventMessage]:
-        """Samples in order (every one the server sent); events too if `events`."""
+        """Samples in `seq` order, each once (a sample repeated across messages is skipped);
+        events too if `events`. A gap in `seq` means the server dropped samples for this
+        client (see `telemetry_messages` for the `dropped` counts)."""
+        last = -1
         async for msg in self.telemetry_messages(arm, rate):
             if isinstance(msg, s.EventMessage):
                 if events:
                     yield msg
                 continue
             for sample in msg.samples:
-                yield sample
+                if sample.seq > last:
+                    last = sample.seq
+                    yield sample
 
 
 @dataclass

@@ -29,6 +29,7 @@ from app.client import (
     parse_ws_message,
     should_retry,
     transport_error,
+    ws_close_error,
     ws_handshake_error,
     ws_url,
 )
@@ -260,7 +261,7 @@ class ArmClient:
 
     def telemetry_messages(self, arm: str, rate: float | None = None
                            ) -> Iterator[s.TelemetryMessage | s.EventMessage]:
-        from websockets.exceptions import ConnectionClosedOK, InvalidHandshake
+        from websockets.exceptions import ConnectionClosed, InvalidHandshake
         from websockets.sync.client import connect
 
         headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
@@ -269,19 +270,26 @@ class ArmClient:
                          open_timeout=self.timeout, max_size=2 ** 24)
         except (InvalidHandshake, OSError, TimeoutError) as exc:
             raise ws_handshake_error(exc) from exc
-        try:
-            for raw in ws:
+        with ws:
+            while True:
+                try:
+                    raw = ws.recv()
+                except ConnectionClosed as exc:
+                    err = ws_close_error(exc)
+                    if err is not None:
+                        raise err from exc
+                    return
                 yield parse_ws_message(raw)
-        except ConnectionClosedOK:
-            return
-        finally:
-            ws.close()
 
     def telemetry(self, arm: str, rate: float | None = None, events: bool = False
                   ) -> Iterator[s.Sample | s.EventMessage]:
+        last = -1
         for msg in self.telemetry_messages(arm, rate):
             if isinstance(msg, s.EventMessage):
                 if events:
                     yield msg
                 continue
-            yield from msg.samples
+            for sample in msg.samples:
+                if sample.seq > last:
+                    last = sample.seq
+                    yield sample

@@ -74,7 +74,11 @@ async def record(c: AsyncArmClient, arm: str, rate: float, out: list[s.Sample],
             continue
         stats["messages"] += 1
         stats["dropped"] += msg.dropped
-        out.extend(msg.samples)
+        for smp in msg.samples:  # the first batch may repeat the sample sent on connect
+            if out and smp.seq <= out[-1].seq:
+                stats["repeated"] += 1
+                continue
+            out.append(smp)
 
 
 def write_csv(path: Path, samples: list[s.Sample], names: list[str]) -> None:
@@ -141,7 +145,7 @@ async def run(a: object) -> int:
         names = [j.name for j in detail.joints]
         kinds = [j.kind for j in detail.joints]
         samples: list[s.Sample] = []
-        stats = {"messages": 0, "dropped": 0}
+        stats = {"messages": 0, "dropped": 0, "repeated": 0}
         task = asyncio.create_task(record(c, arm, a.rate, samples, stats))  # type: ignore[attr-defined]
         started = time.monotonic()
         try:
@@ -164,7 +168,8 @@ async def run(a: object) -> int:
         fail("no telemetry received")
     gaps = sum(1 for p, q in zip(samples, samples[1:], strict=False) if q.seq != p.seq + 1)
     log(f"recorded {len(samples)} samples in {stats['messages']} messages, seq "
-        f"{samples[0].seq}..{samples[-1].seq}, {gaps} gaps, {stats['dropped']} dropped")
+        f"{samples[0].seq}..{samples[-1].seq}, {gaps} gaps, {stats['dropped']} dropped, "
+        f"{stats['repeated']} repeated")
     write_csv(a.csv, samples, names)  # type: ignore[attr-defined]
     log(f"wrote {a.csv}")  # type: ignore[attr-defined]
     plot(a.png, arm, samples, names, kinds)  # type: ignore[attr-defined]
