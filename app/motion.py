@@ -22,7 +22,9 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from app import schemas as s
-from app.errors import ArmError, Busy, InvalidRequest, JointLimit, Unreachable, UnknownMotion
+from app.errors import (ArmError, Busy, InvalidRequest, JointLimit, LinkDown, Unreachable,
+                        UnknownMotion)
+from app.links.base import LinkState
 from kinematics import trajectory
 from kinematics.errors import KinematicsError, LimitViolation
 from kinematics.errors import Unreachable as KinematicsUnreachable
@@ -357,12 +359,15 @@ class MotionExecutor:
             q, qd, qdd = (np.asarray(v, dtype=float) for v in traj.sample(t))
             try:
                 await self.svc.driver.command_joints(q)  # type: ignore[attr-defined]
-                failures = 0
+                # A setpoint that needs no reply (Dynamixel SYNC_WRITE) goes through even when
+                # the device is silent: failing polls count as failed setpoints too.
+                err = self.svc.driver.stale_error
             except ArmError as exc:
-                failures += 1
-                if exc.code == "link_down" or failures >= MAX_SETPOINT_FAILURES:
-                    await self._watchdog(rec, exc)
-                    return "halt"
+                err = exc
+            failures = failures + 1 if err is not None else 0
+            if err is not None and (err.code == "link_down" or failures >= MAX_SETPOINT_FAILURES):
+                await self._watchdog(rec, err)
+                return "halt"
             if self._halt:
                 return "halt"
             self._cmd = (q, qd, qdd)
@@ -402,6 +407,10 @@ class MotionExecutor:
         while loop.time() < deadline:
             if self._halt or rec.done.is_set():
                 return
+            fault = self._device_fault()
+            if fault is not None:  # silent device or lost link: say so, not "did not settle"
+                await self._watchdog(rec, fault)
+                return
             q = self.svc.driver.positions
             if q is not None and not self.svc.driver.stale:
                 err = np.abs(q - rec.target)
@@ -413,6 +422,12 @@ class MotionExecutor:
         self._finish(rec, "failed", f"did not settle at the target within {SETTLE_TIMEOUT_S} s: "
                      f"{self.model.names[worst]} is {err[worst]:.4f} off (tolerance "
                      f"{tol[worst]:.4f})", "not_settled")
+
+    def _device_fault(self) -> ArmError | None:
+        drv = self.svc.driver
+        if drv.link.state is not LinkState.UP:
+            return LinkDown(f"{self.svc.name} link lost: {drv.link.last_error or 'down'}")
+        return drv.stale_error
 
     def _tolerance(self) -> np.ndarray:
         return np.array([0.03 if k == "revolute" else 0.002 for k in self.model.kinds])

@@ -62,6 +62,9 @@ class Driver(abc.ABC):
         self._seq = 0
         self._poll_failures = 0
         self.stale = True
+        #: The poll error that made the samples stale (None while polls succeed): the device
+        #: stopped answering even where commands need no reply (the motion watchdog reads it).
+        self.stale_error: ArmError | None = None
         self.last_error: str | None = None
         self.stats = {"requests": 0, "replies": 0, "timeouts": 0, "corrupt": 0, "stale_replies": 0,
                       "polls": 0, "poll_failures": 0, "reconnects": 0}
@@ -253,6 +256,7 @@ class Driver(abc.ABC):
             self._poll_failures += 1
             if self._poll_failures == STALE_AFTER:
                 self.stale = True
+                self.stale_error = exc
                 self.last_error = exc.detail
                 log.warning("%s: device not answering polls: %s", self.name, exc.detail)
                 self.hub.event("device_stale", reason=exc.detail, code=exc.code)
@@ -263,6 +267,7 @@ class Driver(abc.ABC):
             self.hub.event("device_back")
         self._poll_failures = 0
         self.stale = False
+        self.stale_error = None
         self.positions, self.velocities = q, qd
         self._publish(q, qd, tau, stale=False)
 
