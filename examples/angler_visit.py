@@ -33,11 +33,9 @@ TARGETS: list[tuple[tuple[float, float, float], str, float | None]] = [
     ((0.120, 0.040, -0.020), "dx_used", -0.6),  # |x| > r: only dx_used reaches it
 ]
 TOLERANCE = 0.004  # m, measured tip vs target once a motion is done
-#: Speed fraction of the profile's joint limits. The profile allows the x and y carriages
-#: 0.05 m/s, but an MX-28 at its default velocity limit (380 x 0.229 rpm) on an 8 mm lead
-#: moves them at about 0.0116 m/s, so a full-speed carriage move cannot settle: 0.2 keeps the
-#: plan within what the servos do.
-SPEED = 0.2
+#: Speed fraction of the profile's joint limits (the x and y carriages: 0.01 m/s, what an
+#: MX-28 at its velocity limit turns an 8 mm lead at).
+SPEED = 1.0
 
 
 def solve(c: ArmClient, p: Sequence[float], case: str, theta3: float | None,
@@ -84,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     p = parser(__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="one target per IK case")
     p.add_argument("--steps", type=int, default=1, help="joint waypoints per move (default 1)")
-    p.add_argument("--speed", type=float, default=SPEED, help="speed fraction (default 0.2)")
+    p.add_argument("--speed", type=float, default=SPEED, help="speed fraction (default 1.0)")
     a = p.parse_args(argv)
     targets = TARGETS[:2] if a.quick else TARGETS
     with ArmClient(a.url, token=a.token, timeout=30.0) as c:

@@ -49,10 +49,11 @@ DEMO: dict[str, list[tuple[str, tuple[float, ...], str]]] = {
 }
 
 
-async def demo(c: AsyncArmClient, arm: str) -> None:
+async def demo(c: AsyncArmClient, arm: str, quick: bool = False) -> None:
     """Queue the arm's demo moves and wait for the last; fail if any does not end done."""
     motions = []
-    for kind, target, path in DEMO[arm]:
+    steps = DEMO[arm][:2] + DEMO[arm][-1:] if quick else DEMO[arm]
+    for kind, target, path in steps:
         if kind == "pose":
             m = await c.move_pose(arm, *target, path=path, speed=0.6)  # type: ignore[arg-type]
         else:
@@ -154,7 +155,7 @@ async def run(a: object) -> int:
             if a.demo:  # type: ignore[attr-defined]
                 if arm not in DEMO:
                     fail(f"no demo for {arm}")
-                await demo(c, arm)
+                await demo(c, arm, a.quick)  # type: ignore[attr-defined]
                 await asyncio.sleep(0.3)
             else:
                 await asyncio.sleep(a.seconds)  # type: ignore[attr-defined]
@@ -184,6 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=3.0, help="how long to record without --demo")
     p.add_argument("--rate", type=float, default=20.0, help="telemetry messages per second")
     p.add_argument("--demo", action="store_true", help="drive a short demo while recording")
+    p.add_argument("--quick", action="store_true", help="a shorter demo (3 moves)")
     p.add_argument("--csv", type=Path, default=Path("recorded_run.csv"))
     p.add_argument("--png", type=Path, default=Path("recorded_run.png"))
     return asyncio.run(run(p.parse_args(argv)))

@@ -1,0 +1,145 @@
+"""Every route of the server has a client method, and every client method its route.
+
+The routes come from the app's own OpenAPI document (`create_app().openapi()`), so a route
+added to the server without a client method (or a method whose route was removed) fails here.
+Each mapped method is then called on a client over a recording transport, and the request it
+sends must be exactly its route's method and path.
+"""
+
+from __future__ import annotations
+
+import inspect
+import re
+from typing import Any
+
+import httpx
+import pytest
+
+from app.client import ArmServerError, ArmClient, AsyncArmClient
+from app.main import create_app
+
+#: (HTTP method, OpenAPI path) -> client method name. Path parameter names are ignored.
+ROUTES: dict[tuple[str, str], str] = {
+    ("GET", "/api/v1/health"): "health",
+    ("GET", "/api/v1/arms"): "arms",
+    ("GET", "/api/v1/arms/{arm}"): "arm",
+    ("GET", "/api/v1/arms/{arm}/state"): "state",
+    ("POST", "/api/v1/arms/{arm}/move/joints"): "move_joints",
+    ("POST", "/api/v1/arms/{arm}/move/pose"): "move_pose",
+    ("POST", "/api/v1/arms/{arm}/plan/joints"): "plan_joints",
+    ("POST", "/api/v1/arms/{arm}/plan/pose"): "plan_pose",
+    ("GET", "/api/v1/arms/{arm}/motions/{id}"): "motion",
+    ("DELETE", "/api/v1/arms/{arm}/motions/{id}"): "cancel_motion",
+    ("POST", "/api/v1/arms/{arm}/stop"): "stop",
+    ("POST", "/api/v1/arms/{arm}/estop"): "estop",
+    ("DELETE", "/api/v1/arms/{arm}/estop"): "release_estop",
+    ("POST", "/api/v1/arms/{arm}/gripper"): "gripper",
+    ("POST", "/api/v1/arms/{arm}/kinematics/forward"): "forward",
+    ("POST", "/api/v1/arms/{arm}/kinematics/inverse"): "inverse",
+    ("GET", "/api/v1/arms/{arm}/workspace"): "workspace",
+    ("POST", "/api/v1/arms/{arm}/rbe3001/set-pid"): "rbe3001_set_pid",
+    ("GET", "/api/v1/arms/{arm}/rbe3001/status"): "rbe3001_status",
+    ("POST", "/api/v1/arms/{arm}/rbe3001/set-gain"): "rbe3001_set_gain",
+    ("POST", "/api/v1/arms/{arm}/rbe3001/set-claw"): "rbe3001_set_claw",
+    ("POST", "/api/v1/arms/{arm}/dynamixel/ping"): "dxl_ping",
+    ("GET", "/api/v1/arms/{arm}/dynamixel/{id}/registers/{name}"): "dxl_read_register",
+    ("PUT", "/api/v1/arms/{arm}/dynamixel/{id}/registers/{name}"): "dxl_write_register",
+    ("POST", "/api/v1/arms/{arm}/dynamixel/sync-read"): "dxl_sync_read",
+    ("POST", "/api/v1/arms/{arm}/dynamixel/sync-write"): "dxl_sync_write",
+    ("POST", "/api/v1/arms/{arm}/dynamixel/{id}/reboot"): "dxl_reboot",
+    ("POST", "/api/v1/arms/{arm}/lease"): "take_lease",
+    ("PUT", "/api/v1/arms/{arm}/lease/{id}"): "renew_lease",
+    ("DELETE", "/api/v1/arms/{arm}/lease/{id}"): "release_lease",
+}
+
+#: Routes outside OpenAPI (WebSocket) and helpers built on routes: method -> what it uses.
+EXTRA = {
+    "telemetry": "WS /api/v1/arms/{arm}/telemetry",
+    "telemetry_messages": "WS /api/v1/arms/{arm}/telemetry",
+    "wait_motion": "GET /api/v1/arms/{arm}/motions/{id} (polled)",
+    "hold_lease": "POST/PUT/DELETE /api/v1/arms/{arm}/lease",
+}
+
+#: Arguments to call each method with over the recording transport.
+ARGS: dict[str, tuple[Any, ...]] = {
+    "health": (), "arms": (), "arm": ("a1",), "state": ("a1",),
+    "move_joints": ("a1", [0.1, 0.2, 0.3]), "move_pose": ("a1", 0.1, 0.0, 0.2),
+    "plan_joints": ("a1", [0.1, 0.2, 0.3]), "plan_pose": ("a1", 0.1, 0.0, 0.2),
+    "motion": ("a1", "m1"), "cancel_motion": ("a1", "m1"), "stop": ("a1",),
+    "estop": ("a1",), "release_estop": ("a1",), "gripper": ("a1", 0.5),
+    "forward": ("a1", [0.1, 0.2, 0.3]), "inverse": ("a1", 0.1, 0.0, 0.2),
+    "workspace": ("a1",), "rbe3001_set_pid": ("a1", [0, 0, 0]), "rbe3001_status": ("a1",),
+    "rbe3001_set_gain": ("a1", 0, 1.0, 0.0, 0.0), "rbe3001_set_claw": ("a1", 1.0),
+    "dxl_ping": ("a1",), "dxl_read_register": ("a1", 3, "led"),
+    "dxl_write_register": ("a1", 3, "led", 1), "dxl_sync_read": ("a1", "led", [1, 2]),
+    "dxl_sync_write": ("a1", "led", {1: 0}), "dxl_reboot": ("a1", 3), "take_lease": ("a1",),
+    "renew_lease": ("a1", "L1"), "release_lease": ("a1", "L1"),
+}
+
+
+def _norm(path: str) -> str:
+    return re.sub(r"\{[^}]+\}", "{}", path)
+
+
+def _served() -> set[tuple[str, str]]:
+    spec = create_app().openapi()
+    return {(method.upper(), _norm(path)) for path, ops in spec["paths"].items()
+            for method in ops if method.upper() in {"GET", "POST", "PUT", "DELETE", "PATCH"}}
+
+
+def test_every_route_has_a_client_method_and_back() -> None:
+    served = _served()
+    mapped = {(m, _norm(p)) for m, p in ROUTES}
+    assert not served - mapped, f"routes without a client method: {sorted(served - mapped)}"
+    assert not mapped - served, f"client methods without a route: {sorted(mapped - served)}"
+    assert len(set(ROUTES.values())) == len(ROUTES), "one method per route"
+
+
+@pytest.mark.parametrize("cls", [ArmClient, AsyncArmClient])
+def test_every_mapped_method_exists(cls: type) -> None:
+    for name in [*ROUTES.values(), *EXTRA]:
+        assert callable(getattr(cls, name, None)), f"{cls.__name__}.{name} is missing"
+
+
+def test_sync_and_async_clients_have_the_same_methods() -> None:
+    def public(cls: type) -> set[str]:
+        return {n for n, _ in inspect.getmembers(cls, callable) if not n.startswith("_")}
+    assert public(ArmClient) - {"close"} == public(AsyncArmClient) - {"aclose"}
+
+
+def _recording() -> tuple[list[httpx.Request], httpx.MockTransport]:
+    seen: list[httpx.Request] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        seen.append(request)
+        return httpx.Response(418, json={"detail": "recorded", "code": "recorded"})
+    return seen, httpx.MockTransport(handler)
+
+
+def _matches(route: tuple[str, str], request: httpx.Request) -> bool:
+    method, path = route
+    pattern = "^" + re.sub(r"\\\{[^}]+\\\}", "[^/]+", re.escape(path)) + "$"
+    return request.method == method and re.match(pattern, request.url.path) is not None
+
+
+def test_each_method_sends_its_route() -> None:
+    seen, transport = _recording()
+    with ArmClient("http://armserver.test", transport=transport) as c:
+        for route, name in ROUTES.items():
+            seen.clear()
+            with pytest.raises(ArmServerError) as info:
+                getattr(c, name)(*ARGS[name])
+            assert info.value.code == "recorded"
+            assert len(seen) == 1, f"{name} sent {len(seen)} requests"
+            assert _matches(route, seen[0]), (
+                f"{name} sent {seen[0].method} {seen[0].url.path}, not {route}")
+
+
+async def test_each_async_method_sends_its_route() -> None:
+    seen, transport = _recording()
+    async with AsyncArmClient("http://armserver.test", transport=transport) as c:
+        for route, name in ROUTES.items():
+            seen.clear()
+            with pytest.raises(ArmServerError):
+                await getattr(c, name)(*ARGS[name])
+            assert len(seen) == 1 and _matches(route, seen[0]), (name, seen)
