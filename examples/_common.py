@@ -27,7 +27,8 @@ def log(*parts: object) -> None:
 def fmt(v: object) -> str:
     """A tip (Vec3) or a joint vector, compactly, in mm for tips and rad/m for joints."""
     if hasattr(v, "x"):
-        return f"({v.x * 1000:+7.1f}, {v.y * 1000:+7.1f}, {v.z * 1000:+7.1f}) mm"  # type: ignore[attr-defined]
+        x, y, z = (getattr(v, k) * 1000 for k in ("x", "y", "z"))
+        return f"({x:+7.1f}, {y:+7.1f}, {z:+7.1f}) mm"
     return "[" + ", ".join(f"{float(x):+.3f}" for x in v) + "]"  # type: ignore[attr-defined]
 
 

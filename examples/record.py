@@ -16,6 +16,7 @@ angler: a few joint moves), and writes:
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import contextlib
 import csv
@@ -136,9 +137,9 @@ def plot(path: Path, arm: str, samples: list[s.Sample], names: list[str],
     plt.close(fig)
 
 
-async def run(a: object) -> int:
-    arm: str = a.arm  # type: ignore[attr-defined]
-    async with AsyncArmClient(a.url, token=a.token, timeout=30.0) as c:  # type: ignore[attr-defined]
+async def run(a: argparse.Namespace) -> int:
+    arm: str = a.arm
+    async with AsyncArmClient(a.url, token=a.token, timeout=30.0) as c:
         try:
             detail = await c.arm(arm)
         except ArmServerError as exc:
@@ -147,18 +148,18 @@ async def run(a: object) -> int:
         kinds = [j.kind for j in detail.joints]
         samples: list[s.Sample] = []
         stats = {"messages": 0, "dropped": 0, "repeated": 0}
-        task = asyncio.create_task(record(c, arm, a.rate, samples, stats))  # type: ignore[attr-defined]
+        task = asyncio.create_task(record(c, arm, a.rate, samples, stats))
         started = time.monotonic()
         try:
             while not samples and time.monotonic() - started < 5.0:
                 await asyncio.sleep(0.02)
-            if a.demo:  # type: ignore[attr-defined]
+            if a.demo:
                 if arm not in DEMO:
                     fail(f"no demo for {arm}")
-                await demo(c, arm, a.quick)  # type: ignore[attr-defined]
+                await demo(c, arm, a.quick)
                 await asyncio.sleep(0.3)
             else:
-                await asyncio.sleep(a.seconds)  # type: ignore[attr-defined]
+                await asyncio.sleep(a.seconds)
         except ArmServerError as exc:
             fail(f"server refused: {exc.code}: {exc.detail}")
         finally:
@@ -171,10 +172,10 @@ async def run(a: object) -> int:
     log(f"recorded {len(samples)} samples in {stats['messages']} messages, seq "
         f"{samples[0].seq}..{samples[-1].seq}, {gaps} gaps, {stats['dropped']} dropped, "
         f"{stats['repeated']} repeated")
-    write_csv(a.csv, samples, names)  # type: ignore[attr-defined]
-    log(f"wrote {a.csv}")  # type: ignore[attr-defined]
-    plot(a.png, arm, samples, names, kinds)  # type: ignore[attr-defined]
-    log(f"wrote {a.png}")  # type: ignore[attr-defined]
+    write_csv(a.csv, samples, names)
+    log(f"wrote {a.csv}")
+    plot(a.png, arm, samples, names, kinds)
+    log(f"wrote {a.png}")
     log("record done")
     return 0
 

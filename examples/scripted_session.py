@@ -19,6 +19,7 @@ import contextlib
 import os
 import sys
 import time
+from collections.abc import AsyncIterator
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import dist, fail, fmt, log, parser  # noqa: E402
@@ -46,7 +47,8 @@ async def collect(c: AsyncArmClient, arm: str, rate: float | None,
 
 
 @contextlib.asynccontextmanager
-async def watching(c: AsyncArmClient, arm: str, rate: float | None = None):  # type: ignore[no-untyped-def]
+async def watching(c: AsyncArmClient, arm: str, rate: float | None = None
+                   ) -> AsyncIterator[list[s.TelemetryMessage | s.EventMessage]]:
     """Collect telemetry messages in the background while the body runs."""
     msgs: list[s.TelemetryMessage | s.EventMessage] = []
     task = asyncio.create_task(collect(c, arm, rate, msgs))

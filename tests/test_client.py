@@ -305,6 +305,14 @@ async def test_telemetry_messages_batch_at_the_rate(server: Server) -> None:
     assert 0.2 < took < 3.0
 
 
+async def test_telemetry_refusal_raises_the_code(server: Server) -> None:
+    async with AsyncArmClient(server.url) as c:
+        with pytest.raises(cl.NotFound) as info:
+            async for _ in c.telemetry("nope"):
+                pass
+    assert (info.value.code, info.value.status) == ("unknown_arm", 404)
+
+
 def test_sync_telemetry(client: ArmClient) -> None:
     it = client.telemetry("angler", rate=50)
     seqs = [next(it).seq for _ in range(30)]
