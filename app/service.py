@@ -16,7 +16,8 @@ from app import schemas as s
 from app.config import ArmProfile
 from app.devices.base import Driver
 from app.devices.factory import make_driver
-from app.errors import EstopLatched, JointLimit, LinkDown, NoGripper, NotSupported
+from app.errors import (EstopLatched, InvalidRequest, JointLimit, LinkDown, NoGripper,
+                        NotSupported, VelocityLimit)
 from app.links.base import LinkState
 from app.motion import MotionExecutor
 from app.telemetry import TelemetryHub
@@ -100,12 +101,19 @@ class ArmService:
 
     def check_joint_target(self, q: np.ndarray) -> None:
         """Joint limits for any commanded position, planned or pass-through."""
+        _require_finite(q, "joint positions")
         self.model.check_limits(q)
 
-    def check_passthrough_ticks(self, ticks: np.ndarray) -> None:
+    def check_passthrough_ticks(self, ticks: np.ndarray,
+                                velocities: np.ndarray | None = None) -> None:
         """A raw position command (rbe3001 SET_PID ticks, Dynamixel goal positions) obeys the
-        joint limits unless the profile allows raw access, and the estop always."""
+        joint limits unless the profile allows raw access, and the estop always. With
+        `velocities` (ticks/s, e.g. SET_PID's velocity_ticks_s), those obey the velocity limits
+        too (`check_passthrough_velocity_ticks`)."""
         self.require_motion_allowed()
+        _require_finite(ticks, "pass-through positions")
+        if velocities is not None:
+            self.check_passthrough_velocity_ticks(velocities)
         if self.profile.raw_access:
             return
         q = self.model.transmission.from_ticks(np.asarray(ticks, dtype=float))
@@ -113,6 +121,25 @@ class ArmService:
         if v:
             raise JointLimit("pass-through position outside the joint limits (the profile does "
                              "not allow raw access): " + "; ".join(v))
+
+    def check_passthrough_velocity_ticks(self, velocities: np.ndarray) -> None:
+        """Raw joint velocities (ticks/s, one per joint) within the profile's joint velocity
+        limits converted to ticks/s, unless the profile allows raw access; 422
+        `velocity_limit` naming the joint, the limit and the excess otherwise."""
+        _require_finite(velocities, "pass-through velocities")
+        if self.profile.raw_access:
+            return
+        v = np.abs(np.asarray(velocities, dtype=float))
+        cap = np.abs(self.model.transmission.velocity_to_ticks(self.model.vmax))
+        over = [f"{name} {v[k]:.0f} ticks/s is above its limit {cap[k]:.0f} ticks/s "
+                f"({self.model.vmax[k]:g} {'rad' if kind == 'revolute' else 'm'}/s) by "
+                f"{v[k] - cap[k]:.0f} ticks/s"
+                for k, (name, kind) in enumerate(zip(self.model.names, self.model.kinds,
+                                                     strict=True))
+                if v[k] > cap[k] * (1 + 1e-9)]
+        if over:
+            raise VelocityLimit("pass-through velocity over the joint velocity limits (the "
+                                "profile does not allow raw access): " + "; ".join(over))
 
     def check_passthrough_joint_ticks(self, joint: int, ticks: float) -> None:
         """As `check_passthrough_ticks` for one joint's goal (the others unchanged)."""
@@ -161,3 +188,10 @@ class ArmService:
 
     def now(self) -> float:
         return time.time()
+
+
+def _require_finite(values: Any, what: str) -> None:
+    """422 for NaN or infinity: the limit checks below compare, and a NaN compares false."""
+    a = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(a)):
+        raise InvalidRequest(f"{what} must be finite numbers, got {a.tolist()}")
