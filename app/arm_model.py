@@ -103,6 +103,22 @@ class ArmModel:
             out.append(Solution(np.asarray(q, dtype=float), not v, v, i))
         return out
 
+    def ik_nearest(self, p: np.ndarray, ref: np.ndarray, ik_case: str | None = None,
+                   theta3: float | None = None) -> np.ndarray:
+        """The IK solution nearest `ref` (limits not applied): the fast path for dense IK along
+        a line (~30 us a point, against ~0.5 ms for `ik` with its reasons and limit messages).
+        Raises Unreachable with the reason where there is none."""
+        if self.is_rrr:
+            sols = rrr.ik(p, self.geom)  # type: ignore[arg-type]
+        else:
+            sols = pprp.ik(p, self.geom, ik_case or "dx_zero",  # type: ignore[arg-type]
+                           0.0 if theta3 is None else theta3)
+        q = sols.q[sols.valid]
+        if q.shape[0] == 0:
+            self.ik(p, ik_case, theta3)  # raises with the reason
+            raise Unreachable(f"no IK solution for {np.round(p, 4).tolist()}")
+        return q[int(np.argmin(np.sum((q - ref) ** 2, axis=-1)))]
+
     def ik_best(self, p: np.ndarray, near: np.ndarray | None, branch: int | None = None,
                 ik_case: str | None = None, theta3: float | None = None) -> Solution:
         """The solution to move to: the given branch, else the within-limits one nearest `near`."""

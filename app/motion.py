@@ -230,10 +230,9 @@ class MotionExecutor:
             ref = q0 if q_prev is None else q_prev
             th = float(ref[2]) if theta3 is not None else None
             try:
-                sols = m.ik(point, req.ik_case, th)
+                return m.ik_nearest(point, ref, req.ik_case, th)
             except ArmError as exc:
                 raise KinematicsUnreachable(exc.detail) from None
-            return min(sols, key=lambda sol: float(np.sum((sol.positions - ref) ** 2))).positions
 
         try:
             traj, _tips = trajectory.plan_line(

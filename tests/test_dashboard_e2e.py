@@ -6,14 +6,16 @@ in JS from the joints and the arm's geometry) against GET /state, the newest plo
 positions against the telemetry, the emergency stop against GET /arms/{arm}, and refusals in
 words next to the control that caused them. The page's test hook is `window.armDashboard`.
 
-Screenshots go to test-output/ (git-ignored); one of them is copied to docs/dashboard.png for
-the README. Never runs `playwright install`: it uses /usr/bin/chromium or skips.
+Screenshots go to test-output/ (git-ignored); with ARMSERVER_UPDATE_DOCS=1 one of
+them is copied to docs/dashboard.png for the README. Never runs `playwright install`: it uses /usr/bin/chromium or skips.
 """
 
 from __future__ import annotations
 
+
 import contextlib
 import math
+import os
 import shutil
 import socket
 import threading
@@ -265,7 +267,7 @@ def test_plan_shows_the_path_then_run_moves_the_arm(page: Any, server: Server) -
     assert tip_error({"x": x / 1000, "y": y / 1000, "z": z / 1000}, st["tip"]) < 0.005
     assert_page_matches_server(page, server)
     shot(page, "03-after-run")
-    if readme_shot is not None:
+    if readme_shot is not None and os.environ.get("ARMSERVER_UPDATE_DOCS"):
         DOCS_SHOT.parent.mkdir(exist_ok=True)
         shutil.copyfile(readme_shot, DOCS_SHOT)
 

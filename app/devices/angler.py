@@ -104,23 +104,37 @@ class AnglerDriver(Driver):
         self._parser = dxl.Parser()
         self._dirty = True
 
+    def _profile_velocity(self, joint: Any) -> int:
+        """Profile Velocity (0.229 rpm units) for a joint's velocity limit, with 20 % headroom
+        so the servo follows the planned trajectory but never runs away from it."""
+        per_rev = joint.lead_m if joint.lead_m else 2 * math.pi
+        rpm = joint.max_velocity / per_rev * 60.0 * 1.2
+        return max(1, math.ceil(rpm / _RPM_PER_UNIT))
+
     async def _on_connected(self) -> None:
-        """Torque off, operating mode from the profile, goal = present, torque on: the arm
+        """Torque off, operating mode from the profile, Profile Velocity from the joint's
+        velocity limit (so the servo itself caps speed), goal = present, torque on: the arm
         holds where it is instead of jumping to a stale goal."""
         t = mx28.TABLE
         for joint, i in zip(self.profile.joints, self.ids, strict=True):
-            await self._exchange(DxlRequest(dxl.ping(i), (i,), what=f"PING {i}"), self.timeout)
+            await self._setup_exchange(DxlRequest(dxl.ping(i), (i,), what=f"PING {i}"),
+                                       self.timeout)
             await self._write(i, t["torque_enable"], 0)
             if joint.operating_mode is not None:
                 await self._write(i, t["operating_mode"], joint.operating_mode)
-            [p] = await self._exchange(DxlRequest(dxl.read(i, t["present_position"].address, 4),
-                                                  (i,), what="READ present_position"), self.timeout)
+            # after the mode: changing Operating Mode resets Profile Velocity (e-manual)
+            await self._write(i, t["profile_velocity"], self._profile_velocity(joint))
+            [p] = await self._setup_exchange(
+                DxlRequest(dxl.read(i, t["present_position"].address, 4), (i,),
+                           what="READ present_position"), self.timeout)
             await self._write(i, t["goal_position"], dxl.from_bytes(p.params, True))
             await self._write(i, t["torque_enable"], 1)
 
     async def _write(self, i: int, item: mx28.ControlItem, raw: int) -> None:
-        await self._exchange(DxlRequest(dxl.write(i, item.address, dxl.to_bytes(raw, item.size)),
-                                        (i,), what=f"WRITE {item.name}"), self.timeout)
+        """A set-up write (idempotent: retried on a lost or corrupt reply)."""
+        await self._setup_exchange(
+            DxlRequest(dxl.write(i, item.address, dxl.to_bytes(raw, item.size)), (i,),
+                       what=f"WRITE {item.name}"), self.timeout)
 
     async def _poll(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         packets = await self._exchange(

@@ -23,7 +23,7 @@ import numpy as np
 
 from app.arm_model import ArmModel
 from app.config import ArmProfile
-from app.errors import ArmError, Busy, DeviceTimeout, LinkDown
+from app.errors import ArmError, Busy, CorruptReply, DeviceTimeout, LinkDown
 from app.links.base import Link, LinkError, LinkState
 from app.telemetry import TelemetryHub
 
@@ -38,6 +38,10 @@ BACKOFF_MAX_S = 2.0
 POLL_EARLY_S = 0.001
 #: Consecutive failed polls before samples are marked stale and an event is sent.
 STALE_AFTER = 3
+#: Tries of each set-up exchange (`_setup_exchange`): set-up is a chain of idempotent commands,
+#: so one lost or corrupt reply in it should cost a retry, not a reconnect. With 5 % of replies
+#: lost, a 24-exchange chain without retries succeeds 30 % of the time; with 3 tries, 99.7 %.
+SETUP_ATTEMPTS = 3
 
 
 @dataclass
@@ -136,6 +140,18 @@ class Driver(abc.ABC):
 
     async def _on_connected(self) -> None:
         """Prepare the device after the link opens (modes, torque); in the owner task."""
+
+    async def _setup_exchange(self, message: Any, timeout: float) -> Any:
+        """`_exchange` for an idempotent set-up command, tried again after a timeout or a
+        corrupt reply (up to SETUP_ATTEMPTS); a device error or a lost link is not retried."""
+        for attempt in range(1, SETUP_ATTEMPTS + 1):
+            try:
+                return await self._exchange(message, timeout)
+            except (DeviceTimeout, CorruptReply):
+                if attempt == SETUP_ATTEMPTS:
+                    raise
+                self._reset_reader()
+        raise AssertionError("unreachable")
 
     def _reset_reader(self) -> None:
         """Forget partial input (after a timeout or reconnect)."""
