@@ -281,3 +281,15 @@ async def test_angler_servos_cap_their_own_speed_at_the_joint_limits():
         assert driver.velocities[0] > 0.008
     finally:
         await driver.close()
+
+
+async def test_an_unencodable_request_fails_and_the_link_task_lives_on():
+    driver = await started("rbe3001", sim_link("rbe3001"))
+    try:
+        with pytest.raises(ArmError) as info:
+            await driver.submit(rb.SetClaw(2.0))  # outside 0..1: the codec refuses to encode it
+        assert info.value.code == "device_error" and "cannot send" in info.value.detail
+        assert not driver._task.done()
+        assert isinstance(await driver.status(), rb.StatusReply)
+    finally:
+        await driver.close()

@@ -94,8 +94,12 @@ class _Stream:
 
     async def run(self) -> None:
         sub = self.svc.hub.subscribe()
+        # Read the latest sample with no await since subscribe(): every later sample reaches
+        # the subscription, none is sent twice.
+        latest = self.svc.hub.latest_json
         try:
-            tasks = {asyncio.create_task(self._send(sub)), asyncio.create_task(self._receive())}
+            tasks = {asyncio.create_task(self._send(sub, latest)),
+                     asyncio.create_task(self._receive())}
             done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
             for t in pending:
                 t.cancel()
@@ -110,9 +114,8 @@ class _Stream:
         finally:
             sub.close()
 
-    async def _send(self, sub: Subscription) -> None:
+    async def _send(self, sub: Subscription, latest: str | None) -> None:
         ws = self.ws
-        latest = self.svc.hub.latest_json  # no await since subscribe(): no sample is missed
         if latest is not None:
             await ws.send_text(sub.telemetry_message([latest], 0))
         loop = asyncio.get_running_loop()

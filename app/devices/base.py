@@ -23,7 +23,7 @@ import numpy as np
 
 from app.arm_model import ArmModel
 from app.config import ArmProfile
-from app.errors import ArmError, Busy, CorruptReply, DeviceTimeout, LinkDown
+from app.errors import ArmError, Busy, CorruptReply, DeviceError, DeviceTimeout, LinkDown
 from app.links.base import Link, LinkError, LinkState
 from app.telemetry import TelemetryHub
 
@@ -114,7 +114,15 @@ class Driver(abc.ABC):
             self._queue.put_nowait(req)
         except asyncio.QueueFull:
             raise Busy(f"{self.name}: {self._queue.maxsize} requests already queued") from None
-        return await fut
+        # Belt and braces: the owner task answers every request, but a caller never waits
+        # longer than a full queue of timeouts (each may add one quiet period) plus a second.
+        bound = (self._queue.maxsize + 1) * 2 * req.timeout + 1.0
+        try:
+            return await asyncio.wait_for(asyncio.shield(fut), bound)
+        except TimeoutError:
+            fut.cancel()
+            raise DeviceTimeout(f"{self.name}: the link task did not answer within "
+                                f"{bound:.1f} s") from None
 
     def wait_connected(self, timeout: float) -> asyncio.Future[bool]:
         async def _wait() -> bool:
@@ -250,12 +258,21 @@ class Driver(abc.ABC):
             if not req.future.done():
                 req.future.set_exception(LinkDown(f"{self.name} link lost during the request"))
             raise
-        except ArmError as exc:
-            if isinstance(exc, DeviceTimeout):
-                self.stats["timeouts"] += 1
-                self._reset_reader()
+        except asyncio.CancelledError:
             if not req.future.done():
-                req.future.set_exception(exc)
+                req.future.set_exception(LinkDown(f"{self.name}: driver stopping"))
+            raise
+        except Exception as exc:  # a bug or unencodable request: fail it, keep the link task
+            if isinstance(exc, ArmError):
+                err: ArmError = exc
+                if isinstance(exc, DeviceTimeout):
+                    self.stats["timeouts"] += 1
+                    self._reset_reader()
+            else:
+                log.exception("%s: request %r failed", self.name, req.message)
+                err = DeviceError(f"{self.name}: cannot send the request: {exc}")
+            if not req.future.done():
+                req.future.set_exception(err)
             return
         self.stats["replies"] += 1
         if not req.future.done():
@@ -265,7 +282,12 @@ class Driver(abc.ABC):
         self.stats["polls"] += 1
         try:
             q, qd, tau = await self._poll()
-        except ArmError as exc:
+        except LinkError:
+            raise
+        except (ArmError, ValueError, ArithmeticError) as exc:
+            if not isinstance(exc, ArmError):  # a reply our conversions could not take
+                log.warning("%s: poll reply not usable: %s", self.name, exc)
+                exc = DeviceError(f"{self.name}: poll reply not usable: {exc}")
             self.stats["poll_failures"] += 1
             if isinstance(exc, DeviceTimeout):
                 self._reset_reader()
