@@ -39,7 +39,8 @@ bench: install-test
 	$(BIN)/python bench/kinematics.py
 
 fuzz: install-test
-	ARMSERVER_FUZZ_CASES=2000 $(BIN)/python -m pytest -q tests/test_fuzz_api.py tests/test_fuzz_codecs.py
+	ARMSERVER_FUZZ_CASES=300 $(BIN)/python -m pytest -q tests/test_fuzz_api.py \
+	  tests/test_fuzz_dynamixel.py tests/test_fuzz_rbe3001.py
 
 soak: install-test
 	$(BIN)/python bench/soak.py --seconds 300
