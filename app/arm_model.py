@@ -43,6 +43,8 @@ class ArmModel:
             self.geom = rrr.RRR(l1=g["l1"], l2=g["l2"], l3=g["l3"])
         else:
             self.geom = pprp.PPRP(r=g["r"], h=g["h"])
+        #: |det J| of a 3-link arm scales as length^3: the reference for "near singular".
+        self._det_scale = float(sum(g.values())) ** 3
         self.transmission = Transmission.from_joints(
             [j.ticks_per_rev for j in profile.joints],
             [j.offset_ticks for j in profile.joints],
@@ -66,7 +68,8 @@ class ArmModel:
         """F with J^T F = tau (least squares for the redundant angler); None near singular."""
         J = self.jacobian(q)
         if self.is_rrr:
-            if np.linalg.cond(J) > 1e6:
+            # near a singularity F is meaningless: |det J| small against the links' scale
+            if abs(np.linalg.det(J)) < 1e-6 * self._det_scale:
                 return None
             return np.linalg.solve(J.T, tau)
         f, *_ = np.linalg.lstsq(J.T, tau, rcond=None)

@@ -80,7 +80,8 @@ def _serve(args: argparse.Namespace) -> int:
         log.warning("binding %s with no tokens: anyone who can reach this port may move the "
                     "arms (set ARMSERVER_OPERATOR_TOKENS)", settings.host)
     uvicorn.run(app, host=settings.host, port=settings.port, log_level=settings.log_level,
-                ws_max_size=settings.max_ws_message_bytes, proxy_headers=False)
+                ws_max_size=settings.max_ws_message_bytes, proxy_headers=False,
+                ws_per_message_deflate=settings.ws_compression)
     return 0
 
 

@@ -36,6 +36,9 @@ BACKOFF_MAX_S = 2.0
 #: A poll may run this much before its slot: epoll rounds waits up to whole milliseconds, so
 #: waiting for the exact slot would stretch a 2 ms period to 3. The schedule stays absolute.
 POLL_EARLY_S = 0.001
+#: Polls a stalled loop may catch up on back to back (10 periods: 20 ms at 500 Hz) before
+#: it skips ahead instead; a short stall then costs no sample, a long one no burst.
+POLL_CATCH_UP = 10
 #: Consecutive failed polls before samples are marked stale and an event is sent.
 STALE_AFTER = 3
 #: Tries of each set-up exchange (`_setup_exchange`): set-up is a chain of idempotent commands,
@@ -236,7 +239,7 @@ class Driver(abc.ABC):
             if now >= next_poll - POLL_EARLY_S:
                 await self._do_poll()
                 next_poll += period
-                if next_poll < loop.time() - period:  # fell behind: skip, do not burst
+                if next_poll < loop.time() - POLL_CATCH_UP * period:  # far behind: skip ahead
                     next_poll = loop.time() + period
                 continue
             try:
