@@ -155,8 +155,16 @@ class AnglerDriver(Driver):
         return q, qd, tau
 
     async def _exchange(self, message: Any, timeout: float) -> Any:
+        try:
+            return await self._exchange_once(message, timeout)
+        except BaseException:
+            self._dirty = True  # whatever failed may have left bytes behind
+            raise
+
+    async def _exchange_once(self, message: Any, timeout: float) -> Any:
         req: DxlRequest = message
-        await self._drain()
+        if self._dirty:
+            await self._drain()
         await self.link.write(req.packet)
         if not req.expect and not req.broadcast_ping:
             return []
@@ -188,7 +196,6 @@ class AnglerDriver(Driver):
             if left <= 0:
                 if req.broadcast_ping:
                     return sorted(got, key=lambda p: p.id)
-                self._dirty = True
                 missing = req.expect[len(got):]
                 raise DeviceTimeout(f"{self.name}: {req.what}: no status from id "
                                     f"{', '.join(map(str, missing))} within {timeout * 1000:.0f} ms")
@@ -197,11 +204,11 @@ class AnglerDriver(Driver):
                 self._parser.feed(data)
 
     async def _drain(self) -> None:
-        """Discard input already received (as DynamixelSDK flushes before each send). After a
-        timeout, wait until the bus has been quiet for one timeout: status packets carry no
-        request tag, so this is what keeps a late reply from answering the next request."""
-        wait = self.timeout if self._dirty else 0.0
-        while await self.link.read(wait):
+        """After a failed exchange, discard input until the bus has been quiet for one timeout
+        (DynamixelSDK flushes before every send instead): status packets carry no request tag,
+        so this is what keeps a late reply from answering the next request. After a clean
+        exchange every expected byte was consumed, and nothing is waited for."""
+        while await self.link.read(self.timeout):
             pass
         self._parser = dxl.Parser()
         self._dirty = False
