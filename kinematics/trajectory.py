@@ -59,7 +59,7 @@ def time_grid(duration: float, dt: float) -> FloatArray:
     if not dt > 0:
         raise ValueError(f"dt must be positive, got {dt}")
     m = int(np.ceil(duration / dt - 1e-9)) + 1
-    return np.minimum(np.arange(m) * dt, duration)
+    return np.asarray(np.minimum(np.arange(m) * dt, duration), dtype=np.float64)
 
 
 @dataclass(eq=False)
