@@ -19,6 +19,7 @@ import enum
 import hashlib
 import hmac
 import logging
+import re
 
 from app.config import Settings
 from app.errors import Forbidden, Unauthorized
@@ -88,3 +89,28 @@ def bearer_token(authorization: str | None) -> str | None:
     if scheme.lower() != "bearer":
         return None
     return token.strip() or None
+
+
+_TOKEN_IN_QUERY = re.compile(r"(?i)([?&](?:token|access_token)=)[^&\s\"']*")
+
+
+class RedactTokens(logging.Filter):
+    """Blank `?token=` values in log records: uvicorn logs each request's and each WebSocket
+    handshake's path, query string included, and a browser can only pass a WebSocket token in
+    the query. Installed on uvicorn's loggers by `install_log_redaction`."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.msg, str):
+            record.msg = _TOKEN_IN_QUERY.sub(r"\1***", record.msg)
+        if isinstance(record.args, tuple):
+            record.args = tuple(_TOKEN_IN_QUERY.sub(r"\1***", a) if isinstance(a, str) else a
+                                for a in record.args)
+        return True
+
+
+def install_log_redaction() -> None:
+    """Add RedactTokens to the loggers that print request paths (idempotent)."""
+    for name in ("uvicorn.access", "uvicorn.error", "uvicorn"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, RedactTokens) for f in logger.filters):
+            logger.addFilter(RedactTokens())

@@ -33,7 +33,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app import schemas
 from app.api import arms, dynamixel, kinematics, lease, motion, rbe3001, telemetry
-from app.auth import Access
+from app.auth import Access, bearer_token, install_log_redaction
 from app.config import ArmProfile, Settings, load_arms
 from app.errors import ArmError, Unauthorized
 from app.lease import LeaseManager
@@ -51,6 +51,7 @@ def create_app(settings: Settings | None = None,
     simulated arms). The arms start in the lifespan, not here."""
     settings = settings if settings is not None else Settings()
     profiles = profiles if profiles is not None else load_arms(settings.config)
+    install_log_redaction()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -102,6 +103,7 @@ def create_app(settings: Settings | None = None,
     _install_error_handlers(app)
 
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(TokenGate, access=app.state.access)
     origins = [o.strip() for o in settings.cors_origins.split(",") if o.strip()]
     if origins:
         app.add_middleware(CORSMiddleware, allow_origins=origins, allow_methods=["*"],
@@ -290,6 +292,36 @@ class BodyLimit:
                                 "too_large")).encode()
         await send({"type": "http.response.start", "status": 413,
                     "headers": [(b"content-type", b"application/json"),
+                                (b"content-length", str(len(body)).encode())]})
+        await send({"type": "http.response.body", "body": body})
+
+
+class TokenGate:
+    """401 `unauthorized` for an API request with no valid token, before the body is read or
+    parsed: without it a malformed body would answer 422 to a client that may not even ask.
+    Roles (403) stay with the routes' dependencies; health, docs and the dashboard are open;
+    WebSockets check their token (header or `?token=`) in their route."""
+
+    def __init__(self, app: ASGIApp, access: Access) -> None:
+        self.app = app
+        self.access = access
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        path = scope.get("path", "")
+        if (scope["type"] != "http" or not self.access.enabled or scope.get("method") == "OPTIONS"
+                or not path.startswith(API_PREFIX + "/") or path == API_PREFIX + "/health"):
+            await self.app(scope, receive, send)
+            return
+        header = dict(scope.get("headers", ())).get(b"authorization")
+        token = bearer_token(header.decode("latin-1") if header is not None else None)
+        if self.access.role_of(token) is not None:
+            await self.app(scope, receive, send)
+            return
+        detail = "missing bearer token" if not token else "invalid bearer token"
+        body = json.dumps(_body(detail, "unauthorized")).encode()
+        await send({"type": "http.response.start", "status": 401,
+                    "headers": [(b"content-type", b"application/json"),
+                                (b"www-authenticate", b"Bearer"),
                                 (b"content-length", str(len(body)).encode())]})
         await send({"type": "http.response.body", "body": body})
 

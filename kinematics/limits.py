@@ -45,7 +45,7 @@ def within(
 def _fmt(value: float, kind: str, excess: float) -> str:
     """Enough decimals that a small excess still shows between value and limit."""
     base = 2 if kind == "revolute" else 3
-    extra = int(np.ceil(-np.log10(excess))) + 1 if excess > 0 else 0
+    extra = int(np.ceil(-np.log10(excess))) + 1 if 0 < excess < np.inf else 0
     return f"{value:.{min(max(base, extra), 6)}f} {unit(kind)}"
 
 

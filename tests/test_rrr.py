@@ -197,3 +197,12 @@ def test_workspace_and_bounds() -> None:
     # q1 - q2 up to pi, so the elbow sits at its lower limit -1.2: z = L1 + L2 sin 1.75
     # - L3 cos 2.95 = 0.2032 + 0.16246 + 0.20245 = 0.5681 m
     assert hi[2] == pytest.approx(L1 + L2 * np.sin(1.75) - L3 * np.cos(2.95), abs=1e-9)
+
+
+def test_limit_messages_survive_infinite_values() -> None:
+    from kinematics.limits import violations
+
+    msgs = violations([np.inf, 0.0, -np.inf], ["base", "shoulder", "elbow"],
+                      [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])
+    assert msgs[0].startswith("base inf rad is above its limit")
+    assert msgs[1].startswith("elbow -inf rad is below its limit")

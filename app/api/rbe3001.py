@@ -42,8 +42,9 @@ def _encodable(cmd: rb.Command) -> None:
     response_model=s.SetPidReply,
     summary="SET_PID (37): joint position setpoints in encoder ticks",
     description="Three setpoints (position ticks; velocity and force are carried but unused by "
-    "the firmware). Refused with 422 `joint_limit` outside the joint limits unless the profile "
-    "allows raw access, and 409 `estop_latched` while the estop is latched. Answers the "
+    "the firmware). Refused with 422 `joint_limit` outside the joint limits and 422 `velocity_limit` with "
+    "a velocity_ticks_s above the joint velocity limits, unless the profile allows raw access, "
+    "and 409 `estop_latched` while the estop is latched. Answers the "
     "positions the firmware reported. " + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
@@ -52,7 +53,8 @@ async def set_pid(svc: ControlArm, req: s.SetPid) -> s.SetPidReply:
     setpoints = [(j.position_ticks, j.velocity_ticks_s, j.force) for j in req.joints]
     joints = tuple(rb.JointSetpoint(*sp) for sp in setpoints)
     _encodable(rb.SetPid(joints))  # type: ignore[arg-type]
-    svc.check_passthrough_ticks(np.array([sp[0] for sp in setpoints], dtype=float))
+    svc.check_passthrough_ticks(np.array([sp[0] for sp in setpoints], dtype=float),
+                                velocities=np.array([sp[1] for sp in setpoints], dtype=float))
     reply = await drv.set_pid(setpoints)
     return s.SetPidReply(position_ticks=[float(x) for x in reply.position_ticks])
 
