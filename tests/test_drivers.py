@@ -294,3 +294,38 @@ async def test_an_unencodable_request_fails_and_the_link_task_lives_on():
         assert isinstance(await driver.status(), rb.StatusReply)
     finally:
         await driver.close()
+
+
+# ------------------------------------------------------------------ faults over real transports
+
+
+@pytest.mark.parametrize("name", ["angler", "rbe3001"])
+async def test_faults_over_a_real_socket_fail_clearly_and_recover(name):
+    """The same faults, injected by the TCP simulator server: the driver reads real bytes
+    through pyserial's socket:// transport, drops, corruption, and a pulled cable included."""
+    device = make_sim_device(load_profile(name))
+    server = await serve_tcp(device, faults=FaultConfig(reconnect_after_s=0.4), seed=3)
+    driver = await started(name, SerialLink(f"socket://127.0.0.1:{server.port}"))
+    sub = driver.hub.subscribe()
+    calls = _distinct_calls(driver) if name == "angler" else _rbe_calls(driver)
+    try:
+        server.set_faults(FaultConfig(drop=0.2, corrupt=0.1, reconnect_after_s=0.4))
+        outcomes, errors = await _hammer(calls, n_tasks=2, per_task=15)
+        assert outcomes["wrong"] == 0 and outcomes["ok"] > 5
+        assert set(errors) <= {"device_timeout", "corrupt_reply"}, errors
+        assert server.faults.dropped > 0 and server.faults.corrupted > 0
+        server.set_faults(FaultConfig(reconnect_after_s=0.4))
+        server.disconnect()  # the cable is pulled
+        await asyncio.sleep(0.1)
+        with pytest.raises(LinkDown):
+            await calls[0][0]()
+        assert await driver.wait_connected(5.0)  # reopened by the driver's backoff
+        await asyncio.sleep(0.2)
+        outcomes, errors = await _hammer(calls, n_tasks=2, per_task=5)
+        assert outcomes == {"ok": 10, "wrong": 0} and not errors
+        _, events, _ = sub.take()
+        assert any('"link_lost"' in e for e in events) and any('"link_back"' in e for e in events)
+    finally:
+        sub.close()
+        await driver.close()
+        await server.close()

@@ -10,12 +10,12 @@ after each open for `reconnect_after_s` seconds, as an unplugged cable would.
 from __future__ import annotations
 
 import asyncio
-import random
 from collections import deque
 
 from app.config import FaultConfig
 from app.links.base import Link, LinkError, LinkState
 from app.sim.base import SimDevice
+from app.sim.faults import ReplyFaults
 
 DISCONNECTED = "simulated disconnect"
 
@@ -35,8 +35,7 @@ class SimLink(Link):
         super().__init__(address)
         self.device = device
         self.packetized = device.packetized
-        self.faults = faults or FaultConfig()
-        self._rng = random.Random(seed)
+        self._reply_faults = ReplyFaults(faults, seed)
         self._replies: deque[tuple[float, bytes]] = deque()  # (delivery time, bytes), in order
         self._arrived = asyncio.Event()
         self._down_at: float | None = None  # loop time of the next scheduled disconnect
@@ -44,9 +43,13 @@ class SimLink(Link):
 
     # --- faults ------------------------------------------------------------------------
 
+    @property
+    def faults(self) -> FaultConfig:
+        return self._reply_faults.faults
+
     def set_faults(self, faults: FaultConfig) -> None:
         """Replace the fault settings; a disconnect timer restarts from now."""
-        self.faults = faults
+        self._reply_faults.faults = faults
         if self.state is LinkState.UP:
             self._schedule_disconnect(self._now())
 
@@ -77,12 +80,11 @@ class SimLink(Link):
         now = self._now()
         last = self._replies[-1][0] if self._replies else now
         for delay, reply in self.device.receive(bytes(data), now):
-            if self._rng.random() < self.faults.drop:
+            out = self._reply_faults.apply(reply)
+            if out is None:
                 continue
-            if self._rng.random() < self.faults.corrupt:
-                reply = self._flip(reply)
             last = max(last, now + delay + self.faults.latency_s)  # never reorder
-            self._replies.append((last, reply))
+            self._replies.append((last, out))
         self._arrived.set()
 
     async def read(self, timeout: float) -> bytes:
@@ -123,13 +125,6 @@ class SimLink(Link):
         while self._replies and self._replies[0][0] <= now:
             chunks.append(self._replies.popleft()[1])
         return b"".join(chunks)
-
-    def _flip(self, reply: bytes) -> bytes:
-        if not reply:
-            return reply
-        out = bytearray(reply)
-        out[self._rng.randrange(len(out))] ^= self._rng.randrange(1, 256)
-        return bytes(out)
 
     def _schedule_disconnect(self, now: float) -> None:
         after = self.faults.disconnect_after_s

@@ -10,7 +10,7 @@ writer, so a later reply never overtakes an earlier one). Packetized devices (HI
 `time.monotonic()` in seconds.
 
 Command: `armserver sim dynamixel (--pty PATH | --listen tcp://127.0.0.1:PORT)
-[--ids 1,2,3,4] [--baudrate 1000000] [--mode ID:MODE ...]` (see `main`).
+[--ids 1,2,3,4] [--baudrate 1000000] [--mode ID:MODE ...] [--drop F] [--corrupt F] [--latency S]` (see `main`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from urllib.parse import urlsplit
 
+from app.config import FaultConfig
 from app.sim.base import SimDevice
+from app.sim.faults import ReplyFaults
 
 log = logging.getLogger(__name__)
 
@@ -40,9 +42,12 @@ READ_CHUNK = 4096  # bytes per read from the pty or socket
 class _Pump:
     """Host bytes -> device -> timed, ordered replies through `write`."""
 
-    def __init__(self, device: SimDevice, write: Callable[[bytes], None]) -> None:
+    def __init__(self, device: SimDevice, write: Callable[[bytes], None],
+                 faults: ReplyFaults | None = None) -> None:
         self.device = device
         self._write = write
+        self.faults = faults or ReplyFaults()
+        self._last_due = 0.0
         self._pending = bytearray()
         self._queue: asyncio.Queue[tuple[float, bytes]] = asyncio.Queue(REPLY_BACKLOG)
         self._task = asyncio.get_running_loop().create_task(self._writer())
@@ -57,8 +62,13 @@ class _Pump:
             del self._pending[:n]
         for chunk in chunks:
             for delay, reply in self.device.receive(chunk, now):
+                out = self.faults.apply(reply)
+                if out is None:
+                    continue
+                # latency delays every reply alike: never reordered
+                self._last_due = max(self._last_due, now + delay + self.faults.latency_s)
                 try:
-                    self._queue.put_nowait((now + delay, reply))
+                    self._queue.put_nowait((self._last_due, out))
                 except asyncio.QueueFull:
                     log.warning("reply backlog full (%d); reply dropped", REPLY_BACKLOG)
 
@@ -89,8 +99,10 @@ class PtyServer:
     """A device behind a pseudo-terminal; `link_path` is a symlink to the slave tty."""
 
     def __init__(self, device: SimDevice, link_path: str | os.PathLike[str],
-                 tick_s: float | None = TICK_S) -> None:
+                 tick_s: float | None = TICK_S, faults: FaultConfig | None = None,
+                 seed: int | None = 0) -> None:
         self.device = device
+        self.faults = ReplyFaults(faults, seed)
         self.link_path = Path(link_path)
         self.master, self.slave = os.openpty()
         tty.setraw(self.slave)  # at once: a cooked pty echoes and turns LF into CRLF
@@ -100,10 +112,13 @@ class PtyServer:
             self.link_path.unlink()
         self.link_path.symlink_to(self.tty_name)
         self._loop = asyncio.get_running_loop()
-        self._pump = _Pump(device, self._write)
+        self._pump = _Pump(device, self._write, self.faults)
         self._loop.add_reader(self.master, self._on_readable)
         self._tick = self._loop.create_task(_ticker(device, tick_s)) if tick_s else None
         self._closed = False
+
+    def set_faults(self, faults: FaultConfig) -> None:
+        self.faults.faults = faults
 
     def _on_readable(self) -> None:
         try:
@@ -145,10 +160,13 @@ class PtyServer:
 class TcpServer:
     """A device behind a TCP listener; every connection feeds the same device."""
 
-    def __init__(self, device: SimDevice, tick_s: float | None = TICK_S) -> None:
+    def __init__(self, device: SimDevice, tick_s: float | None = TICK_S,
+                 faults: FaultConfig | None = None, seed: int | None = 0) -> None:
         self.device = device
+        self.faults = ReplyFaults(faults, seed)
         self.server: asyncio.Server | None = None
         self._conns: set[asyncio.Task[None]] = set()
+        self._refuse_until = 0.0
         loop = asyncio.get_running_loop()
         self._tick = loop.create_task(_ticker(device, tick_s)) if tick_s else None
 
@@ -157,17 +175,37 @@ class TcpServer:
         assert self.server is not None
         return int(self.server.sockets[0].getsockname()[1])
 
+    def set_faults(self, faults: FaultConfig) -> None:
+        self.faults.faults = faults
+
+    def disconnect(self) -> None:
+        """Drop every connection now and refuse new ones for `faults.reconnect_after_s`: the
+        host sees the cable pulled (end of file), then the device back."""
+        self._refuse_until = time.monotonic() + self.faults.faults.reconnect_after_s
+        for t in list(self._conns):
+            t.cancel()
+
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if time.monotonic() < self._refuse_until:
+            writer.close()
+            return
         task = asyncio.current_task()
         assert task is not None
         self._conns.add(task)
-        pump = _Pump(self.device, writer.write)
+        after = self.faults.faults.disconnect_after_s
+        timer = (asyncio.get_running_loop().call_later(after, self.disconnect)
+                 if after is not None else None)
+        pump = _Pump(self.device, writer.write, self.faults)
         try:
             while data := await reader.read(READ_CHUNK):
                 pump.on_data(data)
         except ConnectionError as exc:
             log.info("connection lost: %s", exc)
+        except asyncio.CancelledError:
+            log.info("connection dropped (simulated disconnect or shutdown)")
         finally:
+            if timer is not None:
+                timer.cancel()
             self._conns.discard(task)
             await pump.close()
             writer.close()
@@ -188,15 +226,19 @@ class TcpServer:
 
 
 async def serve_pty(device: SimDevice, link_path: str | os.PathLike[str],
-                    tick_s: float | None = TICK_S) -> PtyServer:
-    """Serve `device` on a new pseudo-terminal reachable at the symlink `link_path`."""
-    return PtyServer(device, link_path, tick_s)
+                    tick_s: float | None = TICK_S, faults: FaultConfig | None = None,
+                    seed: int | None = 0) -> PtyServer:
+    """Serve `device` on a new pseudo-terminal reachable at the symlink `link_path`, with
+    per-reply `faults` (drop, corrupt, latency; settable later with `set_faults`)."""
+    return PtyServer(device, link_path, tick_s, faults, seed)
 
 
 async def serve_tcp(device: SimDevice, host: str = "127.0.0.1", port: int = 0,
-                    tick_s: float | None = TICK_S) -> TcpServer:
-    """Serve `device` on a TCP listener (port 0: any free port; see `.port`)."""
-    srv = TcpServer(device, tick_s)
+                    tick_s: float | None = TICK_S, faults: FaultConfig | None = None,
+                    seed: int | None = 0) -> TcpServer:
+    """Serve `device` on a TCP listener (port 0: any free port; see `.port`), with per-reply
+    `faults` and, for TCP, disconnects (`disconnect()`, or `faults.disconnect_after_s`)."""
+    srv = TcpServer(device, tick_s, faults, seed)
     srv.server = await asyncio.start_server(srv._serve, host, port)
     return srv
 
@@ -211,6 +253,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--baudrate", type=int, default=1_000_000, help="bus baud rate, bit/s")
     p.add_argument("--mode", action="append", default=[], metavar="ID:MODE",
                    help="operating mode of a servo (1 velocity, 3 position, 4 extended, 16 PWM)")
+    p.add_argument("--drop", type=float, default=0.0, help="fraction of replies lost")
+    p.add_argument("--corrupt", type=float, default=0.0,
+                   help="fraction of replies with one byte changed")
+    p.add_argument("--latency", type=float, default=0.0, help="extra delay of every reply, s")
     return p
 
 
@@ -227,15 +273,16 @@ async def _run(args: argparse.Namespace) -> None:
 
     ids = [int(i) for i in args.ids.split(",") if i.strip()]
     device = DynamixelBus(ids, args.baudrate, _pairs(args.mode))
+    faults = FaultConfig(drop=args.drop, corrupt=args.corrupt, latency_s=args.latency)
     server: PtyServer | TcpServer
     if args.pty:
-        server = await serve_pty(device, args.pty)
+        server = await serve_pty(device, args.pty, faults=faults, seed=None)
         where = f"{args.pty} -> {server.tty_name}"
     else:
         url = urlsplit(args.listen)
         if url.scheme != "tcp" or not url.hostname or url.port is None:
             raise ValueError(f"--listen wants tcp://HOST:PORT, got {args.listen!r}")
-        server = await serve_tcp(device, url.hostname, url.port)
+        server = await serve_tcp(device, url.hostname, url.port, faults=faults, seed=None)
         where = f"tcp://{url.hostname}:{server.port} (socket://{url.hostname}:{server.port})"
     print(f"dynamixel bus ids {ids} at {args.baudrate} bit/s on {where}", flush=True)
     stop = asyncio.Event()
