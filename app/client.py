@@ -34,7 +34,7 @@ from app import schemas as s
 
 log = logging.getLogger(__name__)
 
-__all__ = [
+__all__ = [  # noqa: F822 - ArmClient is loaded lazily by __getattr__ (app.client_sync)
     "ArmClient", "ArmServerError", "AsyncArmClient", "Busy", "ConnectionFailed", "DeviceError",
     "DeviceTimeout", "EstopLatched", "Forbidden", "InvalidRequest", "JointLimit", "Leased",
     "LinkDown", "NoGripper", "NotFound", "NotSupported", "Unauthorized", "Unreachable",

@@ -27,7 +27,8 @@ class FaultConfig(_Strict):
     """Fault injection on a simulated link (fractions are probabilities per reply)."""
 
     drop: float = Field(0.0, ge=0.0, le=1.0, description="fraction of replies dropped")
-    corrupt: float = Field(0.0, ge=0.0, le=1.0, description="fraction of replies with a byte flipped")
+    corrupt: float = Field(0.0, ge=0.0, le=1.0,
+                           description="fraction of replies with a byte flipped")
     latency_s: float = Field(0.0, ge=0.0, le=5.0, description="extra delay before each reply, s")
     disconnect_after_s: float | None = Field(
         None, ge=0.0, description="drop the link this long after it opens (None: never)"
@@ -37,7 +38,8 @@ class FaultConfig(_Strict):
 
 class LinkConfig(_Strict):
     kind: Literal["sim", "hid", "serial"] = "sim"
-    address: str = Field("", description="serial URL (/dev/ttyUSB0, socket://host:port) or hidraw path")
+    address: str = Field(
+        "", description="serial URL (/dev/ttyUSB0, socket://host:port) or hidraw path")
     vid: int | None = None
     pid: int | None = None
     serial_number: str | None = None
@@ -57,11 +59,13 @@ class JointConfig(_Strict):
     max_velocity: float = Field(gt=0.0, description="rad/s or m/s")
     max_acceleration: float = Field(gt=0.0, description="rad/s^2 or m/s^2")
     max_jerk: float = Field(gt=0.0, description="rad/s^3 or m/s^3")
-    motor_id: int | None = Field(None, ge=0, le=252, description="Dynamixel id, where the arm has one")
+    motor_id: int | None = Field(None, ge=0, le=252,
+                                 description="Dynamixel id, where the arm has one")
     ticks_per_rev: int = 4096
     offset_ticks: float = 0.0
     sign: Literal[1, -1] = 1
-    lead_m: float | None = Field(None, gt=0.0, description="metres per motor revolution (prismatic)")
+    lead_m: float | None = Field(None, gt=0.0,
+                                 description="metres per motor revolution (prismatic)")
     operating_mode: int | None = None
     stall_torque_nm: float | None = Field(
         None, gt=0.0, description="motor stall torque, N m (Dynamixel Present Load is 0.1 % of it)"

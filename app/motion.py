@@ -22,8 +22,15 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from app import schemas as s
-from app.errors import (ArmError, Busy, InvalidRequest, JointLimit, LinkDown, Unreachable,
-                        UnknownMotion)
+from app.errors import (
+    ArmError,
+    Busy,
+    InvalidRequest,
+    JointLimit,
+    LinkDown,
+    UnknownMotion,
+    Unreachable,
+)
 from app.links.base import LinkState
 from kinematics import trajectory
 from kinematics.errors import KinematicsError, LimitViolation
@@ -261,7 +268,8 @@ class MotionExecutor:
         q = np.array([plan.traj.sample(float(ti))[0] for ti in t])
         return [_vec(p) for p in self.model.fk(q)]
 
-    def _preview(self, kind: str, path: str, req: Any, planner: Any, target: np.ndarray) -> s.Motion:
+    def _preview(self, kind: str, path: str, req: Any, planner: Any,
+                 target: np.ndarray) -> s.Motion:
         self.svc.require_motion_allowed()
         start, at_rest = self._tail_state(req.mode)
         plan = planner(start, target, req, at_rest or path == "line")
@@ -374,7 +382,8 @@ class MotionExecutor:
             if t >= duration:
                 self._cmd = (q, np.zeros_like(q), np.zeros_like(q))
                 return "end"
-            await asyncio.sleep(max(0.0, t0 + (int((loop.time() - t0) / dt) + 1) * dt - loop.time()))
+            next_tick = t0 + (int((loop.time() - t0) / dt) + 1) * dt
+            await asyncio.sleep(max(0.0, next_tick - loop.time()))
 
     async def _brake(self) -> None:
         """Decelerate from the commanded state to rest under the acceleration and jerk limits."""

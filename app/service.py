@@ -16,8 +16,15 @@ from app import schemas as s
 from app.config import ArmProfile
 from app.devices.base import Driver
 from app.devices.factory import make_driver
-from app.errors import (EstopLatched, InvalidRequest, JointLimit, LinkDown, NoGripper,
-                        NotSupported, VelocityLimit)
+from app.errors import (
+    EstopLatched,
+    InvalidRequest,
+    JointLimit,
+    LinkDown,
+    NoGripper,
+    NotSupported,
+    VelocityLimit,
+)
 from app.links.base import LinkState
 from app.motion import MotionExecutor
 from app.telemetry import TelemetryHub

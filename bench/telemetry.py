@@ -215,10 +215,12 @@ def main(argv: list[str] | None = None) -> int:
           f"(latency = device timestamp -> receipt; 'all' includes batching, 'newest' is the "
           f"last sample of each message; 'device Hz' is the sample rate from the samples' own "
           f"timestamps, 'read/s' what each client got through in its window)")
-    print(f"{'N':>4} {'device Hz':>9} {'read/s':>7} {'msgs/s':>7} {'lost':>6} {'all med':>8} {'all p99':>8} "
+    print(f"{'N':>4} {'device Hz':>9} {'read/s':>7} {'msgs/s':>7} {'lost':>6} "
+          f"{'all med':>8} {'all p99':>8} "
           f"{'new med':>8} {'new p99':>8} {'srv CPU':>8}")
     for r in rows:
-        print(f"{r['n']:>4} {r['device_hz']:>9.1f} {r['samples_s']:>7.1f} {r['messages_s']:>7.1f} {r['lost']:>6} "
+        print(f"{r['n']:>4} {r['device_hz']:>9.1f} {r['samples_s']:>7.1f} "
+              f"{r['messages_s']:>7.1f} {r['lost']:>6} "
               f"{r['lat_med_ms']:>6.1f}ms {r['lat_p99_ms']:>6.1f}ms {r['new_med_ms']:>6.1f}ms "
               f"{r['new_p99_ms']:>6.1f}ms {100 * r['cpu']:>7.0f}%")
     return 0

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import httpx
 import pytest
+from conftest import make_settings
 
 from app.main import create_app
 from app.schemas import ArmDetail, Health, Sample
-from conftest import make_settings
 
 API = "/api/v1"
 

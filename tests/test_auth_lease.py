@@ -6,9 +6,9 @@ import asyncio
 import time
 
 import pytest
+from conftest import OPERATOR, VIEWER, make_settings, running_client
 
 from app.auth import Access, Role, bearer_token
-from conftest import OPERATOR, VIEWER, make_settings, running_client
 
 API = "/api/v1"
 ARM = f"{API}/arms/rbe3001"

@@ -15,7 +15,7 @@ from typing import Any
 import httpx
 import pytest
 
-from app.client import ArmServerError, ArmClient, AsyncArmClient
+from app.client import ArmClient, ArmServerError, AsyncArmClient
 from app.main import create_app
 
 #: (HTTP method, OpenAPI path) -> client method name. Path parameter names are ignored.

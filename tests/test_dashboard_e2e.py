@@ -7,11 +7,11 @@ positions against the telemetry, the emergency stop against GET /arms/{arm}, and
 words next to the control that caused them. The page's test hook is `window.armDashboard`.
 
 Screenshots go to test-output/ (git-ignored); with ARMSERVER_UPDATE_DOCS=1 one of
-them is copied to docs/dashboard.png for the README. Never runs `playwright install`: it uses /usr/bin/chromium or skips.
+them is copied to docs/dashboard.png for the README. Never runs `playwright install`: it
+uses /usr/bin/chromium or skips.
 """
 
 from __future__ import annotations
-
 
 import contextlib
 import math
@@ -27,9 +27,9 @@ from typing import Any
 import httpx
 import pytest
 import uvicorn
+from conftest import OPERATOR, make_settings
 
 from app.main import create_app
-from conftest import OPERATOR, make_settings
 
 pytestmark = pytest.mark.browser
 

@@ -146,7 +146,8 @@ async def _hammer(calls, n_tasks: int = 4, per_task: int = 40, bound_s: float = 
 
 def _angler_calls(driver):
     item = mx28.TABLE["id"]
-    calls = [(lambda i=i: driver.read_register(i, item), lambda v, i=i: v == i) for i in (1, 2, 3, 4)]
+    calls = [(lambda i=i: driver.read_register(i, item), lambda v, i=i: v == i)
+             for i in (1, 2, 3, 4)]
     calls.append((lambda: driver.read_register(2, mx28.TABLE["model_number"]),
                   lambda v: v == mx28.MODEL_NUMBER))
     calls.append((lambda: driver.sync_read(mx28.TABLE["id"], [4, 1, 3]),

@@ -51,8 +51,11 @@ class RecordingPort(PortHandler):
         return out
 
 
+SDK = tuple[Protocol2PacketHandler, RecordingPort]
+
+
 @pytest.fixture()
-def sdk() -> tuple[Protocol2PacketHandler, RecordingPort]:
+def sdk() -> SDK:
     return Protocol2PacketHandler(), RecordingPort()
 
 

@@ -32,6 +32,7 @@ from typing import Any
 
 import pytest
 import schemathesis
+from conftest import make_settings
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 from hypothesis.errors import Unsatisfiable
@@ -46,7 +47,6 @@ from schemathesis.python import asgi as st_asgi
 from app.arm_model import ArmModel
 from app.config import load_profile
 from app.main import create_app
-from conftest import make_settings
 
 pytestmark = pytest.mark.slow
 
@@ -240,7 +240,8 @@ def _fuzz(target: Target, headers: dict[str, str], authorized: bool,
             if True:
                 strategy = _strategy(op, arm, mode)
 
-                @settings(max_examples=CASES, deadline=None, database=None, derandomize=DETERMINISTIC,
+                @settings(max_examples=CASES, deadline=None, database=None,
+                          derandomize=DETERMINISTIC,
                           phases=[Phase.explicit, Phase.generate],
                           suppress_health_check=list(HealthCheck))
                 @given(case=strategy)

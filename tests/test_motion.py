@@ -74,7 +74,8 @@ async def test_a_line_move_keeps_the_measured_tip_on_the_segment(name, start_q, 
     tol = svc.profile.cartesian.line_tolerance
     dev = _distance_to_segment(tips, a, b)
     print(f"{name}: max deviation from the line {dev.max() * 1000:.2f} mm over {len(tips)} samples")
-    assert dev.max() <= tol, f"tip strayed {dev.max() * 1000:.2f} mm from the line (tol {tol * 1000} mm)"
+    assert dev.max() <= tol, (f"tip strayed {dev.max() * 1000:.2f} mm from the line "
+                              f"(tol {tol * 1000} mm)")
     # it really went along the line: the samples span it, ending at the target
     assert np.linalg.norm(tips[-1] - b) <= tol
     assert np.linalg.norm(tips[len(tips) // 2] - a) > 0.2 * np.linalg.norm(b - a)

@@ -23,13 +23,13 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+from conftest import make_settings, serve_live, wait_ready
 from fastapi import FastAPI
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from app.config import ArmProfile, Settings, load_profile
 from app.main import create_app
-from conftest import make_settings, serve_live, wait_ready
 
 API = "/api/v1"
 RB = f"{API}/arms/rbe3001"
@@ -118,7 +118,8 @@ async def test_rbe3001_set_pid_outside_the_limits_never_reaches_the_device() -> 
         await asyncio.sleep(0.05)
         assert _rb_setpoint(app) == before  # the firmware never saw them
         # within the limits it goes through, to the firmware
-        r = await client.post(f"{RB}/rbe3001/set-pid", json=_set_pid_body(_ticks(app, "rbe3001", q)))
+        r = await client.post(f"{RB}/rbe3001/set-pid",
+                              json=_set_pid_body(_ticks(app, "rbe3001", q)))
         assert r.status_code == 200, r.text
         np.testing.assert_allclose(_rb_setpoint(app), _ticks(app, "rbe3001", q), atol=0.01)
 

@@ -13,11 +13,11 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+from conftest import running_client
 from fastapi import FastAPI
 
 from app.config import FaultConfig
 from app.links.sim import SimLink
-from conftest import running_client
 
 API = "/api/v1"
 #: Shortest move to cut in the middle, s (the far targets take longer at full speed).

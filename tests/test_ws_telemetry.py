@@ -13,10 +13,9 @@ from typing import Any
 
 import httpx
 import pytest
+from conftest import OPERATOR, VIEWER, LiveServer, make_settings, serve_live
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
-
-from conftest import OPERATOR, VIEWER, LiveServer, make_settings, serve_live
 
 WS = "/api/v1/arms/{arm}/telemetry"
 

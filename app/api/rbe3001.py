@@ -42,7 +42,8 @@ def _encodable(cmd: rb.Command) -> None:
     response_model=s.SetPidReply,
     summary="SET_PID (37): joint position setpoints in encoder ticks",
     description="Three setpoints (position ticks; velocity and force are carried but unused by "
-    "the firmware). Refused with 422 `joint_limit` outside the joint limits and 422 `velocity_limit` with "
+    "the firmware). Refused with 422 `joint_limit` outside the joint limits and 422 "
+    "`velocity_limit` with "
     "a velocity_ticks_s above the joint velocity limits, unless the profile allows raw access, "
     "and 409 `estop_latched` while the estop is latched. Answers the "
     "positions the firmware reported. " + _NOT_SUPPORTED,

@@ -198,7 +198,8 @@ class AnglerDriver(Driver):
                     return sorted(got, key=lambda p: p.id)
                 missing = req.expect[len(got):]
                 raise DeviceTimeout(f"{self.name}: {req.what}: no status from id "
-                                    f"{', '.join(map(str, missing))} within {timeout * 1000:.0f} ms")
+                                    f"{', '.join(map(str, missing))} within "
+                                    f"{timeout * 1000:.0f} ms")
             data = await self.link.read(left)
             if data:
                 self._parser.feed(data)

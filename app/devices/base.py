@@ -149,7 +149,7 @@ class Driver(abc.ABC):
         """Read the device state in the owner task: joint positions, velocities (SI) and
         joint torques (N m or N) where sensed."""
 
-    async def _on_connected(self) -> None:
+    async def _on_connected(self) -> None:  # noqa: B027 - an optional hook
         """Prepare the device after the link opens (modes, torque); in the owner task."""
 
     async def _setup_exchange(self, message: Any, timeout: float) -> Any:
@@ -164,7 +164,7 @@ class Driver(abc.ABC):
                 self._reset_reader()
         raise AssertionError("unreachable")
 
-    def _reset_reader(self) -> None:
+    def _reset_reader(self) -> None:  # noqa: B027 - an optional hook
         """Forget partial input (after a timeout or reconnect)."""
 
     # ------------------------------------------------------------ owner task

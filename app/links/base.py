@@ -11,7 +11,7 @@ import abc
 import enum
 
 
-class LinkState(str, enum.Enum):
+class LinkState(enum.StrEnum):
     CONNECTING = "connecting"
     UP = "up"
     DOWN = "down"

@@ -10,7 +10,8 @@ writer, so a later reply never overtakes an earlier one). Packetized devices (HI
 `time.monotonic()` in seconds.
 
 Command: `armserver sim dynamixel (--pty PATH | --listen tcp://127.0.0.1:PORT)
-[--ids 1,2,3,4] [--baudrate 1000000] [--mode ID:MODE ...] [--drop F] [--corrupt F] [--latency S]` (see `main`).
+[--ids 1,2,3,4] [--baudrate 1000000] [--mode ID:MODE ...] [--drop F] [--corrupt F]
+[--latency S]` (see `main`).
 """
 
 from __future__ import annotations
