@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from app import schemas as s
 from app.errors import ArmError, Leased, NotFound
 from app.service import ArmService
+from app.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
 
@@ -63,11 +64,8 @@ class LeaseManager:
             self._task = asyncio.create_task(self._watch(), name="lease-watcher")
 
     async def close(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
-            self._task = None
+        await cancel_and_wait(self._task)
+        self._task = None
 
     # ------------------------------------------------------------ requests
 

@@ -32,6 +32,7 @@ from app.errors import (
     Unreachable,
 )
 from app.links.base import LinkState
+from app.tasks import cancel_and_wait
 from kinematics import trajectory
 from kinematics.errors import KinematicsError, LimitViolation
 from kinematics.errors import Unreachable as KinematicsUnreachable
@@ -119,13 +120,8 @@ class MotionExecutor:
             self._task = asyncio.create_task(self._run(), name=f"motion:{self.svc.name}")
 
     async def close(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
-            self._task = None
+        await cancel_and_wait(self._task)
+        self._task = None
         for rec in [*self._queue, *( [self.current] if self.current else [])]:
             self._finish(rec, "stopped", "server shutting down")
 

@@ -21,90 +21,22 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import json
-import os
 import random
 import socket
-import subprocess
-import sys
 import time
-import urllib.request
 from collections import Counter
-from collections.abc import Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import httpx
+from _server import ServerProcess, pct, server  # bench/_server.py
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-ROOT = Path(__file__).resolve().parent.parent
 API = "/api/v1"
 
 
 # ---------------------------------------------------------------- the server
-
-
-class ServerProcess:
-    def __init__(self) -> None:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            self.port = s.getsockname()[1]
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.ws_url = f"ws://127.0.0.1:{self.port}"
-        env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
-        self.proc = subprocess.Popen(
-            [sys.executable, "-c", "from app.main import cli; cli()", "serve", "--port",
-             str(self.port), "--log-level", "warning"],
-            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            try:
-                with urllib.request.urlopen(self.url + f"{API}/health", timeout=1) as r:
-                    if json.loads(r.read())["status"] == "ok":
-                        return
-            except OSError:
-                pass
-            time.sleep(0.1)
-        self.close()
-        raise RuntimeError("the server did not become healthy")
-
-    def _proc(self, name: str) -> str:
-        return Path(f"/proc/{self.proc.pid}/{name}").read_text()
-
-    def rss_mib(self) -> float:
-        for line in self._proc("status").splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-        return float("nan")
-
-    def cpu_s(self) -> float:
-        f = self._proc("stat").rsplit(")", 1)[1].split()
-        return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
-
-    def close(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-
-
-@contextlib.contextmanager
-def server() -> Iterator[ServerProcess]:
-    srv = ServerProcess()
-    try:
-        yield srv
-    finally:
-        srv.close()
-
-
-def pct(values: list[float], q: float) -> float:
-    if not values:
-        return float("nan")
-    v = sorted(values)
-    return v[min(len(v) - 1, int(q * len(v)))]
 
 
 # ---------------------------------------------------------------- REST load
@@ -217,7 +149,7 @@ async def load(srv: ServerProcess, seconds: float, clients: int, subs: int,
     pool = [httpx.AsyncClient(base_url=srv.url, timeout=30.0) for _ in range(clients)]
     try:
         await asyncio.gather(*(c.get(f"{API}/health") for c in pool))  # connected first
-        rss0, cpu0 = srv.rss_mib(), srv.cpu_s()
+        rss0, cpu0 = srv.rss_mib(), srv.cpu_seconds()
         t0 = time.monotonic()
         until = t0 + seconds
         arms = ["rbe3001", "angler"]
@@ -226,7 +158,7 @@ async def load(srv: ServerProcess, seconds: float, clients: int, subs: int,
             *(subscriber(f"{srv.ws_url}{API}/arms/{arms[k % 2]}/telemetry?rate={rate}", until,
                          s) for k, s in enumerate(sub_stats)))
         elapsed = time.monotonic() - t0
-        cpu1, rss1 = srv.cpu_s(), srv.rss_mib()
+        cpu1, rss1 = srv.cpu_seconds(), srv.rss_mib()
     finally:
         await asyncio.gather(*(c.aclose() for c in pool))
     all_lat = [x for v in st.lat.values() for x in v]

@@ -20,7 +20,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from telemetry import ServerProcess, pct, server  # noqa: E402  (bench/telemetry.py)
+from _server import ServerProcess, pct, server  # noqa: E402  (bench/_server.py)
 
 ROUTES = {
     "GET /state": "/api/v1/arms/rbe3001/state",

@@ -16,105 +16,15 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import json
-import os
-import socket
 import statistics
-import subprocess
 import sys
 import time
-import urllib.request
-from collections.abc import Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-
+from _server import ROOT, ServerProcess, pct, server  # bench/_server.py
 
 # ---------------------------------------------------------------- the server under test
-
-
-def pin_apart(server_pid: int) -> bool:
-    """Server on core 0, this (client) process on the others, where there are two or more.
-
-    On a 2-core machine 100 Python WebSocket clients parsing 50,000 samples/s fill a core; left
-    to share, they starve the server's 2 ms poll timer and the bench measures its own clients.
-    """
-    cpus = sorted(os.sched_getaffinity(0))
-    if len(cpus) < 2:
-        return False
-    os.sched_setaffinity(server_pid, {cpus[0]})
-    os.sched_setaffinity(0, set(cpus[1:]))
-    return True
-
-
-class ServerProcess:
-    """`armserver serve` on a free loopback port, simulated arms, no tokens."""
-
-    def __init__(self) -> None:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            self.port = s.getsockname()[1]
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.ws_url = f"ws://127.0.0.1:{self.port}"
-        env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
-        self.proc = subprocess.Popen(
-            [sys.executable, "-c", "from app.main import cli; cli()", "serve", "--port",
-             str(self.port), "--log-level", "warning"],
-            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        self.pinned = pin_apart(self.proc.pid)
-        self._wait_ready()
-
-    def _wait_ready(self, timeout: float = 30.0) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            try:
-                with urllib.request.urlopen(self.url + "/api/v1/health", timeout=1) as r:
-                    if json.loads(r.read())["status"] == "ok":
-                        return
-            except OSError:
-                pass
-            time.sleep(0.1)
-        self.close()
-        raise RuntimeError("the server did not become healthy")
-
-    def cpu_seconds(self) -> float:
-        """User + system CPU time of the server process, s."""
-        try:
-            import psutil  # type: ignore[import-not-found]
-
-            t = psutil.Process(self.proc.pid).cpu_times()
-            return float(t.user + t.system)
-        except ImportError:
-            fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
-            return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-    def close(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-
-
-@contextlib.contextmanager
-def server() -> Iterator[ServerProcess]:
-    srv = ServerProcess()
-    try:
-        yield srv
-    finally:
-        srv.close()
-
-
-def pct(values: list[float], q: float) -> float:
-    if not values:
-        return float("nan")
-    v = sorted(values)
-    return v[min(len(v) - 1, int(q * len(v)))]
-
-
-# ---------------------------------------------------------------- clients
 
 
 @dataclass
@@ -207,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     counts = [int(x) for x in a.clients.split(",") if x.strip()]
     rows = []
-    with server() as srv:
+    with server(pin=True) as srv:
         for n in counts:
             rows.append(asyncio.run(run_n(srv, n, a.seconds, a.rate, a.arm)))
     print(f"server pinned to its own core, clients to the other(s): {srv.pinned}")

@@ -12,6 +12,8 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
+from kinematics.errors import Unreachable
+
 __all__ = ["first_violation", "unit", "violations", "within"]
 
 FloatArray = npt.NDArray[np.float64]
@@ -107,3 +109,27 @@ def first_violation(
         return None
     i = int(bad[0])
     return i, violations(qa[i], names, lower, upper, kinds, tol)
+
+
+def distinct_solutions(
+    q: npt.ArrayLike,
+    p: npt.ArrayLike,
+    lower: npt.ArrayLike | None = None,
+    upper: npt.ArrayLike | None = None,
+) -> list[npt.NDArray[np.float64]]:
+    """The distinct rows of ``q`` (k, n), the valid IK solutions of point ``p`` (3,) m; with
+    limits given, only those within them, and :class:`Unreachable` if none is."""
+    out: list[npt.NDArray[np.float64]] = []
+    for qi in np.asarray(q, dtype=np.float64):
+        if not any(np.allclose(qi, o, atol=1e-12) for o in out):
+            out.append(qi)
+    if lower is not None and upper is not None:
+        inside = [qi for qi in out if bool(within(qi, lower, upper))]
+        if not inside:
+            pa = np.asarray(p, dtype=np.float64)
+            raise Unreachable(
+                f"every solution for ({pa[0]:.3f}, {pa[1]:.3f}, {pa[2]:.3f}) m is outside"
+                " the joint limits"
+            )
+        out = inside
+    return out

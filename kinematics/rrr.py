@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from kinematics.errors import Singular, Unreachable
-from kinematics.limits import within
+from kinematics.limits import distinct_solutions, within
 
 __all__ = [
     "RRR",
@@ -165,19 +165,7 @@ def ik_one(
             f" closer than |L2 - L3| = {inner:.3f} m"
         )
     sols = ik(pa, g)
-    out: list[FloatArray] = []
-    for qi in sols.q[sols.valid]:
-        if not any(np.allclose(qi, o, atol=1e-12) for o in out):
-            out.append(qi)
-    if lower is not None and upper is not None:
-        inside = [qi for qi in out if bool(within(qi, lower, upper))]
-        if not inside:
-            raise Unreachable(
-                f"every solution for ({pa[0]:.3f}, {pa[1]:.3f}, {pa[2]:.3f}) m is outside"
-                " the joint limits"
-            )
-        out = inside
-    return out
+    return distinct_solutions(sols.q[sols.valid], pa, lower, upper)
 
 
 def ik_near(

@@ -25,6 +25,7 @@ from app.arm_model import ArmModel
 from app.config import ArmProfile
 from app.errors import ArmError, Busy, CorruptReply, DeviceError, DeviceTimeout, LinkDown
 from app.links.base import Link, LinkError, LinkState
+from app.tasks import cancel_and_wait
 from app.telemetry import TelemetryHub
 
 log = logging.getLogger(__name__)
@@ -96,13 +97,8 @@ class Driver(abc.ABC):
             self._task = asyncio.create_task(self._run(), name=f"link:{self.name}")
 
     async def close(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
-            self._task = None
+        await cancel_and_wait(self._task)
+        self._task = None
         self._fail_pending(LinkDown(f"{self.name}: server shutting down"))
         await self.link.close()
 

@@ -1,0 +1,101 @@
+"""What the benchmarks share: `armserver serve` in a subprocess on a free loopback port (so the
+server's CPU and memory figures are its own), and a percentile helper."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def pin_apart(server_pid: int) -> bool:
+    """Server on core 0, this (client) process on the others, where there are two or more.
+
+    On a 2-core machine 100 Python WebSocket clients parsing 50,000 samples/s fill a core; left
+    to share, they starve the server's 2 ms poll timer and the bench measures its own clients.
+    """
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        return False
+    os.sched_setaffinity(server_pid, {cpus[0]})
+    os.sched_setaffinity(0, set(cpus[1:]))
+    return True
+
+
+class ServerProcess:
+    """`armserver serve` on a free loopback port: simulated arms, no tokens."""
+
+    def __init__(self, pin: bool = False) -> None:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            self.port = s.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.ws_url = f"ws://127.0.0.1:{self.port}"
+        env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", "from app.main import cli; cli()", "serve", "--port",
+             str(self.port), "--log-level", "warning"],
+            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.pinned = pin_apart(self.proc.pid) if pin else False
+        self._wait_ready()
+
+    def _wait_ready(self, timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                with urllib.request.urlopen(self.url + "/api/v1/health", timeout=1) as r:
+                    if json.loads(r.read())["status"] == "ok":
+                        return
+            except OSError:
+                pass
+            time.sleep(0.1)
+        self.close()
+        raise RuntimeError("the server did not become healthy")
+
+    def _proc(self, name: str) -> str:
+        return Path(f"/proc/{self.proc.pid}/{name}").read_text()
+
+    def rss_mib(self) -> float:
+        """Resident memory of the server process, MiB."""
+        for line in self._proc("status").splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        return float("nan")
+
+    def cpu_seconds(self) -> float:
+        """User + system CPU time of the server process, s."""
+        f = self._proc("stat").rsplit(")", 1)[1].split()
+        return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+    def close(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+
+@contextlib.contextmanager
+def server(pin: bool = False) -> Iterator[ServerProcess]:
+    srv = ServerProcess(pin)
+    try:
+        yield srv
+    finally:
+        srv.close()
+
+
+def pct(values: list[float], q: float) -> float:
+    """The q-quantile (0..1) of `values`, nearest rank; NaN for none."""
+    if not values:
+        return float("nan")
+    v = sorted(values)
+    return v[min(len(v) - 1, int(q * len(v)))]
