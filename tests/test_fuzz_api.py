@@ -28,6 +28,7 @@ import os
 import time
 from collections import Counter
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -133,10 +134,36 @@ class Target:
 @pytest.fixture(scope="module")
 def targets() -> Iterator[dict[str, Target]]:
     out = {"open": Target(), "tokens": Target(operator_tokens=OPERATOR, viewer_tokens=VIEWER)}
+    started = time.monotonic()
     try:
         yield out
     finally:
+        _write_report(out, time.monotonic() - started)
         st_asgi.shutdown_lifespans()  # stop the simulated arms: nothing runs on after us
+
+
+REPORT = Path(__file__).resolve().parents[1] / "test-output" / "fuzz-report.txt"
+
+
+def _write_report(targets: dict[str, Target], seconds: float) -> None:
+    """The figures `make fuzz` prints: calls, answers by status, 5xx, internal errors."""
+    lines = [f"schemathesis over /openapi.json: {CASES} cases per operation, arm and mode; "
+             f"{seconds:.0f} s"]
+    for name, t in targets.items():
+        by_status: Counter[int] = Counter()
+        for (_, status, _), n in t.statuses.items():
+            by_status[status] += n
+        total = sum(by_status.values())
+        five = sum(n for st, n in by_status.items() if st >= 500)
+        ops = len({label for (label, _, _) in t.statuses})
+        internal = getattr(t.app.state, "internal_errors", 0)
+        lines.append(f"  {name:7} server: {total} calls over {ops} operations; "
+                     f"5xx {five} (device codes only), 500 {by_status.get(500, 0)}, "
+                     f"internal errors {internal}")
+        lines.append("          by status: " + ", ".join(f"{st}: {n}" for st, n
+                                                       in sorted(by_status.items())))
+    REPORT.parent.mkdir(exist_ok=True)
+    REPORT.write_text("\n".join(lines) + "\n")
 
 
 # ---------------------------------------------------------------- valid inputs, mixed in
