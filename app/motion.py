@@ -72,7 +72,7 @@ class MotionRecord:
     target: np.ndarray
     target_tip: np.ndarray
     planned_duration: float
-    planned_path: list[dict[str, float]]
+    planned_path: np.ndarray  # (k, 3) m, kept as one small array: the history holds 256
     status: Status = "queued"
     progress: float = 0.0
     reason: str | None = None
@@ -83,6 +83,9 @@ class MotionRecord:
     final_positions: list[float] | None = None
     final_tip: dict[str, float] | None = None
     cancel: str | None = None  # "stop" (decelerate), "replace" (hand over now)
+    #: How to plan it again when it starts (the planner and its goal); dropped when it ends.
+    planner: Any = field(default=None, repr=False)
+    goal: np.ndarray | None = field(default=None, repr=False)
     done: asyncio.Event = field(default_factory=asyncio.Event)
 
     async def wait(self) -> MotionRecord:
@@ -97,7 +100,8 @@ class MotionRecord:
             reason=self.reason, code=self.code, created=self.created, started=self.started,
             ended=self.ended, final_positions=self.final_positions,
             final_tip=None if self.final_tip is None else s.Vec3(**self.final_tip),
-            planned_path=[s.Vec3(**p) for p in self.planned_path])
+            planned_path=[s.Vec3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+                          for p in self.planned_path])
 
 
 class MotionExecutor:
@@ -259,10 +263,10 @@ class MotionExecutor:
         st = self._start_state()
         return st, not np.any(st[1])
 
-    def _preview_path(self, plan: Plan) -> list[dict[str, float]]:
+    def _preview_path(self, plan: Plan) -> np.ndarray:
         t = np.linspace(0.0, plan.traj.duration, PREVIEW_POINTS)
-        q = np.array([plan.traj.sample(float(ti))[0] for ti in t])
-        return [_vec(p) for p in self.model.fk(q)]
+        q = np.asarray(plan.traj.sample(t)[0], dtype=float)
+        return np.asarray(self.model.fk(q), dtype=float)
 
     def _preview(self, kind: str, path: str, req: Any, planner: Any,
                  target: np.ndarray) -> s.Motion:
@@ -286,8 +290,7 @@ class MotionExecutor:
         start, at_rest = self._tail_state(req.mode)
         plan = planner(start, target, req, at_rest or path == "line")
         rec = self._record(kind, path, req, plan, f"m{next(self._ids)}-{uuid.uuid4().hex[:8]}")
-        rec._planner = planner  # type: ignore[attr-defined]
-        rec._goal = target  # type: ignore[attr-defined]
+        rec.planner, rec.goal = planner, target
         self._records[rec.id] = rec
         while len(self._records) > HISTORY:
             self._records.popitem(last=False)
@@ -330,7 +333,7 @@ class MotionExecutor:
         if rec.path == "line" and np.any(start[1]):
             await self._brake()
             start = self._start_state()
-        plan = rec._planner(start, rec._goal, rec.request, at_rest)  # type: ignore[attr-defined]
+        plan = rec.planner(start, rec.goal, rec.request, at_rest)
         rec.target, rec.target_tip = plan.target, self.model.fk(plan.target)
         rec.planned_duration = float(plan.traj.duration)
         rec.status, rec.started = "running", time.time()
@@ -461,6 +464,7 @@ class MotionExecutor:
         if rec.done.is_set():
             return
         rec.status, rec.reason, rec.code, rec.ended = status, reason, code, time.time()
+        rec.planner = None  # the history keeps what happened, not how to plan it
         if status == "done":
             rec.progress = 1.0
         q = self.svc.driver.positions

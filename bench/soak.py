@@ -403,13 +403,21 @@ async def soak(srv: Server, seconds: float, faults: FaultConfig, seed: int = 1,
         tasks += [dynamixel_protocol(c, until, seed + 20 + k) for k in range(2)]
         tasks += [subscriber(srv.ws_url, a, until, t) for a in details
                   for _ in range(subscribers_per_arm)]
-        await asyncio.gather(*tasks)
+        rss_marks: list[tuple[float, int]] = []
+
+        async def sample_rss() -> None:  # at each quarter of the run: does memory level off?
+            for k in (1, 2, 3, 4):
+                await asyncio.sleep(max(0.0, t0 + k * seconds / 4 - time.monotonic()))
+                rss_marks.append((time.monotonic() - t0, rss_kib()))
+
+        await asyncio.gather(*tasks, sample_rss())
         elapsed = time.monotonic() - t0
         srv.set_faults(FaultConfig())
         healthy = await _healthy_after(srv, http)
         rss1 = rss_kib()
     stats = {a: dict(s.driver.stats) for a, s in srv.app.state.services.items()}
     return {"tally": t, "elapsed": elapsed, "rss0": rss0, "rss1": rss1, "healthy": healthy,
+            "rss_marks": rss_marks,
             "driver_stats": stats, "internal_errors": srv.app.state.internal_errors}
 
 
@@ -457,6 +465,8 @@ def report(res: dict[str, Any], faults: FaultConfig) -> str:
         f"{'  events':34s} " + ", ".join(f"{k} {v}" for k, v in sorted(t.events.items())),
         f"{'memory RSS start / end / delta':34s} {res['rss0'] / 1024:8.1f} / "
         f"{res['rss1'] / 1024:.1f} / {(res['rss1'] - res['rss0']) / 1024:+.1f} MiB",
+        f"{'  RSS at each quarter of the run':34s} "
+        + " / ".join(f"{kib / 1024:.1f}" for _, kib in res.get("rss_marks", [])) + " MiB",
         f"{'healthy after (links, tasks)':34s} {res['healthy']!s:>8s}",
         f"{'last-resort errors (500s)':34s} {res['internal_errors']:8d}",
         "",
