@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--clients", type=int, default=50, help="concurrent clients")
     a = p.parse_args(argv)
     rows = []
-    with server() as srv:
+    with server(pin=True) as srv:
         for name, path in ROUTES.items():
             rows.append((name, asyncio.run(run_route(srv, path, a.clients, a.seconds))))
     print(f"REST: {a.clients} concurrent clients, {a.seconds:g} s per route, simulated rbe3001")
