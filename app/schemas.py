@@ -249,11 +249,17 @@ class Rbe3001Status(Model):
     strain_adc: list[float]
 
 
+#: A PID gain in the firmware's units (the default kp is 0.005; the output saturates at 0.2,
+#: so 1000 already means full output at 0.0002 ticks of error). A negative gain makes the loop
+#: unstable and is refused.
+Gain = Annotated[float, Field(ge=0.0, le=1000.0, allow_inf_nan=False)]
+
+
 class SetGain(Model):
     axis: int = Field(ge=0, le=2)
-    kp: Finite
-    ki: Finite
-    kd: Finite
+    kp: Gain
+    ki: Gain
+    kd: Gain
 
 
 class SetClaw(Model):

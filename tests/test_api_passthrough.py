@@ -7,6 +7,7 @@ import asyncio
 
 import httpx
 import numpy as np
+import pytest
 from fastapi import FastAPI
 
 API = "/api/v1"
@@ -153,3 +154,36 @@ async def test_estop_blocks_writes_but_not_reads_or_torque_off(
     assert r.status_code == 200
     r = await app_client.put(f"{DX}/1/registers/led", json={"raw": 1})
     assert r.status_code == 200
+
+
+@pytest.mark.parametrize("gains", [(-0.001, 0.0, 0.0), (0.005, 1e5, 0.0), (0.005, 0.0, -1.0)])
+async def test_set_gain_outside_0_to_1000_is_refused_and_nothing_is_sent(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient], gains: tuple[float, float, float]
+) -> None:
+    app, client = app_and_client
+    kp, ki, kd = gains
+    svc = app.state.services["rbe3001"]
+    before = [list(g) for g in svc.driver.link.device.gains]
+    r = await client.post("/api/v1/arms/rbe3001/rbe3001/set-gain",
+                              json={"axis": 1, "kp": kp, "ki": ki, "kd": kd})
+    assert r.status_code == 422 and r.json()["code"] == "invalid_request"
+    assert [list(g) for g in svc.driver.link.device.gains] == before
+    assert any("greater than or equal" in str(e) or "less than or equal" in str(e)
+               for e in r.json()["detail"])
+
+
+@pytest.mark.parametrize("name, raw", [("id", 9), ("baud_rate", 0), ("operating_mode", 1),
+                                       ("status_return_level", 0)])
+async def test_driver_settings_of_the_arms_servos_are_refused(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient], name: str, raw: int) -> None:
+    app, client = app_and_client
+    bus = app.state.services["angler"].driver.link.device
+    before = bus.servo(2).get(name)
+    await client.put(f"{API}/arms/angler/dynamixel/2/registers/torque_enable", json={"raw": 0})
+    r = await client.put(f"{API}/arms/angler/dynamixel/2/registers/{name}", json={"raw": raw})
+    assert r.status_code == 409 and r.json()["code"] == "in_use"
+    assert name in r.json()["detail"]
+    r = await client.get(f"{API}/arms/angler/dynamixel/2/registers/id")
+    assert r.status_code == 200 and r.json()["raw"] == 2  # still answering as id 2
+    assert bus.servo(2).get(name) == before
+    await client.put(f"{API}/arms/angler/dynamixel/2/registers/torque_enable", json={"raw": 1})

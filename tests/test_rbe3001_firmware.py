@@ -193,3 +193,24 @@ def test_encoder_readings_are_quarter_ticks() -> None:
     for r in run(fw, 0.0, 0.3):
         for p in r.position_ticks:
             assert (p * 4) == int(p * 4)  # 4-sample average of whole ticks
+
+
+def test_no_gain_can_spin_a_joint_past_its_end_stops() -> None:
+    """A negative gain turns the loop unstable: the joint runs to the mechanism's end stop and
+    stays there, as on the arm, instead of spinning for ever."""
+    from app.config import load_profile
+
+    profile = load_profile("rbe3001")
+    fw = Rbe3001Firmware(profile)
+    t = 0.0
+    fw.receive(encode_command(SetGain(1, 50.0, 0.0, 0.0)), t)  # valid here; sign flipped below
+    fw.gains[1] = [-50.0, 0.0, 0.0]
+    fw.receive(encode_command(SetPid((JointSetpoint(0, 0, 0), JointSetpoint(500, 0, 0),
+                                      JointSetpoint(0, 0, 0)))), t)
+    for _ in range(200):  # 10 s
+        t += 0.05
+        fw.advance(t)
+    lo, hi = fw.hard_stops[1]
+    assert lo == pytest.approx(profile.joints[1].min - 0.3)
+    assert lo <= fw.q[1] <= hi and fw.q[1] == pytest.approx(lo)
+    assert fw.qd[1] == 0.0

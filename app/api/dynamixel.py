@@ -18,7 +18,7 @@ from fastapi import APIRouter, Body, Path
 from app import schemas as s
 from app.api.common import DEVICE, errors
 from app.deps import ControlArm
-from app.errors import InvalidRequest
+from app.errors import Conflict, InvalidRequest
 from app.service import ArmService
 from protocol import mx28
 
@@ -52,6 +52,12 @@ def _joint_of(svc: ArmService, dxl_id: int) -> int:
                          code="unknown_id")
 
 
+#: Items the driver relies on for the arm's own servos: how it addresses them, at what speed
+#: and protocol they answer, whether they answer, and how a goal is read.
+DRIVER_SETTINGS = frozenset({"id", "baud_rate", "protocol_version", "status_return_level",
+                             "operating_mode", "drive_mode", "homing_offset"})
+
+
 def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int) -> None:
     """Everything a write must pass before it is queued."""
     if not item.writable:
@@ -59,6 +65,11 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
     if not item.min_raw <= raw <= item.max_raw:
         raise InvalidRequest(f"{item.name} takes raw values {item.min_raw}..{item.max_raw}, "
                              f"got {raw}", code="out_of_range")
+    if item.name in DRIVER_SETTINGS and not svc.profile.raw_access and any(
+            j.motor_id == dxl_id for j in svc.profile.joints):
+        raise Conflict(f"{item.name} of servo {dxl_id} is set by the {svc.name} driver: changing "
+                       "it would cut the driver off from its arm (the profile does not allow raw "
+                       "access)", code="in_use")
     if item.name == "goal_position":
         svc.check_passthrough_joint_ticks(_joint_of(svc, dxl_id), float(raw))
     elif not (item.name == "led" or (item.name == "torque_enable" and raw == 0)):
@@ -107,8 +118,10 @@ async def read_register(svc: ControlArm, dxl_id: DxlId, name: RegName) -> s.Regi
     summary="WRITE one control-table item",
     description="Writes `raw`. 422 `unknown_register`, `read_only`, `out_of_range`; "
     "`goal_position` only to the arm's motors (422 `unknown_id`) and within the joint limits "
-    "(422 `joint_limit`); 409 `estop_latched` for anything but torque off and the LED while the "
-    "estop is latched. Answers the value written. " + _NOT_SUPPORTED,
+    "(422 `joint_limit`); 409 `in_use` for the settings the driver relies on (id, baud rate, "
+    "protocol, status return level, operating and drive mode, homing offset) of the arm's own "
+    "servos unless the profile allows raw access; 409 `estop_latched` for anything but torque "
+    "off and the LED while the estop is latched. Answers the value written. " + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
 async def write_register(svc: ControlArm, dxl_id: DxlId, name: RegName,

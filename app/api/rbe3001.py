@@ -80,8 +80,9 @@ async def status(svc: ControlArm) -> s.Rbe3001Status:
     "/set-gain",
     response_model=s.Ack,
     summary="SET_GAIN (39): PID gains of one joint",
-    description="kp, ki, kd in firmware units for axis 0-2. Refused while the estop is latched "
-    "(new gains can move a joint). " + _NOT_SUPPORTED,
+    description="kp, ki, kd in firmware units (each 0..1000; the firmware's default kp is "
+    "0.005, and a negative gain makes the loop unstable: 422) for axis 0-2. Refused while the "
+    "estop is latched (new gains can move a joint). " + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
 async def set_gain(svc: ControlArm, req: s.SetGain) -> s.Ack:

@@ -57,6 +57,7 @@ ENCODER_AVERAGE = 4  # firmware moving average of the AS5050 reading, samples
 STRAIN_AVERAGE = 5  # samples in the reported load-cell average
 SETPOINT_DEADBAND_TICKS = 0.01  # PidServer ignores setpoints this close to the last one
 OUTPUT_SPAN = 0.2  # output clamp 0.3..0.7 around stop 0.5
+END_STOP_MARGIN = 0.3  # rad past each software limit where the mechanism stops the joint
 MAX_CATCHUP_S = 2.0  # beyond this gap, older simulated time is skipped rather than computed
 REPLY_DELAY_S = 0.0005  # firmware turnaround (the reference says round trip <= 2 ms)
 ADC_STEPS = 4095  # 12-bit AnalogIn
@@ -95,6 +96,12 @@ class Rbe3001Firmware:
             geometry = (profile.geometry["l1"], profile.geometry["l2"], profile.geometry["l3"])
             if profile.force is not None:
                 adc_scale, adc_offset = profile.force.adc_scale, profile.force.adc_offset
+        #: Mechanical end stops (rad): a little beyond the profile's limits where there is a
+        #: profile, else half a turn each way. No gain or setpoint can spin a joint past them.
+        stops = [(-math.pi, math.pi)] * 3
+        if profile is not None:
+            stops = [(j.min - END_STOP_MARGIN, j.max + END_STOP_MARGIN) for j in profile.joints]
+        self.hard_stops = stops
         self.tpr = [float(t) for t in ticks_per_rev]
         self.offset = [float(o) for o in offset_ticks]
         self.sign = [float(s) for s in sign]
@@ -224,6 +231,10 @@ class Rbe3001Firmware:
                 w_new = 0.0  # Coulomb friction stops, never reverses, the joint within a step
             self.qd[i] = w_new
             self.q[i] += w_new * dt
+            lo, hi = self.hard_stops[i]
+            if not lo <= self.q[i] <= hi:  # the mechanism's end stop: the joint stops dead
+                self.q[i] = min(hi, max(lo, self.q[i]))
+                self.qd[i] = 0.0
         for i in range(3):
             self._samples[i].append(self._encoder(i))
             self._strain[i].append(self._adc(i))
