@@ -330,3 +330,26 @@ async def test_faults_over_a_real_socket_fail_clearly_and_recover(name):
         sub.close()
         await driver.close()
         await server.close()
+
+
+async def test_a_bug_in_a_session_restarts_the_link_instead_of_ending_the_task():
+    driver = await started("rbe3001", sim_link("rbe3001"))
+    sub = driver.hub.subscribe()
+    calls = {"n": 0}
+
+    def broken(sample):  # a listener that fails once, in the owner task
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise KeyError("boom")
+
+    driver.annotate = broken
+    try:
+        await asyncio.sleep(0.3)
+        assert not driver._task.done()
+        assert await driver.wait_connected(5.0)
+        assert isinstance(await driver.status(), rb.StatusReply)
+        _, events, _ = sub.take()
+        assert any('"link_lost"' in e and "internal error" in e for e in events)
+    finally:
+        sub.close()
+        await driver.close()

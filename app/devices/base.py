@@ -205,6 +205,12 @@ class Driver(abc.ABC):
                 self._lost(str(exc), True)
                 await self.link.close()
                 await asyncio.sleep(delay)
+            except Exception as exc:  # a bug must not end the link task: start the link afresh
+                log.exception("%s: link session failed", self.name)
+                self.stats["reconnects"] += 1
+                self._lost(f"internal error: {type(exc).__name__}: {exc}", True)
+                await self.link.close()
+                await asyncio.sleep(delay)
 
     def _lost(self, reason: str, announce: bool) -> None:
         self.link.state = LinkState.DOWN
