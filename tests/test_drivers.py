@@ -353,3 +353,24 @@ async def test_a_bug_in_a_session_restarts_the_link_instead_of_ending_the_task()
     finally:
         sub.close()
         await driver.close()
+
+
+async def test_an_rbe3001_reading_that_jumps_impossibly_is_refused_as_corrupt():
+    """One changed byte can turn 834 ticks into 1052 and stay plausible: the driver refuses a
+    reading that moved further than the arm can since the last one."""
+    link = sim_link("rbe3001")
+    driver = await started("rbe3001", link)
+    try:
+        await asyncio.sleep(0.2)
+        q_good = driver.positions.copy()
+        corrupt_before = driver.stats["corrupt"]
+        fake = q_good.copy()
+        fake[2] += 0.33  # 0.33 rad in ~2 ms: 165 rad/s, the limit is 1.5
+        with pytest.raises(CorruptReply, match="elbow reading jumped"):
+            driver._check_jump(fake)
+        assert driver.stats["corrupt"] == corrupt_before + 1
+        driver._check_jump(q_good)  # the true reading is still accepted
+        await asyncio.sleep(0.1)
+        np.testing.assert_allclose(driver.positions, q_good, atol=0.01)
+    finally:
+        await driver.close()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import struct
+import time
 from typing import Any
 
 import numpy as np
@@ -23,6 +24,10 @@ from app.errors import CorruptReply, DeviceTimeout
 from protocol import rbe3001 as rb
 
 _TAG = struct.Struct("<f")
+#: A reading may differ from the last accepted one by at most JUMP_SPEEDS x the joint's
+#: velocity limit x the time since, plus JUMP_SLACK_RAD (encoder noise and averaging).
+JUMP_SPEEDS = 10.0
+JUMP_SLACK_RAD = 0.05
 _TAG_OFFSET = 4 + 14 * 4
 _ECHO = slice(4 + 9 * 4, 4 + 14 * 4)  # floats 9-13, sent as zeros and echoed
 _TAG_MOD = 1 << 20  # exactly representable in float32
@@ -36,6 +41,8 @@ class Rbe3001Driver(Driver):
         self._tag = 0
         self._buf = bytearray()
         self._dirty = False
+        self._last_q: np.ndarray | None = None
+        self._last_q_t = 0.0
         f = self.profile.force
         self._adc_scale = np.array(f.adc_scale if f else [0.0] * 3)
         self._adc_offset = np.array(f.adc_offset if f else [0.0] * 3)
@@ -86,6 +93,7 @@ class Rbe3001Driver(Driver):
         reply: rb.StatusReply = await self._exchange(rb.Status(), self.timeout)
         tr = self.model.transmission
         q = tr.from_ticks(np.array(reply.position_ticks, dtype=float))
+        self._check_jump(q)
         qd = tr.velocity_from_ticks(np.array(reply.velocity_ticks_s, dtype=float))
         tau = None
         if self.profile.force is not None:
@@ -153,6 +161,24 @@ class Rbe3001Driver(Driver):
                 return frame
             del self._buf[0]
         return None
+
+    def _check_jump(self, q: np.ndarray) -> None:
+        """With no checksum, one changed byte in a reading can stay plausible (a soak caught
+        834 ticks read as 1052). A joint cannot move more than JUMP_SPEEDS times its velocity
+        limit (plus JUMP_SLACK_RAD) since the last reading accepted: such a reading is refused
+        as corrupt. The bound grows with the time since, so a real fast move is accepted late,
+        never refused for ever."""
+        now = time.monotonic()
+        if self._last_q is not None:
+            bound = JUMP_SPEEDS * self.model.vmax * (now - self._last_q_t) + JUMP_SLACK_RAD
+            jump = np.abs(q - self._last_q)
+            if np.any(jump > bound):
+                k = int(np.argmax(jump - bound))
+                self.stats["corrupt"] += 1
+                raise CorruptReply(f"{self.name}: {self.model.names[k]} reading jumped "
+                                   f"{jump[k]:.3f} rad since the last one, more than the arm "
+                                   f"can move ({bound[k]:.3f} rad): a corrupted reply")
+        self._last_q, self._last_q_t = q, now
 
     def _check_plausible(self, reply: Any) -> None:
         pos = getattr(reply, "position_ticks", None)
