@@ -64,9 +64,10 @@ class ArmModel:
             return rrr.jacobian(q, self.geom)  # type: ignore[arg-type]
         return pprp.jacobian(q, self.geom)  # type: ignore[arg-type]
 
-    def tip_force(self, q: np.ndarray, tau: np.ndarray) -> np.ndarray | None:
+    def tip_force(self, q: np.ndarray, tau: np.ndarray,
+                  J: np.ndarray | None = None) -> np.ndarray | None:
         """F with J^T F = tau (least squares for the redundant angler); None near singular."""
-        J = self.jacobian(q)
+        J = self.jacobian(q) if J is None else J  # the caller's, where it has one already
         if self.is_rrr:
             # near a singularity F is meaningless: |det J| small against the links' scale
             if abs(np.linalg.det(J)) < 1e-6 * self._det_scale:

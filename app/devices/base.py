@@ -320,7 +320,8 @@ class Driver(abc.ABC):
         self._seq += 1
         m = self.model
         tip = m.fk(q)
-        tip_v = m.jacobian(q) @ qd
+        J = m.jacobian(q)
+        tip_v = J @ qd
         sample: dict[str, Any] = {
             "seq": self._seq,
             "time": time.time(),
@@ -337,7 +338,7 @@ class Driver(abc.ABC):
             "stale": stale,
         }
         if tau is not None:
-            f = m.tip_force(q, tau)
+            f = m.tip_force(q, tau, J)
             if f is not None and np.all(np.isfinite(f)):
                 sample["tip_force"] = _vec(f)
         self.annotate(sample)
