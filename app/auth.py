@@ -1,13 +1,15 @@
 """Bearer-token access: who may read, who may move.
 
-Tokens come from the settings (ARMSERVER_OPERATOR_TOKENS, ARMSERVER_VIEWER_TOKENS, comma
-separated). With none configured the server is open: every client is an operator. With any
-configured, a request must carry `Authorization: Bearer <token>` (a WebSocket may instead pass
-`?token=`), and
+Tokens come from the settings (ARMSERVER_OPERATOR_TOKENS, ARMSERVER_VIEWER_TOKENS,
+ARMSERVER_INSTRUCTOR_TOKENS, comma separated). With none configured the server is open: every
+client is an instructor (it may also change the safety envelope: on an open server anyone who
+can reach it could as well restart it with another profile). With any configured, a request
+must carry `Authorization: Bearer <token>` (a WebSocket may instead pass `?token=`), and
 
 - a viewer token reads: health, arms, state, telemetry, kinematics, plans, motions, and may
   latch the emergency stop (the stop is open to every authenticated client);
-- an operator token may also move the arm and send protocol commands.
+- an operator token may also move the arm and send protocol commands;
+- an instructor token may do all an operator may, and also change an arm's safety envelope.
 
 Every presented token is compared against every configured one with `hmac.compare_digest` over
 SHA-256 digests, so the time taken says neither which token nor how much of one matched.
@@ -30,6 +32,7 @@ log = logging.getLogger(__name__)
 class Role(enum.IntEnum):
     VIEWER = 1
     OPERATOR = 2
+    INSTRUCTOR = 3
 
 
 def _digest(token: str) -> bytes:
@@ -42,28 +45,34 @@ class Access:
     def __init__(self, settings: Settings) -> None:
         self._operators = [_digest(t) for t in sorted(settings.operator_set)]
         self._viewers = [_digest(t) for t in sorted(settings.viewer_set)]
-        self.enabled = bool(self._operators or self._viewers)
+        self._instructors = [_digest(t) for t in sorted(settings.instructor_set)]
+        self.enabled = bool(self._operators or self._viewers or self._instructors)
 
     def describe(self) -> str:
         """A start-up line saying whether the server is open (never the tokens)."""
         if not self.enabled:
             return "no tokens configured: the server is OPEN to anyone who can reach it"
-        return (f"token-protected: {len(self._operators)} operator and "
-                f"{len(self._viewers)} viewer token(s)")
+        return (f"token-protected: {len(self._instructors)} instructor, "
+                f"{len(self._operators)} operator and {len(self._viewers)} viewer token(s)")
 
     def role_of(self, token: str | None) -> Role | None:
-        """The role a token grants, None if it grants none. Open servers grant operator."""
+        """The role a token grants, None if it grants none. Open servers grant instructor."""
         if not self.enabled:
-            return Role.OPERATOR
+            return Role.INSTRUCTOR
         if not token:
             return None
         d = _digest(token)
         operator = False
         viewer = False
+        instructor = False
+        for t in self._instructors:
+            instructor |= hmac.compare_digest(d, t)
         for t in self._operators:  # no early exit: constant time over the token list
             operator |= hmac.compare_digest(d, t)
         for t in self._viewers:
             viewer |= hmac.compare_digest(d, t)
+        if instructor:
+            return Role.INSTRUCTOR
         if operator:
             return Role.OPERATOR
         if viewer:
@@ -75,6 +84,9 @@ class Access:
         role = self.role_of(token)
         if role is None:
             raise Unauthorized("missing bearer token" if not token else "invalid bearer token")
+        if role < need and need is Role.INSTRUCTOR:
+            raise Forbidden("this needs an instructor token (changing the safety envelope); "
+                            f"this token is a {role.name.lower()}'s")
         if role < need:
             raise Forbidden("this needs an operator token; a viewer token may read state and "
                             "telemetry and latch the emergency stop")

@@ -103,6 +103,56 @@ class CartesianLimits(_Strict):
                                   "stray from a line move's segment, m (reported, tested)")
 
 
+class Point3(_Strict):
+    """A point in an arm's base frame, m (within 10 m of the base: no arm here reaches further)."""
+
+    x: float = Field(ge=-10.0, le=10.0)
+    y: float = Field(ge=-10.0, le=10.0)
+    z: float = Field(ge=-10.0, le=10.0)
+
+
+class KeepOutBox(_Strict):
+    """An axis-aligned box no body point of the arm may enter, in the arm's base frame."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9 _.-]{0,63}$")
+    min: Point3
+    max: Point3
+
+    @model_validator(mode="after")
+    def _check(self) -> KeepOutBox:
+        for axis in "xyz":
+            if getattr(self.min, axis) >= getattr(self.max, axis):
+                raise ValueError(f"zone {self.name}: min.{axis} must be below max.{axis}")
+        return self
+
+
+class SafetySettings(_Strict):
+    """What an instructor may change (PUT /arms/{arm}/safety); the profile sets the start."""
+
+    zones: list[KeepOutBox] = Field(default_factory=list, max_length=32)
+    floor_z: float | None = Field(None, ge=-10.0, le=10.0,
+                                  description="no body point below this height, m (None: none)")
+    speed_override: float = Field(1.0, ge=0.05, le=1.0, description="scales every planned "
+                                  "velocity, acceleration and jerk limit")
+
+    @field_validator("zones")
+    @classmethod
+    def _unique(cls, v: list[KeepOutBox]) -> list[KeepOutBox]:
+        names = [z.name for z in v]
+        if len(set(names)) != len(names):
+            raise ValueError(f"zone names must be unique, got {names}")
+        return v
+
+
+class SafetyConfig(SafetySettings):
+    """A profile's `[safety]`: the settings plus the margins, which only the profile sets."""
+
+    tool_margin: float = Field(0.0, ge=0.0, le=0.5, description="the tool's size around the "
+                               "tip: zones and the floor are grown by it for the tip, m")
+    body_margin: float = Field(0.0, ge=0.0, le=0.5, description="the same for every other "
+                               "joint origin, m")
+
+
 class ArmProfile(_Strict):
     name: str = Field(pattern=r"^[a-z0-9][a-z0-9_-]{0,31}$")
     model: Literal["rbe3001", "angler"]
@@ -115,6 +165,7 @@ class ArmProfile(_Strict):
     cartesian: CartesianLimits = Field(default_factory=CartesianLimits)
     home: list[float] | None = Field(None, description="joint positions of the home pose")
     raw_access: bool = Field(False, description="allow pass-through commands outside the limits")
+    safety: SafetyConfig = Field(default_factory=SafetyConfig)
 
     @field_validator("geometry")
     @classmethod
@@ -212,6 +263,9 @@ class Settings(BaseSettings):
     config: str | None = None
     operator_tokens: str = ""
     viewer_tokens: str = ""
+    instructor_tokens: str = ""
+    #: Where the SQLite store keeps settings (safety envelopes) across restarts.
+    data_dir: str = "./data"
     cors_origins: str = ""
     max_body_bytes: int = 64 * 1024
     max_ws_message_bytes: int = 4 * 1024
@@ -234,5 +288,9 @@ class Settings(BaseSettings):
         return self._split(self.viewer_tokens)
 
     @property
+    def instructor_set(self) -> frozenset[str]:
+        return self._split(self.instructor_tokens)
+
+    @property
     def auth_enabled(self) -> bool:
-        return bool(self.operator_set or self.viewer_set)
+        return bool(self.operator_set or self.viewer_set or self.instructor_set)

@@ -5,6 +5,7 @@ A route names what it needs and the access that implies:
 - `ViewerArm`: the arm, for any authenticated client (reads, kinematics, estop latch);
 - `OperatorArm`: the arm, operator token (stop, cancel: stopping is always allowed, lease or
   not);
+- `InstructorArm`: the arm, instructor token (the safety envelope);
 - `ControlArm`: the arm, operator token and, while a lease is held on it, that lease's id in
   `X-Arm-Lease` (moves, gripper, protocol commands).
 
@@ -71,8 +72,13 @@ def require_operator(request: Request, cred: Credentials) -> Role:
     return get_access(request).require(_token(cred), Role.OPERATOR)
 
 
+def require_instructor(request: Request, cred: Credentials) -> Role:
+    return get_access(request).require(_token(cred), Role.INSTRUCTOR)
+
+
 ViewerRole = Annotated[Role, Depends(require_viewer)]
 OperatorRole = Annotated[Role, Depends(require_operator)]
+InstructorRole = Annotated[Role, Depends(require_instructor)]
 
 
 def viewer_arm(_: ViewerRole, services: ServicesDep, arm: ArmName) -> ArmService:
@@ -84,6 +90,13 @@ def operator_arm(_: OperatorRole, services: ServicesDep, arm: ArmName) -> ArmSer
 
 
 OperatorArm = Annotated[ArmService, Depends(operator_arm)]
+
+
+def instructor_arm(_: InstructorRole, services: ServicesDep, arm: ArmName) -> ArmService:
+    return lookup_arm(services, arm)
+
+
+InstructorArm = Annotated[ArmService, Depends(instructor_arm)]
 
 
 async def control_arm(

@@ -32,12 +32,13 @@ from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app import schemas
-from app.api import arms, dynamixel, kinematics, lease, motion, rbe3001, telemetry
+from app.api import arms, dynamixel, kinematics, lease, motion, rbe3001, safety, telemetry
 from app.auth import Access, bearer_token, install_log_redaction
 from app.config import ArmProfile, Settings, load_arms
 from app.errors import ArmError, Unauthorized
 from app.lease import LeaseManager
 from app.service import ArmService
+from app.store import Store
 
 log = logging.getLogger("armserver")
 
@@ -59,9 +60,13 @@ def create_app(settings: Settings | None = None,
         leases = LeaseManager(services, settings.lease_ttl_s)
         app.state.services = services
         app.state.leases = leases
+        store = Store(settings.data_dir)
+        app.state.store = store
         try:
+            store.open()  # blocking, before anything is served; errors go to health
             for p in profiles:
                 svc = ArmService(p)
+                safety.load_stored(svc, store)
                 services[p.name] = svc
                 await svc.start()
                 log.info("arm %s (%s) on %s link %s", p.name, p.model, p.link.kind,
@@ -78,6 +83,7 @@ def create_app(settings: Settings | None = None,
                     await svc.close()
                 except Exception:  # close the other arms all the same
                     log.exception("%s: close failed", svc.name)
+            store.close()
 
     app = FastAPI(
         title="armserver",
@@ -97,7 +103,7 @@ def create_app(settings: Settings | None = None,
     app.state.services = {}
     app.state.internal_errors = 0
 
-    for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry):
+    for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry, safety):
         app.include_router(r.router, prefix=API_PREFIX)
     _document_websocket_messages(app)
     _install_error_handlers(app)

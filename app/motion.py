@@ -215,12 +215,14 @@ class MotionExecutor:
                          at_rest: bool) -> Plan:
         q0, v0, a0 = start
         m = self.model
+        vmax, amax, jmax = self.svc.safety.scaled(m.vmax, m.amax, m.jmax)  # speed_override
         try:
-            traj = trajectory.plan_joint(q0, q1, m.vmax, m.amax, m.jmax,
+            traj = trajectory.plan_joint(q0, q1, vmax, amax, jmax,
                                          v0=None if at_rest else v0, a0=None if at_rest else a0,
                                          duration=req.duration, speed=req.speed)
         except KinematicsError as exc:
             raise InvalidRequest(f"cannot plan the move: {exc}") from None
+        self.svc.safety.check_trajectory(traj, 1.0 / self.svc.profile.link.control_hz)
         return Plan(traj, q0, q1, "joint")
 
     def _plan_pose_from(self, start: tuple[np.ndarray, ...], p: np.ndarray, req: Any,
@@ -241,16 +243,19 @@ class MotionExecutor:
             except ArmError as exc:
                 raise KinematicsUnreachable(exc.detail) from None
 
+        cv, ca, cj, vmax = self.svc.safety.scaled(  # speed_override
+            cart.max_velocity, cart.max_acceleration, cart.max_jerk, m.vmax)
         try:
             traj, _tips = trajectory.plan_line(
-                m.fk(q0), p, ik_near, m.fk, cart.max_velocity, cart.max_acceleration,
-                cart.max_jerk, 1.0 / self.svc.profile.link.control_hz, m.vmax, m.lower, m.upper,
+                m.fk(q0), p, ik_near, m.fk, float(cv), float(ca),
+                float(cj), 1.0 / self.svc.profile.link.control_hz, vmax, m.lower, m.upper,
                 m.names, m.kinds, q_start=q0, speed=req.speed)
         except LimitViolation as exc:
             raise JointLimit(f"line path leaves the joint limits: {exc}") from None
         except KinematicsError as exc:
             raise Unreachable(f"line path leaves the workspace: {exc}") from None
         end = traj.sample(traj.duration)[0]
+        self.svc.safety.check_trajectory(traj, 1.0 / self.svc.profile.link.control_hz)
         return Plan(traj, q0, np.asarray(end, dtype=float), "line")
 
     def _tail_state(self, mode: str) -> tuple[tuple[np.ndarray, ...], bool]:

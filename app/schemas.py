@@ -11,6 +11,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from app.config import KeepOutBox
+
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Unit = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
 
@@ -75,10 +77,18 @@ class ArmDetail(ArmSummary):
     poll_hz: float
 
 
+class StoreStatus(Model):
+    ok: bool
+    path: str
+    pending: int = Field(description="changes kept in memory until the database takes them")
+    error: str | None = None
+
+
 class Health(Model):
     status: Literal["ok", "degraded"]
     arms: dict[str, LinkStatus]
     auth: bool
+    store: StoreStatus | None = None
 
 
 # ---------------------------------------------------------------- telemetry
@@ -325,3 +335,30 @@ class Lease(Model):
     arm: str
     expires: float = Field(description="Unix time the lease lapses unless renewed")
     ttl: float
+
+
+# ---------------------------------------------------------------- safety envelope
+
+
+class SafetyUpdate(Model):
+    """A change of an arm's safety envelope: each field given replaces the current one, each
+    omitted keeps it (`floor_z: null` removes the floor)."""
+
+    zones: list[KeepOutBox] | None = Field(None, max_length=32)
+    floor_z: Annotated[float, Field(ge=-10.0, le=10.0, allow_inf_nan=False)] | None = None
+    speed_override: Annotated[float, Field(ge=0.05, le=1.0, allow_inf_nan=False)] | None = None
+
+
+class Safety(Model):
+    zones: list[KeepOutBox]
+    floor_z: float | None = Field(description="no body point below this height, m")
+    speed_override: float = Field(description="0.05..1: scales every planned limit")
+    tool_margin: float = Field(description="zones and floor grown by this for the tip, m "
+                               "(profile)")
+    body_margin: float = Field(description="the same for the other body points, m (profile)")
+    body_points: list[str] = Field(description="the points checked: every joint origin and "
+                                   "the tip")
+    source: Literal["profile", "stored"]
+    persisted: bool = Field(description="false while a change waits for the database")
+    editable: bool = Field(description="whether the caller may change it (instructor)")
+    store_error: str | None = None

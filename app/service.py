@@ -16,6 +16,7 @@ from app import schemas as s
 from app.config import ArmProfile
 from app.devices.base import Driver
 from app.devices.factory import make_driver
+from app.envelope import ArmSafety
 from app.errors import (
     EstopLatched,
     InvalidRequest,
@@ -40,6 +41,7 @@ class ArmService:
         self.driver = driver if driver is not None else make_driver(profile, self.hub)
         self.model = self.driver.model
         self.estop = False
+        self.safety = ArmSafety(self.model, profile.safety)
         self.motion = MotionExecutor(self)
         self.driver.annotate = self._annotate
 
@@ -121,13 +123,13 @@ class ArmService:
         _require_finite(ticks, "pass-through positions")
         if velocities is not None:
             self.check_passthrough_velocity_ticks(velocities)
-        if self.profile.raw_access:
-            return
         q = self.model.transmission.from_ticks(np.asarray(ticks, dtype=float))
-        v = self.model.violations(q)
+        v = [] if self.profile.raw_access else self.model.violations(q)
         if v:
             raise JointLimit("pass-through position outside the joint limits (the profile does "
                              "not allow raw access): " + "; ".join(v))
+        # the envelope holds with raw access too: the target and the straight joint-space path
+        self.safety.check_joint_path(self.driver.positions, q)
 
     def check_passthrough_velocity_ticks(self, velocities: np.ndarray) -> None:
         """Raw joint velocities (ticks/s, one per joint) within the profile's joint velocity

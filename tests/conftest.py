@@ -34,7 +34,7 @@ VIEWER = "viewer-token-1"
 def make_settings(**over: Any) -> Settings:
     """Settings independent of the environment the tests run in."""
     base: dict[str, Any] = {"config": None, "operator_tokens": "", "viewer_tokens": "",
-                            "cors_origins": "", "lease_ttl_s": 5.0}
+                            "instructor_tokens": "", "cors_origins": "", "lease_ttl_s": 5.0}
     base.update(over)
     return Settings(**base)
 
@@ -63,6 +63,13 @@ async def running_client(settings: Settings | None = None,
                                      headers=headers, timeout=30.0) as client:
             yield app, client
     assert app.state.internal_errors == 0, "the last-resort error handler was hit"
+
+
+@pytest.fixture(autouse=True)
+def _data_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each test's server keeps its store (safety settings) in a fresh directory, so that no
+    test sees another's settings and none writes ./data."""
+    monkeypatch.setenv("ARMSERVER_DATA_DIR", str(tmp_path_factory.mktemp("data")))
 
 
 @pytest.fixture

@@ -31,7 +31,7 @@ def test_access_roles() -> None:
     assert a.role_of("nope") is None and a.role_of(None) is None and a.role_of("") is None
     assert OPERATOR not in a.describe() and "2 operator" in a.describe()
     assert "OPEN" in Access(make_settings()).describe()
-    assert Access(make_settings()).role_of(None) is Role.OPERATOR
+    assert Access(make_settings()).role_of(None) is Role.INSTRUCTOR
     assert bearer_token("Bearer abc") == "abc" and bearer_token("bearer  abc ") == "abc"
     assert bearer_token("Basic abc") is None and bearer_token(None) is None
 

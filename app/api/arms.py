@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Request, Response
 
 from app import schemas as s
 from app.api.common import READ, errors
@@ -16,12 +16,17 @@ router = APIRouter(tags=["arms"])
     response_model=s.Health,
     summary="Liveness and per-arm link state",
     description="Open to everyone (no token needed). `status` is `ok` when every arm's link "
-    "is up, `degraded` otherwise; the server itself answers either way.",
+    "is up and the store takes writes, `degraded` otherwise; the server itself answers either "
+    "way.",
 )
-async def health(services: ServicesDep, settings: SettingsDep) -> s.Health:
+async def health(services: ServicesDep, settings: SettingsDep, request: Request) -> s.Health:
     links = {name: svc.link_status() for name, svc in services.items()}
     ok = all(link.connected for link in links.values())
-    return s.Health(status="ok" if ok else "degraded", arms=links, auth=settings.auth_enabled)
+    db = getattr(request.app.state, "store", None)
+    store = s.StoreStatus(**vars(db.health())) if db is not None else None
+    ok = ok and (store is None or store.ok)
+    return s.Health(status="ok" if ok else "degraded", arms=links, auth=settings.auth_enabled,
+                    store=store)
 
 
 @router.get(
