@@ -149,7 +149,7 @@ class Store:
                 continue
             try:
                 fut.set_result(fn())
-            except BaseException as exc:  # the caller gets it, the thread lives on
+            except Exception as exc:  # the caller gets it, the thread lives on  # noqa: BLE001
                 fut.set_exception(exc)
         if self._db is not None:
             self._db.close()

@@ -32,7 +32,11 @@ RRR_POINTS = ("base", "shoulder", "elbow", "tip")
 PPRP_POINTS = ("base", "x_carriage", "column", "arm_end", "tip")
 
 
-def rrr_points(q: npt.ArrayLike, g: RRR = RRR()) -> FloatArray:
+_RRR = RRR()
+_PPRP = PPRP()
+
+
+def rrr_points(q: npt.ArrayLike, g: RRR = _RRR) -> FloatArray:
     """Joint origins and tip (..., 4, 3) m of the RRR arm for ``q`` (..., 3) rad."""
     qa = _q3(q)
     q0, q1, q2 = qa[..., 0], qa[..., 1], qa[..., 2]
@@ -48,7 +52,7 @@ def rrr_points(q: npt.ArrayLike, g: RRR = RRR()) -> FloatArray:
     return out
 
 
-def pprp_points(q: npt.ArrayLike, g: PPRP = PPRP()) -> FloatArray:
+def pprp_points(q: npt.ArrayLike, g: PPRP = _PPRP) -> FloatArray:
     """Frame origins 0..4 (..., 5, 3) m of the PPRP arm for ``q`` (..., 4) (m, m, rad, m)."""
     qa = _q4(q)
     dx, dy, t3, dz = qa[..., 0], qa[..., 1], qa[..., 2], qa[..., 3]

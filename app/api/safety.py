@@ -55,8 +55,8 @@ def load_stored(svc: ArmService, store: Store) -> None:
                      svc.name, len(svc.safety.settings.zones), svc.safety.settings.floor_z,
                      svc.safety.speed_override)
     except (StoreError, ValidationError, ValueError) as exc:
-        log.error("%s: stored safety settings not used (the profile's apply): %s", svc.name,
-                  exc)
+        log.error("%s: stored safety settings not used (the profile's apply): %s",  # noqa: TRY400
+                  svc.name, exc)
 
 
 @router.get(
