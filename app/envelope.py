@@ -114,24 +114,35 @@ class ArmSafety:
 
     def first_hit(self, q: np.ndarray, t: np.ndarray) -> Hit | None:
         """The earliest of the poses q (T, n), at times t (T,), with a body point inside a
-        zone or below the floor; None if there is none."""
+        zone or below the floor; None if there is none.
+
+        Vectorised over time; the loop is over (body point, zone) pairs only, and a pair whose
+        boxes do not overlap (the path's bounding box against the grown zone) costs nothing
+        more: in the usual case, zones away from the path, the check is one min and max per
+        body point."""
         if not self.active:
             return None
         p = self.points(np.asarray(q, dtype=float).reshape(-1, self.model.n))  # (T, B, 3)
-        bad = np.zeros(p.shape[:2], dtype=bool)  # (T, B)
-        inside = np.zeros(p.shape[:2] + (0,), dtype=bool)
-        if self.zone_names:
-            pz = p[:, :, None, :]
-            inside = np.all((pz >= self._lo) & (pz <= self._hi), axis=-1)  # (T, B, Z)
-            bad |= inside.any(axis=-1)
-        below = (p[..., 2] < self._floor) if self._floor is not None else bad & False
-        bad |= below
-        rows = np.flatnonzero(bad.any(axis=-1))
-        if rows.size == 0:
+        lo_all, hi_all = p.min(axis=0), p.max(axis=0)  # (B, 3) the path's bounding boxes
+        best: tuple[int, int, str] | None = None  # (time index, body, zone)
+        for b in range(p.shape[1]):
+            x, y, z = p[:, b, 0], p[:, b, 1], p[:, b, 2]
+            if self._floor is not None and lo_all[b, 2] < self._floor[b]:
+                i = int(np.argmax(z < self._floor[b]))
+                best = min(best, (i, b, "floor")) if best else (i, b, "floor")
+            for k, name in enumerate(self.zone_names):
+                lo, hi = self._lo[b, k], self._hi[b, k]
+                if np.any(lo_all[b] > hi) or np.any(hi_all[b] < lo):
+                    continue
+                inside = ((x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1])
+                          & (z >= lo[2]) & (z <= hi[2]))
+                if inside.any():
+                    i = int(np.argmax(inside))
+                    if best is None or (i, b) < best[:2]:
+                        best = (i, b, name)
+        if best is None:
             return None
-        i = int(rows[0])
-        b = int(np.flatnonzero(bad[i])[0])
-        zone = "floor" if below[i, b] else self.zone_names[int(np.argmax(inside[i, b]))]
+        i, b, zone = best
         return Hit(zone, self.bodies[b], p[i, b].copy(), i, float(np.asarray(t)[i]))
 
     # ------------------------------------------------------------ checks

@@ -132,12 +132,14 @@ def test_accepted_motions_stay_out_and_refusals_name_a_zone_the_path_enters(arm:
 
 
 #: The simulated rbe3001's tracking error in joint speed, stated: its firmware PID (P on the
-#: position error, 400 Hz) follows the 100 Hz setpoint stream with a lag, and static friction
-#: holds a joint until the error has built up, so the joint then moves faster than commanded to
-#: catch up. Measured on this move at 0.25: base and elbow peak 0.45..0.49 rad/s against the
-#: 0.375 rad/s scaled limit (0.08..0.12 rad/s over), the gravity-loaded shoulder at the limit.
-#: The bound is 0.15 rad/s; the test prints what it measured.
-TRACKING_RAD_S = 0.15
+#: position error, 400 Hz) follows the 100 Hz setpoint stream with a lag, static friction holds
+#: a joint until the error has built up, and the simulated firmware steps its physics in bursts
+#: when its thread runs late; each makes the joint move faster than commanded for a moment to
+#: catch up. Measured on this move at 0.25 (limit 0.375 rad/s): base and elbow 0.05..0.12
+#: rad/s over on an idle host, up to 0.25 rad/s over on a loaded one (load average 7 on 2
+#: cores); the gravity-loaded shoulder least. The bound is 0.3 rad/s. The commanded speeds, which
+#: speed_override governs, are held to the scaled limit exactly. The test prints both.
+TRACKING_RAD_S = 0.3
 
 
 async def test_speed_override_caps_the_measured_joint_speed_in_telemetry() -> None:
@@ -146,7 +148,15 @@ async def test_speed_override_caps_the_measured_joint_speed_in_telemetry() -> No
         r = await client.put("/api/v1/arms/rbe3001/safety", json={"speed_override": 0.25})
         assert r.status_code == 200
         seen: list[list[float]] = []
-        off = svc.hub.add_listener(lambda sample: seen.append(sample["velocities"]))
+        commanded: list[np.ndarray] = []
+
+        def listen(sample: dict[str, Any]) -> None:
+            seen.append(sample["velocities"])
+            cmd = svc.motion._cmd
+            if cmd is not None:
+                commanded.append(np.abs(cmd[1]))
+
+        off = svc.hub.add_listener(listen)
         try:
             q1 = [1.2, 1.0, 1.2]
             r = await client.post("/api/v1/arms/rbe3001/move/joints",
@@ -155,11 +165,13 @@ async def test_speed_override_caps_the_measured_joint_speed_in_telemetry() -> No
             await asyncio.sleep(0.1)
         finally:
             off()
-        v = np.abs(np.array(seen))
-        peak = v.max(axis=0)
+        peak = np.abs(np.array(seen)).max(axis=0)
+        peak_cmd = np.array(commanded).max(axis=0)
         cap = 0.25 * svc.model.vmax
-        print(f"peak measured joint speed {np.round(peak, 3).tolist()} rad/s, limit x 0.25 = "
-              f"{cap.tolist()} rad/s, {len(seen)} samples")
+        print(f"\npeak joint speed at speed_override 0.25: measured {np.round(peak, 3).tolist()}"
+              f" rad/s, commanded {np.round(peak_cmd, 3).tolist()} rad/s, limit x 0.25 = "
+              f"{cap.tolist()} rad/s ({len(seen)} samples)")
         assert len(seen) > 100
+        assert np.all(peak_cmd <= cap * (1 + 1e-6)), (peak_cmd, cap)
+        assert peak_cmd.max() >= 0.95 * cap.max()  # it did run at the scaled limit
         assert np.all(peak <= cap + TRACKING_RAD_S), (peak, cap)
-        assert peak.max() >= 0.8 * cap.max()  # it did run near the scaled limit
