@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import socket
+import tempfile
 import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
@@ -34,7 +35,10 @@ VIEWER = "viewer-token-1"
 def make_settings(**over: Any) -> Settings:
     """Settings independent of the environment the tests run in."""
     base: dict[str, Any] = {"config": None, "operator_tokens": "", "viewer_tokens": "",
-                            "instructor_tokens": "", "cors_origins": "", "lease_ttl_s": 5.0}
+                            "instructor_tokens": "", "cors_origins": "", "lease_ttl_s": 5.0,
+                            # a fresh store for each server (module-scoped servers start before
+                            # the per-test ARMSERVER_DATA_DIR below is set)
+                            "data_dir": tempfile.mkdtemp(prefix="armserver-data-")}
     base.update(over)
     return Settings(**base)
 

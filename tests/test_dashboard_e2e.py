@@ -340,3 +340,55 @@ def test_asks_for_a_token_when_the_server_needs_one(browser: Any) -> None:
             assert pg.inner_text("#rbe3001-stop-error") == ""
         finally:
             pg.close()
+
+
+def test_safety_zones_are_drawn_and_the_speed_slider_changes_the_override(browser: Any,
+                                                                          tmp_path: Path) -> None:
+    with serving(make_settings(data_dir=str(tmp_path))) as srv:
+        zone = {"name": "camera", "min": {"x": 0.15, "y": -0.25, "z": 0.35},
+                "max": {"x": 0.25, "y": -0.15, "z": 0.45}}
+        api(srv, "PUT", "/arms/rbe3001/safety", json={"zones": [zone], "floor_z": -0.05})
+        pg = browser.new_page(viewport=VIEWPORT)
+        errors: list[str] = []
+        pg.on("pageerror", lambda e: errors.append(str(e)))
+        try:
+            pg.goto(srv.url + "/")
+
+            def safety() -> dict[str, Any] | None:
+                return pg.evaluate("(a) => window.armDashboard && window.armDashboard.safety(a)",
+                                   "rbe3001")
+
+            wait_for(lambda: (safety() or {}).get("drawn", {}).get("side") == 1, 15,
+                     "the zone drawn in the side view")
+            st = safety()
+            assert st is not None and st["zones"] == ["camera"] and st["floor_z"] == -0.05
+            assert st["drawn"] == {"top": 1, "side": 1, "floor": True}
+            assert not st["sliderDisabled"]  # an open server: everyone may change it
+            assert "1 zone, floor -50 mm, speed 100%" in pg.inner_text("#rbe3001-safety-summary")
+            # the slider: the instructor sets the override, the server takes it
+            pg.eval_on_selector("#rbe3001-speed-override",
+                                "(el) => { el.value = '0.5'; "
+                                "el.dispatchEvent(new Event('change')); }")
+            wait_for(lambda: api(srv, "GET", "/arms/rbe3001/safety")["speed_override"] == 0.5,
+                     5, "override set on the server")
+            wait_for(lambda: "speed 50%" in pg.inner_text("#rbe3001-safety-summary"), 5,
+                     "override shown")
+            # a change from elsewhere (a "safety" event on the socket) reaches the page
+            api(srv, "PUT", "/arms/rbe3001/safety", json={"zones": []})
+            wait_for(lambda: (safety() or {}).get("zones") == [], 5, "zones cleared on the page")
+            wait_for(lambda: (safety() or {})["drawn"]["top"] == 0, 5, "zone no longer drawn")
+            # a move into a zone is refused in words next to the control
+            api(srv, "PUT", "/arms/rbe3001/safety", json={"zones": [zone]})
+            pg.fill("#rbe3001-target-x", "200")
+            pg.fill("#rbe3001-target-y", "-200")
+            pg.fill("#rbe3001-target-z", "400")
+            pg.select_option("#rbe3001-path", "line")
+            pg.click("#rbe3001-plan")
+            err = pg.locator("#rbe3001-pose-error")
+            wait_for(lambda: err.get_attribute("data-code") == "keep_out", 5, "refusal shown")
+            assert err.inner_text().startswith("Keep-out zone:")
+            assert "'camera'" in err.inner_text() and "tip" in err.inner_text()
+            shot(pg, "07-safety")
+        finally:
+            pg.close()
+        assert not errors, f"uncaught errors in the page: {errors}"

@@ -4,6 +4,8 @@
 // animation frame from the newest samples. Units on the wire are SI; the page shows mm and
 // degrees, and the test hook (window.armDashboard) reports SI.
 
+import { attachSafety, drawSafety } from "./safety.js";
+
 const API = "/api/v1";
 const WINDOW_S = 10;            // plot and trail window, s
 const WS_RATE = 30;             // telemetry messages a second asked of the server (samples are batched)
@@ -18,6 +20,7 @@ const CODE_WORDS = {
   estop_latched: "Emergency stop latched", busy: "Busy", link_down: "Link down",
   device_timeout: "Device timeout", device_error: "Device error", unauthorized: "Needs a token",
   forbidden: "Not allowed with this token", leased: "Another client holds the lease",
+  keep_out: "Keep-out zone",
   no_gripper: "No gripper", invalid_request: "Invalid request", network: "No connection",
   not_found: "Not found", unknown_arm: "Unknown arm", not_supported: "Not supported",
 };
@@ -285,6 +288,7 @@ class Arm {
     this.plotted = { positions: [], velocities: [] };
     this.lastEvent = null;
     this.build();
+    this.safety = attachSafety(this, api, h);
     this.connect();
   }
 
@@ -485,6 +489,7 @@ class Arm {
     if (msg.event === "estop_released") this.estop = false;
     if (msg.event === "link_lost") { this.link = "down"; this.pendingBreak = true; }
     if (msg.event === "link_back") this.link = "up";
+    if (msg.event === "safety") this.safety?.refresh();
     const words = {
       motion_started: "motion started", motion_ended: "motion ended", estop: "emergency stop latched",
       estop_released: "emergency stop released", link_lost: "link lost", link_back: "link back",
@@ -724,6 +729,7 @@ class Arm {
     ctx.fillText(`${"xyz"[ax]}, ${"xyz"[ay]} in mm`, w - 80, 12);
 
     this.drawFixtures(ctx, X, Y, which);
+    drawSafety(this, ctx, X, Y, ax, ay, which);
 
     // tip trail of the last WINDOW_S seconds, fading with age; broken at gaps
     const r = this.ring;
@@ -1043,6 +1049,7 @@ function setupChrome() {
 window.armDashboard = {
   arms: () => [...arms.keys()],
   state: (name) => arms.get(name)?.state() ?? null,
+  safety: (name) => arms.get(name)?.safety?.state() ?? null,
 };
 
 loadTheme();
