@@ -130,14 +130,18 @@ class ArmSafety:
             if self._floor is not None and lo_all[b, 2] < self._floor[b]:
                 i = int(np.argmax(z < self._floor[b]))
                 best = min(best, (i, b, "floor")) if best else (i, b, "floor")
-            for k, name in enumerate(self.zone_names):
-                lo, hi = self._lo[b, k], self._hi[b, k]
+            for j, name in enumerate(self.zone_names):
+                lo, hi = self._lo[b, j], self._hi[b, j]
                 if np.any(lo_all[b] > hi) or np.any(hi_all[b] < lo):
                     continue
-                inside = ((x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1])
-                          & (z >= lo[2]) & (z <= hi[2]))
-                if inside.any():
-                    i = int(np.argmax(inside))
+                # narrow the candidates axis by axis: each pass looks only at what is left
+                cand = np.flatnonzero((x >= lo[0]) & (x <= hi[0]))
+                for k, axis in ((1, y), (2, z)):
+                    if cand.size:
+                        v = axis[cand]
+                        cand = cand[(v >= lo[k]) & (v <= hi[k])]
+                if cand.size:
+                    i = int(cand[0])
                     if best is None or (i, b) < best[:2]:
                         best = (i, b, name)
         if best is None:
