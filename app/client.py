@@ -339,6 +339,16 @@ class Requests:
         return Call("POST", _p("arms", arm, "dynamixel", dxl_id, "reboot"), _model(s.Ack), arm=arm)
 
     @staticmethod
+    def safety(arm: str) -> Call[s.Safety]:
+        return Call("GET", _p("arms", arm, "safety"), _model(s.Safety), arm=arm, safe=True)
+
+    @staticmethod
+    def set_safety(arm: str, update: s.SafetyUpdate) -> Call[s.Safety]:
+        body = update.model_dump(mode="json", exclude_unset=True)  # floor_z None: no floor
+        return Call("PUT", _p("arms", arm, "safety"), _model(s.Safety), body, arm=arm,
+                    safe=True)
+
+    @staticmethod
     def take_lease(arm: str) -> Call[s.Lease]:
         return Call("POST", _p("arms", arm, "lease"), _model(s.Lease), arm=arm)
 
@@ -644,6 +654,15 @@ class AsyncArmClient:
         return await self.send(Requests.dxl_reboot(arm, dxl_id))
 
     # --------------------------------------------------------- lease
+
+    async def safety(self, arm: str) -> s.Safety:
+        """The arm's safety envelope: keep-out zones, floor, speed override."""
+        return await self.send(Requests.safety(arm))
+
+    async def set_safety(self, arm: str, **fields: Any) -> s.Safety:
+        """Change the envelope (instructor): `zones=[...]`, `floor_z=` (None removes the
+        floor), `speed_override=`; fields not given are kept."""
+        return await self.send(Requests.set_safety(arm, s.SafetyUpdate(**fields)))
 
     async def take_lease(self, arm: str) -> s.Lease:
         return await self.send(Requests.take_lease(arm))

@@ -213,6 +213,12 @@ class ArmClient:
 
     # --------------------------------------------------------- lease
 
+    def safety(self, arm: str) -> s.Safety:
+        return self.send(Requests.safety(arm))
+
+    def set_safety(self, arm: str, **fields: Any) -> s.Safety:
+        return self.send(Requests.set_safety(arm, s.SafetyUpdate(**fields)))
+
     def take_lease(self, arm: str) -> s.Lease:
         return self.send(Requests.take_lease(arm))
 

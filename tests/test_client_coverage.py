@@ -50,6 +50,8 @@ ROUTES: dict[tuple[str, str], str] = {
     ("POST", "/api/v1/arms/{arm}/lease"): "take_lease",
     ("PUT", "/api/v1/arms/{arm}/lease/{id}"): "renew_lease",
     ("DELETE", "/api/v1/arms/{arm}/lease/{id}"): "release_lease",
+    ("GET", "/api/v1/arms/{arm}/safety"): "safety",
+    ("PUT", "/api/v1/arms/{arm}/safety"): "set_safety",
 }
 
 #: Routes outside OpenAPI (WebSocket) and helpers built on routes: method -> what it uses.
@@ -74,6 +76,7 @@ ARGS: dict[str, tuple[Any, ...]] = {
     "dxl_write_register": ("a1", 3, "led", 1), "dxl_sync_read": ("a1", "led", [1, 2]),
     "dxl_sync_write": ("a1", "led", {1: 0}), "dxl_reboot": ("a1", 3), "take_lease": ("a1",),
     "renew_lease": ("a1", "L1"), "release_lease": ("a1", "L1"),
+    "safety": ("a1",), "set_safety": ("a1",),
 }
 
 

@@ -321,3 +321,23 @@ async def test_speed_override_scales_every_planned_limit(override: float) -> Non
         q = plan.traj.sample(t)[0]
         tip_v = np.linalg.norm(np.diff(m.fk(q), axis=0), axis=-1) / np.diff(t)
         assert tip_v.max() <= override * svc.profile.cartesian.max_velocity * 1.02
+
+
+async def test_the_client_reads_and_changes_the_envelope() -> None:
+    from app.client import ArmServerError, AsyncArmClient
+
+    async with served() as (app, _client):
+        transport = httpx.ASGITransport(app=app)
+        async with AsyncArmClient("http://armserver.test", transport=transport) as c:
+            got = await c.set_safety("angler", zones=[box("cam", [0.5, 0.5, 0.5], 0.05)],
+                                     floor_z=-0.2)
+            assert [z.name for z in got.zones] == ["cam"] and got.floor_z == -0.2
+            got = await c.set_safety("angler", speed_override=0.5)  # the rest is kept
+            assert got.floor_z == -0.2 and got.speed_override == 0.5 and len(got.zones) == 1
+            got = await c.set_safety("angler", floor_z=None)  # None given: no floor
+            assert got.floor_z is None and len(got.zones) == 1
+            assert (await c.safety("angler")).speed_override == 0.5
+            here = points(app, "angler", q_now(app, "angler"))[-1]
+            with pytest.raises(ArmServerError) as info:
+                await c.set_safety("angler", zones=[box("trap", here, 0.01)])
+            assert info.value.code == "keep_out" and info.value.status == 422
