@@ -42,6 +42,21 @@ class KeepOut(ArmError):
 
 
 @dataclass(frozen=True)
+class _Compiled:
+    """The settings as arrays, swapped in as one reference: a planner on another thread (the
+    control thread) sees the old zones or the new ones, never half of each."""
+
+    names: tuple[str, ...]
+    lo: np.ndarray  # (B, Z, 3) each zone's min, grown by each body point's margin, m
+    hi: np.ndarray  # (B, Z, 3)
+    floor: np.ndarray | None  # (B,) floor_z plus each body point's margin, m
+
+    @property
+    def active(self) -> bool:
+        return bool(self.names) or self.floor is not None
+
+
+@dataclass(frozen=True)
 class Hit:
     """The first point of a path inside a zone: which zone (or "floor"), which body point, where
     (m, base frame), at which sample index and time (s; or fraction of a pass-through path)."""
@@ -66,24 +81,22 @@ class ArmSafety:
         margins = np.full(len(self.bodies), profile.body_margin)
         margins[-1] = profile.tool_margin
         self.margins = margins
-        self._compile()
+        self._c = self._compile(self.settings)
 
     # ------------------------------------------------------------ settings
 
     def apply(self, settings: SafetySettings, source: Literal["profile", "stored"]) -> None:
+        self._c = self._compile(settings)
         self.settings, self.source = settings, source
-        self._compile()
 
-    def _compile(self) -> None:
-        zones = self.settings.zones
-        self.zone_names = [z.name for z in zones]
+    def _compile(self, settings: SafetySettings) -> _Compiled:
+        zones = settings.zones
         lo = np.array([[z.min.x, z.min.y, z.min.z] for z in zones]).reshape(-1, 3)
         hi = np.array([[z.max.x, z.max.y, z.max.z] for z in zones]).reshape(-1, 3)
         m = self.margins[:, None, None]
-        self._lo = lo[None, :, :] - m  # (B, Z, 3): each zone grown by each body's margin
-        self._hi = hi[None, :, :] + m
-        floor = self.settings.floor_z
-        self._floor = None if floor is None else floor + self.margins  # (B,)
+        floor = settings.floor_z
+        return _Compiled(tuple(z.name for z in zones), lo[None, :, :] - m, hi[None, :, :] + m,
+                         None if floor is None else floor + self.margins)
 
     def preview(self, settings: SafetySettings) -> ArmSafety:
         """A copy with other settings, to check them before they apply."""
@@ -102,7 +115,7 @@ class ArmSafety:
 
     @property
     def active(self) -> bool:
-        return bool(self.zone_names) or self._floor is not None
+        return self._c.active
 
     # ------------------------------------------------------------ geometry
 
@@ -120,18 +133,19 @@ class ArmSafety:
         boxes do not overlap (the path's bounding box against the grown zone) costs nothing
         more: in the usual case, zones away from the path, the check is one min and max per
         body point."""
-        if not self.active:
+        c = self._c  # one snapshot for the whole check
+        if not c.active:
             return None
         p = self.points(np.asarray(q, dtype=float).reshape(-1, self.model.n))  # (T, B, 3)
         lo_all, hi_all = p.min(axis=0), p.max(axis=0)  # (B, 3) the path's bounding boxes
         best: tuple[int, int, str] | None = None  # (time index, body, zone)
         for b in range(p.shape[1]):
             x, y, z = p[:, b, 0], p[:, b, 1], p[:, b, 2]
-            if self._floor is not None and lo_all[b, 2] < self._floor[b]:
-                i = int(np.argmax(z < self._floor[b]))
+            if c.floor is not None and lo_all[b, 2] < c.floor[b]:
+                i = int(np.argmax(z < c.floor[b]))
                 best = min(best, (i, b, "floor")) if best else (i, b, "floor")
-            for j, name in enumerate(self.zone_names):
-                lo, hi = self._lo[b, j], self._hi[b, j]
+            for j, name in enumerate(c.names):
+                lo, hi = c.lo[b, j], c.hi[b, j]
                 if np.any(lo_all[b] > hi) or np.any(hi_all[b] < lo):
                     continue
                 # narrow the candidates axis by axis: each pass looks only at what is left
