@@ -341,3 +341,33 @@ async def test_the_client_reads_and_changes_the_envelope() -> None:
             with pytest.raises(ArmServerError) as info:
                 await c.set_safety("angler", zones=[box("trap", here, 0.01)])
             assert info.value.code == "keep_out" and info.value.status == 422
+
+
+async def test_zones_from_the_server_config(tmp_path: Path) -> None:
+    cfg = tmp_path / "lab.toml"
+    cfg.write_text('''
+[[arms]]
+profile = "rbe3001"
+name = "left"
+
+[arms.safety]
+floor_z = -0.1
+speed_override = 0.5
+tool_margin = 0.03
+
+[[arms.safety.zones]]
+name = "camera"
+min = { x = 0.3, y = 0.3, z = 0.3 }
+max = { x = 0.4, y = 0.4, z = 0.4 }
+''')
+    async with served(make_settings(config=str(cfg))) as (app, client):
+        body = (await client.get(f"{API}/arms/left/safety")).json()
+        assert body["source"] == "profile" and body["zones"][0]["name"] == "camera"
+        assert body["floor_z"] == -0.1 and body["speed_override"] == 0.5
+        assert body["tool_margin"] == 0.03
+        assert app.state.services["left"].safety.margins[-1] == 0.03
+    bad = tmp_path / "bad.toml"
+    bad.write_text(cfg.read_text().replace("speed_override = 0.5", "speed_override = 2.0"))
+    with pytest.raises(ValueError, match="speed_override"):
+        from app.config import load_arms
+        load_arms(bad)
