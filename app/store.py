@@ -122,6 +122,20 @@ class Store:
         text = json.dumps(value, allow_nan=False, separators=(",", ":"))
         return await asyncio.wrap_future(self._call(lambda: self._put(scope, key, text)))
 
+    # ------------------------------------------------------------ other tables (issue 14)
+
+    async def run(self, fn: Callable[[sqlite3.Connection], T]) -> T:
+        """Run `fn(connection)` on the writer thread (the one place the connection is used):
+        for tables added by later MIGRATIONS, e.g. an audit log. StoreError if the database is
+        not open; sqlite3 errors propagate (and are the caller's to report)."""
+
+        def job() -> T:
+            if self._db is None:
+                raise StoreError(self._error or "the database is not open")
+            return fn(self._db)
+
+        return await asyncio.wrap_future(self._call(job))
+
     # ------------------------------------------------------------ the writer thread
 
     def _call(self, fn: Callable[[], T]) -> concurrent.futures.Future[T]:
