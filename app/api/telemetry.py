@@ -18,7 +18,6 @@ import contextlib
 import json
 import logging
 import math
-from collections import deque
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
@@ -93,12 +92,11 @@ class _Stream:
         self._rate_changed = False
 
     async def run(self) -> None:
+        # The subscription carries the latest sample as of subscribing (`initial`); every later
+        # sample is in the hub's log from the subscription's cursor on: none lost, none twice.
         sub = self.svc.hub.subscribe()
-        # Read the latest sample with no await since subscribe(): every later sample reaches
-        # the subscription, none is sent twice.
-        latest = self.svc.hub.latest_json
         try:
-            tasks = {asyncio.create_task(self._send(sub, latest)),
+            tasks = {asyncio.create_task(self._send(sub)),
                      asyncio.create_task(self._receive())}
             done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
             for t in pending:
@@ -114,36 +112,35 @@ class _Stream:
         finally:
             sub.close()
 
-    async def _send(self, sub: Subscription, latest: str | None) -> None:
+    async def _send(self, sub: Subscription) -> None:
+        """Batches on ticks of a clock shared by every client at the same rate (multiples of
+        the period in loop time), each holding the samples published before its tick: clients
+        at one rate take the same samples and share one built message (`take_message`)."""
         ws = self.ws
-        if latest is not None:
-            await ws.send_text(sub.telemetry_message([latest], 0))
+        if sub.initial is not None:
+            await ws.send_text(sub.telemetry_message([sub.initial], 0))
         loop = asyncio.get_running_loop()
-        pending: deque[str] = deque(maxlen=self.svc.hub.backlog)
-        dropped = 0
-        next_batch = loop.time() + self.period
+        tick = math.floor(loop.time() / self.period) + 1
         while True:
+            next_batch = tick * self.period
             now = loop.time()
             wake = min(next_batch, now + EVENT_SLICE_S)
             if wake > now:
                 await asyncio.sleep(wake - now)
             if self._rate_changed:
                 self._rate_changed = False
-                next_batch = min(next_batch, loop.time() + self.period)
-            samples, events, lost = sub.take()
-            dropped += lost + max(0, len(pending) + len(samples) - (pending.maxlen or 0))
-            pending.extend(samples)
-            for event in events:
+                tick = math.floor(loop.time() / self.period) + 1  # the period is new
+                next_batch = tick * self.period
+            for event in sub.take_events():
                 await ws.send_text(event)
             now = loop.time()
             if now >= next_batch:
-                if pending or dropped:
-                    await ws.send_text(sub.telemetry_message(list(pending), dropped))
-                    pending.clear()
-                    dropped = 0
-                next_batch += self.period
-                if next_batch < loop.time():  # fell behind (slow socket): do not burst
-                    next_batch = loop.time() + self.period
+                msg = sub.take_message(until=next_batch)
+                if msg is not None:
+                    await ws.send_text(msg)
+                tick += 1
+                if tick * self.period < loop.time():  # fell behind (slow socket): do not burst
+                    tick = math.floor(loop.time() / self.period) + 1
 
     async def _receive(self) -> None:
         while True:

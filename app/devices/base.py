@@ -67,6 +67,7 @@ class Driver(abc.ABC):
         self.timeout = profile.link.timeout_s
         self._queue: asyncio.Queue[_Request] = asyncio.Queue(maxsize=profile.link.queue_size)
         self._task: asyncio.Task[None] | None = None
+        self._idle: asyncio.Future[None] | None = None  # the owner task's idle wait
         self._seq = 0
         self._poll_failures = 0
         self.stale = True
@@ -113,6 +114,7 @@ class Driver(abc.ABC):
             self._queue.put_nowait(req)
         except asyncio.QueueFull:
             raise Busy(f"{self.name}: {self._queue.maxsize} requests already queued") from None
+        self._wake_owner()
         # Belt and braces: the owner task answers every request, but a caller never waits
         # longer than a full queue of timeouts (each may add one quiet period) plus a second.
         bound = (self._queue.maxsize + 1) * 2 * req.timeout + 1.0
@@ -247,11 +249,37 @@ class Driver(abc.ABC):
             try:
                 req = self._queue.get_nowait()
             except asyncio.QueueEmpty:
-                try:
-                    req = await asyncio.wait_for(self._queue.get(), next_poll - POLL_EARLY_S - now)
-                except TimeoutError:
-                    continue
+                await self._idle_until(loop, next_poll - POLL_EARLY_S)
+                continue
             await self._serve(req)
+
+    async def _idle_until(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
+        """Wait for a request or loop time `when`, whichever is first: one bare future and one
+        timer the loop keeps (no task: `asyncio.wait_for` makes one per call on Python 3.11,
+        at every poll that was most of an idle arm's cost). `submit` resolves the future."""
+        fut = loop.create_future()
+        self._idle = fut
+        timer = loop.call_at(when, _resolve, fut)
+        try:
+            await fut
+        finally:
+            self._idle = None
+            timer.cancel()
+
+    def _wake_owner(self) -> None:
+        """A request was queued: end the owner task's idle wait (from any thread)."""
+        fut = self._idle
+        if fut is None or fut.done():
+            return
+        loop = fut.get_loop()
+        try:
+            same = asyncio.get_running_loop() is loop
+        except RuntimeError:
+            same = False
+        if same:
+            fut.set_result(None)
+        else:
+            loop.call_soon_threadsafe(_resolve, fut)
 
     async def _serve(self, req: _Request) -> None:
         if req.future.done():  # the caller gave up (cancelled) while queued
@@ -347,6 +375,11 @@ class Driver(abc.ABC):
     def _publish_stale(self) -> None:
         if self.positions is not None and self.velocities is not None:
             self._publish(self.positions, np.zeros_like(self.velocities), None, stale=True)
+
+
+def _resolve(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)
 
 
 def _vec(v: np.ndarray) -> dict[str, float]:
