@@ -60,4 +60,4 @@ async def arm_detail(svc: ViewerArm) -> s.ArmDetail:
 async def arm_state(svc: ViewerArm) -> Response:
     svc.state()  # 503 link_down before the first sample
     # The hub encoded this sample once at publish time; answer those bytes as they are.
-    return Response(content=svc.hub.latest_json, media_type="application/json")
+    return Response(content=svc.hub.latest_bytes, media_type="application/json")

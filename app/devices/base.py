@@ -68,6 +68,10 @@ class Driver(abc.ABC):
         self._queue: asyncio.Queue[_Request] = asyncio.Queue(maxsize=profile.link.queue_size)
         self._task: asyncio.Task[None] | None = None
         self._idle: asyncio.Future[None] | None = None  # the owner task's idle wait
+        #: (positions, velocities, torques) of the last sample and its derived (tip, tip
+        #: velocity, tip force): reused while the readings do not change.
+        self._derived_key: tuple[list[float], list[float], list[float] | None] | None = None
+        self._derived: tuple[Any, Any, Any] | None = None
         self._seq = 0
         self._poll_failures = 0
         self.stale = True
@@ -346,29 +350,39 @@ class Driver(abc.ABC):
 
     def _publish(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray | None, stale: bool) -> None:
         self._seq += 1
-        m = self.model
-        tip = m.fk(q)
-        J = m.jacobian(q)
-        tip_v = J @ qd
+        positions = q.tolist()
+        velocities = qd.tolist()
+        torques = None if tau is None else tau.tolist()
+        # An arm at rest reads the same values poll after poll: its tip, tip velocity and tip
+        # force are then those of the last sample, not worth a forward kinematics, a Jacobian
+        # and a solve again (most of a sample's cost; the encoded bytes are the same).
+        key = (positions, velocities, torques)
+        if key == self._derived_key and self._derived is not None:
+            tip, tip_v, force = self._derived
+        else:
+            m = self.model
+            J = m.jacobian(q)
+            tip, tip_v, force = _vec(m.fk(q)), _vec(J @ qd), None
+            if tau is not None:
+                f = m.tip_force(q, tau, J)
+                if f is not None and np.all(np.isfinite(f)):
+                    force = _vec(f)
+            self._derived_key, self._derived = key, (tip, tip_v, force)
         sample: dict[str, Any] = {
             "seq": self._seq,
             "time": time.time(),
-            "positions": [float(v) for v in q],
-            "velocities": [float(v) for v in qd],
-            "torques": None if tau is None else [float(v) for v in tau],
-            "tip": _vec(tip),
-            "tip_velocity": _vec(tip_v),
-            "tip_force": None,
+            "positions": positions,
+            "velocities": velocities,
+            "torques": torques,
+            "tip": tip,
+            "tip_velocity": tip_v,
+            "tip_force": force,
             "gripper": self.gripper,
             "motion": None,
             "estop": False,
             "link": self.link.state.value,
             "stale": stale,
         }
-        if tau is not None:
-            f = m.tip_force(q, tau, J)
-            if f is not None and np.all(np.isfinite(f)):
-                sample["tip_force"] = _vec(f)
         self.annotate(sample)
         self.hub.publish(sample)
 
