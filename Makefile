@@ -45,8 +45,9 @@ PEERS     ?= $(firstword $(wildcard ../shared/peers ../../shared/peers))
 PEERS_OUT ?= /tmp/peers-out
 bench-peers: install-test
 	@test -n "$(PEERS)" || { echo "no ../shared/peers harness found (set PEERS=)"; exit 2; }
-	DUR=$${DUR:-8} WSN=$${WSN:-1,10,100,300,1000} $(PEERS)/run.sh $(PEERS_OUT)
-	$(BIN)/python bench/peers.py $(PEERS_OUT)
+	rm -rf $(PEERS_OUT)
+	-DUR=$${DUR:-8} $(PEERS)/run.sh $(PEERS_OUT)
+	$(BIN)/python bench/peers.py $(PEERS_OUT) --harness $(PEERS)
 
 fuzz: install-test
 	ARMSERVER_FUZZ_CASES=300 $(BIN)/python -m pytest -q tests/test_fuzz_api.py \

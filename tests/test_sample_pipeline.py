@@ -140,13 +140,13 @@ async def _polls_without_tasks(driver: Rbe3001Driver) -> None:
     assert await driver.wait_connected(10.0)
     loop = asyncio.get_running_loop()
     counter = _TaskCounter()
-    polls0 = driver.stats["polls"]
+    published0 = driver.hub.published
     loop.set_task_factory(counter)
     try:
         await asyncio.sleep(0.3)
     finally:
         loop.set_task_factory(None)
-    assert driver.stats["polls"] - polls0 >= 10 and driver.stats["poll_failures"] == 0
+    assert driver.hub.published - published0 >= 10  # answered polls, each a sample
     assert counter.count == 0  # asyncio.wait_for made one per read
 
 
@@ -261,3 +261,35 @@ def test_state_route_bytes_are_the_hub_encoding(name: str) -> None:
     hub = TelemetryHub(name)
     hub.publish({"seq": 1, "tip": {"x": 0.1, "y": -0.0, "z": 1e-17}, "motion": None})
     assert hub.latest_bytes == b'{"seq":1,"tip":{"x":0.1,"y":-0.0,"z":1e-17},"motion":null}'
+
+
+# ------------------------------------------------------------------ the state route
+
+
+async def test_state_fast_path_answers_the_published_bytes_and_leaves_errors_alone() -> None:
+    from conftest import make_settings, running_client
+
+    from app.api.arms import StateFastPath
+
+    settings = make_settings(operator_tokens="op-token", viewer_tokens="view-token")
+    async with running_client(settings) as (app, client):
+        assert isinstance(app.router.routes[0], StateFastPath)  # ahead of every other route
+        hub = app.state.services["rbe3001"].hub
+        ok = {"authorization": "Bearer view-token"}
+        r = await client.get("/api/v1/arms/rbe3001/state", headers=ok)
+        assert r.status_code == 200 and r.headers["content-type"] == "application/json"
+        body = json.loads(r.content)
+        assert body["seq"] <= hub.latest["seq"] and set(body) == set(hub.latest)
+        # errors still come from the regular route, with their codes
+        r = await client.get("/api/v1/arms/rbe3001/state")
+        assert r.status_code == 401 and r.json()["code"] == "unauthorized"
+        r = await client.get("/api/v1/arms/nope/state", headers=ok)
+        assert r.status_code == 404 and r.json()["code"] == "unknown_arm"
+        r = await client.get("/api/v1/arms/" + "x" * 65 + "/state", headers=ok)
+        assert r.status_code in (404, 422) and "code" in r.json()
+        r = await client.post("/api/v1/arms/rbe3001/state", headers=ok)
+        assert r.status_code == 405
+        # the OpenAPI document still shows the response model
+        doc = (await client.get("/openapi.json")).json()
+        ok200 = doc["paths"]["/api/v1/arms/{arm}/state"]["get"]["responses"]["200"]
+        assert ok200["content"]["application/json"]["schema"]["$ref"].endswith("/Sample")
