@@ -293,3 +293,19 @@ async def test_state_fast_path_answers_the_published_bytes_and_leaves_errors_alo
         doc = (await client.get("/openapi.json")).json()
         ok200 = doc["paths"]["/api/v1/arms/{arm}/state"]["get"]["responses"]["200"]
         assert ok200["content"]["application/json"]["schema"]["$ref"].endswith("/Sample")
+
+
+async def test_poll_soon_takes_a_poll_ahead_of_a_slow_schedule() -> None:
+    base = load_profile("rbe3001")  # polled every 10 s
+    profile = base.model_copy(update={"link": base.link.model_copy(update={"poll_hz": 0.1})})
+    driver = Rbe3001Driver(profile, SimLink(make_sim_device(profile)), TelemetryHub("rbe3001"))
+    await driver.start()
+    try:
+        assert await driver.wait_connected(10.0)
+        sub = driver.hub.subscribe()
+        published = driver.hub.published
+        driver.poll_soon()
+        assert await sub.wait(5.0)  # half the poll period: only poll_soon can explain it
+        assert driver.hub.published == published + 1
+    finally:
+        await driver.close()

@@ -68,6 +68,7 @@ class Driver(abc.ABC):
         self._queue: asyncio.Queue[_Request] = asyncio.Queue(maxsize=profile.link.queue_size)
         self._task: asyncio.Task[None] | None = None
         self._idle: asyncio.Future[None] | None = None  # the owner task's idle wait
+        self._poll_now = False  # poll_soon() was called
         #: (positions, velocities, torques) of the last sample and its derived (tip, tip
         #: velocity, tip force): reused while the readings do not change.
         self._derived_key: tuple[list[float], list[float], list[float] | None] | None = None
@@ -128,6 +129,12 @@ class Driver(abc.ABC):
             fut.cancel()
             raise DeviceTimeout(f"{self.name}: the link task did not answer within "
                                 f"{bound:.1f} s") from None
+
+    def poll_soon(self) -> None:
+        """Poll now, ahead of the schedule: a state change the samples must show at once
+        (an emergency stop) gets a fresh sample within one device round trip."""
+        self._poll_now = True
+        self._wake_owner()
 
     def wait_connected(self, timeout: float) -> asyncio.Future[bool]:
         async def _wait() -> bool:
@@ -244,11 +251,14 @@ class Driver(abc.ABC):
         next_poll = loop.time()
         while True:
             now = loop.time()
-            if now >= next_poll - POLL_EARLY_S:
+            due = now >= next_poll - POLL_EARLY_S
+            if due or self._poll_now:
+                self._poll_now = False
                 await self._do_poll()
-                next_poll += period
-                if next_poll < loop.time() - POLL_CATCH_UP * period:  # far behind: skip ahead
-                    next_poll = loop.time() + period
+                if due:  # a poll asked for by poll_soon() leaves the schedule as it was
+                    next_poll += period
+                    if next_poll < loop.time() - POLL_CATCH_UP * period:  # far behind: skip
+                        next_poll = loop.time() + period
                 continue
             try:
                 req = self._queue.get_nowait()
