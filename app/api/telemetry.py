@@ -33,6 +33,9 @@ MIN_RATE_HZ = 0.1
 MAX_RATE_HZ = 1000.0
 #: Longest an event waits for the sender to notice it, s (a person does not see 50 ms).
 EVENT_SLICE_S = 0.05
+#: Clients at this period or shorter (100 Hz and up) get each batch as soon as it is due and
+#: a sample is there; slower ones batch on a shared clock and share messages.
+PROMPT_PERIOD_S = 0.01
 
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_UNKNOWN_ARM = 4404
@@ -113,24 +116,30 @@ class _Stream:
             sub.close()
 
     async def _send(self, sub: Subscription) -> None:
-        """Batches on ticks of a clock shared by every client at the same rate (multiples of
-        the period in loop time), each holding the samples published before its tick: clients
-        at one rate take the same samples and share one built message (`take_message`)."""
         ws = self.ws
         if sub.initial is not None:
             await ws.send_text(sub.telemetry_message([sub.initial], 0))
+        while True:
+            self._rate_changed = False
+            if self.period <= PROMPT_PERIOD_S:
+                await self._send_prompt(sub)
+            else:
+                await self._send_ticked(sub)
+
+    async def _send_ticked(self, sub: Subscription) -> None:
+        """Batches on ticks of a clock shared by every client at the same rate (multiples of
+        the period in loop time), each holding the samples published before its tick: clients
+        at one rate take the same samples and share one built message (`take_message`).
+        Returns when the rate changes."""
+        ws = self.ws
         loop = asyncio.get_running_loop()
         tick = math.floor(loop.time() / self.period) + 1
-        while True:
+        while not self._rate_changed:
             next_batch = tick * self.period
             now = loop.time()
             wake = min(next_batch, now + EVENT_SLICE_S)
             if wake > now:
                 await asyncio.sleep(wake - now)
-            if self._rate_changed:
-                self._rate_changed = False
-                tick = math.floor(loop.time() / self.period) + 1  # the period is new
-                next_batch = tick * self.period
             for event in sub.take_events():
                 await ws.send_text(event)
             now = loop.time()
@@ -141,6 +150,27 @@ class _Stream:
                 tick += 1
                 if tick * self.period < loop.time():  # fell behind (slow socket): do not burst
                     tick = math.floor(loop.time() / self.period) + 1
+
+    async def _send_prompt(self, sub: Subscription) -> None:
+        """For a rate near the device's own (period up to PROMPT_PERIOD_S): a sample that
+        arrives when the last message is a period old goes out at once, not at the next tick,
+        so a command's effect (an estop) reaches the client one device round trip after it.
+        Still one message a period on average. Returns when the rate changes."""
+        ws = self.ws
+        loop = asyncio.get_running_loop()
+        next_send = loop.time()
+        while not self._rate_changed:
+            await sub.wait(EVENT_SLICE_S)
+            for event in sub.take_events():
+                await ws.send_text(event)
+            now = loop.time()
+            if now < next_send:
+                await asyncio.sleep(next_send - now)
+                now = loop.time()
+            msg = sub.take_message()
+            if msg is not None:
+                await ws.send_text(msg)
+                next_send = max(next_send + self.period, now)
 
     async def _receive(self) -> None:
         while True:
