@@ -253,7 +253,7 @@ class TelemetryHub:
             while k > 0 and stamps[k - 1] >= until:
                 k -= 1
             end -= len(stamps) - k
-        oldest = end - min(sub.backlog, len(self._log))
+        oldest = max(self.published - len(self._log), end - sub.backlog)
         lost = 0
         if sub.cursor < oldest:
             lost = oldest - sub.cursor

@@ -309,3 +309,16 @@ async def test_poll_soon_takes_a_poll_ahead_of_a_slow_schedule() -> None:
         assert driver.hub.published == published + 1
     finally:
         await driver.close()
+
+
+def test_a_batch_cut_before_the_newest_samples_never_reaches_past_the_log() -> None:
+    hub = TelemetryHub("arm", backlog=5)
+    sub = hub.subscribe()
+    for k in range(1, 21):
+        hub.publish(_sample(k))
+    # log holds 16..20; cut after sample 18: the batch is 16..18 and 4..15 are dropped
+    hub._stamps = deque([1.0, 2.0, 3.0, 4.0, 5.0], maxlen=5)
+    msg = json.loads(sub.take_message(until=3.5) or "{}")
+    assert [s["seq"] for s in msg["samples"]] == [16, 17, 18] and msg["dropped"] == 15
+    msg = json.loads(sub.take_message() or "{}")
+    assert [s["seq"] for s in msg["samples"]] == [19, 20] and msg["dropped"] == 0
