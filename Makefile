@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 HOST   ?= 127.0.0.1
 PORT   ?= 8000
 
-.PHONY: run test install install-test browser bench fuzz soak lint clean
+.PHONY: run test install install-test browser bench bench-peers fuzz soak lint clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -37,6 +37,17 @@ test: install-test browser
 
 bench: install-test
 	$(BIN)/python bench/kinematics.py
+
+# pypot 5.0.2 and armserver measured by the shared harness in one run (server on CPU 0, load on
+# CPU 1), then the issue-12 table as ratios. PEERS: the harness (../shared/peers from the main
+# checkout, ../../shared/peers from a worktree); PEERS_OUT: where its figures go.
+PEERS     ?= $(firstword $(wildcard ../shared/peers ../../shared/peers))
+PEERS_OUT ?= /tmp/peers-out
+bench-peers: install-test
+	@test -n "$(PEERS)" || { echo "no ../shared/peers harness found (set PEERS=)"; exit 2; }
+	rm -rf $(PEERS_OUT)
+	-DUR=$${DUR:-8} $(PEERS)/run.sh $(PEERS_OUT)
+	$(BIN)/python bench/peers.py $(PEERS_OUT) --harness $(PEERS)
 
 fuzz: install-test
 	ARMSERVER_FUZZ_CASES=300 $(BIN)/python -m pytest -q tests/test_fuzz_api.py \

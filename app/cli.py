@@ -35,6 +35,9 @@ def _parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", help="address to bind (default 127.0.0.1: this machine only)")
     serve.add_argument("--port", type=int, help="TCP port (default 8000)")
     serve.add_argument("--log-level", choices=["critical", "error", "warning", "info", "debug"])
+    serve.add_argument("--access-log", action="store_true",
+                       help="log every HTTP request (off by default: at thousands of requests "
+                       "a second the log line costs more than the answer)")
     serve.set_defaults(func=_serve)
 
     devices = sub.add_parser("devices", help="list attached serial and HID devices",
@@ -81,7 +84,8 @@ def _serve(args: argparse.Namespace) -> int:
                     "arms (set ARMSERVER_OPERATOR_TOKENS)", settings.host)
     uvicorn.run(app, host=settings.host, port=settings.port, log_level=settings.log_level,
                 ws_max_size=settings.max_ws_message_bytes, proxy_headers=False,
-                ws_per_message_deflate=settings.ws_compression)
+                ws_per_message_deflate=settings.ws_compression,
+                access_log=bool(getattr(args, "access_log", False)))
     return 0
 
 

@@ -105,6 +105,7 @@ def create_app(settings: Settings | None = None,
 
     for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry, safety):
         app.include_router(r.router, prefix=API_PREFIX)
+    arms.install_fast_paths(app, API_PREFIX)  # GET state from the encoded sample
     _document_websocket_messages(app)
     _install_error_handlers(app)
 

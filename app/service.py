@@ -170,6 +170,7 @@ class ArmService:
     async def latch_estop(self) -> s.EstopState:
         first = not self.estop
         self.estop = True
+        self.driver.poll_soon()  # a fresh sample that shows the latch, ahead of the schedule
         await self.motion.emergency_stop()
         if first:
             log.warning("%s: emergency stop latched", self.name)

@@ -1,89 +1,138 @@
 """Per-arm telemetry hub: the latest sample, and fan-out to subscribers with bounded backlogs.
 
-The driver task publishes every device sample here (synchronously, never awaiting), so a slow
+The driver publishes every device sample here (synchronously, never awaiting), so a slow
 subscriber can never slow the link task (ARCHITECTURE rule 9). Each sample is encoded to JSON
-once, at publish time; a subscriber's message is those pre-encoded strings joined, so the cost
-per client is a string join, not a re-serialisation.
+once, at publish time (orjson), into ONE shared log; the cost of a publish does not grow with
+the number of subscribers. A subscriber is a cursor into that log: `take` returns the encoded
+strings since its cursor, and a telemetry message is those strings joined. Subscribers that
+batch the same range of samples (the WebSocket senders wake on a shared clock, see
+`take_message`) share one built message, so the cost per client is one send.
 
-A subscriber has a bounded backlog: when it is full the oldest sample is discarded and the
-subscriber's `dropped` count grows, which it reports in its next message. Events have their own
-bounded backlog and are never batched away.
+A subscriber has a bounded backlog: when it falls further behind than that, the oldest samples
+are skipped and its `dropped` count grows, which it reports in its next message. Events have
+their own bounded backlog per subscriber and are never batched away.
+
+Threads: `publish` and `event` may be called from another thread than the subscribers'
+(the control thread); the log is guarded by a lock held only for a few list operations, and a
+subscriber waiting in `wait()` is woken on its own loop.
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+import orjson
+
 #: Samples a subscriber may fall behind before the oldest are dropped: 4 s at 500 Hz.
 DEFAULT_BACKLOG = 2000
 #: Events a subscriber may fall behind (events are rare: motion, estop, link).
 EVENT_BACKLOG = 256
+#: Built telemetry messages kept for reuse by subscribers that batch the same samples.
+MESSAGE_CACHE = 8
+
+_OPTIONS = orjson.OPT_SERIALIZE_NUMPY
+
+
+def dumps_bytes(obj: Any) -> bytes:
+    """Compact JSON bytes (orjson; numpy scalars and arrays allowed, NaN becomes null)."""
+    return orjson.dumps(obj, option=_OPTIONS)
 
 
 def _dumps(obj: Any) -> str:
-    return json.dumps(obj, separators=(",", ":"), allow_nan=False)
+    return orjson.dumps(obj, option=_OPTIONS).decode()
 
 
 class Subscription:
-    """One subscriber's view of a hub. Use `async for` or `next_batch()`; `close()` when done."""
+    """One subscriber's view of a hub. `take()` (or `take_message()`), `close()` when done."""
 
-    def __init__(self, hub: TelemetryHub, backlog: int) -> None:
+    def __init__(self, hub: TelemetryHub, backlog: int, cursor: int, initial: str | None) -> None:
         self._hub = hub
-        self._samples: deque[str] = deque(maxlen=backlog)
+        self.backlog = backlog
+        #: Index in the hub's log of the next sample this subscriber has not taken.
+        self.cursor = cursor
+        #: The latest sample when subscribing (None before the first): sent first, and never
+        #: again, since the log from `cursor` on holds only later samples.
+        self.initial = initial
         self._events: deque[str] = deque(maxlen=EVENT_BACKLOG)
-        self._wake = asyncio.Event()
+        self._waiter: asyncio.Future[None] | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
         self.dropped = 0
         self.delivered = 0
         self.closed = False
 
-    def _push_sample(self, encoded: str) -> None:
-        if len(self._samples) == self._samples.maxlen:
-            self.dropped += 1
-        self._samples.append(encoded)
-        self._wake.set()
-
     def _push_event(self, encoded: str) -> None:
         self._events.append(encoded)
-        self._wake.set()
+        self._wake()
+
+    def _wake(self) -> None:
+        fut, loop = self._waiter, self._loop
+        if fut is None or loop is None or fut.done():
+            return
+        try:
+            running = asyncio.get_running_loop()
+        except RuntimeError:
+            running = None
+        if running is loop:
+            fut.set_result(None)
+        else:
+            loop.call_soon_threadsafe(_resolve, fut)
+
+    @property
+    def pending(self) -> bool:
+        return bool(self._events) or self.cursor < self._hub.published
 
     async def wait(self, timeout: float | None = None) -> bool:
         """Wait until a sample or event is pending; False on timeout."""
-        if self._samples or self._events:
+        if self.pending:
             return True
-        self._wake.clear()
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._waiter = fut = loop.create_future()
+        self._hub._add_waiter(self)
+        timer = None if timeout is None else loop.call_at(loop.time() + timeout, _resolve, fut)
         try:
-            await asyncio.wait_for(self._wake.wait(), timeout)
-        except TimeoutError:
-            return False
-        return True
+            if self.pending:  # published between the check and the registration
+                return True
+            await fut
+        finally:
+            self._waiter = None
+            self._hub._remove_waiter(self)
+            if timer is not None:
+                timer.cancel()
+        return self.pending
 
     def take(self) -> tuple[list[str], list[str], int]:
         """Pending encoded samples and events, and the drop count since the last take."""
-        samples = list(self._samples)
-        self._samples.clear()
+        samples, lost = self._hub._take(self, None)
+        dropped, self.dropped = self.dropped + lost, 0
+        self.delivered += len(samples)
+        return samples, self.take_events(), dropped
+
+    def take_events(self) -> list[str]:
+        """Pending encoded events (oldest first)."""
         events = list(self._events)
         self._events.clear()
-        dropped, self.dropped = self.dropped, 0
-        self.delivered += len(samples)
-        self._wake.clear()
-        return samples, events, dropped
+        return events
+
+    def take_message(self, until: float | None = None) -> str | None:
+        """The telemetry message (encoded) for every sample published before monotonic time
+        `until` (all if None) since the last take, or None if there is nothing to say.
+        Subscribers that take the same range with no drops share one built message."""
+        return self._hub._message(self, until)
 
     def telemetry_message(self, samples: list[str], dropped: int) -> str:
         """The wire message for a batch, built from pre-encoded samples."""
-        return (
-            f'{{"type":"telemetry","arm":{self._hub.arm_json},'
-            f'"samples":[{",".join(samples)}],"dropped":{dropped}}}'
-        )
+        return self._hub._build(samples, dropped)
 
     def close(self) -> None:
         if not self.closed:
             self.closed = True
-            self._hub._subs.discard(self)
+            self._hub._unsubscribe(self)
 
 
 class TelemetryHub:
@@ -93,41 +142,158 @@ class TelemetryHub:
         self.arm = arm
         self.arm_json = _dumps(arm)
         self.backlog = backlog
+        self._lock = threading.Lock()
         self._subs: set[Subscription] = set()
+        self._waiting: set[Subscription] = set()
         self._listeners: list[Callable[[dict[str, Any]], None]] = []
-        self.latest: dict[str, Any] | None = None
-        self.latest_json: str | None = None
+        #: The shared log: encoded samples and their publish times (monotonic), oldest first;
+        #: entry i of the deques is sample number `published - len(_log) + i`.
+        self._log: deque[str] = deque(maxlen=backlog)
+        self._stamps: deque[float] = deque(maxlen=backlog)
+        self._cache: dict[tuple[int, int, int], str] = {}
+        #: (sample dict, encoded str, encoded bytes) of the latest sample, replaced as a whole.
+        self._latest: tuple[dict[str, Any], str, bytes] | None = None
         self.published = 0
+
+    # ---------------------------------------------------------------- latest sample
+
+    @property
+    def latest(self) -> dict[str, Any] | None:
+        snap = self._latest
+        return None if snap is None else snap[0]
+
+    @property
+    def latest_json(self) -> str | None:
+        snap = self._latest
+        return None if snap is None else snap[1]
+
+    @property
+    def latest_bytes(self) -> bytes | None:
+        """The latest sample as encoded JSON bytes, ready for an HTTP body."""
+        snap = self._latest
+        return None if snap is None else snap[2]
+
+    # ---------------------------------------------------------------- subscribers
 
     @property
     def subscriber_count(self) -> int:
         return len(self._subs)
 
     def subscribe(self, backlog: int | None = None) -> Subscription:
-        sub = Subscription(self, backlog or self.backlog)
-        self._subs.add(sub)
+        backlog = backlog or self.backlog
+        with self._lock:
+            if backlog > (self._log.maxlen or 0):  # the shared log holds the longest backlog
+                self._log = deque(self._log, maxlen=backlog)
+                self._stamps = deque(self._stamps, maxlen=backlog)
+            sub = Subscription(self, backlog, self.published, self.latest_json)
+            self._subs.add(sub)
         return sub
+
+    def _unsubscribe(self, sub: Subscription) -> None:
+        with self._lock:
+            self._subs.discard(sub)
+        self._remove_waiter(sub)
+
+    def _add_waiter(self, sub: Subscription) -> None:
+        with self._lock:
+            self._waiting.add(sub)
+
+    def _remove_waiter(self, sub: Subscription) -> None:
+        with self._lock:
+            self._waiting.discard(sub)
 
     def add_listener(self, fn: Callable[[dict[str, Any]], None]) -> Callable[[], None]:
         """Call `fn(sample)` on every sample, in the publisher's task; returns an unsubscribe."""
         self._listeners.append(fn)
         return lambda: self._listeners.remove(fn) if fn in self._listeners else None
 
+    # ---------------------------------------------------------------- publishing
+
     def publish(self, sample: dict[str, Any]) -> None:
         """Publish one sample (a dict in the `Sample` schema's shape). Never blocks."""
-        encoded = _dumps(sample)
-        self.latest = sample
-        self.latest_json = encoded
-        self.published += 1
-        for fn in list(self._listeners):
+        data = orjson.dumps(sample, option=_OPTIONS)
+        encoded = data.decode()
+        with self._lock:
+            self._latest = (sample, encoded, data)
+            self._log.append(encoded)
+            self._stamps.append(time.monotonic())
+            self.published += 1
+            waiting = list(self._waiting) if self._waiting else None
+        for fn in self._listeners:
             fn(sample)
-        for sub in self._subs:
-            sub._push_sample(encoded)
+        if waiting:
+            for sub in waiting:
+                sub._wake()
 
     def event(self, name: str, **data: Any) -> dict[str, Any]:
         """Send an event (motion_started, estop, link_lost, ...) to every subscriber."""
         msg = {"type": "event", "arm": self.arm, "event": name, "time": time.time(), "data": data}
         encoded = _dumps(msg)
-        for sub in self._subs:
+        with self._lock:
+            subs = list(self._subs)
+        for sub in subs:
             sub._push_event(encoded)
         return msg
+
+    # ---------------------------------------------------------------- taking
+
+    def _take(self, sub: Subscription, until: float | None) -> tuple[list[str], int]:
+        """The encoded samples for `sub` since its cursor (published before `until`), and how
+        many it lost to its backlog bound; advances its cursor."""
+        with self._lock:
+            return self._take_locked(sub, until)
+
+    def _range_locked(self, sub: Subscription, until: float | None) -> tuple[int, int, int]:
+        """(first, end, lost): `sub`'s next samples are numbers first..end-1 (those published
+        before `until`); `lost` were skipped by its backlog bound. Advances its cursor."""
+        end = self.published
+        if until is not None:
+            stamps = self._stamps
+            k = len(stamps)
+            while k > 0 and stamps[k - 1] >= until:
+                k -= 1
+            end -= len(stamps) - k
+        oldest = max(self.published - len(self._log), end - sub.backlog)
+        lost = 0
+        if sub.cursor < oldest:
+            lost = oldest - sub.cursor
+            sub.cursor = oldest
+        first = sub.cursor
+        if end > first:
+            sub.cursor = end
+        return first, max(first, end), lost
+
+    def _slice_locked(self, first: int, end: int) -> list[str]:
+        log = self._log
+        start = first - (self.published - len(log))
+        return [log[i] for i in range(start, start + end - first)]
+
+    def _take_locked(self, sub: Subscription, until: float | None) -> tuple[list[str], int]:
+        first, end, lost = self._range_locked(sub, until)
+        return self._slice_locked(first, end), lost
+
+    def _message(self, sub: Subscription, until: float | None) -> str | None:
+        with self._lock:
+            first, end, lost = self._range_locked(sub, until)
+            dropped = sub.dropped + lost
+            sub.dropped = 0
+            if end == first and not dropped:
+                return None
+            sub.delivered += end - first
+            key = (first, end, dropped)
+            msg = self._cache.get(key)
+            if msg is None:
+                msg = self._build(self._slice_locked(first, end), dropped)
+                if len(self._cache) >= MESSAGE_CACHE:
+                    self._cache.clear()
+                self._cache[key] = msg
+            return msg
+
+    def _build(self, samples: list[str], dropped: int) -> str:
+        return (f'{{"type":"telemetry","arm":{self.arm_json},'
+                f'"samples":[{",".join(samples)}],"dropped":{dropped}}}')
+
+
+def _resolve(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)

@@ -18,7 +18,6 @@ import contextlib
 import json
 import logging
 import math
-from collections import deque
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
@@ -34,6 +33,9 @@ MIN_RATE_HZ = 0.1
 MAX_RATE_HZ = 1000.0
 #: Longest an event waits for the sender to notice it, s (a person does not see 50 ms).
 EVENT_SLICE_S = 0.05
+#: Clients at this period or shorter (100 Hz and up) get each batch as soon as it is due and
+#: a sample is there; slower ones batch on a shared clock and share messages.
+PROMPT_PERIOD_S = 0.01
 
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_UNKNOWN_ARM = 4404
@@ -93,12 +95,11 @@ class _Stream:
         self._rate_changed = False
 
     async def run(self) -> None:
+        # The subscription carries the latest sample as of subscribing (`initial`); every later
+        # sample is in the hub's log from the subscription's cursor on: none lost, none twice.
         sub = self.svc.hub.subscribe()
-        # Read the latest sample with no await since subscribe(): every later sample reaches
-        # the subscription, none is sent twice.
-        latest = self.svc.hub.latest_json
         try:
-            tasks = {asyncio.create_task(self._send(sub, latest)),
+            tasks = {asyncio.create_task(self._send(sub)),
                      asyncio.create_task(self._receive())}
             done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
             for t in pending:
@@ -114,36 +115,62 @@ class _Stream:
         finally:
             sub.close()
 
-    async def _send(self, sub: Subscription, latest: str | None) -> None:
+    async def _send(self, sub: Subscription) -> None:
         ws = self.ws
-        if latest is not None:
-            await ws.send_text(sub.telemetry_message([latest], 0))
-        loop = asyncio.get_running_loop()
-        pending: deque[str] = deque(maxlen=self.svc.hub.backlog)
-        dropped = 0
-        next_batch = loop.time() + self.period
+        if sub.initial is not None:
+            await ws.send_text(sub.telemetry_message([sub.initial], 0))
         while True:
+            self._rate_changed = False
+            if self.period <= PROMPT_PERIOD_S:
+                await self._send_prompt(sub)
+            else:
+                await self._send_ticked(sub)
+
+    async def _send_ticked(self, sub: Subscription) -> None:
+        """Batches on ticks of a clock shared by every client at the same rate (multiples of
+        the period in loop time), each holding the samples published before its tick: clients
+        at one rate take the same samples and share one built message (`take_message`).
+        Returns when the rate changes."""
+        ws = self.ws
+        loop = asyncio.get_running_loop()
+        tick = math.floor(loop.time() / self.period) + 1
+        while not self._rate_changed:
+            next_batch = tick * self.period
             now = loop.time()
             wake = min(next_batch, now + EVENT_SLICE_S)
             if wake > now:
                 await asyncio.sleep(wake - now)
-            if self._rate_changed:
-                self._rate_changed = False
-                next_batch = min(next_batch, loop.time() + self.period)
-            samples, events, lost = sub.take()
-            dropped += lost + max(0, len(pending) + len(samples) - (pending.maxlen or 0))
-            pending.extend(samples)
-            for event in events:
+            for event in sub.take_events():
                 await ws.send_text(event)
             now = loop.time()
             if now >= next_batch:
-                if pending or dropped:
-                    await ws.send_text(sub.telemetry_message(list(pending), dropped))
-                    pending.clear()
-                    dropped = 0
-                next_batch += self.period
-                if next_batch < loop.time():  # fell behind (slow socket): do not burst
-                    next_batch = loop.time() + self.period
+                msg = sub.take_message(until=next_batch)
+                if msg is not None:
+                    await ws.send_text(msg)
+                tick += 1
+                if tick * self.period < loop.time():  # fell behind (slow socket): do not burst
+                    tick = math.floor(loop.time() / self.period) + 1
+
+    async def _send_prompt(self, sub: Subscription) -> None:
+        """For a rate near the device's own (period up to PROMPT_PERIOD_S): a sample that
+        arrives when the last message is a period old goes out at once, not at the next tick,
+        so a command's effect (an estop) reaches the client one device round trip after it.
+        Still one message a period on average. Returns when the rate changes."""
+        ws = self.ws
+        loop = asyncio.get_running_loop()
+        next_send = loop.time()
+        while not self._rate_changed:
+            await sub.wait(EVENT_SLICE_S)
+            for event in sub.take_events():
+                await ws.send_text(event)
+            now = loop.time()
+            if now < next_send:
+                await asyncio.sleep(next_send - now)
+                now = loop.time()
+            msg = sub.take_message()
+            if msg is not None:
+                await ws.send_text(msg)
+                next_send = max(next_send + self.period, now)
 
     async def _receive(self) -> None:
         while True:

@@ -67,6 +67,12 @@ class Driver(abc.ABC):
         self.timeout = profile.link.timeout_s
         self._queue: asyncio.Queue[_Request] = asyncio.Queue(maxsize=profile.link.queue_size)
         self._task: asyncio.Task[None] | None = None
+        self._idle: asyncio.Future[None] | None = None  # the owner task's idle wait
+        self._poll_now = False  # poll_soon() was called
+        #: (positions, velocities, torques) of the last sample and its derived (tip, tip
+        #: velocity, tip force): reused while the readings do not change.
+        self._derived_key: tuple[list[float], list[float], list[float] | None] | None = None
+        self._derived: tuple[Any, Any, Any] | None = None
         self._seq = 0
         self._poll_failures = 0
         self.stale = True
@@ -113,6 +119,7 @@ class Driver(abc.ABC):
             self._queue.put_nowait(req)
         except asyncio.QueueFull:
             raise Busy(f"{self.name}: {self._queue.maxsize} requests already queued") from None
+        self._wake_owner()
         # Belt and braces: the owner task answers every request, but a caller never waits
         # longer than a full queue of timeouts (each may add one quiet period) plus a second.
         bound = (self._queue.maxsize + 1) * 2 * req.timeout + 1.0
@@ -122,6 +129,12 @@ class Driver(abc.ABC):
             fut.cancel()
             raise DeviceTimeout(f"{self.name}: the link task did not answer within "
                                 f"{bound:.1f} s") from None
+
+    def poll_soon(self) -> None:
+        """Poll now, ahead of the schedule: a state change the samples must show at once
+        (an emergency stop) gets a fresh sample within one device round trip."""
+        self._poll_now = True
+        self._wake_owner()
 
     def wait_connected(self, timeout: float) -> asyncio.Future[bool]:
         async def _wait() -> bool:
@@ -238,20 +251,49 @@ class Driver(abc.ABC):
         next_poll = loop.time()
         while True:
             now = loop.time()
-            if now >= next_poll - POLL_EARLY_S:
+            due = now >= next_poll - POLL_EARLY_S
+            if due or self._poll_now:
+                self._poll_now = False
                 await self._do_poll()
-                next_poll += period
-                if next_poll < loop.time() - POLL_CATCH_UP * period:  # far behind: skip ahead
-                    next_poll = loop.time() + period
+                if due:  # a poll asked for by poll_soon() leaves the schedule as it was
+                    next_poll += period
+                    if next_poll < loop.time() - POLL_CATCH_UP * period:  # far behind: skip
+                        next_poll = loop.time() + period
                 continue
             try:
                 req = self._queue.get_nowait()
             except asyncio.QueueEmpty:
-                try:
-                    req = await asyncio.wait_for(self._queue.get(), next_poll - POLL_EARLY_S - now)
-                except TimeoutError:
-                    continue
+                await self._idle_until(loop, next_poll - POLL_EARLY_S)
+                continue
             await self._serve(req)
+
+    async def _idle_until(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
+        """Wait for a request or loop time `when`, whichever is first: one bare future and one
+        timer the loop keeps (no task: `asyncio.wait_for` makes one per call on Python 3.11,
+        at every poll that was most of an idle arm's cost). `submit` resolves the future."""
+        fut = loop.create_future()
+        self._idle = fut
+        timer = loop.call_at(when, _resolve, fut)
+        try:
+            await fut
+        finally:
+            self._idle = None
+            timer.cancel()
+
+    def _wake_owner(self) -> None:
+        """A request was queued: end the owner task's idle wait (from any thread)."""
+        fut = self._idle
+        if fut is None or fut.done():
+            return
+        loop = fut.get_loop()
+        try:
+            same = asyncio.get_running_loop() is loop
+        except RuntimeError:
+            same = False
+        if same:
+            fut.set_result(None)
+        else:
+            loop.call_soon_threadsafe(_resolve, fut)
 
     async def _serve(self, req: _Request) -> None:
         if req.future.done():  # the caller gave up (cancelled) while queued
@@ -318,35 +360,50 @@ class Driver(abc.ABC):
 
     def _publish(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray | None, stale: bool) -> None:
         self._seq += 1
-        m = self.model
-        tip = m.fk(q)
-        J = m.jacobian(q)
-        tip_v = J @ qd
+        positions = q.tolist()
+        velocities = qd.tolist()
+        torques = None if tau is None else tau.tolist()
+        # An arm at rest reads the same values poll after poll: its tip, tip velocity and tip
+        # force are then those of the last sample, not worth a forward kinematics, a Jacobian
+        # and a solve again (most of a sample's cost; the encoded bytes are the same).
+        key = (positions, velocities, torques)
+        if key == self._derived_key and self._derived is not None:
+            tip, tip_v, force = self._derived
+        else:
+            m = self.model
+            J = m.jacobian(q)
+            tip, tip_v, force = _vec(m.fk(q)), _vec(J @ qd), None
+            if tau is not None:
+                f = m.tip_force(q, tau, J)
+                if f is not None and np.all(np.isfinite(f)):
+                    force = _vec(f)
+            self._derived_key, self._derived = key, (tip, tip_v, force)
         sample: dict[str, Any] = {
             "seq": self._seq,
             "time": time.time(),
-            "positions": [float(v) for v in q],
-            "velocities": [float(v) for v in qd],
-            "torques": None if tau is None else [float(v) for v in tau],
-            "tip": _vec(tip),
-            "tip_velocity": _vec(tip_v),
-            "tip_force": None,
+            "positions": positions,
+            "velocities": velocities,
+            "torques": torques,
+            "tip": tip,
+            "tip_velocity": tip_v,
+            "tip_force": force,
             "gripper": self.gripper,
             "motion": None,
             "estop": False,
             "link": self.link.state.value,
             "stale": stale,
         }
-        if tau is not None:
-            f = m.tip_force(q, tau, J)
-            if f is not None and np.all(np.isfinite(f)):
-                sample["tip_force"] = _vec(f)
         self.annotate(sample)
         self.hub.publish(sample)
 
     def _publish_stale(self) -> None:
         if self.positions is not None and self.velocities is not None:
             self._publish(self.positions, np.zeros_like(self.velocities), None, stale=True)
+
+
+def _resolve(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)
 
 
 def _vec(v: np.ndarray) -> dict[str, float]:

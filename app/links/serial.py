@@ -4,6 +4,10 @@ Works with a USB serial adapter (`/dev/ttyUSB0`, the Dynamixel U2D2), a pseudo-t
 (`/dev/pts/N` or a symlink to it, as `app/sim/serve.py` makes) and a TCP socket
 (`socket://127.0.0.1:PORT`). pyserial and pyserial-asyncio are imported only when a link
 is opened, so a server with no serial arm never loads them.
+
+Reads are buffered by an asyncio Protocol: bytes land in a buffer as the loop receives them,
+a read with bytes waiting returns them at once, and a read that must wait does so on one timer
+the loop keeps (no task per read, as `asyncio.wait_for` would make).
 """
 
 from __future__ import annotations
@@ -19,6 +23,42 @@ READ_CHUNK = 4096  # bytes per read: several Dynamixel status packets, far above
 CLOSE_TIMEOUT_S = 1.0  # closing a transport whose peer is gone must not hang the owner task
 
 
+class _Buffered(asyncio.Protocol):
+    """Received bytes, the end of the connection, and write flow control."""
+
+    def __init__(self) -> None:
+        self.buf = bytearray()
+        self.transport: asyncio.Transport | None = None
+        self.ended: str | None = None  # why the connection ended, once it has
+        self.waiter: asyncio.Future[None] | None = None
+        self.paused: asyncio.Future[None] | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+
+    def data_received(self, data: bytes) -> None:
+        self.buf += data
+        _resolve(self.waiter)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.ended = str(exc) if exc is not None else "closed by the peer (end of file)"
+        _resolve(self.waiter)
+        _resolve(self.paused)
+
+    def pause_writing(self) -> None:
+        if self.paused is None:
+            self.paused = asyncio.get_running_loop().create_future()
+
+    def resume_writing(self) -> None:
+        paused, self.paused = self.paused, None
+        _resolve(paused)
+
+
+def _resolve(fut: asyncio.Future[None] | None) -> None:
+    if fut is not None and not fut.done():
+        fut.set_result(None)
+
+
 class SerialLink(Link):
     """A stream link: `read` returns whatever bytes have arrived (up to READ_CHUNK)."""
 
@@ -28,13 +68,12 @@ class SerialLink(Link):
     def __init__(self, address: str, baudrate: int = 1_000_000) -> None:
         super().__init__(address)
         self.baudrate = baudrate
-        self._reader: asyncio.StreamReader | None = None
-        self._writer: asyncio.StreamWriter | None = None
+        self._proto: _Buffered | None = None
         self._errors: tuple[type[BaseException], ...] = (OSError,)
 
     async def open(self) -> None:
         """Open the port; LinkError naming the URL and the reason if it cannot be opened."""
-        if self._writer is not None:
+        if self._proto is not None:
             await self.close()
         self.state = LinkState.CONNECTING
         try:
@@ -44,9 +83,11 @@ class SerialLink(Link):
             raise self._down(f"pyserial-asyncio not available: {exc}") from exc
         self._errors = (OSError, serial.SerialException)
         try:
-            self._reader, self._writer = await serial_asyncio.open_serial_connection(
-                url=self.address, baudrate=self.baudrate
+            transport, proto = await serial_asyncio.create_serial_connection(
+                asyncio.get_running_loop(), _Buffered, url=self.address, baudrate=self.baudrate
             )
+            proto.transport = transport  # connection_made comes later, from call_soon
+            self._proto = proto
         except (*self._errors, ValueError) as exc:
             raise self._down(f"cannot open {self.address}: {exc}") from exc
         self.state = LinkState.UP
@@ -54,48 +95,65 @@ class SerialLink(Link):
         log.info("serial link %s open at %d baud", self.address, self.baudrate)
 
     async def write(self, data: bytes) -> None:
-        writer = self._require()[1]
-        if writer.is_closing():
-            raise self._lost("closed")
+        proto = self._require()
+        transport = proto.transport
+        if proto.ended is not None or transport is None or transport.is_closing():
+            raise self._lost(proto.ended or "closed")
         try:
-            writer.write(data)
-            await writer.drain()
+            transport.write(data)
         except self._errors as exc:
             raise self._lost(str(exc)) from exc
+        if proto.paused is not None:  # the transport's buffer is full: wait for it to drain
+            await asyncio.shield(proto.paused)
+            if proto.ended is not None:
+                raise self._lost(proto.ended)
 
     async def read(self, timeout: float) -> bytes:
-        reader = self._require()[0]
-        try:
-            # Cancelling StreamReader.read loses nothing: unread bytes stay in its buffer.
-            data = await asyncio.wait_for(reader.read(READ_CHUNK), timeout)
-        except TimeoutError:
-            return b""
-        except self._errors as exc:
-            raise self._lost(str(exc)) from exc
-        if not data:
-            raise self._lost("closed by the peer (end of file)")
-        return data
+        proto = self._require()
+        if not proto.buf and proto.ended is None:
+            loop = asyncio.get_running_loop()
+            fut = loop.create_future()
+            proto.waiter = fut
+            timer = loop.call_at(loop.time() + timeout, _resolve, fut)
+            try:
+                await fut
+            finally:
+                proto.waiter = None
+                timer.cancel()
+        if proto.buf:  # bytes that arrived before the connection ended are still read
+            data = bytes(proto.buf[:READ_CHUNK])
+            del proto.buf[:READ_CHUNK]
+            return data
+        if proto.ended is not None:
+            raise self._lost(proto.ended)
+        return b""
 
     async def close(self) -> None:
-        writer, self._reader, self._writer = self._writer, None, None
+        proto, self._proto = self._proto, None
         self.state = LinkState.DOWN
-        if writer is None:
+        if proto is None or proto.transport is None:
             return
-        writer.close()
-        try:
-            await asyncio.wait_for(writer.wait_closed(), CLOSE_TIMEOUT_S)
-        except (TimeoutError, *self._errors) as exc:
-            log.debug("serial link %s closed with %r", self.address, exc)
+        proto.transport.close()
+        if proto.ended is None:
+            done = asyncio.get_running_loop().create_future()
+            proto.waiter = done
+            timer = asyncio.get_running_loop().call_later(CLOSE_TIMEOUT_S, _resolve, done)
+            try:
+                await done  # connection_lost, or CLOSE_TIMEOUT_S: a gone peer must not hang us
+            finally:
+                timer.cancel()
+        if proto.ended is None:
+            log.debug("serial link %s not closed within %.1f s", self.address, CLOSE_TIMEOUT_S)
 
-    def _require(self) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
-        if self._reader is None or self._writer is None or self.state is not LinkState.UP:
+    def _require(self) -> _Buffered:
+        if self._proto is None or self.state is not LinkState.UP:
             raise LinkError(self.last_error or f"serial link {self.address} is not open")
-        return self._reader, self._writer
+        return self._proto
 
     def _lost(self, reason: str) -> LinkError:
         """Mark the link DOWN, drop the transport and return the error to raise."""
-        writer, self._reader, self._writer = self._writer, None, None
-        if writer is not None:
-            writer.close()
+        proto, self._proto = self._proto, None
+        if proto is not None and proto.transport is not None:
+            proto.transport.close()
         log.warning("serial link %s lost: %s", self.address, reason)
         return self._down(f"serial link {self.address} lost: {reason}")

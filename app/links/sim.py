@@ -37,7 +37,7 @@ class SimLink(Link):
         self.packetized = device.packetized
         self._reply_faults = ReplyFaults(faults, seed)
         self._replies: deque[tuple[float, bytes]] = deque()  # (delivery time, bytes), in order
-        self._arrived = asyncio.Event()
+        self._waiter: asyncio.Future[None] | None = None  # a read waiting for bytes
         self._down_at: float | None = None  # loop time of the next scheduled disconnect
         self._up_at = float("-inf")  # loop time the "cable" is back after a disconnect
 
@@ -62,7 +62,7 @@ class SimLink(Link):
             self._check()
         else:
             self._up_at = max(self._up_at, now + self.faults.reconnect_after_s)
-        self._arrived.set()
+        self._wake()
 
     # --- Link --------------------------------------------------------------------------
 
@@ -85,9 +85,11 @@ class SimLink(Link):
                 continue
             last = max(last, now + delay + self.faults.latency_s)  # never reorder
             self._replies.append((last, out))
-        self._arrived.set()
+        self._wake()
 
     async def read(self, timeout: float) -> bytes:
+        """The due reply bytes, waiting on one timer the loop keeps until the next delivery,
+        the deadline or a disconnect, whichever is first (no task per read)."""
         self._require()
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
@@ -96,24 +98,27 @@ class SimLink(Link):
             now = loop.time()
             if self._replies and self._replies[0][0] <= now:
                 return self._take(now)
+            if now >= deadline:
+                return b""
             wake = deadline
             if self._replies:
                 wake = min(wake, self._replies[0][0])
             if self._down_at is not None:
                 wake = min(wake, self._down_at)
-            if now >= deadline:
-                return b""
-            self._arrived.clear()
+            fut = loop.create_future()
+            self._waiter = fut
+            timer = loop.call_at(wake, _resolve, fut)
             try:
-                await asyncio.wait_for(self._arrived.wait(), max(0.0, wake - now))
-            except TimeoutError:
-                pass
+                await fut
+            finally:
+                self._waiter = None
+                timer.cancel()
 
     async def close(self) -> None:
         self.state = LinkState.DOWN
         self._replies.clear()
         self._down_at = None
-        self._arrived.set()
+        self._wake()
 
     # --- internals ---------------------------------------------------------------------
 
@@ -125,6 +130,11 @@ class SimLink(Link):
         while self._replies and self._replies[0][0] <= now:
             chunks.append(self._replies.popleft()[1])
         return b"".join(chunks)
+
+    def _wake(self) -> None:
+        fut = self._waiter
+        if fut is not None and not fut.done():
+            fut.set_result(None)
 
     def _schedule_disconnect(self, now: float) -> None:
         after = self.faults.disconnect_after_s
@@ -147,3 +157,8 @@ class SimLink(Link):
     @staticmethod
     def _now() -> float:
         return asyncio.get_running_loop().time()
+
+
+def _resolve(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)

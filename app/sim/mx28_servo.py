@@ -42,6 +42,20 @@ _GAINS = ("velocity_i_gain", "velocity_p_gain", "position_d_gain", "position_i_g
           "position_p_gain", "feedforward_2nd_gain", "feedforward_1st_gain")
 
 
+def _span(*names: str) -> slice:
+    items = [mx28.TABLE[n] for n in names]
+    return slice(min(i.address for i in items), max(i.address + i.size for i in items))
+
+
+#: The items `_publish` reads (torque enable, moving threshold, goal position) and writes.
+_PUB_READS_A = _span("torque_enable")
+_PUB_READS_B = _span("moving_threshold")
+_PUB_READS_C = _span("goal_position")
+_PUB_WRITES = _span("present_position", "position_trajectory", "present_velocity",
+                    "velocity_trajectory", "present_load", "present_pwm", "present_input_voltage",
+                    "present_temperature", "moving", "moving_status")
+
+
 class Mx28Servo:
     """A servo on the bus. `read`/`write` return ErrorCode values (0: success)."""
 
@@ -51,6 +65,7 @@ class Mx28Servo:
         self.vel = 0.0  # ticks/s
         self.acc = 0.0  # ticks/s^2 during the last step
         self.registered: tuple[int, bytes] | None = None
+        self._published: tuple[object, ...] | None = None  # `_publish`'s inputs and outputs
         self._eeprom_defaults(keep_id=False, keep_baud=False)
         self.set("id", id)
         self.set("baud_rate", baud_code)
@@ -212,6 +227,12 @@ class Mx28Servo:
             self._publish(0.0)
             return
         mode = self.get("operating_mode")
+        if (mode in (POSITION, EXTENDED) and self.vel == 0.0
+                and self.pos == float(self.get("goal_position"))):
+            # At rest on its goal: every step would leave it there with no acceleration.
+            self.acc = 0.0
+            self._publish(0.0)
+            return
         t_left = dt
         while t_left > 1e-12:
             h = min(STEP_S, t_left)
@@ -260,6 +281,17 @@ class Mx28Servo:
         self.vel = v_new
 
     def _publish(self, vel: float) -> None:
+        # Polled at rest, the Present* items come out the same every time: skip the writes when
+        # neither the motion state, the items they read nor the items they write have changed.
+        mem = self.mem
+        key = (vel, self.acc, self.pos, bytes(mem[_PUB_READS_A]), bytes(mem[_PUB_READS_B]),
+               bytes(mem[_PUB_READS_C]), bytes(mem[_PUB_WRITES]))
+        if key == self._published:
+            return
+        self._write_present(vel)
+        self._published = key[:-1] + (bytes(mem[_PUB_WRITES]),)
+
+    def _write_present(self, vel: float) -> None:
         raw_vel = int(round(vel / VEL_UNIT))
         moving = abs(raw_vel) > self.get("moving_threshold")
         load = 0

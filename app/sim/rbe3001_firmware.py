@@ -134,6 +134,8 @@ class Rbe3001Firmware:
         self.claw_setpoint = 0.0
         self._t: float | None = None
         self.cycles = 0
+        #: `_inputs()` when the last cycle changed nothing (None while anything moves).
+        self._rest: tuple[object, ...] | None = None
 
     # --- SimDevice --------------------------------------------------------------------
 
@@ -156,8 +158,39 @@ class Rbe3001Firmware:
         if now - self._t > MAX_CATCHUP_S:
             self._t = now - MAX_CATCHUP_S
         while self._t + CYCLE_S <= now + 1e-12:
-            self._cycle()
+            if self._rest is not None and self._rest == self._inputs():
+                self._skip_cycle()  # at rest: a cycle would change nothing but the counters
+            else:
+                before = self._state() if self._still() else None
+                self._cycle()
+                still = before is not None and self._still() and self._state() == before
+                self._rest = self._inputs() if still else None
             self._t += CYCLE_S
+
+    # --- at rest: the same bytes without the arithmetic --------------------------------
+
+    def _inputs(self) -> tuple[object, ...]:
+        """Everything a cycle reads that a command or a test may change."""
+        return (self.q[:], self.qd[:], self.setpoint[:], [g[:] for g in self.gains],
+                self.enabled[:], self.claw, self.claw_setpoint, self.m_tip)
+
+    def _state(self) -> tuple[object, ...]:
+        """Everything a cycle writes, but its counters."""
+        return (self.q[:], self.qd[:], self.torque[:], [tuple(d) for d in self._samples],
+                [tuple(d) for d in self._strain], self._integral[:], self._last_error[:],
+                self.claw)
+
+    def _still(self) -> bool:
+        """No joint moving and the velocity estimate already the zero it would compute."""
+        return (not any(self.qd) and list(self.position_ticks) == self._vel_ref
+                and all(v == 0.0 and math.copysign(1.0, v) > 0 for v in self.velocity_ticks_s))
+
+    def _skip_cycle(self) -> None:
+        """What `_cycle` does to a state it leaves unchanged: count."""
+        self._vel_count += 1
+        if self._vel_count >= VELOCITY_CYCLES:
+            self._vel_count = 0
+        self.cycles += 1
 
     # --- readings ---------------------------------------------------------------------
 

@@ -1,0 +1,324 @@
+"""The sample pipeline's cost rules (issue 12), as behaviour: one encoding per sample shared by
+every subscriber and the state route, no task per read in the owner loop and the links, and
+simulators that skip work at rest while producing the same bytes. No timing is asserted."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+from collections import deque
+
+import numpy as np
+import pytest
+
+from app.config import load_profile
+from app.devices.factory import make_sim_device
+from app.devices.rbe3001 import Rbe3001Driver
+from app.links.serial import SerialLink
+from app.links.sim import SimLink
+from app.sim.mx28_servo import STEP_S, Mx28Servo
+from app.sim.rbe3001_firmware import CYCLE_S, Rbe3001Firmware
+from app.sim.serve import serve_tcp
+from app.telemetry import TelemetryHub
+from protocol import rbe3001 as rb
+
+
+def _sample(seq: int) -> dict[str, object]:
+    return {"seq": seq, "time": 1.0, "positions": [0.1 * seq, np.float64(0.5)], "estop": False}
+
+
+# ------------------------------------------------------------------ the hub
+
+
+def test_subscribers_share_one_encoding_and_one_message() -> None:
+    hub = TelemetryHub("arm")
+    a, b = hub.subscribe(), hub.subscribe()
+    for k in range(1, 6):
+        hub.publish(_sample(k))
+    ma, mb = a.take_message(), b.take_message()
+    assert ma is not None and ma is mb  # built once, shared
+    msg = json.loads(ma)
+    assert msg["type"] == "telemetry" and msg["arm"] == "arm" and msg["dropped"] == 0
+    assert [s["seq"] for s in msg["samples"]] == [1, 2, 3, 4, 5]
+    assert msg["samples"][0]["positions"] == [0.1, 0.5]  # numpy scalars encoded as numbers
+    assert a.take_message() is None  # nothing new
+    # the state route's bytes are the same encoding as the stream's
+    assert hub.latest_bytes == json.dumps(msg["samples"][-1], separators=(",", ":")).encode()
+    assert hub.latest_json == hub.latest_bytes.decode()
+
+
+def test_take_message_until_keeps_later_samples_for_the_next_batch() -> None:
+    hub = TelemetryHub("arm")
+    sub = hub.subscribe()
+    for k in (1, 2, 3):
+        hub.publish(_sample(k))
+    # publish times 10, 20, 30 s: a batch cut at 25 s holds samples 1 and 2, and 3 waits
+    hub._stamps = deque([10.0, 20.0, 30.0], maxlen=hub._stamps.maxlen)
+    first = json.loads(sub.take_message(until=25.0) or "{}")
+    assert [s["seq"] for s in first["samples"]] == [1, 2]
+    assert sub.take_message(until=25.0) is None
+    second = json.loads(sub.take_message(until=31.0) or "{}")
+    assert [s["seq"] for s in second["samples"]] == [3]
+
+
+def test_backlog_bound_counts_drops_per_subscriber() -> None:
+    hub = TelemetryHub("arm", backlog=50)
+    slow = hub.subscribe(backlog=5)
+    fast = hub.subscribe()
+    for k in range(1, 13):
+        hub.publish(_sample(k))
+    samples, _, dropped = slow.take()
+    assert [json.loads(s)["seq"] for s in samples] == [8, 9, 10, 11, 12] and dropped == 7
+    msg = json.loads(fast.take_message() or "{}")
+    assert len(msg["samples"]) == 12 and msg["dropped"] == 0
+    for k in range(13, 20):
+        hub.publish(_sample(k))
+    msg = json.loads(slow.take_message() or "{}")
+    assert [s["seq"] for s in msg["samples"]] == [15, 16, 17, 18, 19] and msg["dropped"] == 2
+
+
+def test_a_larger_backlog_grows_the_shared_log() -> None:
+    hub = TelemetryHub("arm", backlog=4)
+    sub = hub.subscribe(backlog=10)
+    for k in range(1, 11):
+        hub.publish(_sample(k))
+    samples, _, dropped = sub.take()
+    assert len(samples) == 10 and dropped == 0
+
+
+async def test_publish_from_another_thread_is_gap_free_and_wakes_a_waiter() -> None:
+    hub = TelemetryHub("arm", backlog=100_000)
+    hub.publish(_sample(0))
+    sub = hub.subscribe()
+    assert sub.initial is not None and json.loads(sub.initial)["seq"] == 0
+
+    def publisher() -> None:
+        for k in range(1, 20_001):
+            hub.publish(_sample(k))
+
+    waiting = asyncio.ensure_future(sub.wait(5.0))
+    await asyncio.sleep(0)
+    t = threading.Thread(target=publisher)
+    t.start()
+    assert await waiting is True
+    seqs: list[int] = []
+    while t.is_alive() or sub.pending:
+        samples, _, dropped = sub.take()
+        assert dropped == 0
+        seqs += [json.loads(s)["seq"] for s in samples]
+        await asyncio.sleep(0.001)
+    t.join()
+    assert seqs == list(range(1, 20_001))
+
+
+async def test_wait_times_out_without_a_sample() -> None:
+    hub = TelemetryHub("arm")
+    sub = hub.subscribe()
+    assert await sub.wait(0.01) is False
+    hub.event("estop", latched=True)
+    assert await sub.wait(0.01) is True
+    assert '"event":"estop"' in sub.take_events()[0]
+
+
+# ------------------------------------------------------------------ no task per read
+
+
+class _TaskCounter:
+    """Counts the tasks created on the running loop (the loop's own task factory hook)."""
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def __call__(self, loop, coro, **kwargs):  # type: ignore[no-untyped-def]
+        self.count += 1
+        return asyncio.Task(coro, loop=loop, **kwargs)
+
+
+async def _polls_without_tasks(driver: Rbe3001Driver) -> None:
+    await driver.start()
+    assert await driver.wait_connected(10.0)
+    loop = asyncio.get_running_loop()
+    counter = _TaskCounter()
+    published0 = driver.hub.published
+    loop.set_task_factory(counter)
+    try:
+        await asyncio.sleep(0.3)
+    finally:
+        loop.set_task_factory(None)
+    assert driver.hub.published - published0 >= 10  # answered polls, each a sample
+    assert counter.count == 0  # asyncio.wait_for made one per read
+
+
+async def test_owner_loop_and_sim_link_poll_without_creating_tasks() -> None:
+    profile = load_profile("rbe3001")
+    driver = Rbe3001Driver(profile, SimLink(make_sim_device(profile)), TelemetryHub("rbe3001"))
+    try:
+        await _polls_without_tasks(driver)
+    finally:
+        await driver.close()
+
+
+async def test_serial_link_polls_without_creating_tasks() -> None:
+    profile = load_profile("rbe3001")
+    server = await serve_tcp(make_sim_device(profile))
+    link = SerialLink(f"socket://127.0.0.1:{server.port}")
+    driver = Rbe3001Driver(profile, link, TelemetryHub("rbe3001"))
+    try:
+        await _polls_without_tasks(driver)
+    finally:
+        await driver.close()
+        await server.close()
+
+
+async def test_a_request_wakes_the_idle_owner_loop_before_its_next_poll() -> None:
+    base = load_profile("rbe3001")  # polled every 5 s: the owner loop idles between polls
+    profile = base.model_copy(update={"link": base.link.model_copy(update={"poll_hz": 0.2})})
+    driver = Rbe3001Driver(profile, SimLink(make_sim_device(profile)), TelemetryHub("rbe3001"))
+    await driver.start()
+    try:
+        assert await driver.wait_connected(10.0)
+        await asyncio.sleep(0.05)
+        polls = driver.stats["polls"]
+        reply = await driver.status()  # served at once, not after the next poll
+        assert isinstance(reply, rb.StatusReply) and driver.stats["polls"] == polls
+    finally:
+        await driver.close()
+
+
+# ------------------------------------------------------------------ derived values at rest
+
+
+def test_a_sample_at_rest_reuses_derived_values_that_equal_a_fresh_computation() -> None:
+    profile = load_profile("rbe3001")
+    driver = Rbe3001Driver(profile, SimLink(make_sim_device(profile)), TelemetryHub("rbe3001"))
+    q, qd, tau = np.array([0.1, 0.6, 0.3]), np.zeros(3), np.array([0.01, -0.2, 0.05])
+    driver._publish(q, qd, tau, stale=False)
+    first = driver.hub.latest
+    driver._publish(q.copy(), qd.copy(), tau.copy(), stale=False)
+    second = driver.hub.latest
+    assert first is not None and second is not None and second["seq"] == first["seq"] + 1
+    assert second["tip"] is first["tip"] and second["tip_force"] is first["tip_force"]
+    np.testing.assert_allclose([second["tip"][k] for k in "xyz"], driver.model.fk(q))
+    q2 = q + 0.05
+    driver._publish(q2, qd, tau, stale=False)
+    third = driver.hub.latest
+    assert third is not None
+    np.testing.assert_allclose([third["tip"][k] for k in "xyz"], driver.model.fk(q2))
+
+
+# ------------------------------------------------------------------ simulators at rest
+
+
+class _AlwaysStepping(Rbe3001Firmware):
+    """The firmware sim with its rest shortcut off: every cycle computed."""
+
+    def _still(self) -> bool:
+        return False
+
+
+def test_rbe3001_sim_at_rest_answers_the_same_bytes_as_stepping_every_cycle() -> None:
+    profile = load_profile("rbe3001")
+    lazy, full = Rbe3001Firmware(profile), _AlwaysStepping(profile)
+    status = rb.encode_command(rb.Status())
+    goal = rb.encode_command(rb.SetPid((rb.JointSetpoint(300.0, 0, 0),
+                                        rb.JointSetpoint(500.0, 0, 0),
+                                        rb.JointSetpoint(-200.0, 0, 0))))
+    t, skipped = 100.0, 0
+    for k in range(3000):  # 6 s at 500 Hz: a move, settling, a long rest, a second move
+        t += 0.002
+        packet = goal if k in (10, 2000) else status
+        c0 = lazy.cycles
+        assert lazy.receive(packet, t) == full.receive(packet, t), k
+        skipped += lazy._rest is not None and lazy.cycles > c0
+    assert lazy.cycles == full.cycles and lazy.q == full.q
+    assert skipped > 500  # it did rest (and skip) for a good part of the run
+    assert t - 100.0 > 1000 * CYCLE_S
+
+
+def test_mx28_servo_resting_on_its_goal_matches_stepping() -> None:
+    lazy, full = Mx28Servo(1), Mx28Servo(1)
+    for s in (lazy, full):
+        s.set("torque_enable", 1)
+        s.set("goal_position", 2100)
+    for k in range(1, 400):
+        now = 10.0 + k * 0.005
+        lazy.advance(0.005, now)
+        # the reference: every 1 ms step computed, every Present* item written
+        full.set("realtime_tick", int(now * 1000) % 32768)
+        for _ in range(5):
+            full._step_position(STEP_S)
+        full._write_present(full.vel)
+        assert lazy.mem == full.mem, k
+        if k == 200:
+            for s in (lazy, full):
+                s.set("goal_position", 1900)
+    assert lazy.pos == 1900.0 and lazy.get("present_position") == 1900
+
+
+@pytest.mark.parametrize("name", ["rbe3001", "angler"])
+def test_state_route_bytes_are_the_hub_encoding(name: str) -> None:
+    hub = TelemetryHub(name)
+    hub.publish({"seq": 1, "tip": {"x": 0.1, "y": -0.0, "z": 1e-17}, "motion": None})
+    assert hub.latest_bytes == b'{"seq":1,"tip":{"x":0.1,"y":-0.0,"z":1e-17},"motion":null}'
+
+
+# ------------------------------------------------------------------ the state route
+
+
+async def test_state_fast_path_answers_the_published_bytes_and_leaves_errors_alone() -> None:
+    from conftest import make_settings, running_client
+
+    from app.api.arms import StateFastPath
+
+    settings = make_settings(operator_tokens="op-token", viewer_tokens="view-token")
+    async with running_client(settings) as (app, client):
+        assert isinstance(app.router.routes[0], StateFastPath)  # ahead of every other route
+        hub = app.state.services["rbe3001"].hub
+        ok = {"authorization": "Bearer view-token"}
+        r = await client.get("/api/v1/arms/rbe3001/state", headers=ok)
+        assert r.status_code == 200 and r.headers["content-type"] == "application/json"
+        body = json.loads(r.content)
+        assert body["seq"] <= hub.latest["seq"] and set(body) == set(hub.latest)
+        # errors still come from the regular route, with their codes
+        r = await client.get("/api/v1/arms/rbe3001/state")
+        assert r.status_code == 401 and r.json()["code"] == "unauthorized"
+        r = await client.get("/api/v1/arms/nope/state", headers=ok)
+        assert r.status_code == 404 and r.json()["code"] == "unknown_arm"
+        r = await client.get("/api/v1/arms/" + "x" * 65 + "/state", headers=ok)
+        assert r.status_code in (404, 422) and "code" in r.json()
+        r = await client.post("/api/v1/arms/rbe3001/state", headers=ok)
+        assert r.status_code == 405
+        # the OpenAPI document still shows the response model
+        doc = (await client.get("/openapi.json")).json()
+        ok200 = doc["paths"]["/api/v1/arms/{arm}/state"]["get"]["responses"]["200"]
+        assert ok200["content"]["application/json"]["schema"]["$ref"].endswith("/Sample")
+
+
+async def test_poll_soon_takes_a_poll_ahead_of_a_slow_schedule() -> None:
+    base = load_profile("rbe3001")  # polled every 10 s
+    profile = base.model_copy(update={"link": base.link.model_copy(update={"poll_hz": 0.1})})
+    driver = Rbe3001Driver(profile, SimLink(make_sim_device(profile)), TelemetryHub("rbe3001"))
+    await driver.start()
+    try:
+        assert await driver.wait_connected(10.0)
+        sub = driver.hub.subscribe()
+        published = driver.hub.published
+        driver.poll_soon()
+        assert await sub.wait(5.0)  # half the poll period: only poll_soon can explain it
+        assert driver.hub.published == published + 1
+    finally:
+        await driver.close()
+
+
+def test_a_batch_cut_before_the_newest_samples_never_reaches_past_the_log() -> None:
+    hub = TelemetryHub("arm", backlog=5)
+    sub = hub.subscribe()
+    for k in range(1, 21):
+        hub.publish(_sample(k))
+    # log holds 16..20; cut after sample 18: the batch is 16..18 and 4..15 are dropped
+    hub._stamps = deque([1.0, 2.0, 3.0, 4.0, 5.0], maxlen=5)
+    msg = json.loads(sub.take_message(until=3.5) or "{}")
+    assert [s["seq"] for s in msg["samples"]] == [16, 17, 18] and msg["dropped"] == 15
+    msg = json.loads(sub.take_message() or "{}")
+    assert [s["seq"] for s in msg["samples"]] == [19, 20] and msg["dropped"] == 0
