@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Request, Response
 
 from app import schemas as s
 from app.api.common import READ, errors
@@ -18,10 +18,13 @@ router = APIRouter(tags=["arms"])
     description="Open to everyone (no token needed). `status` is `ok` when every arm's link "
     "is up, `degraded` otherwise; the server itself answers either way.",
 )
-async def health(services: ServicesDep, settings: SettingsDep) -> s.Health:
+async def health(request: Request, services: ServicesDep, settings: SettingsDep) -> s.Health:
     links = {name: svc.link_status() for name, svc in services.items()}
     ok = all(link.connected for link in links.values())
-    return s.Health(status="ok" if ok else "degraded", arms=links, auth=settings.auth_enabled)
+    bridge = getattr(request.app.state, "mqtt", None)
+    mqtt = s.MqttStatus.model_validate(bridge.status()) if bridge is not None else None
+    return s.Health(status="ok" if ok else "degraded", arms=links, auth=settings.auth_enabled,
+                    mqtt=mqtt)
 
 
 @router.get(
