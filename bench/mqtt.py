@@ -37,6 +37,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import httpx
 import websockets
 from _server import ROOT, pct, pin_apart  # bench/_server.py
 
@@ -165,9 +166,11 @@ class Server:
         with urllib.request.urlopen(self.url + "/api/v1/health", timeout=2) as r:
             return json.loads(r.read())  # type: ignore[no-any-return]
 
-    def published(self, arm: str) -> int:
-        with urllib.request.urlopen(f"{self.url}/api/v1/arms/{arm}/state", timeout=2) as r:
-            return int(json.loads(r.read())["seq"])
+    async def published(self, arms: list[str]) -> dict[str, int]:
+        """Each arm's latest `seq` (the samples published so far)."""
+        async with httpx.AsyncClient(base_url=self.url, timeout=30) as http:
+            replies = await asyncio.gather(*(http.get(f"/api/v1/arms/{a}/state") for a in arms))
+        return {a: int(r.json()["seq"]) for a, r in zip(arms, replies, strict=True)}
 
     def cpu_seconds(self) -> float:
         f = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -226,14 +229,14 @@ async def run_on(srv: Server, args: argparse.Namespace, broker: Broker | None,
         tasks = [asyncio.create_task(s.run(broker.port)) for s in subs]
         tasks.append(asyncio.create_task(stalled.run(broker.port, stall_release)))
     await asyncio.sleep(2.0)  # connected and subscribed; the stalled one is stalled
-    first = {a: srv.published(a) for a in arms}
+    first = await srv.published(arms)
     cpu0, t0 = srv.cpu_seconds(), time.monotonic()
     for s in subs:
         s.recording = True
     times = await sample_times(f"ws://127.0.0.1:{srv.port}/api/v1/arms/{arms[0]}/telemetry"
                                "?rate=10", args.seconds)
     cpu = (srv.cpu_seconds() - cpu0) / (time.monotonic() - t0)
-    last = {a: srv.published(a) for a in arms}
+    last = await srv.published(arms)
     # what was published in the window reaches the subscribers (or 10 s pass)
     def caught_up() -> bool:
         return all(max(s.seqs.get(a, {0})) >= last[a] for s in subs
@@ -246,7 +249,7 @@ async def run_on(srv: Server, args: argparse.Namespace, broker: Broker | None,
     for s in subs:
         s.recording = False
     stall_release.set()
-    health = srv.health()
+    health = await asyncio.to_thread(srv.health)
     for t in tasks:
         t.cancel()
     await asyncio.gather(*tasks, return_exceptions=True)
