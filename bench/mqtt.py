@@ -163,7 +163,7 @@ class Server:
         raise RuntimeError("the server did not become healthy")
 
     def health(self) -> dict:  # type: ignore[type-arg]
-        with urllib.request.urlopen(self.url + "/api/v1/health", timeout=2) as r:
+        with urllib.request.urlopen(self.url + "/api/v1/health", timeout=20) as r:
             return json.loads(r.read())  # type: ignore[no-any-return]
 
     async def published(self, arms: list[str]) -> dict[str, int]:
