@@ -43,7 +43,7 @@ run-lab: install mosquitto
 	@mkdir -p $(LAB_DIR)
 	@printf 'persistence false\nlistener 1883 127.0.0.1\nallow_anonymous true\nlistener 9001 127.0.0.1\nprotocol websockets\n' > $(LAB_DIR)/mosquitto.conf
 	@PATH="$$PATH:/usr/sbin"; mosquitto -c $(LAB_DIR)/mosquitto.conf & MQ=$$!; \
-	  trap 'kill $$MQ' EXIT INT TERM; \
+	  trap 'kill $$MQ 2>/dev/null' EXIT INT TERM; \
 	  ARMSERVER_MQTT_URL=mqtt://127.0.0.1:1883 $(BIN)/armserver serve --host $(HOST) --port $(PORT)
 
 run: install
