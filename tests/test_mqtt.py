@@ -14,6 +14,7 @@ import contextlib
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -173,6 +174,40 @@ async def test_broker_refusing_our_credentials_is_reported(tmp_path: Path) -> No
         good = make_settings(mqtt_url=f"mqtt://armserver:right-pass@127.0.0.1:{broker.port}")
         async with running_client(good) as (_, client):
             await wait_health(client, "up")
+
+
+async def test_a_broker_that_never_answers_costs_the_server_nothing() -> None:
+    """A TCP peer that accepts and never answers CONNACK: the bridge times out and says so;
+    the arms, REST and the WebSocket hub run as if there were no bridge."""
+    silent = socket.create_server(("127.0.0.1", 0))
+    accepted: list[socket.socket] = []
+    silent.settimeout(0.05)
+    port = silent.getsockname()[1]
+    try:
+        settings = make_settings(mqtt_url=f"mqtt://127.0.0.1:{port}")
+        async with running_client(settings) as (app, client):
+            sub = app.state.services["rbe3001"].hub.subscribe()
+            for _ in range(40):  # accept what the bridge opens, never answer it
+                with contextlib.suppress(OSError):
+                    accepted.append(silent.accept()[0])
+                await asyncio.sleep(0.05)
+            seq0 = (await client.get("/api/v1/arms/rbe3001/state")).json()["seq"]
+            health = await wait_health(client, "down", timeout=20)
+            assert accepted, "the bridge never tried the broker"
+            assert health["connects"] == 0 and "timed out" in health["last_error"].lower()
+            seq1 = (await client.get("/api/v1/arms/rbe3001/state")).json()["seq"]
+            assert seq1 > seq0
+            samples, _, dropped = sub.take()
+            sub.close()
+            seqs = [json.loads(x)["seq"] for x in samples]
+            assert dropped == 0 and seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+            move = await client.post("/api/v1/arms/rbe3001/move/joints",
+                                     json={"positions": [0.1, 0.0, 0.0], "wait": True})
+            assert move.json()["status"] == "done"
+    finally:
+        for c in accepted:
+            c.close()
+        silent.close()
 
 
 async def test_without_url_there_is_no_bridge(app_client: httpx.AsyncClient) -> None:
