@@ -235,8 +235,9 @@ async def run_on(srv: Server, args: argparse.Namespace, broker: Broker | None,
         s.recording = True
     times = await sample_times(f"ws://127.0.0.1:{srv.port}/api/v1/arms/{arms[0]}/telemetry"
                                "?rate=10", args.seconds)
-    cpu = (srv.cpu_seconds() - cpu0) / (time.monotonic() - t0)
+    cpu_s, wall = srv.cpu_seconds() - cpu0, time.monotonic() - t0
     last = await srv.published(arms)
+    samples = sum(last[a] - first[a] for a in arms)
     # what was published in the window reaches the subscribers (or 10 s pass)
     def caught_up() -> bool:
         return all(max(s.seqs.get(a, {0})) >= last[a] for s in subs
@@ -255,7 +256,9 @@ async def run_on(srv: Server, args: argparse.Namespace, broker: Broker | None,
     await asyncio.gather(*tasks, return_exceptions=True)
     for s in [*subs, *([stalled] if stalled else [])]:
         s.close()
-    out: dict[str, object] = {"cpu": cpu, "jitter": jitter_ms(times, args.hz),
+    out: dict[str, object] = {"cpu": cpu_s / wall, "cpu_per_sample_us": 1e6 * cpu_s / samples,
+                              "poll_hz": samples / len(arms) / wall,
+                              "jitter": jitter_ms(times, args.hz),
                               "mqtt": health.get("mqtt")}
     if subs:
         deliveries: list[float] = []
@@ -315,8 +318,10 @@ def main() -> None:
           f"{mq.get('dropped_samples')}, connects {mq.get('connects')}")
     for label, r in (("bridge on ", on), ("bridge off", off)):
         sd, p99 = r["jitter"]  # type: ignore[misc]
-        print(f"{label}: server CPU {100 * r['cpu']:.1f} % of a core, sample interval "
-              f"jitter sd {sd:.2f} ms, p99 |dt - 1/hz| {p99:.2f} ms")
+        print(f"{label}: server CPU {100 * r['cpu']:.1f} % of a core, "
+              f"{r['cpu_per_sample_us']:.0f} us of CPU per sample, polled at "
+              f"{r['poll_hz']:.1f} Hz per arm, sample interval jitter sd {sd:.2f} ms, "
+              f"p99 |dt - 1/hz| {p99:.2f} ms")
 
 
 if __name__ == "__main__":
