@@ -193,6 +193,11 @@ class MqttBridge:
         was = self.state
         self.state = "refused" if refused else "down"
         self.last_error = f"{type(exc).__name__}: {exc}"[:300]
+        # aiomqtt keeps the disconnection's exception in a future nobody awaits unless they
+        # iterate messages (we subscribe to nothing): read it, or asyncio logs it as an error
+        gone = getattr(self._client, "_disconnected", None)
+        if isinstance(gone, asyncio.Future) and gone.done() and not gone.cancelled():
+            gone.exception()
         self._client = None
         for a in self._arms:
             a.online = None  # republish every flag and state on the next connect
@@ -287,10 +292,13 @@ class MqttBridge:
 
 
 def _is_refusal(exc: aiomqtt.MqttCodeError) -> bool:
-    """The broker answered CONNACK with a refusal (bad credentials, not authorised, ...)."""
-    rc = exc.rc
-    value = getattr(rc, "value", rc)
-    return isinstance(exc, MqttConnectError) or value in (4, 5, 134, 135)
+    """The broker answered CONNACK with a refusal (bad credentials, not authorised, client id
+    rejected), not "server unavailable" (a broker starting or overloaded: just down). A failed
+    publish is an MqttCodeError too, with paho's own codes (4 is "no connection"): not ours."""
+    if not isinstance(exc, MqttConnectError):
+        return False
+    value = getattr(exc.rc, "value", exc.rc)
+    return value not in (3, 136)  # MQTT 3.1.1 / 5 "server unavailable"
 
 
 def start_mqtt_bridge(settings: Settings, services: Mapping[str, ArmService]) -> MqttBridge | None:

@@ -72,6 +72,17 @@ async def wait_health(client: httpx.AsyncClient, state: str, timeout: float = TI
         await asyncio.sleep(0.05)
 
 
+async def wait_published(client: httpx.AsyncClient, n: int = 20) -> None:
+    """Until the bridge has published `n` messages: the flags and states are on the broker
+    (retained), not still to come (a live delivery has no retain flag)."""
+    await wait_health(client, "up")
+    for _ in range(600):
+        if (await client.get("/api/v1/health")).json()["mqtt"]["published"] >= n:
+            return
+        await asyncio.sleep(0.05)
+    raise AssertionError("the bridge published nothing")
+
+
 def seqs_of(messages: list[Any]) -> list[int]:
     return [s["seq"] for payload, _, _ in messages for s in payload["samples"]]
 
@@ -85,7 +96,7 @@ async def test_late_subscriber_gets_retained_state_and_online_flags(tmp_path: Pa
         async with running_client(settings) as (_, client):
             up = await wait_health(client, "up")
             assert up["broker"] == broker.url and up["prefix"] == "armserver"
-            await asyncio.sleep(0.3)  # a few ticks: state and flags are on the broker
+            await wait_published(client)
             async with subscriber(broker, ("armserver/+/state", 0), ("armserver/+/online", 1),
                                   ("armserver/server/online", 1)) as sub:
                 want = {"armserver/server/online", "armserver/rbe3001/online",
@@ -148,7 +159,7 @@ async def test_online_flag_follows_the_link(tmp_path: Path) -> None:
     with running_broker(tmp_path) as broker:
         settings = make_settings(config=str(config), mqtt_url=broker.url, mqtt_rate=20.0)
         async with running_client(settings) as (_, client):
-            await wait_health(client, "up")
+            await wait_published(client, 2)
             async with subscriber(broker, ("armserver/rbe3001/online", 1),
                                   ("armserver/rbe3001/events", 1)) as sub:
                 seen = await collect(sub, lambda s: [p for p, _, _ in s.get(
@@ -315,17 +326,17 @@ def test_broker_killed_and_restarted_mid_stream(tmp_path: Path) -> None:
             up = wait("up")
             assert up["connects"] == 2
 
-            async def resumed() -> tuple[list[Any], list[int]]:
+            async def flags() -> list[Any]:
                 async with subscriber(broker, ("armserver/+/online", 1),
                                       ("armserver/server/online", 1)) as sub:
                     seen = await collect(sub, lambda s: {"armserver/server/online",
                                                          "armserver/rbe3001/online"} <= set(s))
-                flags = seen["armserver/server/online"] + seen["armserver/rbe3001/online"]
-                return flags, await telemetry_seqs(1.0)
+                return seen["armserver/server/online"] + seen["armserver/rbe3001/online"]
 
-            flags, after = asyncio.run(resumed())
+            assert all(p is True for p, _, _ in asyncio.run(flags()))
+            after = asyncio.run(telemetry_seqs(1.0))
             # the broker lost its retained messages with it: the bridge published them again
-            assert all(p is True and retained for p, retained, _ in flags)
+            assert all(p is True and retained for p, retained, _ in asyncio.run(flags()))
             assert after and after[0] > got[-1]
             assert after == list(range(after[0], after[0] + len(after)))
             assert health()["dropped_samples"] > 0, "samples sent while down are counted"

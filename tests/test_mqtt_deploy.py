@@ -64,8 +64,9 @@ async def test_the_server_writes_anyone_reads_nobody_else_writes(tmp_path: Path)
     try:
         url = f"mqtt://armserver:s3cret@127.0.0.1:{broker.port}"
         async with running_client(make_settings(mqtt_url=url)) as (_, client):
-            for _ in range(300):
-                if (await client.get("/api/v1/health")).json()["mqtt"]["state"] == "up":
+            for _ in range(600):  # up, and past its first ticks: the flags are retained
+                mqtt = (await client.get("/api/v1/health")).json()["mqtt"]
+                if mqtt["state"] == "up" and mqtt["published"] >= 10:
                     break
                 await asyncio.sleep(0.05)
             async with aiomqtt.Client("127.0.0.1", broker.port) as anon, \
