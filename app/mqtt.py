@@ -239,6 +239,9 @@ class MqttBridge:
             will=will, keepalive=10, timeout=PUBLISH_TIMEOUT_S,
             max_queued_outgoing_messages=10_000, **tls,  # type: ignore[arg-type]
         ) as client:
+            # a tick publishes up to 4 messages per arm at once: not a "concerning number of
+            # pending calls" (aiomqtt warns, once per publish, above its threshold)
+            client.pending_calls_threshold = 4 * len(self._arms) + EVENT_BUFFER * len(self._arms)
             self._client = client
             self.connects += 1
             self.state = "up"

@@ -229,10 +229,10 @@ async def run_on(srv: Server, args: argparse.Namespace, broker: Broker | None,
         tasks = [asyncio.create_task(s.run(broker.port)) for s in subs]
         tasks.append(asyncio.create_task(stalled.run(broker.port, stall_release)))
     await asyncio.sleep(2.0)  # connected and subscribed; the stalled one is stalled
+    for s in subs:  # before `first`: what arrives while we ask is counted (only the window is)
+        s.recording = True
     first = await srv.published(arms)
     cpu0, t0 = srv.cpu_seconds(), time.monotonic()
-    for s in subs:
-        s.recording = True
     times = await sample_times(f"ws://127.0.0.1:{srv.port}/api/v1/arms/{arms[0]}/telemetry"
                                "?rate=10", args.seconds)
     cpu_s, wall = srv.cpu_seconds() - cpu0, time.monotonic() - t0
