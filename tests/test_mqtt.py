@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import os
 import signal
 import socket
@@ -342,3 +343,20 @@ def test_broker_killed_and_restarted_mid_stream(tmp_path: Path) -> None:
             assert health()["dropped_samples"] > 0, "samples sent while down are counted"
     finally:
         broker.stop()
+
+
+async def test_many_arms_publish_without_warnings(tmp_path: Path,
+                                                  caplog: pytest.LogCaptureFixture) -> None:
+    """Six arms: a tick's batch is two dozen publishes at once, which is what the bridge is
+    for, not a backlog worth a warning per message in the server's log."""
+    config = tmp_path / "lab.toml"
+    config.write_text('[[arms]]\nprofile = "rbe3001"\nname = "lab"\ncount = 6\n')
+    with running_broker(tmp_path) as broker:
+        settings = make_settings(config=str(config), mqtt_url=broker.url, mqtt_rate=20.0)
+        async with running_client(settings) as (_, client):
+            await wait_published(client, 100)
+            async with subscriber(broker, ("armserver/+/state", 0)) as sub:
+                seen = await collect(sub, lambda s: len(s) == 6)
+            assert set(seen) == {f"armserver/lab-{k}/state" for k in range(1, 7)}
+    noisy = [r for r in caplog.records if r.levelno >= logging.WARNING and r.name == "mqtt"]
+    assert not noisy, noisy[0].getMessage()
