@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
+import math
 import time
 import uuid
 from collections import deque
@@ -262,36 +264,48 @@ class MqttBridge:
                 await asyncio.sleep(next_tick - now)
 
     async def _tick(self, client: aiomqtt.Client) -> None:
+        # The tick as a whole has a deadline (_session): a per-publish timeout would cost a task
+        # per message inside aiomqtt (asyncio.wait_for), a third of the bridge's CPU.
+        publish = functools.partial(client.publish, timeout=math.inf)
         pubs = []
         lost: list[tuple[_ArmOut, int]] = []
         for a in self._arms:
             samples = self._collect(a)
             online = a.svc.link_status().connected
             if online != a.online:
-                pubs.append(client.publish(f"{a.topic}/online", b"true" if online else b"false",
-                                           qos=1, retain=True))
+                pubs.append(publish(f"{a.topic}/online", b"true" if online else b"false",
+                                    qos=1, retain=True))
                 a.online = online
             while a.events:
-                pubs.append(client.publish(f"{a.topic}/events", a.events.popleft(), qos=1))
+                pubs.append(publish(f"{a.topic}/events", a.events.popleft(), qos=1))
             if samples or a.dropped:
                 msg = a.sub.telemetry_message(samples, a.dropped)
                 a.dropped = 0
-                pubs.append(client.publish(f"{a.topic}/telemetry", msg, qos=0))
+                pubs.append(publish(f"{a.topic}/telemetry", msg, qos=0))
             if a.latest is not None and (samples or not a.state_sent):
-                pubs.append(client.publish(f"{a.topic}/state", a.latest, qos=0, retain=True))
+                pubs.append(publish(f"{a.topic}/state", a.latest, qos=0, retain=True))
                 a.state_sent = True
             lost.append((a, len(samples)))
         if not pubs:
             return
         try:
-            await asyncio.gather(*pubs)
+            # every publish ends before the tick does (no orphan fails later, unretrieved)
+            results = await asyncio.gather(*pubs, return_exceptions=True)
         except BaseException:
-            # what this tick carried may not have reached the broker: the next message says so
-            for a, n in lost:
-                a.dropped += n
-                self.dropped_samples += n
+            self._lost_in_flight(lost)  # cancelled: the tick's deadline passed
             raise
+        failed = next((r for r in results if isinstance(r, BaseException)), None)
+        if failed is not None:
+            self._lost_in_flight(lost)
+            raise failed
         self.published += len(pubs)
+
+    def _lost_in_flight(self, lost: list[tuple[_ArmOut, int]]) -> None:
+        """What a failed tick carried may not have reached the broker: the next message says
+        so in `dropped`."""
+        for a, n in lost:
+            a.dropped += n
+            self.dropped_samples += n
 
 
 def _is_refusal(exc: aiomqtt.MqttCodeError) -> bool:
