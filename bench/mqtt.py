@@ -138,7 +138,7 @@ class Sub(asyncio.Protocol):
 
 
 class Server:
-    def __init__(self, config: Path, broker_url: str | None, rate: float) -> None:
+    def __init__(self, config: Path, broker_url: str | None, rate: float, pin: bool) -> None:
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             self.port = s.getsockname()[1]
@@ -151,7 +151,9 @@ class Server:
             [sys.executable, "-c", "from app.main import cli; cli()", "serve", "--port",
              str(self.port), "--log-level", "warning"], cwd=ROOT, env=env,
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        self.pinned = pin_apart(self.proc.pid)  # server on one core, bench and broker on the rest
+        # server on one core, bench and broker on the rest (on a shared machine the others' load
+        # then lands on the server's core while the subscribers keep theirs busy: --no-pin)
+        self.pinned = pin_apart(self.proc.pid) if pin else False
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             with contextlib.suppress(OSError, ValueError, KeyError):
@@ -186,8 +188,8 @@ class Server:
 
 
 @contextlib.contextmanager
-def serving(config: Path, broker_url: str | None, rate: float) -> Iterator[Server]:
-    srv = Server(config, broker_url, rate)
+def serving(config: Path, broker_url: str | None, rate: float, pin: bool) -> Iterator[Server]:
+    srv = Server(config, broker_url, rate, pin)
     try:
         yield srv
     finally:
@@ -301,6 +303,8 @@ def main() -> None:
     p.add_argument("--rate", type=float, default=10.0, help="the bridge's ARMSERVER_MQTT_RATE")
     p.add_argument("--per-arm", type=int, default=10, help="subscribers per arm")
     p.add_argument("--seconds", type=float, default=10.0)
+    p.add_argument("--no-pin", dest="pin", action="store_false",
+                   help="leave the server, broker and bench on every core")
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         cfg = Path(tmp) / "lab.toml"
@@ -312,12 +316,12 @@ def main() -> None:
         broker = Broker(bdir, extra="max_queued_messages 1000\n").start()
         assert broker.proc is not None
         cpus = sorted(os.sched_getaffinity(0))
-        if len(cpus) > 1:
+        if len(cpus) > 1 and args.pin:
             os.sched_setaffinity(broker.proc.pid, set(cpus[1:]))
         try:
-            with serving(cfg, broker.url, args.rate) as srv:
+            with serving(cfg, broker.url, args.rate, args.pin) as srv:
                 on = asyncio.run(run_on(srv, args, broker, arms))
-            with serving(cfg, None, args.rate) as srv:
+            with serving(cfg, None, args.rate, args.pin) as srv:
                 off = asyncio.run(run_on(srv, args, None, arms))
             per_tick = 2 * args.arms  # telemetry and state per arm
             samples_per_msg = max(1.0, args.hz / args.rate)
