@@ -169,8 +169,7 @@ class MqttBridge:
 
     async def _run(self) -> None:
         backoff = BACKOFF_MIN_S
-        while True:
-            self.state = "connecting" if self.connects == 0 else self.state
+        while True:  # state stays what the last attempt found (refused, down) until one succeeds
             try:
                 await self._session()
             except aiomqtt.MqttCodeError as exc:

@@ -177,6 +177,10 @@ async def test_broker_refusing_our_credentials_is_reported(tmp_path: Path) -> No
         bad = make_settings(mqtt_url=f"mqtt://armserver:wrong-pass@127.0.0.1:{broker.port}")
         async with running_client(bad) as (_, client):
             health = await wait_health(client, "refused")
+            for _ in range(3):  # it keeps trying (backoff), and keeps saying why it fails
+                await asyncio.sleep(0.4)
+                health = (await client.get("/api/v1/health")).json()["mqtt"]
+                assert health["state"] == "refused", health
             assert "wrong-pass" not in json.dumps(health)
             assert health["broker"] == f"mqtt://armserver@127.0.0.1:{broker.port}"
             assert health["last_error"] and health["connects"] == 0
