@@ -42,6 +42,14 @@ def test_lab_view_shows_every_arm_of_every_server(tmp_path: Path) -> None:
         a = stack.enter_context(serve_live(a_settings))
         b_ctx = serve_live(b_settings)
         b = b_ctx.__enter__()
+        b_open = [True]
+
+        def stop_b() -> None:
+            if b_open[0]:
+                b_open[0] = False
+                b_ctx.__exit__(None, None, None)
+
+        stack.callback(stop_b)
         pw = stack.enter_context(sync_api.sync_playwright())
         browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         stack.callback(browser.close)
@@ -73,7 +81,7 @@ def test_lab_view_shows_every_arm_of_every_server(tmp_path: Path) -> None:
         httpx.delete(f"{a.url}/api/v1/arms/angler/estop", timeout=5).raise_for_status()
 
         # server B goes away: its arms go offline, server A's stay online
-        b_ctx.__exit__(None, None, None)
+        stop_b()
         wait_for(lambda: not tiles(pg)["armserver/bench2/lab-1"]["online"], 10,
                  "bench2 arms offline")
         t = tiles(pg)
