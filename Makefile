@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 HOST   ?= 127.0.0.1
 PORT   ?= 8000
 
-.PHONY: run test install install-test browser bench bench-peers fuzz soak lint clean
+.PHONY: run test install install-test browser mosquitto run-lab bench bench-peers fuzz soak lint clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -29,10 +29,27 @@ browser:
 	  (apt-get update -qq >/dev/null 2>&1; DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null 2>&1) ) || \
 	  echo "note: chromium not installed; the browser test will be skipped"
 
+# Debian's mosquitto for the MQTT tests (they start their own broker on a free loopback port and
+# skip with a reason if it is absent) and for `make run-lab`.
+mosquitto:
+	@command -v mosquitto >/dev/null 2>&1 || [ -x /usr/sbin/mosquitto ] || ( command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ] && \
+	  (apt-get update -qq >/dev/null 2>&1; DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto >/dev/null 2>&1) ) || \
+	  echo "note: mosquitto not installed; the MQTT tests will be skipped"
+
+# A local mosquitto (MQTT on 127.0.0.1:1883, MQTT over WebSocket on 127.0.0.1:9001, anonymous,
+# loopback only) and the server publishing to it; the lab view is http://HOST:PORT/lab.html.
+LAB_DIR ?= /tmp/armserver-lab
+run-lab: install mosquitto
+	@mkdir -p $(LAB_DIR)
+	@printf 'persistence false\nlistener 1883 127.0.0.1\nallow_anonymous true\nlistener 9001 127.0.0.1\nprotocol websockets\n' > $(LAB_DIR)/mosquitto.conf
+	@PATH="$$PATH:/usr/sbin"; mosquitto -c $(LAB_DIR)/mosquitto.conf & MQ=$$!; \
+	  trap 'kill $$MQ 2>/dev/null' EXIT INT TERM; \
+	  ARMSERVER_MQTT_URL=mqtt://127.0.0.1:1883 $(BIN)/armserver serve --host $(HOST) --port $(PORT)
+
 run: install
 	$(BIN)/armserver serve --host $(HOST) --port $(PORT)
 
-test: install-test browser
+test: install-test browser mosquitto
 	$(BIN)/python -m pytest -q
 
 bench: install-test

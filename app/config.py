@@ -17,6 +17,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 BUILTIN_PROFILES = ("rbe3001", "angler")
+#: Most copies one `[[arms]]` entry may ask for (`count`).
+MAX_COPIES = 256
 
 
 class _Strict(BaseModel):
@@ -219,6 +221,9 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
 
     A config file is TOML with `[[arms]]` tables, each either `profile = "rbe3001"` (or a
     path) plus overrides such as `name = "left"` and `[arms.link]`, or a whole profile.
+    `count = N` (1..256) in an entry hosts N copies named `{name}-1` .. `{name}-N` (a lab of
+    simulated arms from one entry; a copy's link address, if any, is shared, so use it with
+    `kind = "sim"`).
     """
     if config_file is None:
         return [load_profile(n) for n in BUILTIN_PROFILES]
@@ -227,6 +232,9 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
     profiles: list[ArmProfile] = []
     for entry in data.get("arms", []):
         entry = dict(entry)
+        count = entry.pop("count", 1)
+        if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_COPIES:
+            raise ValueError(f"[[arms]] count must be an integer 1..{MAX_COPIES}, got {count!r}")
         base_name = entry.pop("profile", None)
         if base_name is not None:
             src = base_name if base_name in BUILTIN_PROFILES else path.parent / str(base_name)
@@ -234,7 +242,11 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
             base = _merge(base, entry)
         else:
             base = entry
-        profiles.append(ArmProfile.model_validate(base))
+        if count == 1:
+            profiles.append(ArmProfile.model_validate(base))
+            continue
+        for k in range(1, count + 1):
+            profiles.append(ArmProfile.model_validate({**base, "name": f"{base.get('name')}-{k}"}))
     names = [p.name for p in profiles]
     if len(set(names)) != len(names):
         raise ValueError(f"arm names must be unique, got {names}")
@@ -274,6 +286,21 @@ class Settings(BaseSettings):
     #: message once per client was a fifth of the server's CPU at 100 clients (py-spy).
     ws_compression: bool = False
     log_level: str = "info"
+    #: Lab-wide telemetry (API.md "Lab-wide telemetry over MQTT"): the broker,
+    #: `mqtt://[user[:password]@]host[:port]`; unset: no bridge.
+    mqtt_url: str | None = None
+    mqtt_prefix: str = Field("armserver", pattern=r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
+    mqtt_rate: float = Field(10.0, gt=0.0, le=100.0, description="state/telemetry messages per s")
+
+    @field_validator("mqtt_url")
+    @classmethod
+    def _mqtt_url(cls, v: str | None) -> str | None:
+        if v is None or not v.strip():
+            return None
+        from app.mqtt import parse_broker_url
+
+        parse_broker_url(v)
+        return v.strip()
 
     @staticmethod
     def _split(v: str) -> frozenset[str]:

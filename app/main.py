@@ -37,6 +37,7 @@ from app.auth import Access, bearer_token, install_log_redaction
 from app.config import ArmProfile, Settings, load_arms
 from app.errors import ArmError, Unauthorized
 from app.lease import LeaseManager
+from app.mqtt import start_mqtt_bridge
 from app.service import ArmService
 from app.store import Store
 
@@ -72,11 +73,14 @@ def create_app(settings: Settings | None = None,
                 log.info("arm %s (%s) on %s link %s", p.name, p.model, p.link.kind,
                          svc.driver.link.address or "-")
             leases.start()
+            app.state.mqtt = start_mqtt_bridge(settings, services)
             access: Access = app.state.access
             log.log(logging.INFO if access.enabled else logging.WARNING, "access: %s",
                     access.describe())
             yield
         finally:
+            if getattr(app.state, "mqtt", None) is not None:
+                await app.state.mqtt.close()
             await leases.close()
             for svc in services.values():
                 try:
@@ -102,6 +106,7 @@ def create_app(settings: Settings | None = None,
     app.state.access = Access(settings)
     app.state.services = {}
     app.state.internal_errors = 0
+    app.state.mqtt = None
 
     for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry, safety):
         app.include_router(r.router, prefix=API_PREFIX)

@@ -30,8 +30,10 @@ async def health(services: ServicesDep, settings: SettingsDep, request: Request)
     db = getattr(request.app.state, "store", None)
     store = s.StoreStatus(**vars(db.health())) if db is not None else None
     ok = ok and (store is None or store.ok)
+    bridge = getattr(request.app.state, "mqtt", None)
+    mqtt = s.MqttStatus.model_validate(bridge.status()) if bridge is not None else None
     return s.Health(status="ok" if ok else "degraded", arms=links, auth=settings.auth_enabled,
-                    store=store)
+                    store=store, mqtt=mqtt)
 
 
 @router.get(
