@@ -152,7 +152,28 @@ def _document_websocket_messages(app: FastAPI) -> None:
 
 
 def _body(detail: Any, code: str) -> dict[str, Any]:
-    return {"detail": detail, "code": code}
+    return {"detail": _encodable(detail), "code": code}
+
+
+def _encodable(value: Any) -> Any:
+    """`value` with every string made UTF-8 encodable: a lone surrogate (JSON `"\\ud800"`,
+    valid JSON but not text) is shown as the escape `\\ud800`, so echoing a client's input
+    back in an error body cannot fail to encode (that was a 502 with a traceback)."""
+    if isinstance(value, str):
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            return value.encode("utf-8", "backslashreplace").decode("utf-8")
+        return value
+    if isinstance(value, dict):
+        return {_encodable(k): _encodable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_encodable(v) for v in value]
+    return value
+
+
+def _has_surrogate(value: Any) -> bool:
+    return _encodable(value) != value
 
 
 def _json_safe(value: Any) -> bool:
@@ -193,6 +214,9 @@ def _install_error_handlers(app: FastAPI) -> None:
         errs = validation_errors(exc.errors())
         code = ("invalid_json" if any(e["type"] == "json_invalid" for e in errs)
                 else "invalid_request")
+        if _has_surrogate(errs):  # one short line, no traceback: the body says the rest
+            log.warning("%s %s: 422 %s, the request carries a lone surrogate (not text)",
+                        request.method, request.url.path, code)
         return JSONResponse(_body(errs, code), 422)
 
     @app.exception_handler(StarletteHTTPException)
