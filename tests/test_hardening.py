@@ -69,3 +69,50 @@ async def test_a_lone_surrogate_is_a_clean_4xx(method: str, path: str, body: byt
     assert not any(rec.exc_info for rec in caplog.records), "a traceback was logged"
     lines = [rec.getMessage() for rec in caplog.records if "surrogate" in rec.getMessage()]
     assert all("\n" not in m and len(m) < 200 for m in lines)
+
+
+# ---------------------------------------------------------------- 10: strict numbers
+
+
+STRICT_CASES = [
+    ("POST", f"{RB}/move/joints", {"positions": [True, 0.5, 0.3]}),
+    ("POST", f"{RB}/move/joints", {"positions": [0.1, "1", 0.3]}),
+    ("POST", f"{RB}/move/joints", {"positions": [0.1, 0.5, 0.3], "speed": True}),
+    ("POST", f"{RB}/move/joints", {"positions": [0.1, 0.5, 0.3], "duration": "2"}),
+    ("POST", f"{RB}/move/joints", {"positions": [0.1, 0.5, 0.3], "wait": 1}),
+    ("POST", f"{RB}/move/pose", {"x": True, "y": 0.0, "z": 0.2}),
+    ("POST", f"{RB}/move/pose", {"x": 0.15, "y": 0.0, "z": 0.2, "branch": True}),
+    ("POST", f"{RB}/kinematics/forward", {"positions": ["0", 0, 0]}),
+    ("POST", f"{RB}/gripper", {"value": True}),
+    ("POST", f"{RB}/rbe3001/set-claw", {"value": "1"}),
+    ("POST", f"{RB}/rbe3001/set-gain", {"axis": True, "kp": 0.005, "ki": 0, "kd": 0}),
+    ("POST", f"{RB}/rbe3001/set-pid", {"joints": [{"position_ticks": True}] * 3}),
+    ("PUT", f"{AN}/dynamixel/1/registers/led", {"raw": True}),
+    ("PUT", f"{AN}/dynamixel/1/registers/led", {"raw": "1"}),
+    ("POST", f"{AN}/dynamixel/sync-read", {"name": "led", "ids": [True]}),
+    ("POST", f"{AN}/dynamixel/sync-write", {"name": "led", "values": {"1": True}}),
+    ("POST", f"{AN}/dynamixel/ping", {"id": True}),
+]
+
+
+@pytest.mark.parametrize(("method", "path", "body"), STRICT_CASES)
+async def test_booleans_and_strings_are_not_numbers(method: str, path: str,
+                                                    body: dict[str, Any]) -> None:
+    async with running_client() as (app, client):
+        before = _setpoint(app)
+        r = await client.request(method, path, json=body)
+        assert r.status_code == 422, r.text
+        assert r.json()["code"] == "invalid_request"
+        assert _setpoint(app) == before
+        assert app.state.services["rbe3001"].motion.current is None
+
+
+async def test_integers_are_still_numbers() -> None:
+    async with running_client() as (_, client):
+        r = await client.post(f"{RB}/kinematics/forward", json={"positions": [0, 1, 0]})
+        assert r.status_code == 200, r.text
+        r = await client.post(f"{RB}/move/joints", json={"positions": [0, 0, 0], "speed": 1})
+        assert r.status_code == 202, r.text
+        r = await client.post(f"{AN}/dynamixel/sync-write", json={"name": "led",
+                                                                  "values": {"1": 1}})
+        assert r.status_code == 200, r.text
