@@ -301,6 +301,10 @@ class Settings(BaseSettings):
     def auth_enabled(self) -> bool:
         return bool(self.operator_set or self.viewer_set)
 
+    #: Host names an open server answers to besides its loopback names and bound host
+    #: (comma separated; `*`: any). See app/hostguard.py and README "Access and safety".
+    allowed_hosts: str = ""
+
     # ------------------------------------------------ validation (issue 11.5)
 
     @field_validator("log_level")

@@ -36,6 +36,7 @@ from app.api import arms, dynamixel, kinematics, lease, motion, rbe3001, telemet
 from app.auth import Access, bearer_token, install_log_redaction
 from app.config import ArmProfile, Settings, load_arms
 from app.errors import ArmError, Unauthorized
+from app.hostguard import HostOriginGuard
 from app.lease import LeaseManager
 from app.service import ArmService
 
@@ -104,6 +105,7 @@ def create_app(settings: Settings | None = None,
 
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(TokenGate, access=app.state.access)
+    app.add_middleware(HostOriginGuard, settings=settings)  # open servers: own Host, own Origin
     origins = [o.strip() for o in settings.cors_origins.split(",") if o.strip()]
     if origins:
         app.add_middleware(CORSMiddleware, allow_origins=origins, allow_methods=["*"],

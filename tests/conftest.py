@@ -34,7 +34,10 @@ VIEWER = "viewer-token-1"
 def make_settings(**over: Any) -> Settings:
     """Settings independent of the environment the tests run in."""
     base: dict[str, Any] = {"config": None, "operator_tokens": "", "viewer_tokens": "",
-                            "cors_origins": "", "lease_ttl_s": 5.0}
+                            "cors_origins": "", "lease_ttl_s": 5.0,
+                            # the Host names of the in-process clients (httpx below, and
+                            # schemathesis's ASGI client): an open server answers only its own
+                            "allowed_hosts": "armserver.test,testserver"}
     base.update(over)
     return Settings(**base)
 

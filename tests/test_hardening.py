@@ -116,3 +116,110 @@ async def test_integers_are_still_numbers() -> None:
         r = await client.post(f"{AN}/dynamixel/sync-write", json={"name": "led",
                                                                   "values": {"1": 1}})
         assert r.status_code == 200, r.text
+
+
+# ---------------------------------------------------------------- 9: Host and Origin
+
+
+async def test_an_open_server_refuses_foreign_host_names() -> None:
+    async with running_client() as (app, client):
+        before = _setpoint(app)
+        for host in ("evil.example", "evil.example:8000", "127.0.0.1.evil.example",
+                     "localhost.evil.example"):
+            r = await client.post(f"{RB}/move/joints", json={"positions": [0.3, 0.5, 0.3]},
+                                  headers={"Host": host})
+            assert r.status_code == 400, (host, r.text)
+            assert r.json()["code"] == "bad_host"
+            r = await client.get(f"{API}/arms", headers={"Host": host})
+            assert r.status_code == 400 and r.json()["code"] == "bad_host"
+        assert app.state.services["rbe3001"].motion.current is None
+        assert _setpoint(app) == before
+        for host in ("127.0.0.1:8000", "localhost", "LOCALHOST:1", "[::1]:8000", "armserver.test"):
+            r = await client.get(f"{API}/arms", headers={"Host": host})
+            assert r.status_code == 200, (host, r.text)
+
+
+async def test_allowed_hosts_extends_the_list_and_tokens_lift_the_check() -> None:
+    settings = make_settings(allowed_hosts="armserver.test,arm.lab.example")
+    async with running_client(settings) as (_, client):
+        r = await client.get(f"{API}/arms", headers={"Host": "arm.lab.example:8000"})
+        assert r.status_code == 200
+        r = await client.get(f"{API}/arms", headers={"Host": "evil.example"})
+        assert r.status_code == 400
+    settings = make_settings(operator_tokens="op-secret-1")
+    async with running_client(settings, {"Authorization": "Bearer op-secret-1"}) as (_, client):
+        r = await client.get(f"{API}/arms", headers={"Host": "anything.example"})
+        assert r.status_code == 200
+
+
+def test_a_wildcard_bind_accepts_ip_literals_not_names() -> None:
+    from app.hostguard import HostPolicy
+
+    p = HostPolicy(make_settings(host="0.0.0.0", allowed_hosts=""))
+    assert p.host_ok("192.168.1.5:8000") and p.host_ok("[fe80::1]:8000")
+    assert not p.host_ok("rebind.evil.example:8000")
+    p = HostPolicy(make_settings(host="192.168.1.5", allowed_hosts=""))
+    assert p.host_ok("192.168.1.5:8000") and not p.host_ok("10.0.0.9")
+
+
+CROSS = [
+    {"Origin": "http://evil.example"},
+    {"Origin": "null"},
+    {"Origin": "http://armserver.test:8080"},  # another port is another origin
+    {"Origin": "https://armserver.test"},  # another scheme too
+    {"Sec-Fetch-Site": "cross-site"},
+    {"Sec-Fetch-Site": "same-site"},
+]
+
+
+@pytest.mark.parametrize("headers", CROSS)
+async def test_an_open_server_refuses_cross_origin_writes(headers: dict[str, str]) -> None:
+    async with running_client() as (app, client):
+        before = _setpoint(app)
+        r = await client.post(f"{RB}/move/joints", json={"positions": [0.3, 0.5, 0.3]},
+                              headers=headers)
+        assert r.status_code == 403 and r.json()["code"] == "cross_origin", r.text
+        # a "simple" cross-site form post, no preflight: the classic CSRF
+        r = await client.post(f"{RB}/estop", content=b"x=1", headers={
+            **headers, "content-type": "application/x-www-form-urlencoded"})
+        assert r.status_code == 403 and r.json()["code"] == "cross_origin"
+        assert not app.state.services["rbe3001"].estop
+        assert app.state.services["rbe3001"].motion.current is None
+        assert _setpoint(app) == before
+        r = await client.get(f"{API}/arms", headers=headers)  # reading is not changing
+        assert r.status_code == 200
+
+
+async def test_same_origin_and_allowed_origins_may_write() -> None:
+    async with running_client() as (_, client):
+        for headers in ({"Origin": "http://armserver.test"}, {"Sec-Fetch-Site": "same-origin"},
+                        {"Sec-Fetch-Site": "none"}, {}):
+            r = await client.post(f"{RB}/stop", headers=headers)
+            assert r.status_code == 200, (headers, r.text)
+    settings = make_settings(cors_origins="http://dash.lab.example:5173")
+    async with running_client(settings) as (_, client):
+        r = await client.post(f"{RB}/stop", headers={"Origin": "http://dash.lab.example:5173",
+                                                      "Sec-Fetch-Site": "cross-site"})
+        assert r.status_code == 200, r.text
+        r = await client.post(f"{RB}/stop", headers={"Origin": "http://evil.example"})
+        assert r.status_code == 403
+
+
+async def test_websocket_upgrades_from_foreign_origins_are_closed_4403() -> None:
+    from conftest import serve_live
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import ConnectionClosed
+
+    with serve_live() as live:
+        url = live.ws_url + "/api/v1/arms/rbe3001/telemetry?rate=10"
+        for kw in ({"origin": "http://evil.example"},
+                   {"additional_headers": {"Host": "rebind.evil.example"}}):
+            async with connect(url, **kw) as ws:  # type: ignore[arg-type]
+                with pytest.raises(ConnectionClosed) as info:
+                    await ws.recv()
+                assert info.value.rcvd is not None and info.value.rcvd.code == 4403
+        own = live.url  # the dashboard's own page
+        async with connect(url, origin=own) as ws:  # type: ignore[arg-type]
+            assert '"telemetry"' in await ws.recv()
+        async with connect(url) as ws:  # not a browser: no Origin
+            assert '"telemetry"' in await ws.recv()
