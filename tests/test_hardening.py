@@ -223,3 +223,53 @@ async def test_websocket_upgrades_from_foreign_origins_are_closed_4403() -> None
             assert '"telemetry"' in await ws.recv()
         async with connect(url) as ws:  # not a browser: no Origin
             assert '"telemetry"' in await ws.recv()
+
+
+# ---------------------------------------------------------------- 8: no token in the log
+
+SECRET = "op2-SECRET-91c3"
+
+
+def test_redaction_decodes_parameter_names_and_blanks_credentials() -> None:
+    from app.auth import redact
+
+    assert SECRET not in redact(f"GET /t?tok%65n={SECRET}&rate=1")
+    assert SECRET not in redact(f"GET /t?rate=1&%74oken={SECRET}")
+    assert SECRET not in redact(f"GET /t?ACCESS_TOKEN={SECRET}")
+    assert SECRET not in redact(f"< authorization: Bearer {SECRET}")
+    assert SECRET not in redact(f"< Authorization: {SECRET}")
+    assert redact("GET /t?rate=10&tokens=1") == "GET /t?rate=10&tokens=1"
+
+
+async def test_no_token_in_the_log_at_debug_level(caplog: pytest.LogCaptureFixture) -> None:
+    """`?tok%65n=` is `?token=` to the server, and at debug level uvicorn logs every header of
+    a WebSocket handshake: neither may show the token."""
+    from conftest import serve_live
+    from websockets.asyncio.client import connect
+
+    caplog.set_level(logging.DEBUG)
+    settings = make_settings(operator_tokens=SECRET)
+    names = ("uvicorn.error", "uvicorn.access", "uvicorn")
+    with serve_live(settings) as live:
+        for name in names:
+            logging.getLogger(name).setLevel(logging.DEBUG)
+            logging.getLogger(name).addHandler(caplog.handler)
+        try:
+            url = live.ws_url + "/api/v1/arms/rbe3001/telemetry"
+            async with connect(url + f"?tok%65n={SECRET}&rate=10") as ws:
+                assert '"telemetry"' in await ws.recv()  # the encoded name is accepted...
+            async with connect(url + "?rate=10",
+                               additional_headers={"Authorization": f"Bearer {SECRET}"}) as ws:
+                assert '"telemetry"' in await ws.recv()
+            async with httpx.AsyncClient() as client:
+                await client.get(live.url + f"/api/v1/arms?t%6Fken={SECRET}",
+                                 headers={"Authorization": f"Bearer {SECRET}"})
+        finally:
+            for name in names:
+                logging.getLogger(name).removeHandler(caplog.handler)
+                logging.getLogger(name).setLevel(logging.WARNING)
+    logs = "\n".join(f"{r.name}: {r.getMessage()}" for r in caplog.records
+                     if not r.name.startswith(("httpx", "httpcore", "websockets.client")))
+    assert "authorization: ***" in logs.lower()  # the handshake was logged: not vacuous
+    assert "tok%65n=***" in logs
+    assert SECRET not in logs, logs[-3000:]
