@@ -273,3 +273,29 @@ async def test_no_token_in_the_log_at_debug_level(caplog: pytest.LogCaptureFixtu
     assert "authorization: ***" in logs.lower()  # the handshake was logged: not vacuous
     assert "tok%65n=***" in logs
     assert SECRET not in logs, logs[-3000:]
+
+
+# ---------------------------------------------------------------- 6: guarded registers
+
+GUARDED = [("profile_velocity", 32767, "move/joints"), ("profile_acceleration", 0, "move/joints"),
+           ("velocity_limit", 1023, "max_velocity"), ("acceleration_limit", 32767,
+                                                      "max_acceleration"),
+           ("max_position_limit", 4095, "joints.max"), ("min_position_limit", 0, "joints.min"),
+           ("shutdown", 0, "/reboot"), ("homing_offset", 1000, "/home"),
+           ("operating_mode", 16, "/reboot"), ("drive_mode", 1, "joints.sign"),
+           ("return_delay_time", 254, "link.timeout_s"), ("secondary_id", 7, "motor_id")]
+
+
+@pytest.mark.parametrize(("name", "raw", "route"), GUARDED)
+async def test_registers_the_driver_relies_on_are_in_use(name: str, raw: int, route: str) -> None:
+    async with running_client() as (app, client):
+        bus = app.state.services["angler"].driver.link.device
+        before = [bus.servo(i).get(name) for i in (1, 2, 3, 4)]
+        r = await client.put(f"{AN}/dynamixel/2/registers/{name}", json={"raw": raw})
+        assert r.status_code == 409, r.text
+        assert r.json()["code"] == "in_use"
+        assert name in r.json()["detail"] and route in r.json()["detail"]
+        r = await client.post(f"{AN}/dynamixel/sync-write",
+                              json={"name": name, "values": {"1": raw, "3": raw}})
+        assert r.status_code == 409 and r.json()["code"] == "in_use"
+        assert [bus.servo(i).get(name) for i in (1, 2, 3, 4)] == before
