@@ -343,13 +343,12 @@ class TokenGate:
         if self.access.role_of(token) is not None:
             await self.app(scope, receive, send)
             return
-        detail = "missing bearer token" if not token else "invalid bearer token"
-        body = json.dumps(_body(detail, "unauthorized")).encode()
-        await send({"type": "http.response.start", "status": 401,
-                    "headers": [(b"content-type", b"application/json"),
-                                (b"www-authenticate", b"Bearer"),
-                                (b"content-length", str(len(body)).encode())]})
-        await send({"type": "http.response.body", "body": body})
+        # the very answer the routes give (`Access.require` through the ArmError handler):
+        # same detail, same serializer, same headers, byte for byte
+        exc = Unauthorized("missing bearer token" if not token else "invalid bearer token")
+        response = JSONResponse(_body(exc.detail, exc.code), exc.status_code,
+                                headers={"WWW-Authenticate": "Bearer"})
+        await response(scope, receive, send)
 
 
 def cli() -> None:

@@ -19,6 +19,8 @@ import httpx
 import pytest
 from conftest import make_settings, running_client
 
+from app.deps import ViewerRole
+
 API = "/api/v1"
 RB = f"{API}/arms/rbe3001"
 AN = f"{API}/arms/angler"
@@ -299,3 +301,100 @@ async def test_registers_the_driver_relies_on_are_in_use(name: str, raw: int, ro
                               json={"name": name, "values": {"1": raw, "3": raw}})
         assert r.status_code == 409 and r.json()["code"] == "in_use"
         assert [bus.servo(i).get(name) for i in (1, 2, 3, 4)] == before
+
+
+# ---------------------------------------------------------------- 12: history, who, 401
+
+
+async def test_the_token_gate_and_the_routes_answer_the_same_401() -> None:
+    settings = make_settings(operator_tokens="op-secret-1")
+    async with running_client(settings) as (app, client):
+        @app.get("/probe")  # outside /api/v1: the gate lets it through, the route decides
+        async def probe(_: ViewerRole) -> dict[str, str]:
+            return {}
+
+        app.router.routes.insert(0, app.router.routes.pop())  # before the dashboard's mount
+        for headers in ({}, {"Authorization": "Bearer wrong"}):
+            gate = await client.get(f"{RB}/state", headers=headers)
+            route = await client.get("/probe", headers=headers)
+            assert gate.status_code == route.status_code == 401
+            assert gate.content == route.content, (gate.content, route.content)
+            assert gate.headers["www-authenticate"] == route.headers["www-authenticate"]
+            assert gate.headers["content-type"] == route.headers["content-type"]
+
+
+async def test_history_keeps_recent_motions_beyond_the_count() -> None:
+    """256 entries were forgotten within seconds under load: the last 10 minutes stay too."""
+    async with running_client() as (_, client):
+        ids = []
+        for k in range(300):
+            r = await client.post(f"{RB}/move/joints", json={
+                "positions": [0.01 * (k % 7), 0.3, 0.2], "mode": "replace"})
+            assert r.status_code == 202, r.text
+            ids.append(r.json()["id"])
+        await client.post(f"{RB}/stop")
+        for mid in (ids[0], ids[1], ids[150]):
+            r = await client.get(f"{RB}/motions/{mid}")
+            assert r.status_code == 200, r.text
+            assert r.json()["status"] == "stopped"
+
+
+async def test_an_expired_motion_is_410_with_what_is_known() -> None:
+    async with running_client() as (app, client):
+        ex = app.state.services["rbe3001"].motion
+        ex.history, ex.history_s = 2, 0.0  # keep the minimum: the last two, no age
+        ids = []
+        for k in range(4):
+            r = await client.post(f"{RB}/move/joints", json={
+                "positions": [0.05 * k, 0.3, 0.2], "mode": "replace"})
+            ids.append(r.json()["id"])
+        r = await client.get(f"{RB}/motions/{ids[0]}")
+        assert r.status_code == 410, r.text
+        body = r.json()
+        assert body["code"] == "motion_expired"
+        assert ids[0] in body["detail"] and "ended stopped" in body["detail"]
+        r = await client.delete(f"{RB}/motions/{ids[0]}")
+        assert r.status_code == 410 and r.json()["code"] == "motion_expired"
+        assert (await client.get(f"{RB}/motions/{ids[3]}")).status_code == 200
+        # an id it never issued is still 404
+        r = await client.get(f"{RB}/motions/m999999-0123abcd")
+        assert r.status_code == 404 and r.json()["code"] == "unknown_motion"
+
+
+async def test_a_stop_says_who_stopped_the_motion() -> None:
+    token = "op-secret-1"
+    settings = make_settings(operator_tokens=token)
+    async with running_client(settings, {"Authorization": f"Bearer {token}"}) as (_, client):
+        r = await client.post(f"{RB}/move/joints", json={"positions": [1.0, 1.2, 1.0],
+                                                         "duration": 20.0})
+        mid = r.json()["id"]
+        r = await client.post(f"{RB}/stop")
+        assert r.status_code == 200 and mid in r.json()["stopped"]
+        reason = (await client.get(f"{RB}/motions/{mid}")).json()["reason"]
+        import hashlib
+        name = hashlib.sha256(token.encode()).hexdigest()[:8]
+        assert reason.startswith(f"stopped by operator {name} from "), reason
+        assert token not in reason
+        r = await client.post(f"{RB}/move/joints", json={"positions": [0.5, 0.9, 0.5],
+                                                         "duration": 20.0})
+        mid = r.json()["id"]
+        r = await client.delete(f"{RB}/motions/{mid}")
+        assert r.json()["status"] == "stopped"
+        assert r.json()["reason"].startswith(f"cancelled by operator {name}"), r.json()
+
+
+async def test_a_lapsed_lease_says_so_in_the_stopped_motion() -> None:
+    import asyncio
+
+    async with running_client(make_settings(lease_ttl_s=0.3)) as (_, client):
+        lease = (await client.post(f"{RB}/lease")).json()["id"]
+        r = await client.post(f"{RB}/move/joints", headers={"X-Arm-Lease": lease},
+                              json={"positions": [1.0, 1.2, 1.0], "duration": 20.0})
+        mid = r.json()["id"]
+        for _ in range(100):
+            body = (await client.get(f"{RB}/motions/{mid}")).json()
+            if body["status"] != "running" and body["status"] != "queued":
+                break
+            await asyncio.sleep(0.05)
+        assert body["status"] == "stopped"
+        assert "lease" in body["reason"] and "lapsed" in body["reason"], body["reason"]
