@@ -35,7 +35,7 @@ from app.errors import (
 from app.links.base import LinkState
 from app.tasks import cancel_and_wait
 from kinematics import trajectory
-from kinematics.errors import KinematicsError, LimitViolation
+from kinematics.errors import KinematicsError, LimitViolation, TrajectoryError
 from kinematics.errors import Unreachable as KinematicsUnreachable
 
 if TYPE_CHECKING:
@@ -299,6 +299,8 @@ class MotionExecutor:
                 m.names, m.kinds, q_start=q0, speed=req.speed)
         except LimitViolation as exc:
             raise JointLimit(f"line path leaves the joint limits: {exc}") from None
+        except TrajectoryError as exc:  # e.g. a speed so small the line would last hours
+            raise InvalidRequest(f"cannot plan the line: {exc}") from None
         except KinematicsError as exc:
             raise Unreachable(f"line path leaves the workspace: {exc}") from None
         end = traj.sample(traj.duration)[0]

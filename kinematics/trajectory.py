@@ -39,6 +39,9 @@ __all__ = [
 ]
 
 FloatArray = npt.NDArray[np.float64]
+#: Most samples a straight line may have (IK runs at each, in order): 10 min at 100 Hz. A tiny
+#: speed made ruckig plan a 1-DOF arc-length profile of 4.7e8 s (351 GiB of time grid).
+MAX_LINE_SAMPLES = 60_000
 Samples = tuple[FloatArray, FloatArray, FloatArray]
 IKFn = Callable[[FloatArray, FloatArray | None], FloatArray]
 """``ik_fn(p (3,) m, q_prev (n,) or None) -> q (n,)``: the branch continuous with
@@ -331,6 +334,11 @@ def plan_line(
     for attempt in range(retries + 1):
         if length > 0:
             prof = plan_joint([0.0], [length], vt, amax_tip, jmax_tip)
+            if prof.duration / dt > MAX_LINE_SAMPLES:  # IK at every sample: bound the work
+                raise TrajectoryError(
+                    f"the line would last {prof.duration:.4g} s, {prof.duration / dt:.3g} samples"
+                    f" of {dt * 1e3:g} ms; a line may have at most {MAX_LINE_SAMPLES}: ask for a"
+                    " higher speed", 0)
             t, s, _, _ = prof.sample_grid(dt)
             s = s[:, 0]
         else:

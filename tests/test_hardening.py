@@ -398,3 +398,14 @@ async def test_a_lapsed_lease_says_so_in_the_stopped_motion() -> None:
             await asyncio.sleep(0.05)
         assert body["status"] == "stopped"
         assert "lease" in body["reason"] and "lapsed" in body["reason"], body["reason"]
+
+
+async def test_a_tiny_speed_on_a_line_is_422_invalid_request_not_unreachable() -> None:
+    async with running_client() as (app, client):
+        state = (await client.get(f"{RB}/state")).json()
+        tip = state["tip"]
+        r = await client.post(f"{RB}/move/pose", json={
+            "x": tip["x"] - 0.05, "y": tip["y"] + 0.05, "z": tip["z"], "path": "line",
+            "speed": 1e-9})
+        assert r.status_code == 422, r.text
+        assert r.json()["code"] == "invalid_request" and "higher speed" in r.json()["detail"]

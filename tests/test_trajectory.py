@@ -253,3 +253,18 @@ def test_every_ruckig_error_number_has_a_reason() -> None:
     for code in (-1, -100, -101, -102, -104, -110, -111):
         assert "ruckig returned" not in tr.ruckig_reason(code)
     assert tr.ruckig_reason(-999) == "ruckig returned error -999"
+
+
+def test_a_line_too_slow_to_sample_is_refused_before_any_ik() -> None:
+    """1e-9 of the tip speed: ruckig plans a 4.7e8 s arc (no -101 for one DOF); sampling it
+    every 10 ms wanted 351 GiB."""
+    calls = []
+
+    def ik(p: np.ndarray, q: np.ndarray | None) -> np.ndarray:
+        calls.append(p)
+        return np.asarray(rrr_ik(p, q))
+
+    with pytest.raises(tr.TrajectoryError, match="at most 60000"):
+        tr.plan_line([0.2, 0.1, 0.2], [0.25, 0.1, 0.2], ik, rrr_fk, 0.1, 0.5, 5.0, 0.01, VJ,
+                     LO, HI, NAMES, KINDS, speed=1e-9)
+    assert calls == []
