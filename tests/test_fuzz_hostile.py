@@ -108,6 +108,8 @@ def hostile(draw: st.DrawFn, op: Any, arm: str | None) -> tuple[Any, str, Any, d
         body["speed"] = draw(st.sampled_from(TINY_SPEEDS))
         body.pop("duration", None)
         body["wait"] = False
+        if op.path.endswith("/pose") and draw(st.booleans()):
+            body["path"] = "line"  # a line is sampled densely: the slow case that hurt most
     return case, kind, expect, headers
 
 
