@@ -68,7 +68,7 @@ bench-peers: install-test
 
 fuzz: install-test
 	ARMSERVER_FUZZ_CASES=300 $(BIN)/python -m pytest -q tests/test_fuzz_api.py \
-	  tests/test_fuzz_dynamixel.py tests/test_fuzz_rbe3001.py
+	  tests/test_fuzz_hostile.py tests/test_fuzz_dynamixel.py tests/test_fuzz_rbe3001.py
 	@cat test-output/fuzz-report.txt
 
 soak: install-test

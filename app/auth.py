@@ -22,6 +22,7 @@ import hashlib
 import hmac
 import logging
 import re
+from urllib.parse import unquote_plus
 
 from app.config import Settings
 from app.errors import Forbidden, Unauthorized
@@ -103,26 +104,58 @@ def bearer_token(authorization: str | None) -> str | None:
     return token.strip() or None
 
 
-_TOKEN_IN_QUERY = re.compile(r"(?i)([?&](?:token|access_token)=)[^&\s\"']*")
+#: Query parameters that carry a token. A name is compared after percent-decoding, as the
+#: server decodes it: `?tok%65n=...` is `?token=...` to Starlette, so it is to the log filter.
+TOKEN_PARAMS = frozenset({"token", "access_token"})
+#: Header names whose value is a secret, in logs that print headers as ("name", "value") pairs
+#: (uvicorn's WebSocket handshake at debug level: `< %s: %s`).
+SECRET_HEADERS = frozenset({"authorization", "proxy-authorization", "cookie", "x-arm-lease"})
+_QUERY_PARAM = re.compile(r"([?&;])([^=&;\s\"'#]*)=([^&;\s\"'#]*)")
+_CREDENTIALS = re.compile(r"(?i)\b(bearer|basic)(\s+)[^\s\"',;]+")
+_HEADER_LINE = re.compile(r"(?im)^([<> ]*(?:" + "|".join(SECRET_HEADERS) + r")\s*:\s*).+$")
+
+
+def _param(m: re.Match[str]) -> str:
+    if unquote_plus(m.group(2)).strip().lower() in TOKEN_PARAMS:
+        return f"{m.group(1)}{m.group(2)}=***"
+    return m.group(0)
+
+
+def redact(text: str) -> str:
+    """`text` with every token blanked: token query parameters (names percent-decoded),
+    `Bearer`/`Basic` credentials, and the values of secret header lines."""
+    text = _QUERY_PARAM.sub(_param, text)
+    text = _HEADER_LINE.sub(r"\1***", text)
+    return _CREDENTIALS.sub(r"\1\2***", text)
 
 
 class RedactTokens(logging.Filter):
-    """Blank `?token=` values in log records: uvicorn logs each request's and each WebSocket
-    handshake's path, query string included, and a browser can only pass a WebSocket token in
-    the query. Installed on uvicorn's loggers by `install_log_redaction`."""
+    """Blank tokens in log records: uvicorn logs each request's and each WebSocket handshake's
+    path, query string included (a browser can only pass a WebSocket token in the query), and
+    at debug level the handshake's headers, `authorization` included. Arguments are redacted
+    one by one (uvicorn's access formatter unpacks them); an argument that follows a secret
+    header's name is blanked whole. Installed by `install_log_redaction`."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         if isinstance(record.msg, str):
-            record.msg = _TOKEN_IN_QUERY.sub(r"\1***", record.msg)
+            record.msg = redact(record.msg)
         if isinstance(record.args, tuple):
-            record.args = tuple(_TOKEN_IN_QUERY.sub(r"\1***", a) if isinstance(a, str) else a
-                                for a in record.args)
+            out: list[object] = []
+            secret_next = False
+            for a in record.args:
+                if secret_next:
+                    out.append("***")
+                else:
+                    out.append(redact(a) if isinstance(a, str) else a)
+                secret_next = isinstance(a, str) and a.strip().lower() in SECRET_HEADERS
+            record.args = tuple(out)
         return True
 
 
 def install_log_redaction() -> None:
     """Add RedactTokens to the loggers that print request paths (idempotent)."""
-    for name in ("uvicorn.access", "uvicorn.error", "uvicorn"):
+    for name in ("uvicorn.access", "uvicorn.error", "uvicorn", "websockets", "websockets.server",
+                 "websockets.legacy.server"):
         logger = logging.getLogger(name)
         if not any(isinstance(f, RedactTokens) for f in logger.filters):
             logger.addFilter(RedactTokens())

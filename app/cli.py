@@ -64,10 +64,9 @@ def register_client_commands(subparsers: Any) -> None:
 def _settings(args: argparse.Namespace) -> Any:
     from app.config import Settings
 
-    settings = Settings()
     over = {k: v for k, v in (("config", args.config), ("host", args.host), ("port", args.port),
                               ("log_level", args.log_level)) if v is not None}
-    return settings.model_copy(update=over)
+    return Settings(**over)  # validated, flags included (model_copy would skip validation)
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -103,7 +102,19 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         return int(sim_main(argv[1:]) or 0)
     args = _parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    from pydantic import ValidationError
+
+    from app.config import ConfigError, settings_error
+
+    try:
+        return int(args.func(args) or 0)
+    except ValidationError as exc:  # settings: say which variable and why, no traceback
+        if exc.title != "Settings":
+            raise
+        print(f"armserver: {settings_error(exc)}", file=sys.stderr)
+    except ConfigError as exc:
+        print(f"armserver: {exc}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":

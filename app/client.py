@@ -136,6 +136,7 @@ class ConnectionFailed(ArmServerError):
 
 ERRORS: dict[str, type[ArmServerError]] = {
     "not_found": NotFound, "unknown_arm": NotFound, "unknown_motion": NotFound,
+    "motion_expired": NotFound, "bad_host": ArmServerError, "cross_origin": Forbidden,
     "unknown_lease": NotFound, "invalid_json": InvalidRequest,
     "invalid_request": InvalidRequest, "unreachable": Unreachable, "joint_limit": JointLimit,
     "velocity_limit": VelocityLimit, "estop_latched": EstopLatched, "busy": Busy,

@@ -11,9 +11,16 @@ import math
 import tomllib
 from importlib import resources
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 BUILTIN_PROFILES = ("rbe3001", "angler")
@@ -200,13 +207,53 @@ class ArmProfile(_Strict):
         return [j.max for j in self.joints]
 
 
+class ConfigError(ValueError):
+    """A config file or profile that cannot be used; the message says what is wrong, where,
+    and (for an unknown profile) which profiles are built in. `armserver serve` prints it and
+    exits 2, no traceback."""
+
+
+def _builtins() -> str:
+    return ", ".join(f'"{n}"' for n in BUILTIN_PROFILES)
+
+
+def _read_toml(path: Path, what: str) -> dict[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{what} {path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{what} {path}: cannot be read: {exc}") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{what} {path}: malformed TOML: {exc}") from None
+
+
+def _invalid(exc: ValidationError, where: str) -> ConfigError:
+    lines = [f"{where}: {exc.error_count()} invalid value(s):"]
+    for e in exc.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        lines.append(f"  {loc}: {e['msg']}")
+    return ConfigError("\n".join(lines))
+
+
 def load_profile(source: str | Path) -> ArmProfile:
-    """Load a profile by built-in name (`rbe3001`, `angler`) or from a TOML file path."""
+    """Load a profile by built-in name (`rbe3001`, `angler`) or from a TOML file path.
+    Raises :class:`ConfigError` naming the file and what is wrong with it."""
     if isinstance(source, str) and source in BUILTIN_PROFILES:
         text = resources.files("app.profiles").joinpath(f"{source}.toml").read_text()
+        data, where = tomllib.loads(text), f"built-in profile {source!r}"
     else:
-        text = Path(source).read_text()
-    return ArmProfile.model_validate(tomllib.loads(text))
+        path = Path(source)
+        if not path.is_file():
+            raise ConfigError(f"profile {str(source)!r}: not a built-in profile (those are "
+                              f"{_builtins()}) and no profile file {path}")
+        data, where = _read_toml(path, "profile file"), f"profile file {path}"
+    try:
+        return ArmProfile.model_validate(data)
+    except ValidationError as exc:
+        raise _invalid(exc, where) from None
 
 
 class ServerConfig(_Strict):
@@ -228,30 +275,46 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
     if config_file is None:
         return [load_profile(n) for n in BUILTIN_PROFILES]
     path = Path(config_file)
-    data = tomllib.loads(path.read_text())
+    data = _read_toml(path, "config file")
+    arms = data.get("arms", [])
+    if not isinstance(arms, list) or not all(isinstance(a, dict) for a in arms):
+        raise ConfigError(f"config file {path}: `arms` must be [[arms]] tables")
     profiles: list[ArmProfile] = []
-    for entry in data.get("arms", []):
+    for k, entry in enumerate(arms):
         entry = dict(entry)
+        where = f"config file {path}, [[arms]] #{k + 1}"
         count = entry.pop("count", 1)
         if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_COPIES:
-            raise ValueError(f"[[arms]] count must be an integer 1..{MAX_COPIES}, got {count!r}")
+            raise ConfigError(f"{where}: count must be an integer 1..{MAX_COPIES}, got {count!r}")
         base_name = entry.pop("profile", None)
         if base_name is not None:
-            src = base_name if base_name in BUILTIN_PROFILES else path.parent / str(base_name)
-            base = load_profile(src).model_dump()
+            if not isinstance(base_name, str) or not base_name:
+                raise ConfigError(f"{where}: `profile` must be a built-in profile name "
+                                  f"({_builtins()}) or a path to a profile file")
+            src = base_name if base_name in BUILTIN_PROFILES else path.parent / base_name
+            if isinstance(src, Path) and not src.is_file():
+                raise ConfigError(f"{where}: profile = {base_name!r} is neither a built-in "
+                                  f"profile ({_builtins()}) nor a profile file ({src})")
+            try:
+                base = load_profile(src).model_dump()
+            except ConfigError as exc:
+                raise ConfigError(f"{where}: {exc}") from None
             base = _merge(base, entry)
         else:
             base = entry
-        if count == 1:
-            profiles.append(ArmProfile.model_validate(base))
-            continue
-        for k in range(1, count + 1):
-            profiles.append(ArmProfile.model_validate({**base, "name": f"{base.get('name')}-{k}"}))
+        copies = [base] if count == 1 else [
+            {**base, "name": f"{base.get('name')}-{n}"} for n in range(1, count + 1)]
+        for copy in copies:
+            try:
+                profiles.append(ArmProfile.model_validate(copy))
+            except ValidationError as exc:
+                raise _invalid(exc, where) from None
     names = [p.name for p in profiles]
     if len(set(names)) != len(names):
-        raise ValueError(f"arm names must be unique, got {names}")
+        raise ConfigError(f"config file {path}: arm names must be unique, got {names} (give "
+                          "each a `name`)")
     if not profiles:
-        raise ValueError(f"{path} names no [[arms]]")
+        raise ConfigError(f"config file {path} names no [[arms]]")
     return profiles
 
 
@@ -321,3 +384,70 @@ class Settings(BaseSettings):
     @property
     def auth_enabled(self) -> bool:
         return bool(self.operator_set or self.viewer_set or self.instructor_set)
+
+    #: Host names an open server answers to besides its loopback names and bound host
+    #: (comma separated; `*`: any). See app/hostguard.py and README "Access and safety".
+    allowed_hosts: str = ""
+
+    # ------------------------------------------------ validation (issue 11.5)
+
+    @field_validator("log_level")
+    @classmethod
+    def _lower_level(cls, v: str) -> str:
+        return v.strip().lower()
+
+    @model_validator(mode="after")
+    def _validate_every_setting(self) -> Settings:
+        """Every setting, checked at start-up (a NaN lease TTL locked an arm until restart):
+        explicit ranges where known, and for every other number (settings other modules add
+        included) finite, and not negative where the name says duration, rate or size."""
+        problems: list[str] = []
+        for name, value in self:
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                continue
+            shown = f"{env_name(name)}={value!r}"
+            if not math.isfinite(value):
+                problems.append(f"{shown}: must be a finite number")
+            elif name in SETTING_RANGES:
+                lo, hi, what = SETTING_RANGES[name]
+                if not (lo < value <= hi if what.startswith(">") else lo <= value <= hi):
+                    problems.append(f"{shown}: must be {what}")
+            elif name.endswith(_QUANTITY_SUFFIXES) or name.startswith("max_"):
+                if value < 0:
+                    problems.append(f"{shown}: must not be negative")
+        if self.log_level.lower() not in LOG_LEVELS:
+            problems.append(f"{env_name('log_level')}={self.log_level!r}: must be one of "
+                            f"{', '.join(LOG_LEVELS)}")
+        if not self.host.strip():
+            problems.append(f"{env_name('host')}: must not be empty")
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
+
+
+#: name -> (low, high, "what it must be"); a leading ">" means the low end is excluded.
+SETTING_RANGES: dict[str, tuple[float, float, str]] = {
+    "port": (0, 65535, "a TCP port, 0..65535"),
+    "max_body_bytes": (1, 1 << 30, "1..1073741824 bytes"),
+    "max_ws_message_bytes": (1, 1 << 26, "1..67108864 bytes"),
+    "lease_ttl_s": (0.0, 86400.0, "> 0 and at most 86400 s (a day)"),
+}
+_QUANTITY_SUFFIXES = ("_s", "_hz", "_bytes", "_rate", "_size", "_count", "_limit")
+LOG_LEVELS = ("critical", "error", "warning", "info", "debug", "trace")
+
+
+def env_name(field: str) -> str:
+    return f"ARMSERVER_{field.upper()}"
+
+
+def settings_error(exc: ValidationError) -> str:
+    """A start-up message for invalid settings: which variable, what value, what it must be."""
+    lines = ["invalid settings (environment ARMSERVER_* or command-line flags):"]
+    for e in exc.errors():
+        loc = ".".join(str(p) for p in e["loc"])
+        msg = str(e["msg"]).removeprefix("Value error, ")
+        if loc:
+            lines.append(f"  {env_name(loc)}={e.get('input')!r}: {msg}")
+        else:
+            lines.extend(f"  {m}" for m in msg.split("; "))
+    return "\n".join(lines)

@@ -15,6 +15,7 @@ about which arms exist.
 
 from __future__ import annotations
 
+import hashlib
 from typing import Annotated
 
 from fastapi import Depends, Header, Path, Request
@@ -111,3 +112,21 @@ async def control_arm(
 
 ViewerArm = Annotated[ArmService, Depends(viewer_arm)]
 ControlArm = Annotated[ArmService, Depends(control_arm)]
+
+
+def caller(request: Request, cred: Credentials) -> str:
+    """Who is asking, for the records of what they stopped: role, the token's name (the first
+    8 hex digits of its SHA-256, never the token) and the client's address."""
+    access = get_access(request)
+    token = _token(cred)
+    role = access.role_of(token)
+    who = "anonymous client" if role is None else role.name.lower()
+    if access.enabled and token:
+        who += f" {hashlib.sha256(token.encode('utf-8', 'surrogatepass')).hexdigest()[:8]}"
+    elif not access.enabled:
+        who += " (open server)"
+    host = request.client.host if request.client is not None else "unknown address"
+    return f"{who} from {host}"
+
+
+CallerDep = Annotated[str, Depends(caller)]

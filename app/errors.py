@@ -35,6 +35,17 @@ class UnknownMotion(NotFound):
     code = "unknown_motion"
 
 
+class Gone(ArmError):
+    code = "gone"
+    status_code = 410
+
+
+class MotionExpired(Gone):
+    """A motion id this server issued but no longer keeps (the detail says what is known)."""
+
+    code = "motion_expired"
+
+
 class InvalidRequest(ArmError):
     code = "invalid_request"
     status_code = 422

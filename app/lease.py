@@ -131,7 +131,9 @@ class LeaseManager:
         stopped: list[str] = []
         if svc is not None:
             try:
-                stopped = (await svc.stop()).stopped
+                stopped = (await svc.stop(
+                    f"stopped: the lease on {lease.arm} lapsed (not renewed within "
+                    f"{lease.ttl:g} s)")).stopped
             except ArmError as exc:  # stop failed on the device: still report the lapse
                 log.warning("%s: stop after lease lapse failed: %s", lease.arm, exc.detail)
             svc.hub.event("lease_expired", lease=lease.id, stopped=stopped)

@@ -36,6 +36,7 @@ from app.api import arms, dynamixel, kinematics, lease, motion, rbe3001, safety,
 from app.auth import Access, bearer_token, install_log_redaction
 from app.config import ArmProfile, Settings, load_arms
 from app.errors import ArmError, Unauthorized
+from app.hostguard import HostOriginGuard
 from app.lease import LeaseManager
 from app.mqtt import start_mqtt_bridge
 from app.service import ArmService
@@ -116,6 +117,7 @@ def create_app(settings: Settings | None = None,
 
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(TokenGate, access=app.state.access)
+    app.add_middleware(HostOriginGuard, settings=settings)  # open servers: own Host, own Origin
     origins = [o.strip() for o in settings.cors_origins.split(",") if o.strip()]
     if origins:
         app.add_middleware(CORSMiddleware, allow_origins=origins, allow_methods=["*"],
@@ -164,7 +166,28 @@ def _document_websocket_messages(app: FastAPI) -> None:
 
 
 def _body(detail: Any, code: str) -> dict[str, Any]:
-    return {"detail": detail, "code": code}
+    return {"detail": _encodable(detail), "code": code}
+
+
+def _encodable(value: Any) -> Any:
+    """`value` with every string made UTF-8 encodable: a lone surrogate (JSON `"\\ud800"`,
+    valid JSON but not text) is shown as the escape `\\ud800`, so echoing a client's input
+    back in an error body cannot fail to encode (that was a 502 with a traceback)."""
+    if isinstance(value, str):
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            return value.encode("utf-8", "backslashreplace").decode("utf-8")
+        return value
+    if isinstance(value, dict):
+        return {_encodable(k): _encodable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_encodable(v) for v in value]
+    return value
+
+
+def _has_surrogate(value: Any) -> bool:
+    return _encodable(value) != value
 
 
 def _json_safe(value: Any) -> bool:
@@ -205,6 +228,9 @@ def _install_error_handlers(app: FastAPI) -> None:
         errs = validation_errors(exc.errors())
         code = ("invalid_json" if any(e["type"] == "json_invalid" for e in errs)
                 else "invalid_request")
+        if _has_surrogate(errs):  # one short line, no traceback: the body says the rest
+            log.warning("%s %s: 422 %s, the request carries a lone surrogate (not text)",
+                        request.method, request.url.path, code)
         return JSONResponse(_body(errs, code), 422)
 
     @app.exception_handler(StarletteHTTPException)
@@ -329,13 +355,12 @@ class TokenGate:
         if self.access.role_of(token) is not None:
             await self.app(scope, receive, send)
             return
-        detail = "missing bearer token" if not token else "invalid bearer token"
-        body = json.dumps(_body(detail, "unauthorized")).encode()
-        await send({"type": "http.response.start", "status": 401,
-                    "headers": [(b"content-type", b"application/json"),
-                                (b"www-authenticate", b"Bearer"),
-                                (b"content-length", str(len(body)).encode())]})
-        await send({"type": "http.response.body", "body": body})
+        # the very answer the routes give (`Access.require` through the ArmError handler):
+        # same detail, same serializer, same headers, byte for byte
+        exc = Unauthorized("missing bearer token" if not token else "invalid bearer token")
+        response = JSONResponse(_body(exc.detail, exc.code), exc.status_code,
+                                headers={"WWW-Authenticate": "Bearer"})
+        await response(scope, receive, send)
 
 
 def cli() -> None:

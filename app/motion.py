@@ -28,13 +28,14 @@ from app.errors import (
     InvalidRequest,
     JointLimit,
     LinkDown,
+    MotionExpired,
     UnknownMotion,
     Unreachable,
 )
 from app.links.base import LinkState
 from app.tasks import cancel_and_wait
 from kinematics import trajectory
-from kinematics.errors import KinematicsError, LimitViolation
+from kinematics.errors import KinematicsError, LimitViolation, TrajectoryError
 from kinematics.errors import Unreachable as KinematicsUnreachable
 
 if TYPE_CHECKING:
@@ -43,7 +44,14 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 MAX_QUEUED = 32
+#: Motion history (issue 11.12): the last HISTORY motions or those ended within HISTORY_S,
+#: whichever is more, never more than MAX_HISTORY records; a forgotten id leaves a tombstone
+#: (status, code, times) for the last TOMBSTONES ids, so GET answers 410 `motion_expired`
+#: with what is known instead of a 404 as if it never existed.
 HISTORY = 256
+HISTORY_S = 600.0
+MAX_HISTORY = 4096
+TOMBSTONES = 16384
 #: Consecutive failed setpoints before a motion fails (3 control periods: a single dropped or
 #: corrupt reply is ridden through, a device that stopped answering is not).
 MAX_SETPOINT_FAILURES = 3
@@ -110,6 +118,8 @@ class MotionExecutor:
         self.model = svc.model
         self._queue: deque[MotionRecord] = deque()
         self._records: OrderedDict[str, MotionRecord] = OrderedDict()
+        self._tombstones: OrderedDict[str, tuple[str, str | None, float, float | None]] = (
+            OrderedDict())
         self._wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self.current: MotionRecord | None = None
@@ -118,6 +128,9 @@ class MotionExecutor:
         self._cmd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._halt = False
         self._ids = itertools.count(1)
+        self._next_serial = 1  # the serial of the next motion id (for 410 on forgotten ids)
+        #: how many motions, and how many seconds of ended ones, the history keeps at least
+        self.history, self.history_s = HISTORY, HISTORY_S
 
     def start(self) -> None:
         if self._task is None:
@@ -134,8 +147,41 @@ class MotionExecutor:
     def get(self, motion_id: str) -> MotionRecord:
         rec = self._records.get(motion_id)
         if rec is None:
+            gone = self._tombstones.get(motion_id)
+            if gone is not None:
+                status, code, created, ended = gone
+                raise MotionExpired(
+                    f"motion {motion_id} of {self.svc.name} has left the history (kept: the last "
+                    f"{self.history} motions or those of the last {self.history_s:g} s); it was "
+                    f"created "
+                    f"at {_utc(created)} and ended {status}"
+                    + (f" ({code})" if code else "") + (f" at {_utc(ended)}" if ended else ""))
+            if self._issued(motion_id):
+                raise MotionExpired(f"motion {motion_id} of {self.svc.name} has left the history "
+                                    "long ago; nothing more is known about it")
             raise UnknownMotion(f"{self.svc.name} has no motion {motion_id!r}")
         return rec
+
+    def _issued(self, motion_id: str) -> bool:
+        """Whether this executor handed out `motion_id` (ids are m<serial>-<8 hex>)."""
+        head, _, tail = motion_id.partition("-")
+        if not (head[:1] == "m" and head[1:].isdigit() and len(tail) == 8):
+            return False
+        return int(head[1:]) < self._next_serial
+
+    def _remember(self, rec: MotionRecord) -> None:
+        """Add `rec` to the history; forget ended records beyond both the count and the age."""
+        self._records[rec.id] = rec
+        now = time.time()
+        while len(self._records) > self.history:
+            old = next(iter(self._records.values()))
+            young = old.ended is None or now - old.ended < self.history_s
+            if young and len(self._records) <= MAX_HISTORY:
+                break
+            del self._records[old.id]
+            self._tombstones[old.id] = (old.status, old.code, old.created, old.ended)
+            while len(self._tombstones) > TOMBSTONES:
+                self._tombstones.popitem(last=False)
 
     def brief(self) -> dict[str, Any] | None:
         rec = self.current or self.last
@@ -159,12 +205,15 @@ class MotionExecutor:
         p = np.array([req.x, req.y, req.z])
         return self._preview("pose", req.path, req, self._plan_pose_from, p)
 
-    async def cancel(self, motion_id: str) -> MotionRecord:
+    async def cancel(self, motion_id: str, reason: str = "cancelled") -> MotionRecord:
+        """Cancel one motion; `reason` says who cancelled it (kept in its record)."""
         rec = self.get(motion_id)
         if rec.status == "queued":
             self._queue.remove(rec)
-            self._finish(rec, "stopped", "cancelled before it started")
+            self._finish(rec, "stopped", f"{reason} before it started")
         elif rec.status == "running":
+            if rec.cancel is None and rec.reason is None:
+                rec.reason = reason
             rec.cancel = rec.cancel or "stop"
             await rec.wait()
         return rec
@@ -175,6 +224,8 @@ class MotionExecutor:
             self._finish(self._queue.popleft(), "stopped", reason)
         cur = self.current
         if cur is not None and cur.status == "running":
+            if cur.cancel is None and cur.reason is None:
+                cur.reason = reason  # who or what stopped it, not just "cancelled"
             cur.cancel = "stop"
             stopped.append(cur.id)
             await cur.wait()
@@ -252,6 +303,8 @@ class MotionExecutor:
                 m.names, m.kinds, q_start=q0, speed=req.speed)
         except LimitViolation as exc:
             raise JointLimit(f"line path leaves the joint limits: {exc}") from None
+        except TrajectoryError as exc:  # e.g. a speed so small the line would last hours
+            raise InvalidRequest(f"cannot plan the line: {exc}") from None
         except KinematicsError as exc:
             raise Unreachable(f"line path leaves the workspace: {exc}") from None
         end = traj.sample(traj.duration)[0]
@@ -294,11 +347,11 @@ class MotionExecutor:
             raise Busy(f"{self.svc.name}: {MAX_QUEUED} motions already queued")
         start, at_rest = self._tail_state(req.mode)
         plan = planner(start, target, req, at_rest or path == "line")
-        rec = self._record(kind, path, req, plan, f"m{next(self._ids)}-{uuid.uuid4().hex[:8]}")
+        serial = next(self._ids)
+        self._next_serial = serial + 1
+        rec = self._record(kind, path, req, plan, f"m{serial}-{uuid.uuid4().hex[:8]}")
         rec.planner, rec.goal = planner, target
-        self._records[rec.id] = rec
-        while len(self._records) > HISTORY:
-            self._records.popitem(last=False)
+        self._remember(rec)
         if req.mode == "replace":
             while self._queue:
                 self._finish(self._queue.popleft(), "stopped", f"replaced by {rec.id}")
@@ -479,6 +532,10 @@ class MotionExecutor:
         rec.done.set()
         if rec.started is not None or status != "stopped":
             self.svc.hub.event("motion_ended", id=rec.id, status=status, reason=reason, code=code)
+
+
+def _utc(t: float) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
 
 
 def _vec(v: np.ndarray) -> dict[str, float]:

@@ -13,8 +13,15 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from app.config import KeepOutBox
 
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-Unit = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
+#: Numbers are strict (issue 11.10): `true` or `"1"` is not a number (it moved a joint to 1 rad);
+#: an integer is a number. Integers are strict likewise: `true`, `"1"` and `1.0` are refused.
+Finite = Annotated[float, Field(allow_inf_nan=False, strict=True)]
+Unit = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False, strict=True)]
+Int = Annotated[int, Field(strict=True)]
+Bool = Annotated[bool, Field(strict=True)]
+Duration = Annotated[float, Field(gt=0.0, le=600.0, allow_inf_nan=False, strict=True)]
+Speed = Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False, strict=True)]
+DxlIdValue = Annotated[int, Field(ge=0, le=252, strict=True)]
 
 
 class Model(BaseModel):
@@ -157,10 +164,10 @@ QueueMode = Literal["queue", "replace"]
 
 class MoveJoints(Model):
     positions: list[Finite] = Field(min_length=1, max_length=16)
-    duration: Annotated[float, Field(gt=0.0, le=600.0, allow_inf_nan=False)] | None = None
-    speed: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 1.0
+    duration: Duration | None = None
+    speed: Speed = 1.0
     mode: QueueMode = "queue"
-    wait: bool = False
+    wait: Bool = False
 
 
 class MovePose(Model):
@@ -168,14 +175,14 @@ class MovePose(Model):
     y: Finite
     z: Finite
     path: Literal["joint", "line"] = "joint"
-    branch: int | None = Field(None, ge=0, le=16, description="IK solution index; default: the "
+    branch: Int | None = Field(None, ge=0, le=16, description="IK solution index; default: the "
                                "within-limits solution nearest the current joints")
     ik_case: Literal["dx_zero", "dx_used"] | None = Field(
         None, description="angler only: fix dx at 0 (theta3 reaches x) or use dx (theta3 kept)")
-    duration: Annotated[float, Field(gt=0.0, le=600.0, allow_inf_nan=False)] | None = None
-    speed: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 1.0
+    duration: Duration | None = None
+    speed: Speed = 1.0
     mode: QueueMode = "queue"
-    wait: bool = False
+    wait: Bool = False
 
 
 class Motion(Model):
@@ -278,11 +285,11 @@ class Rbe3001Status(Model):
 #: A PID gain in the firmware's units (the default kp is 0.005; the output saturates at 0.2,
 #: so 1000 already means full output at 0.0002 ticks of error). A negative gain makes the loop
 #: unstable and is refused.
-Gain = Annotated[float, Field(ge=0.0, le=1000.0, allow_inf_nan=False)]
+Gain = Annotated[float, Field(ge=0.0, le=1000.0, allow_inf_nan=False, strict=True)]
 
 
 class SetGain(Model):
-    axis: int = Field(ge=0, le=2)
+    axis: Int = Field(ge=0, le=2)
     kp: Gain
     ki: Gain
     kd: Gain
@@ -301,7 +308,7 @@ class Ack(Model):
 
 
 class PingRequest(Model):
-    id: int | None = Field(None, ge=0, le=252, description="one id, or none for every id")
+    id: DxlIdValue | None = Field(None, description="one id, or none for every id")
 
 
 class PingDevice(Model):
@@ -325,12 +332,12 @@ class RegisterValue(Model):
 
 
 class RegisterWrite(Model):
-    raw: int
+    raw: Int
 
 
 class SyncReadRequest(Model):
     name: str
-    ids: list[Annotated[int, Field(ge=0, le=252)]] = Field(min_length=1, max_length=32)
+    ids: list[DxlIdValue] = Field(min_length=1, max_length=32)
 
 
 class SyncReadResult(Model):
@@ -340,7 +347,8 @@ class SyncReadResult(Model):
 
 class SyncWriteRequest(Model):
     name: str
-    values: dict[Annotated[int, Field(ge=0, le=252)], int] = Field(min_length=1, max_length=32)
+    # keys are JSON object keys, so strings: "1" is id 1; the values are strict
+    values: dict[Annotated[int, Field(ge=0, le=252)], Int] = Field(min_length=1, max_length=32)
 
 
 # ---------------------------------------------------------------- lease

@@ -163,8 +163,9 @@ class ArmService:
 
     # --------------------------------------------------------- stop, estop, gripper
 
-    async def stop(self) -> s.StopResult:
-        stopped = await self.motion.stop_all(reason="stopped by request")
+    async def stop(self, reason: str = "stopped by request") -> s.StopResult:
+        """Stop all motion; `reason` (who or what stopped it) goes into each motion's record."""
+        stopped = await self.motion.stop_all(reason=reason)
         return s.StopResult(stopped=stopped, estop=self.estop)
 
     async def latch_estop(self) -> s.EstopState:

@@ -8,7 +8,7 @@ and by how much it was missed, in SI units.
 
 from __future__ import annotations
 
-__all__ = ["KinematicsError", "LimitViolation", "Singular", "Unreachable"]
+__all__ = ["KinematicsError", "LimitViolation", "Singular", "TrajectoryError", "Unreachable"]
 
 
 class KinematicsError(ValueError):
@@ -34,3 +34,12 @@ class Singular(KinematicsError):
 
 class LimitViolation(KinematicsError):
     """A joint position or velocity would leave its configured limits."""
+
+
+class TrajectoryError(KinematicsError):
+    """The trajectory generator found no trajectory; ``ruckig_code`` is its result number
+    (e.g. -101: the move would last too long), the message says what it means."""
+
+    def __init__(self, message: str, ruckig_code: int) -> None:
+        super().__init__(message)
+        self.ruckig_code = ruckig_code

@@ -13,6 +13,7 @@ treats them alike. Units: s, and rad or m per joint.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -21,21 +22,26 @@ import numpy as np
 import numpy.typing as npt
 import ruckig  # type: ignore[import-not-found, import-untyped, unused-ignore]
 
-from kinematics.errors import KinematicsError, LimitViolation, Unreachable
+from kinematics.errors import KinematicsError, LimitViolation, TrajectoryError, Unreachable
 from kinematics.limits import first_violation, unit
 
 __all__ = [
     "IKFn",
     "JointTrajectory",
     "SampledTrajectory",
+    "TrajectoryError",
     "TrajectoryLike",
     "plan_joint",
     "plan_line",
     "plan_stop",
+    "ruckig_reason",
     "time_grid",
 ]
 
 FloatArray = npt.NDArray[np.float64]
+#: Most samples a straight line may have (IK runs at each, in order): 10 min at 100 Hz. A tiny
+#: speed made ruckig plan a 1-DOF arc-length profile of 4.7e8 s (351 GiB of time grid).
+MAX_LINE_SAMPLES = 60_000
 Samples = tuple[FloatArray, FloatArray, FloatArray]
 IKFn = Callable[[FloatArray, FloatArray | None], FloatArray]
 """``ik_fn(p (3,) m, q_prev (n,) or None) -> q (n,)``: the branch continuous with
@@ -129,6 +135,47 @@ def _vec(name: str, v: npt.ArrayLike, n: int, positive: bool = False) -> FloatAr
     return a
 
 
+#: What each of ruckig's error results means, in words a caller can act on. The Python
+#: binding's `Result` enum lacks some of them (-101 raised `ValueError: -101 is not a valid
+#: Result`), so results are handled by number.
+RUCKIG_ERRORS: dict[int, str] = {
+    -1: "ruckig failed to calculate a trajectory",
+    -100: "the input is invalid (limits, positions or durations out of range)",
+    -101: f"the move would last longer than ruckig's limit of {7.6e3:.0f} s: ask for a higher"
+          " speed or a shorter move",
+    -102: "the positional limits cannot be kept",
+    -104: "a velocity, acceleration or jerk limit is zero",
+    -110: "the execution time of a joint could not be calculated (the limits are too far apart"
+          " in scale, e.g. a speed fraction far too small)",
+    -111: "the joints could not be synchronised to arrive together",
+}
+
+_RESULT_NUMBER = re.compile(r"(-?\d+) is not a valid")
+
+
+def ruckig_reason(code: int) -> str:
+    """A person's reading of ruckig result `code` (any negative number is an error)."""
+    return RUCKIG_ERRORS.get(code, f"ruckig returned error {code}")
+
+
+def _calculate(n: int, inp: Any, what: str) -> Any:
+    """Run ruckig offline on `inp` and answer the trajectory, or raise :class:`TrajectoryError`
+    with the result's meaning for every result that is not Working/Finished, known or not."""
+    traj = ruckig.Trajectory(n)
+    try:
+        result = ruckig.Ruckig(n).calculate(inp, traj)
+    except ruckig.RuckigError as exc:
+        raise TrajectoryError(f"{what}: {exc}", -1) from None
+    except ValueError as exc:  # a result number the binding's enum does not list
+        m = _RESULT_NUMBER.search(str(exc))
+        code = int(m.group(1)) if m else -1
+        raise TrajectoryError(f"{what}: {ruckig_reason(code)}", code) from None
+    code = int(result)
+    if code < 0:
+        raise TrajectoryError(f"{what}: {ruckig_reason(code)}", code)
+    return traj
+
+
 def plan_joint(
     q0: npt.ArrayLike,
     q1: npt.ArrayLike,
@@ -166,13 +213,7 @@ def plan_joint(
         if not (np.isfinite(duration) and duration >= 0):
             raise KinematicsError(f"duration must be finite and >= 0 s, got {duration}")
         inp.minimum_duration = float(duration)
-    traj = ruckig.Trajectory(n)
-    try:
-        result = ruckig.Ruckig(n).calculate(inp, traj)
-    except ruckig.RuckigError as exc:
-        raise KinematicsError(f"no trajectory within the limits: {exc}") from exc
-    if result not in (ruckig.Result.Working, ruckig.Result.Finished):
-        raise KinematicsError(f"no trajectory within the limits: ruckig returned {result}")
+    traj = _calculate(n, inp, "no trajectory within the limits")
     if duration is not None and traj.duration > duration + 1e-9:
         raise KinematicsError(
             f"requested duration {duration:.3f} s is shorter than the fastest move within"
@@ -208,13 +249,7 @@ def plan_stop(
     inp.max_acceleration = np.maximum(_vec("amax", amax, n, True),
                                       np.abs(np.asarray(inp.current_acceleration))).tolist()
     inp.max_jerk = _vec("jmax", jmax, n, True).tolist()
-    traj = ruckig.Trajectory(n)
-    try:
-        result = ruckig.Ruckig(n).calculate(inp, traj)
-    except ruckig.RuckigError as exc:
-        raise KinematicsError(f"no stopping trajectory: {exc}") from exc
-    if result not in (ruckig.Result.Working, ruckig.Result.Finished):
-        raise KinematicsError(f"no stopping trajectory: ruckig returned {result}")
+    traj = _calculate(n, inp, "no stopping trajectory")
     return JointTrajectory(traj=traj, dofs=n, duration=float(traj.duration))
 
 
@@ -299,6 +334,11 @@ def plan_line(
     for attempt in range(retries + 1):
         if length > 0:
             prof = plan_joint([0.0], [length], vt, amax_tip, jmax_tip)
+            if prof.duration / dt > MAX_LINE_SAMPLES:  # IK at every sample: bound the work
+                raise TrajectoryError(
+                    f"the line would last {prof.duration:.4g} s, {prof.duration / dt:.3g} samples"
+                    f" of {dt * 1e3:g} ms; a line may have at most {MAX_LINE_SAMPLES}: ask for a"
+                    " higher speed", 0)
             t, s, _, _ = prof.sample_grid(dt)
             s = s[:, 0]
         else:

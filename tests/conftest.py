@@ -38,7 +38,10 @@ def make_settings(**over: Any) -> Settings:
                             "instructor_tokens": "", "cors_origins": "", "lease_ttl_s": 5.0,
                             # a fresh store for each server (module-scoped servers start before
                             # the per-test ARMSERVER_DATA_DIR below is set)
-                            "data_dir": tempfile.mkdtemp(prefix="armserver-data-")}
+                            "data_dir": tempfile.mkdtemp(prefix="armserver-data-"),
+                            # the Host names of the in-process clients (httpx below, and
+                            # schemathesis's ASGI client): an open server answers only its own
+                            "allowed_hosts": "armserver.test,testserver"}
     base.update(over)
     return Settings(**base)
 

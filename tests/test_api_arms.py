@@ -191,7 +191,8 @@ async def test_the_last_resort_handler_answers_502_and_counts() -> None:
 
     async with app.router.lifespan_context(app):
         transport = httpx.ASGITransport(app=app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://t") as client:
+        async with httpx.AsyncClient(transport=transport,
+                                     base_url="http://armserver.test") as client:
             r = await client.get("/api/v1/boom")
     assert r.status_code == 502
     assert r.json() == {"detail": "internal error (logged); please report it",

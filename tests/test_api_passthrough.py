@@ -146,7 +146,7 @@ async def test_dynamixel_sync_read_write_and_reboot(app_client: httpx.AsyncClien
 async def test_estop_blocks_writes_but_not_reads_or_torque_off(
         app_client: httpx.AsyncClient) -> None:
     assert (await app_client.post(f"{API}/arms/angler/estop")).status_code == 200
-    r = await app_client.put(f"{DX}/1/registers/profile_velocity", json={"raw": 10})
+    r = await app_client.put(f"{DX}/1/registers/position_p_gain", json={"raw": 850})
     assert r.status_code == 409 and r.json()["code"] == "estop_latched"
     r = await app_client.post(f"{DX}/1/reboot")
     assert r.status_code == 409 and r.json()["code"] == "estop_latched"

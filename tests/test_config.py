@@ -3,12 +3,15 @@ config file overrides only what it names."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 from pydantic import ValidationError
 
-from app.config import ArmProfile, Settings, load_arms, load_profile
+from app.config import ArmProfile, ConfigError, Settings, load_arms, load_profile
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -65,3 +68,66 @@ def test_settings_from_environment(monkeypatch):
     s = Settings()
     assert s.operator_set == {"a", "b"} and s.port == 9001 and s.auth_enabled
     assert s.host == "127.0.0.1"  # loopback unless told otherwise
+
+
+# ---------------------------------------------------------------- issue 11.5 and 11.11
+
+@pytest.mark.parametrize(("over", "says"), [
+    ({"lease_ttl_s": float("nan")}, "ARMSERVER_LEASE_TTL_S=nan: must be a finite number"),
+    ({"lease_ttl_s": float("inf")}, "ARMSERVER_LEASE_TTL_S=inf: must be a finite number"),
+    ({"lease_ttl_s": 0}, "ARMSERVER_LEASE_TTL_S=0.0: must be > 0"),
+    ({"lease_ttl_s": -5}, "ARMSERVER_LEASE_TTL_S=-5.0: must be > 0"),
+    ({"max_body_bytes": 0}, "ARMSERVER_MAX_BODY_BYTES=0"),
+    ({"max_ws_message_bytes": -1}, "ARMSERVER_MAX_WS_MESSAGE_BYTES=-1"),
+    ({"port": 70000}, "ARMSERVER_PORT=70000"),
+    ({"log_level": "loud"}, "ARMSERVER_LOG_LEVEL='loud'"),
+])
+def test_every_setting_is_validated(over, says):
+    with pytest.raises(ValidationError, match=says.replace("(", r"\(").replace("+", r"\+")):
+        Settings(**over)
+
+
+def _serve(tmp_path, *args, **env):
+    """`armserver serve` in a subprocess that must exit at once (bad settings or config)."""
+    full = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
+    full.update(env)
+    return subprocess.run([sys.executable, "-m", "app.cli", "serve", *args], cwd=ROOT, env=full,
+                          capture_output=True, text=True, timeout=60)
+
+
+@pytest.mark.parametrize("ttl", ["nan", "inf", "0", "-5"])
+def test_serve_refuses_a_bad_lease_ttl_with_one_clear_message(tmp_path, ttl):
+    r = _serve(tmp_path, ARMSERVER_LEASE_TTL_S=ttl)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    assert f"ARMSERVER_LEASE_TTL_S={float(ttl)!r}" in r.stderr, r.stderr
+
+
+def test_unknown_profile_lists_the_builtins(tmp_path):
+    cfg = tmp_path / "arms.toml"
+    cfg.write_text('[[arms]]\nprofile = "ur5"\n')
+    with pytest.raises(ConfigError) as info:
+        load_arms(cfg)
+    msg = str(info.value)
+    assert str(cfg) in msg and "'ur5'" in msg and '"rbe3001", "angler"' in msg
+    r = _serve(tmp_path, "--config", str(cfg))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "'ur5'" in r.stderr and "rbe3001" in r.stderr and len(r.stderr.splitlines()) <= 3
+
+
+def test_malformed_toml_says_where(tmp_path):
+    cfg = tmp_path / "arms.toml"
+    cfg.write_text('[[arms]\nprofile = "rbe3001"\n')
+    with pytest.raises(ConfigError, match=r"malformed TOML.*line 1"):
+        load_arms(cfg)
+    r = _serve(tmp_path, "--config", str(cfg))
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "malformed TOML" in r.stderr
+    r = _serve(tmp_path, "--config", str(tmp_path / "missing.toml"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "no such file" in r.stderr
+
+
+def test_invalid_values_in_a_config_name_the_arm_and_the_key(tmp_path):
+    cfg = tmp_path / "arms.toml"
+    cfg.write_text('[[arms]]\nprofile = "rbe3001"\n[arms.link]\npoll_hz = -1\n')
+    with pytest.raises(ConfigError, match=r"\[\[arms\]\] #1.*\n  link.poll_hz: "):
+        load_arms(cfg)

@@ -233,3 +233,38 @@ def test_plan_stop_brakes_to_rest_within_limits() -> None:
     assert np.all(np.abs(qdd) <= amax + 1e-6)
     # braking from 1 rad/s at 6 rad/s^2 takes at least 1/6 s and moves forward
     assert tr.duration >= 1.0 / 6.0 and q[-1][0] > q0[0]
+
+
+# ---------------------------------------------------------------- every ruckig result typed
+
+
+@pytest.mark.parametrize("speed", [1e-12, 1e-9, 1e-6, 3e-5])
+def test_a_tiny_speed_is_a_typed_error_with_a_reason(speed: float) -> None:
+    """ruckig answers -101 (the move would last over 7.6e3 s), which its Python enum does not
+    list: that was `ValueError: -101 is not a valid Result`, a 502 at the API."""
+    with pytest.raises(tr.TrajectoryError) as info:
+        tr.plan_joint([0.0, 0.0, 0.0], [1.0, 0.5, 0.2], VJ, 5.0, 50.0, speed=speed)
+    assert info.value.ruckig_code == -101
+    assert "longer than" in str(info.value) and "speed" in str(info.value)
+    assert isinstance(info.value, KinematicsError)
+
+
+def test_every_ruckig_error_number_has_a_reason() -> None:
+    for code in (-1, -100, -101, -102, -104, -110, -111):
+        assert "ruckig returned" not in tr.ruckig_reason(code)
+    assert tr.ruckig_reason(-999) == "ruckig returned error -999"
+
+
+def test_a_line_too_slow_to_sample_is_refused_before_any_ik() -> None:
+    """1e-9 of the tip speed: ruckig plans a 4.7e8 s arc (no -101 for one DOF); sampling it
+    every 10 ms wanted 351 GiB."""
+    calls = []
+
+    def ik(p: np.ndarray, q: np.ndarray | None) -> np.ndarray:
+        calls.append(p)
+        return np.asarray(rrr_ik(p, q))
+
+    with pytest.raises(tr.TrajectoryError, match="at most 60000"):
+        tr.plan_line([0.2, 0.1, 0.2], [0.25, 0.1, 0.2], ik, rrr_fk, 0.1, 0.5, 5.0, 0.01, VJ,
+                     LO, HI, NAMES, KINDS, speed=1e-9)
+    assert calls == []

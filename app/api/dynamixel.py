@@ -52,10 +52,44 @@ def _joint_of(svc: ArmService, dxl_id: int) -> int:
                          code="unknown_id")
 
 
-#: Items the driver relies on for the arm's own servos: how it addresses them, at what speed
-#: and protocol they answer, whether they answer, and how a goal is read.
-DRIVER_SETTINGS = frozenset({"id", "baud_rate", "protocol_version", "status_return_level",
-                             "operating_mode", "drive_mode", "homing_offset"})
+_PROFILE = "the arm profile's {what} (then restart the server)"
+_REBOOT = "POST /api/v1/arms/{arm}/dynamixel/{id}/reboot, which sets the servo up again"
+#: Items the driver relies on for the arm's own servos, each with why and with the route (or
+#: the profile setting) that changes it properly: how the driver addresses the servos, at what
+#: speed and protocol they answer, how a goal is read, and every limit and profile it sets so
+#: that a servo cannot outrun the planned trajectory (`profile_velocity` 32767 removed the
+#: speed cap). Writing one through pass-through is 409 `in_use` unless the profile allows raw
+#: access.
+DRIVER_SETTINGS: dict[str, tuple[str, str]] = {
+    "id": ("the driver addresses the servo by it", _PROFILE.format(what="joints.motor_id")),
+    "secondary_id": ("a shared id would answer for several servos",
+                     _PROFILE.format(what="joints.motor_id")),
+    "baud_rate": ("the link runs at one rate", _PROFILE.format(what="link.baudrate")),
+    "protocol_version": ("the driver speaks Protocol 2.0", "none: the driver needs 2.0"),
+    "status_return_level": ("the driver needs a reply to every instruction",
+                            "none: the driver needs level 2"),
+    "return_delay_time": ("replies must come within the link timeout",
+                          _PROFILE.format(what="link.timeout_s")),
+    "operating_mode": ("the driver commands positions in the profile's mode", _REBOOT),
+    "drive_mode": ("direction and profile type are the driver's",
+                   _PROFILE.format(what="joints.sign")),
+    "homing_offset": ("joint positions are read through it", "POST /api/v1/arms/{arm}/home"),
+    "velocity_limit": ("it bounds the joint's speed",
+                       _PROFILE.format(what="joints.max_velocity")),
+    "acceleration_limit": ("it bounds the joint's acceleration",
+                           _PROFILE.format(what="joints.max_acceleration")),
+    "max_position_limit": ("it keeps the joint within its range",
+                           _PROFILE.format(what="joints.max")),
+    "min_position_limit": ("it keeps the joint within its range",
+                           _PROFILE.format(what="joints.min")),
+    "profile_velocity": ("it caps the servo's speed at the joint's velocity limit",
+                         "the move routes' `speed` and `duration` (POST /api/v1/arms/{arm}/"
+                         "move/joints)"),
+    "profile_acceleration": ("it caps the servo's acceleration",
+                             "the move routes' `speed` and `duration` (POST /api/v1/arms/"
+                             "{arm}/move/joints)"),
+    "shutdown": ("it says which faults turn the torque off to protect the servo", _REBOOT),
+}
 
 
 def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int) -> None:
@@ -67,9 +101,10 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
                              f"got {raw}", code="out_of_range")
     if item.name in DRIVER_SETTINGS and not svc.profile.raw_access and any(
             j.motor_id == dxl_id for j in svc.profile.joints):
-        raise Conflict(f"{item.name} of servo {dxl_id} is set by the {svc.name} driver: changing "
-                       "it would cut the driver off from its arm (the profile does not allow raw "
-                       "access)", code="in_use")
+        why, route = DRIVER_SETTINGS[item.name]
+        raise Conflict(f"{item.name} of servo {dxl_id} is set by the {svc.name} driver ({why}); "
+                       f"change it with {route.format(arm=svc.name, id=dxl_id)}. Pass-through "
+                       "may not write it: the profile does not allow raw access", code="in_use")
     if item.name == "goal_position":
         svc.check_passthrough_joint_ticks(_joint_of(svc, dxl_id), float(raw))
     elif not (item.name == "led" or (item.name == "torque_enable" and raw == 0)):
@@ -118,9 +153,9 @@ async def read_register(svc: ControlArm, dxl_id: DxlId, name: RegName) -> s.Regi
     summary="WRITE one control-table item",
     description="Writes `raw`. 422 `unknown_register`, `read_only`, `out_of_range`; "
     "`goal_position` only to the arm's motors (422 `unknown_id`) and within the joint limits "
-    "(422 `joint_limit`); 409 `in_use` for the settings the driver relies on (id, baud rate, "
-    "protocol, status return level, operating and drive mode, homing offset) of the arm's own "
-    "servos unless the profile allows raw access; 409 `estop_latched` for anything but torque "
+    "(422 `joint_limit`); 409 `in_use`, naming the route that changes it, for the settings the "
+    "driver relies on (" + ", ".join(DRIVER_SETTINGS) + ") of the arm's own servos unless the "
+    "profile allows raw access; 409 `estop_latched` for anything but torque "
     "off and the LED while the estop is latched. Answers the value written. " + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )

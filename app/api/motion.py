@@ -10,10 +10,11 @@ from fastapi import APIRouter, Path, Response, status
 
 from app import schemas as s
 from app.api.common import DEVICE, READ, check_joint_count, errors
-from app.deps import ControlArm, OperatorArm, ViewerArm
+from app.deps import CallerDep, ControlArm, OperatorArm, ViewerArm
 
 router = APIRouter(tags=["motion"])
 
+_GONE = {410: "a motion this arm has forgotten (`motion_expired`), with what is known"}
 MotionId = Annotated[str, Path(description="motion id, as answered by a move", max_length=64)]
 
 _MOVE_DOC = (
@@ -98,8 +99,10 @@ async def plan_pose(svc: ViewerArm, req: s.MovePose) -> s.Motion:
     response_model=s.Motion,
     summary="Status of one motion",
     description="queued, running, done, stopped or failed (with `reason` and `code`); "
-    "`progress` 0..1. 404 `unknown_motion` for an id this arm never had (or has forgotten).",
-    responses=errors(*READ),
+    "`progress` 0..1. 404 `unknown_motion` for an id this arm never had; 410 `motion_expired` "
+    "for one it has forgotten (history: the last 256 motions or 10 minutes, whichever is more), "
+    "with what is still known about it.",
+    responses=errors(*READ, 410, extra=_GONE),
 )
 async def get_motion(svc: ViewerArm, motion_id: MotionId) -> s.Motion:
     return svc.motion.get(motion_id).to_schema()  # type: ignore[no-any-return]
@@ -111,11 +114,12 @@ async def get_motion(svc: ViewerArm, motion_id: MotionId) -> s.Motion:
     summary="Cancel a motion",
     description="Cancel a queued or running motion: a running one decelerates and the arm holds. "
     "Operator token; open without the lease (stopping is always allowed). Cancelling an "
-    "ended motion answers it unchanged.",
-    responses=errors(*READ, 403),
+    "ended motion answers it unchanged. The motion's `reason` says who cancelled it.",
+    responses=errors(*READ, 403, 410, extra=_GONE),
 )
-async def cancel_motion(svc: OperatorArm, motion_id: MotionId) -> s.Motion:
-    return (await svc.motion.cancel(motion_id)).to_schema()  # type: ignore[no-any-return]
+async def cancel_motion(svc: OperatorArm, motion_id: MotionId, who: CallerDep) -> s.Motion:
+    rec = await svc.motion.cancel(motion_id, f"cancelled by {who}")
+    return rec.to_schema()  # type: ignore[no-any-return]
 
 
 @router.post(
@@ -123,11 +127,12 @@ async def cancel_motion(svc: OperatorArm, motion_id: MotionId) -> s.Motion:
     response_model=s.StopResult,
     summary="Stop all motion",
     description="Stop the running motion and clear the queue; the arm holds position. Operator "
-    "token; open without the lease (stopping is always allowed). Answers the ids stopped.",
+    "token; open without the lease (stopping is always allowed). Answers the ids stopped; "
+    "their `reason` says who stopped them.",
     responses=errors(*READ, 403, 503, 504),
 )
-async def stop(svc: OperatorArm) -> s.StopResult:
-    return await svc.stop()
+async def stop(svc: OperatorArm, who: CallerDep) -> s.StopResult:
+    return await svc.stop(f"stopped by {who} (POST /api/v1/arms/{svc.name}/stop)")
 
 
 @router.post(
