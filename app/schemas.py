@@ -68,11 +68,31 @@ class ArmSummary(Model):
     capabilities: Capabilities
 
 
+class Fault(Model):
+    """A servo's hardware fault (Dynamixel Hardware Error Status, address 70)."""
+
+    joint: str
+    servo: int
+    bits: list[str] = Field(description="input_voltage, overheating, motor_encoder, "
+                            "electrical_shock, overload")
+    raw: int
+    advice: str
+
+
 class ArmDetail(ArmSummary):
     joints: list[JointInfo]
     geometry: dict[str, float]
     estop: bool
     poll_hz: float
+    faults: list[Fault] = Field(default_factory=list, description="empty when healthy")
+    homed: list[bool] = Field(default_factory=list, description="one flag per joint")
+
+
+class HomeRequest(Model):
+    positions: list[Finite] | None = Field(
+        None, min_length=1, max_length=16,
+        description="the arm's current physical joint positions (rad, m); none: the "
+        "profile's home pose")
 
 
 class Health(Model):
@@ -106,6 +126,8 @@ class Sample(Model):
     estop: bool = False
     link: Literal["connecting", "up", "down"] = "up"
     stale: bool = False
+    faults: list[Fault] = Field(default_factory=list)
+    homed: list[bool] = Field(default_factory=list)
 
 
 class TelemetryMessage(Model):
