@@ -430,7 +430,9 @@ class MotionExecutor:
         deadline = loop.time() + SETTLE_TIMEOUT_S
         tol = self.tolerance()
         err = np.full(self.model.n, np.inf)
-        moving: tuple[int, ...] = ()
+        moving = await self._arrived(rec)  # a joint without torque fails at once
+        if moving is None:
+            return
         while loop.time() < deadline:
             if self._halt or rec.done.is_set():
                 return

@@ -43,6 +43,9 @@ _RPM_PER_UNIT = 0.229
 FAULT_REFRESH_S = 1.0
 #: How long a rebooted servo may take to answer a PING again, s.
 BOOT_WAIT_S = 3.0
+#: How often Profile Velocity is read back to notice a servo that lost power, s: at power-up
+#: it is 0 (a RAM default), where set-up wrote a non-zero value.
+POWER_CHECK_S = 0.5
 
 #: Hardware Error Status bits (e-manual MX-28 (2.0), address 70) and what a lab should do.
 FAULT_BITS: dict[int, tuple[str, str]] = {
@@ -55,9 +58,9 @@ FAULT_BITS: dict[int, tuple[str, str]] = {
 
 
 def decode_faults(raw: int) -> list[str]:
-    """Names of the Hardware Error Status bits set in `raw`."""
-    return [FAULT_BITS[b][0] if b in FAULT_BITS else f"bit{b}"
-            for b in range(8) if raw >> b & 1]
+    """Names of the Hardware Error Status bits set in `raw` (unknown bits as `bitN`)."""
+    known = mx28.hardware_error_names(raw)
+    return known + [f"bit{b}" for b in range(8) if raw >> b & 1 and b not in FAULT_BITS]
 
 
 def fault_advice(dxl_id: int, raw: int, arm: str) -> str:
@@ -102,6 +105,7 @@ class AnglerDriver(Driver):
         self._moving = np.zeros(len(self.ids), dtype=bool)
         #: Profile Velocity written at set-up, per servo (raw), after the Velocity Limit cap.
         self.profile_velocity: dict[int, int] = {}
+        self._power_checked = 0.0
 
     # --------------------------------------------------------- pass-through
 
@@ -127,6 +131,7 @@ class AnglerDriver(Driver):
         expect = () if dxl_id == dxl.BROADCAST_ID else (dxl_id,)
         await self.submit(DxlRequest(dxl.write(dxl_id, item.address, data), expect,
                                      what=f"WRITE {item.name} to {dxl_id}"))
+        self._note_written(item, {dxl_id: raw})
 
     async def sync_read(self, item: mx28.ControlItem, ids: list[int]) -> dict[int, int]:
         packets = await self.submit(DxlRequest(dxl.sync_read(item.address, item.size, ids),
@@ -141,6 +146,14 @@ class AnglerDriver(Driver):
         data = {i: dxl.to_bytes(v, item.size) for i, v in values.items()}
         await self.submit(DxlRequest(dxl.sync_write(item.address, item.size, data), (),
                                      what=f"SYNC_WRITE {item.name}"))
+        self._note_written(item, values)
+
+    def _note_written(self, item: mx28.ControlItem, values: dict[int, int]) -> None:
+        """A pass-through Profile Velocity is what the power check expects back."""
+        if item.name == "profile_velocity":
+            for i, raw in values.items():
+                if i in self.ids:
+                    self.profile_velocity[i] = raw
 
     async def reboot(self, dxl_id: int) -> None:
         """One REBOOT (never a factory reset); one of the arm's servos is then set up again as
@@ -263,11 +276,39 @@ class AnglerDriver(Driver):
             vel[k] = dxl.from_bytes(p.params[6:10], True)
             pos[k] = dxl.from_bytes(p.params[10:14], True)
         await self._check_faults()
+        await self._check_power()
         tr = self.model.transmission
         q = tr.from_ticks(pos)
         qd = tr.velocity_from_ticks(vel * _RPM_PER_UNIT / 60.0 * self._ticks_per_rev)
         tau = load * self._effort_per_load if self._sensed else None
         return q, qd, tau
+
+    async def _check_power(self) -> None:
+        """A servo whose Profile Velocity reads 0 where set-up wrote more has been power
+        cycled (a brown-out, a loose supply): torque is off and a multi-turn joint has lost its
+        count. Say so and un-home the joint; its reboot route sets it up again."""
+        now = time.monotonic()
+        if now - self._power_checked < POWER_CHECK_S or not self.profile_velocity:
+            return
+        self._power_checked = now
+        ids = [i for i in self.ids if self.profile_velocity.get(i)]
+        pv = await self._exchange(
+            DxlRequest(dxl.sync_read(mx28.TABLE["profile_velocity"].address, 4, ids),
+                       tuple(ids), what="SYNC_READ profile_velocity"), self.timeout)
+        for p in pv:
+            if len(p.params) == 4 and dxl.from_bytes(p.params, False) == 0:
+                k = self.ids.index(p.id)
+                joint = self.profile.joints[k]
+                del self.profile_velocity[p.id]
+                if joint.needs_homing:
+                    self.homed[k] = False
+                log.warning("%s: servo %d (%s) lost power (its RAM is back to defaults: torque "
+                            "off)", self.name, p.id, joint.name)
+                self.last_error = (f"servo {p.id} ({joint.name}) was power cycled: torque off"
+                                   f"{', not homed' if joint.needs_homing else ''}; reboot it to "
+                                   "set it up again")
+                self.hub.event("power_cycled", joint=joint.name, servo=p.id,
+                               homed=list(self.homed))
 
     # --------------------------------------------------------- faults
 
