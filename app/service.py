@@ -117,9 +117,10 @@ class ArmService:
         """409 `fault` while a servo reports a hardware fault: which, which bits, how to clear."""
         faults = self.driver.faults
         if faults:
-            raise Fault(f"{self.name}: refused while a servo reports a hardware fault: " + " | ".join(
-                f"servo {f['servo']} ({f['joint']}): {', '.join(f['bits']) or 'alert'}: "
-                f"{f['advice']}" for f in faults))
+            raise Fault(f"{self.name}: refused while a servo reports a hardware fault: "
+                        + " | ".join(f"servo {f['servo']} ({f['joint']}): "
+                                     f"{', '.join(f['bits']) or 'alert'}: {f['advice']}"
+                                     for f in faults))
 
     def check_homed(self, start: np.ndarray | None, target: np.ndarray) -> None:
         """409 `not_homed` for a command that would move a joint that is not homed."""

@@ -217,8 +217,8 @@ def ik_one(
         first = auto_case(pa, g)
         if first == "dx_used":
             return ik_one(pa, g, "dx_used", theta3, lower, upper)
-        sols = [ik(pa, g, "dx_zero"), ik(pa, g, "dx_used", theta3)]
-        q = np.concatenate([x.q[x.valid] for x in sols])
+        both = [ik(pa, g, "dx_zero"), ik(pa, g, "dx_used", theta3)]
+        q = np.concatenate([x.q[x.valid] for x in both])
         return distinct_solutions(q, pa, lower, upper)
     if case == "dx_zero" and abs(pa[0]) > g.r * (1.0 + 1e-12):
         raise Unreachable(
