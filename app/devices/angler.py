@@ -208,8 +208,13 @@ class AnglerDriver(Driver):
         await self._setup_exchange(DxlRequest(dxl.ping(i), (i,), what=f"PING {i}"), self.timeout)
         try:
             await self._write(i, t["torque_enable"], 0)
-            if joint.operating_mode is not None:
+            # Written only when it differs: a change of mode re-initialises Present Position
+            # within one turn (e-manual), so a multi-turn joint is then no longer homed.
+            if (joint.operating_mode is not None
+                    and await self._read(i, t["operating_mode"]) != joint.operating_mode):
                 await self._write(i, t["operating_mode"], joint.operating_mode)
+                if joint.needs_homing and not self._first_setup(k):
+                    self.homed[k] = False
             # after the mode: changing Operating Mode resets Profile Velocity (e-manual)
             limit = await self._read(i, t["velocity_limit"])
             self.profile_velocity[i] = self._profile_velocity(joint, limit)
@@ -224,6 +229,11 @@ class AnglerDriver(Driver):
         if i in self._alerts:
             await self._read_fault(i)
             self._publish_faults()
+
+    def _first_setup(self, k: int) -> bool:
+        """Joint `k` has never been set up by this driver (the start of its first connect):
+        `homed` then still says what the profile's link says (homed_at_start)."""
+        return self.ids[k] not in self.profile_velocity
 
     async def _read(self, i: int, item: mx28.ControlItem) -> int:
         [p] = await self._setup_exchange(
