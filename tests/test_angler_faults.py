@@ -24,6 +24,7 @@ from app.sim.dynamixel_bus import DynamixelBus
 from app.sim.serve import serve_pty
 from app.telemetry import TelemetryHub
 from protocol import mx28
+from protocol.dynamixel import ErrorCode
 from tests.conftest import make_settings, wait_ready
 
 API = "/api/v1/arms/angler"
@@ -105,9 +106,13 @@ async def test_a_faulted_servo_is_reported_and_the_others_keep_being_served():
         await drv.close()
 
 
-async def test_set_up_with_a_faulted_servo_brings_the_link_up():
+@pytest.mark.parametrize("refusal", [0, ErrorCode.RESULT_FAIL])
+async def test_set_up_with_a_faulted_servo_brings_the_link_up(refusal):
+    """Torque-on after a shutdown is ignored (only the Alert bit shows) or answered with an
+    error, depending on the firmware: neither keeps the link from coming up."""
     bus = make_sim_device(load_profile("angler"))
     assert isinstance(bus, DynamixelBus)
+    bus.set_torque_refusal(refusal)
     bus.inject_hardware_error(3, ["overheating"])  # before the server connects
     drv, _ = await _driver(bus)
     try:
