@@ -97,6 +97,12 @@ class ArmModel:
             if self.is_rrr:
                 sols = rrr.ik_one(p, self.geom)  # type: ignore[arg-type]
             else:
+                lo, hi = pprp.bounds(self.geom, self.lower, self.upper)  # type: ignore[arg-type]
+                pa = np.asarray(p, dtype=float)
+                if np.any(pa < lo - 1e-9) or np.any(pa > hi + 1e-9):
+                    raise Unreachable(
+                        f"out of reach: ({pa[0]:.3f}, {pa[1]:.3f}, {pa[2]:.3f}) m is outside the "
+                        f"workspace ({lo.round(3).tolist()} .. {hi.round(3).tolist()} m)")
                 # no case named: every solution of both cases, the design's choice first
                 sols = pprp.ik_one(p, self.geom, case=ik_case,  # type: ignore[arg-type]
                                    theta3=theta3)
