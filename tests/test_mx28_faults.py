@@ -15,7 +15,7 @@ from app.sim.serve import PtyServer, serve_pty
 from protocol import dynamixel as dxl
 from protocol import mx28
 from protocol.dynamixel import ErrorCode, Packet
-from tests.test_dynamixel_sim import LoopThread
+from tests.test_dynamixel_sim import LoopThread, patient
 
 H = bytes.fromhex
 ALERT = 0x80
@@ -230,19 +230,19 @@ def sdk(tmp_path: Path) -> Iterator[tuple[PortHandler, PacketHandler, DynamixelB
 def test_sdk_sees_alert_reads_hardware_error_and_is_refused_torque(
         sdk: tuple[PortHandler, PacketHandler, DynamixelBus]) -> None:
     port, ph, bus = sdk
-    assert ph.write1ByteTxRx(port, 1, 64, 1) == (COMM_SUCCESS, 0)
+    assert patient(ph.write1ByteTxRx, port, 1, 64, 1) == (COMM_SUCCESS, 0)
     bus.inject_hardware_error(1, "overload")
-    assert ph.ping(port, 1) == (30, COMM_SUCCESS, ALERT)
-    assert ph.read1ByteTxRx(port, 1, 70) == (0x20, COMM_SUCCESS, ALERT)
-    assert ph.read1ByteTxRx(port, 1, 64) == (0, COMM_SUCCESS, ALERT)
-    assert ph.write1ByteTxRx(port, 1, 64, 1) == (COMM_SUCCESS, ALERT)
-    assert ph.read1ByteTxRx(port, 1, 64) == (0, COMM_SUCCESS, ALERT)
+    assert patient(ph.ping, port, 1) == (30, COMM_SUCCESS, ALERT)
+    assert patient(ph.read1ByteTxRx, port, 1, 70) == (0x20, COMM_SUCCESS, ALERT)
+    assert patient(ph.read1ByteTxRx, port, 1, 64) == (0, COMM_SUCCESS, ALERT)
+    assert patient(ph.write1ByteTxRx, port, 1, 64, 1) == (COMM_SUCCESS, ALERT)
+    assert patient(ph.read1ByteTxRx, port, 1, 64) == (0, COMM_SUCCESS, ALERT)
     assert "Hardware error" in ph.getRxPacketError(ALERT)
-    assert ph.ping(port, 2) == (30, COMM_SUCCESS, 0)
-    assert ph.reboot(port, 1) == (COMM_SUCCESS, 0)
-    assert ph.read1ByteTxRx(port, 1, 70) == (0, COMM_SUCCESS, 0)
-    assert ph.write1ByteTxRx(port, 1, 64, 1) == (COMM_SUCCESS, 0)
-    assert ph.read1ByteTxRx(port, 1, 64) == (1, COMM_SUCCESS, 0)
+    assert patient(ph.ping, port, 2) == (30, COMM_SUCCESS, 0)
+    assert patient(ph.reboot, port, 1) == (COMM_SUCCESS, 0)
+    assert patient(ph.read1ByteTxRx, port, 1, 70) == (0, COMM_SUCCESS, 0)
+    assert patient(ph.write1ByteTxRx, port, 1, 64, 1) == (COMM_SUCCESS, 0)
+    assert patient(ph.read1ByteTxRx, port, 1, 64) == (1, COMM_SUCCESS, 0)
 
 
 def test_sdk_reboot_folds_multi_turn_position(
@@ -250,13 +250,13 @@ def test_sdk_reboot_folds_multi_turn_position(
     port, ph, bus = sdk
     s = bus.servo(1)
     assert s is not None
-    assert ph.write1ByteTxRx(port, 1, 64, 1) == (COMM_SUCCESS, 0)
+    assert patient(ph.write1ByteTxRx, port, 1, 64, 1) == (COMM_SUCCESS, 0)
     s.motion.reset(2048.0 + 4 * TURN + 300)  # the carriage wound 4 turns out
     s.set("goal_position", 2048 + 4 * TURN + 300)
     s.motion.new_goal(2048 + 4 * TURN + 300, 0, 0)
-    assert ph.read4ByteTxRx(port, 1, 132) == (2048 + 4 * TURN + 300, COMM_SUCCESS, 0)
-    assert ph.write4ByteTxRx(port, 1, 112, 100) == (COMM_SUCCESS, 0)
-    assert ph.reboot(port, 1) == (COMM_SUCCESS, 0)
-    assert ph.read4ByteTxRx(port, 1, 132) == (2348, COMM_SUCCESS, 0)
-    assert ph.read4ByteTxRx(port, 1, 112) == (0, COMM_SUCCESS, 0)
-    assert ph.read1ByteTxRx(port, 1, 64) == (0, COMM_SUCCESS, 0)
+    assert patient(ph.read4ByteTxRx, port, 1, 132) == (2048 + 4 * TURN + 300, COMM_SUCCESS, 0)
+    assert patient(ph.write4ByteTxRx, port, 1, 112, 100) == (COMM_SUCCESS, 0)
+    assert patient(ph.reboot, port, 1) == (COMM_SUCCESS, 0)
+    assert patient(ph.read4ByteTxRx, port, 1, 132) == (2348, COMM_SUCCESS, 0)
+    assert patient(ph.read4ByteTxRx, port, 1, 112) == (0, COMM_SUCCESS, 0)
+    assert patient(ph.read1ByteTxRx, port, 1, 64) == (0, COMM_SUCCESS, 0)

@@ -28,6 +28,9 @@ def test_parse_fault() -> None:
 def test_bad_fault_flag_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["dynamixel", "--listen", "tcp://127.0.0.1:0", "--fault", "1:melted@1"]) == 2
     assert "overload" in capsys.readouterr().out  # names the valid faults
+    assert main(["dynamixel", "--listen", "tcp://127.0.0.1:0", "--fault", "9:overload@1"]) == 2
+    assert "no servo 9" in capsys.readouterr().out
+    assert main(["dynamixel", "--listen", "tcp://127.0.0.1:0", "--supply", "nan"]) == 2
 
 
 def _exchange(sock: socket.socket, request: bytes) -> dxl.Packet:

@@ -106,9 +106,21 @@ class Mx28Servo:
         """Present position, ticks, in the reported frame (homing offset included)."""
         return self.motion.pos
 
+    @pos.setter
+    def pos(self, value: float) -> None:
+        """Put the motor at `value` ticks, at rest (a test's way to wind a carriage out)."""
+        self.motion.reset(float(value))
+        self._publish()
+
     @property
     def vel(self) -> float:
+        """Present velocity, ticks/s."""
         return self.motion.vel
+
+    @property
+    def acc(self) -> float:
+        """Acceleration during the last integration step, ticks/s^2."""
+        return self.motion.acc
 
     def _eeprom_defaults(self, keep_id: bool, keep_baud: bool) -> None:
         keep = {"id": self.mem[7], "baud_rate": self.mem[8]}
@@ -292,6 +304,7 @@ class Mx28Servo:
         self.set("realtime_tick", int(now * 1000) % 32768)
         self._check_conditions()
         if dt <= 0.0:
+            self._publish()
             return
         if not self.torque:
             self.motion.stop()

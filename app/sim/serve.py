@@ -349,14 +349,24 @@ async def _run(args: argparse.Namespace) -> None:
         await server.close()
 
 
+def _check_faults_and_supply(args: argparse.Namespace) -> None:
+    """ValueError, before anything starts, for a fault on an absent id or a bad supply."""
+    ids = {int(i) for i in args.ids.split(",") if i.strip()}
+    for spec in args.fault:
+        sid = parse_fault(spec)[0]
+        if sid is not None and sid not in ids:
+            raise ValueError(f"--fault {spec!r}: no servo {sid} in --ids {args.ids}")
+    if args.supply is not None and not 0.0 <= args.supply <= 30.0:
+        raise ValueError(f"--supply wants volts in 0..30, got {args.supply}")
+
+
 def main(argv: list[str] | None = None) -> int:
     """`armserver sim ...`: run a simulated device until interrupted; 0 on a clean stop,
     2 on bad arguments."""
     args = _parser().parse_args(argv)
     try:
         _pairs(args.mode)
-        for spec in args.fault:
-            parse_fault(spec)
+        _check_faults_and_supply(args)
         asyncio.run(_run(args))
     except KeyboardInterrupt:
         return 0
