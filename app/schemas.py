@@ -167,7 +167,9 @@ class MovePose(Model):
     branch: int | None = Field(None, ge=0, le=16, description="IK solution index; default: the "
                                "within-limits solution nearest the current joints")
     ik_case: Literal["dx_zero", "dx_used"] | None = Field(
-        None, description="angler only: fix dx at 0 (theta3 reaches x) or use dx (theta3 kept)")
+        None, description="angler only: `dx_zero` (dx = 0, theta3 reaches x) or `dx_used` (the "
+        "design's case 2: dx = px -/+ r, theta3 = -/+90 deg; a line keeps theta3); none: "
+        "the design's choice, dx_zero where |px| <= r")
     duration: Annotated[float, Field(gt=0.0, le=600.0, allow_inf_nan=False)] | None = None
     speed: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 1.0
     mode: QueueMode = "queue"
@@ -226,7 +228,8 @@ class ForwardResult(Model):
 
 class InverseRequest(Vec3):
     ik_case: Literal["dx_zero", "dx_used"] | None = None
-    theta3: Finite | None = Field(None, description="angler dx_used case: theta3 to keep, rad")
+    theta3: Finite | None = Field(None, description="angler dx_used case: theta3 to use, rad "
+                                  "(none: the design's -/+90 deg)")
 
 
 class IKSolution(Model):
