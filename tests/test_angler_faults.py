@@ -286,3 +286,25 @@ async def test_a_joint_without_torque_is_never_done(sim_app):
     body = r.json()
     assert body["status"] == "failed" and body["code"] == "torque_off", body
     assert "y" in body["reason"]
+
+
+async def test_a_reconnect_keeps_homing_unless_a_mode_change_reset_the_position():
+    drv, bus = await _driver()
+    assert bus is not None and isinstance(drv.link, SimLink)
+    try:
+        events = drv.hub.subscribe()
+        drv.link.disconnect()  # an unplugged U2D2: the servos keep their power and position
+        await _until(lambda: any('"link_back"' in e for e in events.take()[1]), 10)
+        assert drv.homed == [True] * 4
+        # someone switched z's servo to (single-turn) position mode: its count is gone
+        z = bus.servo(4)
+        assert z is not None
+        z.set("torque_enable", 0)
+        z.set("operating_mode", 3)
+        drv.link.disconnect()
+        await _until(lambda: any('"link_back"' in e for e in events.take()[1]), 10)
+        assert await drv.read_register(4, mx28.TABLE["operating_mode"]) == 4
+        assert drv.homed == [True, True, True, False]
+        events.close()
+    finally:
+        await drv.close()

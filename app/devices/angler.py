@@ -198,7 +198,7 @@ class AnglerDriver(Driver):
             await self._setup_servo(k)
 
     async def _setup_servo(self, k: int) -> None:
-        """Torque off, operating mode from the profile, Profile Velocity from the joint's
+        """Operating mode from the profile, Profile Velocity from the joint's
         velocity limit (so the servo itself caps speed), goal = present, torque on: the servo
         holds where it is instead of jumping to a stale goal. A servo that refuses (a hardware
         error keeps torque off until a reboot) is reported, not retried: the link stays up for
@@ -207,11 +207,13 @@ class AnglerDriver(Driver):
         joint, i = self.profile.joints[k], self.ids[k]
         await self._setup_exchange(DxlRequest(dxl.ping(i), (i,), what=f"PING {i}"), self.timeout)
         try:
-            await self._write(i, t["torque_enable"], 0)
             # Written only when it differs: a change of mode re-initialises Present Position
-            # within one turn (e-manual), so a multi-turn joint is then no longer homed.
+            # within one turn (e-manual), so a multi-turn joint is then no longer homed; and
+            # only then is torque switched off (an EEPROM write needs it off), so a reconnect
+            # never lets the z winch drop its load.
             if (joint.operating_mode is not None
                     and await self._read(i, t["operating_mode"]) != joint.operating_mode):
+                await self._write(i, t["torque_enable"], 0)
                 await self._write(i, t["operating_mode"], joint.operating_mode)
                 if joint.needs_homing and not self._first_setup(k):
                     self.homed[k] = False
