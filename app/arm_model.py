@@ -97,8 +97,15 @@ class ArmModel:
             if self.is_rrr:
                 sols = rrr.ik_one(p, self.geom)  # type: ignore[arg-type]
             else:
-                sols = pprp.ik_one(p, self.geom, case=ik_case or "dx_zero",  # type: ignore[arg-type]
-                                   theta3=0.0 if theta3 is None else theta3)
+                lo, hi = pprp.bounds(self.geom, self.lower, self.upper)  # type: ignore[arg-type]
+                pa = np.asarray(p, dtype=float)
+                if np.any(pa < lo - 1e-9) or np.any(pa > hi + 1e-9):
+                    raise Unreachable(
+                        f"out of reach: ({pa[0]:.3f}, {pa[1]:.3f}, {pa[2]:.3f}) m is outside the "
+                        f"workspace ({lo.round(3).tolist()} .. {hi.round(3).tolist()} m)")
+                # no case named: every solution of both cases, the design's choice first
+                sols = pprp.ik_one(p, self.geom, case=ik_case,  # type: ignore[arg-type]
+                                   theta3=theta3)
         except KinematicsError as exc:
             raise Unreachable(str(exc)) from None
         out = []
@@ -115,8 +122,8 @@ class ArmModel:
         if self.is_rrr:
             sols = rrr.ik(p, self.geom)  # type: ignore[arg-type]
         else:
-            sols = pprp.ik(p, self.geom, ik_case or "dx_zero",  # type: ignore[arg-type]
-                           0.0 if theta3 is None else theta3)
+            case = ik_case or pprp.auto_case(p, self.geom)  # type: ignore[arg-type]
+            sols = pprp.ik(p, self.geom, case, theta3)  # type: ignore[arg-type]
         q = sols.q[sols.valid]
         if q.shape[0] == 0:
             self.ik(p, ik_case, theta3)  # raises with the reason
@@ -126,6 +133,8 @@ class ArmModel:
     def ik_best(self, p: np.ndarray, near: np.ndarray | None, branch: int | None = None,
                 ik_case: str | None = None, theta3: float | None = None) -> Solution:
         """The solution to move to: the given branch, else the within-limits one nearest `near`."""
+        if ik_case is None and not self.is_rrr and branch is None:
+            ik_case = pprp.auto_case(p, self.geom)  # type: ignore[arg-type]  # the design's
         sols = self.ik(p, ik_case, theta3)
         if branch is not None:
             if branch >= len(sols):

@@ -350,6 +350,11 @@ class Requests:
                     safe=True)
 
     @staticmethod
+    def home(arm: str, positions: Sequence[float] | None = None) -> Call[s.ArmDetail]:
+        body = None if positions is None else _body(s.HomeRequest(positions=list(positions)))
+        return Call("POST", _p("arms", arm, "home"), _model(s.ArmDetail), body, arm=arm)
+
+    @staticmethod
     def take_lease(arm: str) -> Call[s.Lease]:
         return Call("POST", _p("arms", arm, "lease"), _model(s.Lease), arm=arm)
 
@@ -653,6 +658,10 @@ class AsyncArmClient:
 
     async def dxl_reboot(self, arm: str, dxl_id: int) -> s.Ack:
         return await self.send(Requests.dxl_reboot(arm, dxl_id))
+
+    async def home(self, arm: str, positions: Sequence[float] | None = None) -> s.ArmDetail:
+        """Declare the arm's current pose (the profile's home pose without positions)."""
+        return await self.send(Requests.home(arm, positions))
 
     # --------------------------------------------------------- lease
 

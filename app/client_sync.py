@@ -211,6 +211,9 @@ class ArmClient:
     def dxl_reboot(self, arm: str, dxl_id: int) -> s.Ack:
         return self.send(Requests.dxl_reboot(arm, dxl_id))
 
+    def home(self, arm: str, positions: Sequence[float] | None = None) -> s.ArmDetail:
+        return self.send(Requests.home(arm, positions))
+
     # --------------------------------------------------------- lease
 
     def safety(self, arm: str) -> s.Safety:

@@ -58,6 +58,10 @@ class LinkConfig(_Strict):
     control_hz: float = Field(100.0, gt=0.0, le=1000.0)
     queue_size: int = Field(64, ge=1, le=10_000)
     faults: FaultConfig = Field(default_factory=FaultConfig)
+    homed_at_start: bool = Field(
+        False, description="the joints that need homing start homed: true only for a device "
+        "that starts at a known pose (the built-in simulated config); a real multi-turn joint "
+        "does not know where it is after a power cycle")
 
 
 class JointConfig(_Strict):
@@ -79,6 +83,11 @@ class JointConfig(_Strict):
     stall_torque_nm: float | None = Field(
         None, gt=0.0, description="motor stall torque, N m (Dynamixel Present Load is 0.1 % of it)"
     )
+    needs_homing: bool = Field(False, description="the joint's zero is lost at power-up (a "
+                               "multi-turn screw or winch): moves wait for POST /home")
+    settle_tolerance: float | None = Field(
+        None, gt=0.0, description="rad or m: a motion is done when the joint is this close to "
+        "where it was sent (default: 8 encoder ticks)")
 
     @model_validator(mode="after")
     def _check(self) -> JointConfig:
@@ -272,8 +281,8 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
     simulated arms from one entry; a copy's link address, if any, is shared, so use it with
     `kind = "sim"`).
     """
-    if config_file is None:
-        return [load_profile(n) for n in BUILTIN_PROFILES]
+    if config_file is None:  # the built-in simulators start at a known pose: homed
+        return [homed_at_start(load_profile(n)) for n in BUILTIN_PROFILES]
     path = Path(config_file)
     data = _read_toml(path, "config file")
     arms = data.get("arms", [])
@@ -316,6 +325,10 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
     if not profiles:
         raise ConfigError(f"config file {path} names no [[arms]]")
     return profiles
+
+
+def homed_at_start(p: ArmProfile) -> ArmProfile:
+    return p.model_copy(update={"link": p.link.model_copy(update={"homed_at_start": True})})
 
 
 def _merge(base: dict[str, object], over: dict[str, object]) -> dict[str, object]:

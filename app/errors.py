@@ -91,6 +91,25 @@ class NotSupported(Conflict):
     code = "not_supported"
 
 
+class Fault(Conflict):
+    """A servo reports a hardware fault (Dynamixel Hardware Error Status): nothing moves until
+    it is cleared (reboot)."""
+
+    code = "fault"
+
+
+class NotHomed(Conflict):
+    """A joint that loses its zero at power-up has not been homed (POST /home)."""
+
+    code = "not_homed"
+
+
+class TorqueOff(Conflict):
+    """A joint's servo holds no torque: it cannot reach, or be held at, a target."""
+
+    code = "torque_off"
+
+
 class Unauthorized(ArmError):
     code = "unauthorized"
     status_code = 401

@@ -32,7 +32,7 @@ from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app import schemas
-from app.api import arms, dynamixel, kinematics, lease, motion, rbe3001, safety, telemetry
+from app.api import arms, dynamixel, homing, kinematics, lease, motion, rbe3001, safety, telemetry
 from app.auth import Access, bearer_token, install_log_redaction
 from app.config import ArmProfile, Settings, load_arms
 from app.errors import ArmError, Unauthorized
@@ -112,6 +112,7 @@ def create_app(settings: Settings | None = None,
     for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry, safety):
         app.include_router(r.router, prefix=API_PREFIX)
     arms.install_fast_paths(app, API_PREFIX)  # GET state from the encoded sample
+    app.include_router(homing.router, prefix=API_PREFIX)  # faults and homing (v1.1)
     _document_websocket_messages(app)
     _install_error_handlers(app)
 

@@ -34,7 +34,7 @@ from app.errors import (
 )
 from app.links.base import LinkState
 from app.tasks import cancel_and_wait
-from kinematics import trajectory
+from kinematics import pprp, trajectory
 from kinematics.errors import KinematicsError, LimitViolation, TrajectoryError
 from kinematics.errors import Unreachable as KinematicsUnreachable
 
@@ -183,6 +183,14 @@ class MotionExecutor:
             while len(self._tombstones) > TOMBSTONES:
                 self._tombstones.popitem(last=False)
 
+    def queued(self) -> bool:
+        return bool(self._queue)
+
+    def forget_command(self) -> None:
+        """Plan the next motion from the measured pose (after homing or a servo reboot the
+        last commanded state no longer means where the arm is)."""
+        self._cmd = None
+
     def brief(self) -> dict[str, Any] | None:
         rec = self.current or self.last
         if rec is None:
@@ -280,8 +288,13 @@ class MotionExecutor:
                         at_rest: bool) -> Plan:
         q0 = start[0]
         m = self.model
-        theta3 = float(q0[2]) if (not m.is_rrr and req.ik_case == "dx_used") else None
-        best = m.ik_best(p, q0, req.branch, req.ik_case, theta3)
+        # angler: the named IK case, else the design's choice; a line in case dx_used keeps
+        # theta3 (the carriages draw it), a joint move takes the design's theta3 (-/+90 deg)
+        case = req.ik_case
+        if case is None and not m.is_rrr:
+            case = pprp.auto_case(p, m.geom)  # type: ignore[arg-type]
+        theta3 = float(q0[2]) if case == "dx_used" else None
+        best = m.ik_best(p, q0, req.branch, req.ik_case, None)
         if req.path == "joint":
             return self._plan_joint_from(start, best.positions, req, at_rest)
         cart = self.svc.profile.cartesian
@@ -290,7 +303,7 @@ class MotionExecutor:
             ref = q0 if q_prev is None else q_prev
             th = float(ref[2]) if theta3 is not None else None
             try:
-                return m.ik_nearest(point, ref, req.ik_case, th)
+                return m.ik_nearest(point, ref, case, th)
             except ArmError as exc:
                 raise KinematicsUnreachable(exc.detail) from None
 
@@ -343,10 +356,12 @@ class MotionExecutor:
     def _submit(self, kind: str, path: str, req: Any, _q: Any, planner: Any,
                 target: np.ndarray) -> MotionRecord:
         self.svc.require_motion_allowed()
+        self.svc.require_no_fault()
         if req.mode == "queue" and len(self._queue) >= MAX_QUEUED:
             raise Busy(f"{self.svc.name}: {MAX_QUEUED} motions already queued")
         start, at_rest = self._tail_state(req.mode)
         plan = planner(start, target, req, at_rest or path == "line")
+        self.svc.check_homed(start[0], plan.target)
         serial = next(self._ids)
         self._next_serial = serial + 1
         rec = self._record(kind, path, req, plan, f"m{serial}-{uuid.uuid4().hex[:8]}")
@@ -386,6 +401,7 @@ class MotionExecutor:
 
     async def _execute(self, rec: MotionRecord) -> None:
         self.svc.require_motion_allowed()
+        self.svc.require_no_fault()
         start = self._start_state()
         at_rest = not np.any(start[1]) or rec.path == "line"
         if rec.path == "line" and np.any(start[1]):
@@ -465,10 +481,16 @@ class MotionExecutor:
             await asyncio.sleep(dt)
 
     async def _settle(self, rec: MotionRecord) -> None:
+        """`done` only when every joint is within its settle tolerance of where it was sent
+        and its actuator holds torque and says it has arrived (where it tells: Dynamixel
+        Moving / Moving Status); a joint without torque fails the motion at once."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + SETTLE_TIMEOUT_S
-        tol = self._tolerance()
+        tol = self.tolerance()
         err = np.full(self.model.n, np.inf)
+        moving = await self._arrived(rec)  # a joint without torque fails at once
+        if moving is None:
+            return
         while loop.time() < deadline:
             if self._halt or rec.done.is_set():
                 return
@@ -480,13 +502,47 @@ class MotionExecutor:
             if q is not None and not self.svc.driver.stale:
                 err = np.abs(q - rec.target)
                 if np.all(err <= tol):
-                    self._finish(rec, "done", None)
-                    return
+                    verdict = await self._arrived(rec)
+                    if verdict is None:
+                        return  # failed
+                    moving = verdict
+                    if not moving:
+                        self._finish(rec, "done", None)
+                        return
             await asyncio.sleep(0.01)
-        worst = int(np.argmax(err / tol))
+        if moving and np.all(err <= tol):
+            names = ", ".join(self.model.names[k] for k in moving)
+            reason = f"{names} within tolerance but its servo still reports moving"
+        else:
+            worst = int(np.argmax(err / tol))
+            reason = (f"{self.model.names[worst]} is {err[worst]:.6f} off (tolerance "
+                      f"{tol[worst]:.6f})")
         self._finish(rec, "failed", f"did not settle at the target within {SETTLE_TIMEOUT_S} s: "
-                     f"{self.model.names[worst]} is {err[worst]:.4f} off (tolerance "
-                     f"{tol[worst]:.4f})", "not_settled")
+                     f"{reason}", "not_settled")
+
+    async def _arrived(self, rec: MotionRecord) -> tuple[int, ...] | None:
+        """The joints whose actuator still says it is moving; None after failing `rec`
+        (a hardware fault, or a joint whose servo holds no torque: it can never be done)."""
+        svc = self.svc
+        if svc.driver.faults:
+            f = svc.driver.faults[0]
+            await self._watchdog(rec, ArmError(
+                f"servo {f['servo']} ({f['joint']}) reports a hardware fault: "
+                f"{', '.join(f['bits']) or 'alert'}; {f['advice']}", code="fault"))
+            return None
+        try:
+            st = await svc.driver.settle_state()
+        except ArmError:
+            return tuple(range(self.model.n))  # not known now: ask again on the next round
+        if st.torque_off:
+            names = ", ".join(self.model.names[k] for k in st.torque_off)
+            await self._watchdog(rec, ArmError(
+                f"{names}: the servo holds no torque (torque off after a reboot or a fault, or "
+                f"switched off), so the joint cannot be at its target; enable torque or reboot "
+                f"it with POST /api/v1/arms/{svc.name}/dynamixel/{{id}}/reboot",
+                code="torque_off"))
+            return None
+        return st.moving
 
     def _device_fault(self) -> ArmError | None:
         drv = self.svc.driver
@@ -494,8 +550,12 @@ class MotionExecutor:
             return LinkDown(f"{self.svc.name} link lost: {drv.link.last_error or 'down'}")
         return drv.stale_error
 
-    def _tolerance(self) -> np.ndarray:
-        return np.array([0.03 if k == "revolute" else 0.002 for k in self.model.kinds])
+    def tolerance(self) -> np.ndarray:
+        """Per joint (rad or m): the profile's `settle_tolerance`, else 8 encoder ticks."""
+        tr = self.model.transmission
+        ticks = np.abs(8.0 / tr.ticks_per_unit)
+        return np.array([j.settle_tolerance if j.settle_tolerance is not None else ticks[k]
+                         for k, j in enumerate(self.svc.profile.joints)], dtype=float)
 
     async def _watchdog(self, rec: MotionRecord, exc: ArmError) -> None:
         log.warning("%s: motion %s failed: %s", self.svc.name, rec.id, exc.detail)

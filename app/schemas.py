@@ -77,11 +77,31 @@ class ArmSummary(Model):
     capabilities: Capabilities
 
 
+class Fault(Model):
+    """A servo's hardware fault (Dynamixel Hardware Error Status, address 70)."""
+
+    joint: str
+    servo: int
+    bits: list[str] = Field(description="input_voltage, overheating, motor_encoder, "
+                            "electrical_shock, overload")
+    raw: int
+    advice: str
+
+
 class ArmDetail(ArmSummary):
     joints: list[JointInfo]
     geometry: dict[str, float]
     estop: bool
     poll_hz: float
+    faults: list[Fault] = Field(default_factory=list, description="empty when healthy")
+    homed: list[bool] = Field(default_factory=list, description="one flag per joint")
+
+
+class HomeRequest(Model):
+    positions: list[Finite] | None = Field(
+        None, min_length=1, max_length=16,
+        description="the arm's current physical joint positions (rad, m); none: the "
+        "profile's home pose")
 
 
 class StoreStatus(Model):
@@ -139,6 +159,8 @@ class Sample(Model):
     estop: bool = False
     link: Literal["connecting", "up", "down"] = "up"
     stale: bool = False
+    faults: list[Fault] = Field(default_factory=list)
+    homed: list[bool] = Field(default_factory=list)
 
 
 class TelemetryMessage(Model):
@@ -178,7 +200,9 @@ class MovePose(Model):
     branch: Int | None = Field(None, ge=0, le=16, description="IK solution index; default: the "
                                "within-limits solution nearest the current joints")
     ik_case: Literal["dx_zero", "dx_used"] | None = Field(
-        None, description="angler only: fix dx at 0 (theta3 reaches x) or use dx (theta3 kept)")
+        None, description="angler only: `dx_zero` (dx = 0, theta3 reaches x) or `dx_used` (the "
+        "design's case 2: dx = px -/+ r, theta3 = -/+90 deg; a line keeps theta3); none: "
+        "the design's choice, dx_zero where |px| <= r")
     duration: Duration | None = None
     speed: Speed = 1.0
     mode: QueueMode = "queue"
@@ -237,7 +261,8 @@ class ForwardResult(Model):
 
 class InverseRequest(Vec3):
     ik_case: Literal["dx_zero", "dx_used"] | None = None
-    theta3: Finite | None = Field(None, description="angler dx_used case: theta3 to keep, rad")
+    theta3: Finite | None = Field(None, description="angler dx_used case: theta3 to use, rad "
+                                  "(none: the design's -/+90 deg)")
 
 
 class IKSolution(Model):

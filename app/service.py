@@ -18,11 +18,14 @@ from app.devices.base import Driver
 from app.devices.factory import make_driver
 from app.envelope import ArmSafety
 from app.errors import (
+    Busy,
     EstopLatched,
+    Fault,
     InvalidRequest,
     JointLimit,
     LinkDown,
     NoGripper,
+    NotHomed,
     NotSupported,
     VelocityLimit,
 )
@@ -85,7 +88,9 @@ class ArmService:
                   for j in self.profile.joints]
         return s.ArmDetail(**self.summary().model_dump(), joints=joints,
                            geometry=dict(self.profile.geometry), estop=self.estop,
-                           poll_hz=self.profile.link.poll_hz)
+                           poll_hz=self.profile.link.poll_hz,
+                           faults=[s.Fault(**f) for f in self.driver.faults],
+                           homed=list(self.driver.homed))
 
     def state(self) -> dict[str, Any]:
         """The latest sample; 503 link_down if the device has never answered."""
@@ -98,6 +103,8 @@ class ArmService:
     def _annotate(self, sample: dict[str, Any]) -> None:
         sample["estop"] = self.estop
         sample["motion"] = self.motion.brief()
+        sample["faults"] = list(self.driver.faults)
+        sample["homed"] = list(self.driver.homed)
         if self.profile.gripper.actuated:
             sample["gripper"] = self.driver.gripper
 
@@ -107,6 +114,72 @@ class ArmService:
         if self.estop:
             raise EstopLatched(f"{self.name}: emergency stop is latched; release it with "
                                f"DELETE /api/v1/arms/{self.name}/estop")
+
+    def require_no_fault(self) -> None:
+        """409 `fault` while a servo reports a hardware fault: which, which bits, how to clear."""
+        faults = self.driver.faults
+        if faults:
+            raise Fault(f"{self.name}: refused while a servo reports a hardware fault: "
+                        + " | ".join(f"servo {f['servo']} ({f['joint']}): "
+                                     f"{', '.join(f['bits']) or 'alert'}: {f['advice']}"
+                                     for f in faults))
+
+    def check_homed(self, start: np.ndarray | None, target: np.ndarray) -> None:
+        """409 `not_homed` for a command that would move a joint that is not homed."""
+        tol = self.motion.tolerance()
+        moved = [k for k, homed in enumerate(self.driver.homed) if not homed and (
+            start is None or abs(float(target[k]) - float(start[k])) > tol[k])]
+        if moved:
+            names = ", ".join(self.model.names[k] for k in moved)
+            raise NotHomed(f"{self.name}: joint {names} is not homed (its position is not known "
+                           f"after a power cycle or reboot): home the arm with POST "
+                           f"/api/v1/arms/{self.name}/home first")
+
+    def check_homed_joint(self, joint: int, start: np.ndarray | None, ticks: float) -> None:
+        """`check_homed` for one joint's raw goal (ticks)."""
+        q = np.full(self.model.n, np.nan)
+        q[joint] = ticks
+        target = self.model.transmission.from_ticks(q)
+        cur = np.full(self.model.n, np.nan) if start is None else np.full(self.model.n, start[0])
+        tol = self.motion.tolerance()[joint]
+        if start is None or not abs(float(target[joint]) - float(cur[joint])) <= tol:
+            self.check_homed(None, target)
+
+    async def home(self, positions: list[float] | None) -> s.ArmDetail:
+        """Declare the arm's current physical pose (the profile's home pose by default): the
+        joints that need homing take these positions; the others read absolute positions and
+        keep them. The commanded state is forgotten, so the next motion starts from the
+        measured pose."""
+        if self.motion.current is not None or self.motion.queued():
+            raise Busy(f"{self.name}: a motion is running or queued; stop it before homing")
+        if positions is None:
+            if self.profile.home is None:
+                raise InvalidRequest(f"{self.name}'s profile has no home pose: give positions")
+            positions = list(self.profile.home)
+        q = np.array(positions, dtype=float)
+        if q.shape != (self.model.n,):
+            raise InvalidRequest(f"{self.name} has {self.model.n} joints "
+                                 f"({', '.join(self.model.names)}), got {len(positions)} positions")
+        self.check_joint_target(q)
+        if self.driver.positions is None or self.driver.stale:
+            raise LinkDown(f"{self.name}: no fresh joint positions from the device to home from")
+        for k, j in enumerate(self.profile.joints):
+            if j.needs_homing:
+                self.driver.set_home(k, float(q[k]))
+        self.motion.forget_command()
+        log.info("%s: homed at %s", self.name, [round(float(v), 5) for v in q])
+        self.hub.event("homed", positions=[float(v) for v in q])
+        return self.detail()
+
+    async def reboot(self, dxl_id: int) -> None:
+        """REBOOT one servo and set it up again (the driver); the commanded state is
+        forgotten: the servo's goal is now its present position."""
+        self.require_motion_allowed()
+        if self.motion.current is not None or self.motion.queued():
+            raise Busy(f"{self.name}: a motion is running or queued; stop it before a reboot")
+        await self.driver.reboot(dxl_id)  # type: ignore[attr-defined]
+        self.motion.forget_command()
+        self.hub.event("rebooted", servo=dxl_id, homed=list(self.driver.homed))
 
     def check_joint_target(self, q: np.ndarray) -> None:
         """Joint limits for any commanded position, planned or pass-through."""
@@ -120,10 +193,12 @@ class ArmService:
         `velocities` (ticks/s, e.g. SET_PID's velocity_ticks_s), those obey the velocity limits
         too (`check_passthrough_velocity_ticks`)."""
         self.require_motion_allowed()
+        self.require_no_fault()
         _require_finite(ticks, "pass-through positions")
         if velocities is not None:
             self.check_passthrough_velocity_ticks(velocities)
         q = self.model.transmission.from_ticks(np.asarray(ticks, dtype=float))
+        self.check_homed(self.driver.positions, q)
         v = [] if self.profile.raw_access else self.model.violations(q)
         if v:
             raise JointLimit("pass-through position outside the joint limits (the profile does "
@@ -153,6 +228,11 @@ class ArmService:
     def check_passthrough_joint_ticks(self, joint: int, ticks: float) -> None:
         """As `check_passthrough_ticks` for one joint's goal (the others unchanged)."""
         self.require_motion_allowed()
+        self.require_no_fault()
+        if not self.driver.homed[joint]:
+            cur = self.driver.positions
+            start = None if cur is None else cur[joint:joint + 1]
+            self.check_homed_joint(joint, start, ticks)
         if self.profile.raw_access:
             return
         current = self.driver.positions

@@ -36,7 +36,9 @@ from kinematics.rrr import wrap
 __all__ = [
     "PPRP",
     "IKSolutions",
+    "auto_case",
     "bounds",
+    "design_theta3",
     "dh_transform",
     "fk",
     "fk_pose",
@@ -128,11 +130,25 @@ def jacobian(q: npt.ArrayLike, g: PPRP = PPRP()) -> FloatArray:
     return j
 
 
+def design_theta3(x: npt.ArrayLike) -> FloatArray:
+    """The design document's second IK case: dx = px - r for px > 0 (px + r for px < 0), so
+    t3 = asin((dx - px) / r) = -pi/2 (+pi/2): the arm points along +x (-x) and the x
+    carriage stands r short of the target. px = 0 takes -pi/2."""
+    return np.where(np.asarray(x, dtype=np.float64) < 0.0, np.pi / 2.0, -np.pi / 2.0)
+
+
+def auto_case(p: npt.ArrayLike, g: PPRP = PPRP()) -> Case:
+    """The design document's choice when none is named: dx = 0 where the arm alone reaches
+    x (|px| <= r), else the second case."""
+    x = float(np.asarray(p, dtype=np.float64).reshape(3)[0])
+    return "dx_zero" if abs(x) <= g.r * (1.0 + 1e-12) else "dx_used"
+
+
 def ik(
     p: npt.ArrayLike,
     g: PPRP = PPRP(),
     case: Case = "dx_zero",
-    theta3: npt.ArrayLike = 0.0,
+    theta3: npt.ArrayLike | None = None,
     lower: npt.ArrayLike | None = None,
     upper: npt.ArrayLike | None = None,
 ) -> IKSolutions:
@@ -144,7 +160,8 @@ def ik(
     - ``"dx_zero"``: dx = 0, t3 = asin(-x / r) and its twin pi - asin(-x / r)
       (K = 2), dy = y - r cos t3. Valid only where |x| <= r.
     - ``"dx_used"``: t3 = ``theta3`` (rad, broadcast over points), dx = x + r sin t3,
-      dy = y - r cos t3 (K = 1). Always valid geometrically.
+      dy = y - r cos t3 (K = 1). Always valid geometrically. With ``theta3`` None, the
+      design document's case 2 (:func:`design_theta3`): t3 = -/+ pi/2, dx = px -/+ r.
 
     In both, dz = z + h (inverts :func:`fk` exactly). With ``lower``/``upper``
     (4,) given, out-of-limit solutions are marked invalid.
@@ -161,7 +178,8 @@ def ik(
         dx = np.zeros_like(t3)
         valid = np.stack([ok, ok], axis=-1)
     elif case == "dx_used":
-        t3 = np.broadcast_to(np.asarray(theta3, dtype=np.float64), x.shape)[..., None]
+        th = design_theta3(x) if theta3 is None else np.asarray(theta3, dtype=np.float64)
+        t3 = np.broadcast_to(th, x.shape)[..., None]
         dx = x[..., None] + g.r * np.sin(t3)
         valid = np.isfinite(t3)
     else:
@@ -178,12 +196,15 @@ def ik(
 def ik_one(
     p: npt.ArrayLike,
     g: PPRP = PPRP(),
-    case: Case = "dx_zero",
-    theta3: float = 0.0,
+    case: Case | None = "dx_zero",
+    theta3: float | None = None,
     lower: npt.ArrayLike | None = None,
     upper: npt.ArrayLike | None = None,
 ) -> list[FloatArray]:
     """Distinct solutions (each (4,)) for one point ``p`` (3,) m.
+
+    With ``case`` None: every solution of both cases, the automatic choice first
+    (:func:`auto_case`): ``dx_zero``'s twins where |x| <= r, then ``dx_used``'s.
 
     Raises :class:`Unreachable` with the reason: in case ``dx_zero`` the arm
     alone must cover x, so |x| > r cannot be reached; with limits given, every
@@ -192,6 +213,13 @@ def ik_one(
     pa = np.asarray(p, dtype=np.float64).reshape(3)
     if not np.all(np.isfinite(pa)):
         raise Unreachable(f"target {pa.tolist()} is not a finite point")
+    if case is None:
+        first = auto_case(pa, g)
+        if first == "dx_used":
+            return ik_one(pa, g, "dx_used", theta3, lower, upper)
+        both = [ik(pa, g, "dx_zero"), ik(pa, g, "dx_used", theta3)]
+        q = np.concatenate([x.q[x.valid] for x in both])
+        return distinct_solutions(q, pa, lower, upper)
     if case == "dx_zero" and abs(pa[0]) > g.r * (1.0 + 1e-12):
         raise Unreachable(
             f"out of reach with dx fixed at 0: |x| = {abs(pa[0]):.3f} m exceeds the arm"

@@ -47,6 +47,7 @@ ROUTES: dict[tuple[str, str], str] = {
     ("POST", "/api/v1/arms/{arm}/dynamixel/sync-read"): "dxl_sync_read",
     ("POST", "/api/v1/arms/{arm}/dynamixel/sync-write"): "dxl_sync_write",
     ("POST", "/api/v1/arms/{arm}/dynamixel/{id}/reboot"): "dxl_reboot",
+    ("POST", "/api/v1/arms/{arm}/home"): "home",
     ("POST", "/api/v1/arms/{arm}/lease"): "take_lease",
     ("PUT", "/api/v1/arms/{arm}/lease/{id}"): "renew_lease",
     ("DELETE", "/api/v1/arms/{arm}/lease/{id}"): "release_lease",
@@ -74,7 +75,8 @@ ARGS: dict[str, tuple[Any, ...]] = {
     "rbe3001_set_gain": ("a1", 0, 1.0, 0.0, 0.0), "rbe3001_set_claw": ("a1", 1.0),
     "dxl_ping": ("a1",), "dxl_read_register": ("a1", 3, "led"),
     "dxl_write_register": ("a1", 3, "led", 1), "dxl_sync_read": ("a1", "led", [1, 2]),
-    "dxl_sync_write": ("a1", "led", {1: 0}), "dxl_reboot": ("a1", 3), "take_lease": ("a1",),
+    "dxl_sync_write": ("a1", "led", {1: 0}), "dxl_reboot": ("a1", 3), "home": ("a1",),
+    "take_lease": ("a1",),
     "renew_lease": ("a1", "L1"), "release_lease": ("a1", "L1"),
     "safety": ("a1",), "set_safety": ("a1",),
 }

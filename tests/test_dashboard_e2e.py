@@ -75,7 +75,7 @@ class Server:
         self._thread: threading.Thread | None = None
 
     def start(self) -> None:
-        app = create_app(self.settings)
+        self.app = app = create_app(self.settings)
         config = uvicorn.Config(app, host="127.0.0.1", port=self.port, log_level="warning",
                                 lifespan="on")
         self._server = server = uvicorn.Server(config)
@@ -309,6 +309,39 @@ def test_emergency_stop_latches_shows_and_releases(page: Any, server: Server) ->
     time.sleep(0.2)
     box = page.locator("#estop-button").bounding_box()
     assert box is not None and 0 <= box["y"] < VIEWPORT["height"]
+
+
+def test_faults_and_homing_shown_reboot_and_home_clear_them(page: Any, server: Server) -> None:
+    """A servo fault injected in the simulator appears on the page with its advice and a reboot
+    button; reboot clears it and leaves x not homed; Home makes every joint homed again."""
+    panel = page.locator("#angler-faults-panel")
+    assert panel.is_visible() and page.locator("#angler-faults").get_attribute("data-count") == "0"
+    assert page.locator("#rbe3001-tare").count() == 1  # the rbe3001 senses force
+    bus = server.app.state.services["angler"].driver.link.device
+    bus.inject_hardware_error(2, "overload")  # servo 2 drives x
+    wait_for(lambda: page.locator("#angler-faults").get_attribute("data-count") == "1", 10,
+             "fault shown")
+    text = page.inner_text("#angler-faults")
+    assert "Servo 2 (x): overload" in text and "reboot" in text
+    # a move is refused in words while the fault stands
+    page.click("#angler-jog-2-plus")
+    err = page.locator("#angler-jog-error")
+    wait_for(lambda: err.get_attribute("data-code") == "fault", 5, "fault refusal shown")
+    assert "Servo fault" in err.inner_text()
+    shot(page, "07-fault")
+    page.click("#angler-reboot-2")
+    wait_for(lambda: page.locator("#angler-faults").get_attribute("data-count") == "0", 10,
+             "fault cleared")
+    wait_for(lambda: page.locator("#angler-homed").get_attribute("data-homed")
+             == "[false,true,true,true]", 5, "x not homed after the reboot")
+    assert api(server, "GET", "/arms/angler")["homed"] == [False, True, True, True]
+    assert "x ✗" in page.inner_text("#angler-homed")
+    page.click("#angler-home")
+    wait_for(lambda: page.locator("#angler-homed").get_attribute("data-homed")
+             == "[true,true,true,true]", 5, "homed shown")
+    assert api(server, "GET", "/arms/angler")["homed"] == [True] * 4
+    assert page.inner_text("#angler-faults-error") == ""
+    shot(page, "08-homed")
 
 
 def test_survives_a_server_restart(page: Any, server: Server) -> None:

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from app import schemas as s
-from app.config import load_profile
+from app.config import homed_at_start, load_profile
 from app.errors import EstopLatched, JointLimit, Unreachable
 from app.service import ArmService
 
 
 async def _service(name: str) -> ArmService:
-    svc = ArmService(load_profile(name))
+    svc = ArmService(homed_at_start(load_profile(name)))  # simulated: starts at a known pose
     await svc.start()
     assert await svc.driver.wait_connected(5.0)
     return svc
@@ -157,7 +157,7 @@ async def test_stop_clears_the_queue(angler):
 
 
 async def test_a_done_motion_reports_its_real_final_state(angler):
-    m = await angler.motion.move_pose(s.MovePose(x=-0.03, y=0.1, z=0.04, ik_case="dx_used"))
+    m = await angler.motion.move_pose(s.MovePose(x=-0.03, y=0.1, z=0.04))
     await m.wait()
     assert m.status == "done"
     tip = angler.model.fk(angler.driver.positions)

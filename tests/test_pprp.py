@@ -151,3 +151,47 @@ def test_bounds_are_exact_and_contain_the_workspace() -> None:
     np.testing.assert_allclose(hi, [0.175, 0.175, 0.09], atol=1e-12)
     pts = pprp.workspace(G, LO, HI, 20_000, np.random.default_rng(3))
     assert np.all(pts >= lo - 1e-12) and np.all(pts <= hi + 1e-12)
+
+
+# ------------------------------------------------ the design document's IK cases
+
+
+def test_design_case_two_turns_the_arm_to_minus_or_plus_90_degrees() -> None:
+    # px > 0: dx = px - r, theta3 = asin((dx - px) / r) = -90 deg; px < 0: dx = px + r, +90 deg
+    [q] = pprp.ik_one([0.12, 0.04, -0.02], G, "dx_used")
+    np.testing.assert_allclose(q, [0.12 - R, 0.04, -np.pi / 2, -0.02 + H], atol=1e-12)
+    [q] = pprp.ik_one([-0.13, 0.01, 0.0], G, "dx_used")
+    np.testing.assert_allclose(q, [-0.13 + R, 0.01, np.pi / 2, H], atol=1e-12)
+    # a theta3 given still wins (the IK route's `theta3`)
+    [q] = pprp.ik_one([0.12, 0.04, -0.02], G, "dx_used", 0.3)
+    assert q[2] == pytest.approx(0.3)
+
+
+def test_the_documented_point_is_reachable_within_the_profile_limits() -> None:
+    p = np.array([0.12, 0.04, -0.02])
+    assert pprp.auto_case(p, G) == "dx_used"  # |px| > r
+    sols = pprp.ik_one(p, G, None, None, LO, HI)
+    assert len(sols) == 1
+    np.testing.assert_allclose(pprp.fk(sols[0], G), p, atol=1e-12)
+
+
+def test_automatic_case_lists_both_cases_design_choice_first() -> None:
+    p = np.array([0.03, 0.05, 0.01])
+    assert pprp.auto_case(p, G) == "dx_zero"  # |px| < r: dx = 0
+    sols = pprp.ik_one(p, G, None)
+    assert len(sols) == 3  # the two dx = 0 twins, then case two
+    assert sols[0][0] == 0.0 and sols[1][0] == 0.0
+    assert sols[2][2] == pytest.approx(-np.pi / 2)
+    for q in sols:
+        np.testing.assert_allclose(pprp.fk(q, G), p, atol=1e-12)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seeds)
+def test_fk_of_ik_is_the_point_in_every_case(seed: int) -> None:
+    p = pprp.workspace(G, LO, HI, 200, np.random.default_rng(seed))
+    for case in ("dx_zero", "dx_used"):
+        sols = pprp.ik(p, G, case)  # type: ignore[arg-type]
+        for k in range(sols.q.shape[-2]):
+            ok = sols.valid[:, k]
+            np.testing.assert_allclose(pprp.fk(sols.q[ok, k], G), p[ok], atol=1e-12)

@@ -28,7 +28,7 @@ from fastapi import FastAPI
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from app.config import ArmProfile, Settings, load_profile
+from app.config import ArmProfile, Settings, homed_at_start, load_profile
 from app.main import create_app
 
 API = "/api/v1"
@@ -50,7 +50,7 @@ async def served(profiles: list[ArmProfile] | None = None, settings: Settings | 
 
 
 def raw_profiles() -> list[ArmProfile]:
-    return [load_profile(n).model_copy(update={"raw_access": True})
+    return [homed_at_start(load_profile(n)).model_copy(update={"raw_access": True})
             for n in ("rbe3001", "angler")]
 
 

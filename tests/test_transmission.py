@@ -31,9 +31,9 @@ def test_known_ticks() -> None:
 def test_profile_offsets_and_kinds() -> None:
     t = angler()
     np.testing.assert_allclose(t.per_rev, [0.008, 0.008, 2 * np.pi, 0.1257])
-    # theta3 centred at 2048 ticks; x 1 mm = 512 ticks
-    np.testing.assert_allclose(t.to_ticks([0.001, 0.0, 0.0, 0.0]), [512, 0, 2048, 0], atol=1e-9)
-    np.testing.assert_array_equal(t.to_ticks_int([0.001, 0.0, np.pi / 2, 0.0]), [512, 0, 3072, 0])
+    # theta3 centred at 2048 ticks; x 1 mm = 512 ticks, negated (the design's MATLAB wiring)
+    np.testing.assert_allclose(t.to_ticks([0.001, 0.0, 0.0, 0.0]), [-512, 0, 2048, 0], atol=1e-9)
+    np.testing.assert_array_equal(t.to_ticks_int([0.001, 0.0, np.pi / 2, 0.0]), [-512, 0, 3072, 0])
 
 
 def test_sign_reverses_about_the_offset() -> None:
@@ -63,9 +63,10 @@ def test_dynamixel_velocity_units() -> None:
     t = angler()
     # one unit = 0.229 rpm: revolute 0.229 * 2 pi / 60 rad/s; screw 0.229 * 0.008 / 60 m/s
     one = t.velocity_from_rpm_units([1, 1, 1, 1])
-    np.testing.assert_allclose(one, np.array([0.008, 0.008, 2 * np.pi, 0.1257]) * RPM_PER_UNIT / 60)
-    # 0.05 m/s on the x screw = 6.25 rev/s = 375 rpm = 1637.55 units
-    assert t.velocity_to_rpm_units([0.05, 0, 0, 0])[0] == pytest.approx(375 / 0.229)
+    per_rev = np.array([-0.008, -0.008, 2 * np.pi, 0.1257])  # x, y negated (wiring)
+    np.testing.assert_allclose(one, per_rev * RPM_PER_UNIT / 60)
+    # 0.05 m/s on the x screw = 6.25 rev/s = 375 rpm = 1637.55 units, negated (wiring)
+    assert t.velocity_to_rpm_units([0.05, 0, 0, 0])[0] == pytest.approx(-375 / 0.229)
 
 
 @pytest.mark.parametrize("lead", [(), (7,), (2, 3)])

@@ -120,9 +120,9 @@ def _value(dxl_id: int, item: mx28.ControlItem, raw: int) -> s.RegisterValue:
     "/ping",
     response_model=s.PingResult,
     summary="PING one id, or every id on the bus",
-    description="With `id`: that servo's model number and firmware version (504 "
-    "`device_timeout` if it does not answer). Without (or with no body): a broadcast ping, "
-    "answering every servo that replied. " + _NOT_SUPPORTED,
+    description="With `id`: that servo's model number and firmware version, or an empty list "
+    "if no servo answers (an absent servo is an answer). Without (or with no body): a "
+    "broadcast ping, answering every servo that replied. " + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
 async def ping(svc: ControlArm,
@@ -203,13 +203,16 @@ async def sync_write(svc: ControlArm, req: s.SyncWriteRequest) -> s.Ack:
 @router.post(
     "/{dxl_id}/reboot",
     response_model=s.Ack,
-    summary="REBOOT one servo",
-    description="The servo restarts with torque off until it is enabled again (write "
-    "`torque_enable`). Refused while the estop is latched. " + _NOT_SUPPORTED,
+    summary="REBOOT one servo (clears a hardware fault)",
+    description="One REBOOT (never a factory reset): the servo restarts with its RAM defaults, "
+    "which clears a hardware error. One of the arm's servos is then set up again as at "
+    "connect (operating mode, profile velocity, goal = present position, torque on); a joint "
+    "that needs homing comes back not homed. Works while the arm has a fault; refused while "
+    "the estop is latched (409 `estop_latched`) or a motion runs or is queued (409 `busy`). "
+    + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
 async def reboot(svc: ControlArm, dxl_id: DxlId) -> s.Ack:
-    drv = _driver(svc)
-    svc.require_motion_allowed()
-    await drv.reboot(dxl_id)
+    _driver(svc)
+    await svc.reboot(dxl_id)
     return s.Ack(command=f"REBOOT {dxl_id}")

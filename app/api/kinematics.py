@@ -53,7 +53,9 @@ async def forward(svc: ViewerArm, req: s.JointVector) -> s.ForwardResult:
     description="Tip position (m) -> every IK solution, each with `within_limits`, the "
     "`violations` (which joint, which limit, how far) and its `branch` index (usable as "
     "`branch` in move/pose). 422 `unreachable` with the reason where there is none. Angler: "
-    "`ik_case` `dx_zero` (default) or `dx_used` with `theta3` kept.",
+    "`ik_case` `dx_zero` (dx = 0, theta3 reaches x) or `dx_used` (the design's case 2: "
+    "dx = px -/+ r, theta3 = -/+90 deg, or the `theta3` given); with no case, the solutions "
+    "of both, the design's choice first (dx = 0 where |px| <= r).",
     responses=errors(*READ),
 )
 async def inverse(svc: ViewerArm, req: s.InverseRequest) -> s.InverseResult:

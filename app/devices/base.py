@@ -48,6 +48,16 @@ STALE_AFTER = 3
 SETUP_ATTEMPTS = 3
 
 
+@dataclass(frozen=True)
+class SettleState:
+    """What the actuators say about arriving (joint indices): joints whose actuator holds no
+    torque (such a joint can never be done) and joints whose actuator says it is still on
+    its way. A device that tells neither leaves both empty."""
+
+    torque_off: tuple[int, ...] = ()
+    moving: tuple[int, ...] = ()
+
+
 @dataclass
 class _Request:
     message: Any
@@ -87,6 +97,11 @@ class Driver(abc.ABC):
         self.gripper: float | None = None
         self.positions: np.ndarray | None = None
         self.velocities: np.ndarray | None = None
+        #: Hardware faults (API "Faults and homing"): `{"joint", "servo", "bits", "raw",
+        #: "advice"}` each; empty when healthy or for a device that reports none.
+        self.faults: list[dict[str, Any]] = []
+        #: One flag per joint: False for a joint that needs homing until POST /home.
+        self.homed = [not j.needs_homing or profile.link.homed_at_start for j in profile.joints]
 
     # ------------------------------------------------------------ public
 
@@ -145,6 +160,23 @@ class Driver(abc.ABC):
                 await asyncio.sleep(0.01)
             return False
         return asyncio.ensure_future(_wait())
+
+    async def settle_state(self) -> SettleState:
+        """Torque and arrival per joint, where the device reports them (base: it does not)."""
+        return SettleState()
+
+    def set_home(self, k: int, q: float) -> None:
+        """Declare joint `k`'s current physical position to be `q` (rad or m): shift the
+        transmission offset so the last reading and every later one agree, and mark it homed.
+        The offset is kept in the server, not written to the device (see README)."""
+        tr = self.model.transmission
+        if self.positions is not None:
+            now = float(self.positions[k])
+            # the arrays of the (frozen) Transmission are shared by every user of the model
+            tr.offset_ticks[k] += (now - q) * float(tr.ticks_per_unit[k])
+            self.positions = self.positions.copy()
+            self.positions[k] = q
+        self.homed[k] = True
 
     # ------------------------------------------------------------ for subclasses
 

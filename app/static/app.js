@@ -23,6 +23,7 @@ const CODE_WORDS = {
   keep_out: "Keep-out zone",
   no_gripper: "No gripper", invalid_request: "Invalid request", network: "No connection",
   not_found: "Not found", unknown_arm: "Unknown arm", not_supported: "Not supported",
+  fault: "Servo fault", not_homed: "Not homed", torque_off: "Torque off",
 };
 
 const arms = new Map();         // name -> Arm
@@ -383,6 +384,7 @@ class Arm {
     if (this.el.tq) this.el.tq.hidden = true;
     if (this.el.f) this.el.f.hidden = true;
     $("#arms").append(this.el.card);
+    document.dispatchEvent(new CustomEvent("arm-card", { detail: { name: this.name, card: this.el.card, detail: d } }));  // faults.js
     // an arm scrolled out of sight is not drawn (its buffers still fill)
     this.visible = true;
     new IntersectionObserver((entries) => { this.visible = entries[entries.length - 1].isIntersecting; })
@@ -480,6 +482,7 @@ class Arm {
         ? off : 0.9 * this.clockOffset + 0.1 * off;
       this.estop = this.latest.estop;
       this.link = this.latest.link;
+      this.el.card.dispatchEvent(new CustomEvent("arm-sample", { detail: this.latest }));  // faults.js
     }
   }
 
@@ -1047,6 +1050,7 @@ function setupChrome() {
 }
 
 window.armDashboard = {
+  api,  // for faults.js
   arms: () => [...arms.keys()],
   state: (name) => arms.get(name)?.state() ?? null,
   safety: (name) => arms.get(name)?.safety?.state() ?? null,

@@ -1,0 +1,123 @@
+// armserver dashboard: faults and homing (API.md "Faults and homing"), one panel per arm.
+//
+// app.js announces each arm card ("arm-card" on document) and its newest sample ("arm-sample"
+// on the card); this module adds a panel that shows the servos' hardware faults with their
+// advice, which joints are homed, and offers reboot (per faulted servo), home and tare. The
+// calls go through app.js's `api` (window.armDashboard.api), so tokens work as everywhere.
+
+const API = "/api/v1";
+const panels = new Map();   // arm name -> Panel
+
+function el(tag, attrs = {}, ...children) {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) {
+    if (k.startsWith("on")) e.addEventListener(k.slice(2), v);
+    else if (v !== null && v !== undefined && v !== false) e.setAttribute(k, v === true ? "" : v);
+  }
+  for (const c of children) if (c !== null && c !== undefined) e.append(c);
+  return e;
+}
+
+async function call(method, path, body) {
+  const api = window.armDashboard?.api;
+  if (api) return api(method, path, body);
+  const res = await fetch(API + path, { method, headers: body ? { "Content-Type": "application/json" } : {},
+    body: body ? JSON.stringify(body) : undefined });
+  const data = await res.json().catch(() => null);
+  if (!res.ok) throw Object.assign(new Error(data?.detail || res.statusText), { code: data?.code, detail: data?.detail });
+  return data;
+}
+
+class Panel {
+  constructor(name, card, detail) {
+    this.name = name;
+    this.detail = detail;
+    this.faults = detail.faults || [];
+    this.homed = detail.homed || [];
+    const id = (s) => `${name}-${s}`;
+    this.el = {
+      faults: el("ul", { class: "faults", id: id("faults"), "aria-live": "polite" }),
+      homed: el("div", { class: "homed row", id: id("homed") }),
+      positions: el("input", { type: "text", id: id("home-positions"), "aria-label": "home positions (rad, m)",
+        placeholder: "x, y, … (rad, m) or empty: the profile's home pose" }),
+      error: el("div", { class: "err", id: id("faults-error"), role: "alert" }),
+      note: el("span", { class: "muted small", id: id("faults-note") }, ""),
+    };
+    const tare = detail.capabilities?.force_sensing
+      ? el("button", { type: "button", class: "ghost", id: id("tare"), title: "Zero the joint torques and tip force",
+        onclick: () => this.run("POST", `/arms/${encodeURIComponent(name)}/force/tare`, undefined, "tared") }, "Tare force")
+      : null;
+    this.el.section = el("section", { class: "ctl faults-homing", id: id("faults-panel") },
+      el("h3", {}, "Faults and homing"),
+      this.el.faults, this.el.homed,
+      el("div", { class: "row" }, this.el.positions,
+        el("button", { type: "button", class: "primary", id: id("home"), title: "Declare the arm's current pose (nothing moves)",
+          onclick: () => this.home() }, "Home"), tare),
+      this.el.note, this.el.error);
+    (card.querySelector(".controls") || card).append(this.el.section);
+    card.addEventListener("arm-sample", (ev) => this.update(ev.detail));
+    this.render();
+  }
+
+  update(sample) {
+    const f = sample.faults || [], hm = sample.homed || [];
+    if (JSON.stringify(f) === JSON.stringify(this.faults) && JSON.stringify(hm) === JSON.stringify(this.homed)) return;
+    this.faults = f;
+    this.homed = hm;
+    this.render();
+  }
+
+  render() {
+    const rows = this.faults.map((f) => el("li", { class: "fault", "data-servo": f.servo },
+      el("strong", {}, `Servo ${f.servo} (${f.joint}): ${f.bits.join(", ") || "alert"}`), " ",
+      el("span", { class: "muted small" }, f.advice), " ",
+      el("button", { type: "button", class: "stop", id: `${this.name}-reboot-${f.servo}`,
+        onclick: () => this.run("POST", `/arms/${encodeURIComponent(this.name)}/dynamixel/${f.servo}/reboot`, undefined,
+          `servo ${f.servo} rebooted`) }, `Reboot servo ${f.servo}`)));
+    this.el.faults.replaceChildren(...(rows.length ? rows : [el("li", { class: "muted small ok" }, "no faults")]));
+    this.el.faults.dataset.count = String(this.faults.length);
+    const names = this.detail.joints.map((j) => j.name);
+    this.el.homed.replaceChildren(el("span", { class: "muted small" }, "homed:"),
+      ...names.map((n, i) => el("span", { class: `badge ${this.homed[i] === false ? "warn" : "ok"}`, "data-joint": n },
+        `${n} ${this.homed[i] === false ? "✗" : "✓"}`)));
+    this.el.homed.dataset.homed = JSON.stringify(this.homed);
+  }
+
+  async home() {
+    const text = this.el.positions.value.trim();
+    let body;
+    if (text) {
+      const positions = text.split(/[\s,]+/).filter(Boolean).map(Number);
+      if (positions.some((v) => !Number.isFinite(v))) { this.showError({ detail: "positions must be numbers" }); return; }
+      body = { positions };
+    }
+    const d = await this.run("POST", `/arms/${encodeURIComponent(this.name)}/home`, body, "homed");
+    if (d && Array.isArray(d.homed)) { this.homed = d.homed; this.faults = d.faults || this.faults; this.render(); }
+  }
+
+  async run(method, path, body, done) {
+    this.el.error.replaceChildren();
+    try {
+      const d = await call(method, path, body);
+      this.el.note.textContent = `${new Date().toLocaleTimeString()} ${done}`;
+      return d;
+    } catch (e) { this.showError(e); return null; }
+  }
+
+  showError(e) {
+    this.el.error.dataset.code = e.code || "";
+    this.el.error.textContent = e.detail || e.message || String(e);
+  }
+
+  state() {
+    return { faults: this.faults, homed: this.homed, error: this.el.error.textContent,
+      errorCode: this.el.error.dataset.code || null, note: this.el.note.textContent };
+  }
+}
+
+document.addEventListener("arm-card", (ev) => {
+  const { name, card, detail } = ev.detail;
+  if (!panels.has(name)) panels.set(name, new Panel(name, card, detail));
+});
+
+window.armFaults = { state: (name) => panels.get(name)?.state() ?? null };
