@@ -32,7 +32,7 @@ from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app import schemas
-from app.api import arms, dynamixel, kinematics, lease, motion, rbe3001, telemetry
+from app.api import arms, dynamixel, force, kinematics, lease, motion, rbe3001, telemetry
 from app.auth import Access, bearer_token, install_log_redaction
 from app.config import ArmProfile, Settings, load_arms
 from app.errors import ArmError, Unauthorized
@@ -97,7 +97,7 @@ def create_app(settings: Settings | None = None,
     app.state.services = {}
     app.state.internal_errors = 0
 
-    for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry):
+    for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry, force):
         app.include_router(r.router, prefix=API_PREFIX)
     _document_websocket_messages(app)
     _install_error_handlers(app)

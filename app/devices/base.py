@@ -81,6 +81,10 @@ class Driver(abc.ABC):
         self.gripper: float | None = None
         self.positions: np.ndarray | None = None
         self.velocities: np.ndarray | None = None
+        #: The latest joint torques as sensed, before the tare; the tare (POST .../force/tare)
+        #: is subtracted from every reading before it is published.
+        self.torques_raw: np.ndarray | None = None
+        self.torque_tare: np.ndarray | None = None
 
     # ------------------------------------------------------------ public
 
@@ -312,6 +316,9 @@ class Driver(abc.ABC):
         self.stale = False
         self.stale_error = None
         self.positions, self.velocities = q, qd
+        self.torques_raw = tau
+        if tau is not None and self.torque_tare is not None:
+            tau = tau - self.torque_tare
         self._publish(q, qd, tau, stale=False)
 
     # ------------------------------------------------------------ samples
