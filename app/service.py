@@ -27,8 +27,8 @@ from app.errors import (
 )
 from app.links.base import LinkState
 from app.motion import MotionExecutor
-from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
 from app.telemetry import TelemetryHub
+from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
 
 log = logging.getLogger(__name__)
 

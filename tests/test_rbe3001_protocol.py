@@ -8,13 +8,16 @@ import struct
 import pytest
 
 from protocol.rbe3001 import (
+    ERROR_ID,
     N_FLOATS,
     PACKET_SIZE,
     Ack,
     CommandId,
     DecodeError,
+    FrameParser,
     JointSetpoint,
     RawPacket,
+    ReplyMatcher,
     SetClaw,
     SetGain,
     SetPid,
@@ -22,6 +25,7 @@ from protocol.rbe3001 import (
     Status,
     StatusReply,
     UnknownCommand,
+    UnknownToFirmware,
     decode_command,
     decode_packet,
     decode_reply,
@@ -29,7 +33,6 @@ from protocol.rbe3001 import (
     encode_packet,
     encode_reply,
 )
-from protocol.rbe3001 import ERROR_ID, FrameParser, ReplyMatcher, UnknownToFirmware
 
 
 def packet(cid: int, *floats: float) -> bytes:

@@ -23,7 +23,7 @@ _DOC = (" 409 `no_force_sensing` on an arm that senses no joint torques; 409 `le
     "of `torques` and `tip_force` in every sample until the next tare, a DELETE or a restart. "
     "Answers the offsets (N m, or N on a prismatic joint). 503 `link_down` when there is no "
     "fresh reading to tare against." + _DOC,
-    responses=errors(401, 403, 404, 409, 503),
+    responses=errors(401, 403, 404, 409, 422, 503),
 )
 async def tare(svc: ControlArm) -> s.ForceTare:
     return svc.tare_force()
@@ -34,7 +34,7 @@ async def tare(svc: ControlArm) -> s.ForceTare:
     response_model=s.ForceTare,
     summary="Clear the tare",
     description="Readings are published as sensed again; answers `offsets: null`." + _DOC,
-    responses=errors(401, 403, 404, 409),
+    responses=errors(401, 403, 404, 409, 422),
 )
 async def clear_tare(svc: ControlArm) -> s.ForceTare:
     return svc.clear_tare()
