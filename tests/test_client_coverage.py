@@ -34,6 +34,8 @@ ROUTES: dict[tuple[str, str], str] = {
     ("POST", "/api/v1/arms/{arm}/estop"): "estop",
     ("DELETE", "/api/v1/arms/{arm}/estop"): "release_estop",
     ("POST", "/api/v1/arms/{arm}/gripper"): "gripper",
+    ("POST", "/api/v1/arms/{arm}/force/tare"): "tare_force",
+    ("DELETE", "/api/v1/arms/{arm}/force/tare"): "clear_tare",
     ("POST", "/api/v1/arms/{arm}/kinematics/forward"): "forward",
     ("POST", "/api/v1/arms/{arm}/kinematics/inverse"): "inverse",
     ("GET", "/api/v1/arms/{arm}/workspace"): "workspace",
@@ -74,6 +76,7 @@ ARGS: dict[str, tuple[Any, ...]] = {
     "dxl_write_register": ("a1", 3, "led", 1), "dxl_sync_read": ("a1", "led", [1, 2]),
     "dxl_sync_write": ("a1", "led", {1: 0}), "dxl_reboot": ("a1", 3), "take_lease": ("a1",),
     "renew_lease": ("a1", "L1"), "release_lease": ("a1", "L1"),
+    "tare_force": ("a1",), "clear_tare": ("a1",),
 }
 
 
