@@ -387,18 +387,20 @@ class ReplyMatcher:
 
     def match(self, frame: bytes) -> Reply | None:
         cmd = self.outstanding
-        raw = decode_packet(frame)
+        if len(frame) != PACKET_SIZE:
+            raise DecodeError(f"a reply is {PACKET_SIZE} bytes, got {len(frame)}")
+        rid = int.from_bytes(frame[0:4], "little")
         if cmd is None:
             self.stale += 1
             return None
-        if raw.command_id == ERROR_ID and len(frame) >= 8:
+        if rid == ERROR_ID:
             missing = int.from_bytes(frame[4:8], "little")
             if missing == cmd.command_id:
                 self.outstanding = None
                 raise UnknownToFirmware(missing)
             self.stale += 1
             return None
-        if raw.command_id != cmd.command_id:
+        if rid != cmd.command_id:
             self.stale += 1
             return None
         if isinstance(cmd, SetPid | Status):
