@@ -14,7 +14,7 @@ that. A reply that has not come by then was lost or is very late (a stalled host
 firmware). So after any timeout the link must be quiet for QUIET_S (one timeout) before the
 next request is written: a late reply arrives during the quiet wait and is swallowed; one
 later than timeout + quiet is treated as never coming. The only way a stale reply can still
-be taken is a reply delayed by more than twice the timeout, 50 HID intervals: it would have
+be taken is a reply delayed by more than twice the timeout (100 HID intervals): it would have
 the right id and would also have to pass the checks below.
 
 The protocol has no checksum: a reply is refused as corrupt when floats 9-14 of a reading
