@@ -11,7 +11,7 @@ What id and order cannot tell apart is a late reply with the same id as the next
 The firmware services the HID endpoints every 1 ms (bInterval 1) and answers within one or
 two intervals (design documents: round trip at most 2 ms); the timeout is 50 ms, 25 times
 that. A reply that has not come by then was lost or is very late (a stalled host or
-firmware). So after any timeout the link must be quiet for QUIET_S (one timeout) before the
+firmware). So after any timeout the link must be quiet for one timeout (`_drain`) before the
 next request is written: a late reply arrives during the quiet wait and is swallowed; one
 later than timeout + quiet is treated as never coming. The only way a stale reply can still
 be taken is a reply delayed by more than twice the timeout (100 HID intervals): it would have
