@@ -14,6 +14,7 @@ from app.config import ArmProfile
 from app.errors import JointLimit, Unreachable
 from kinematics import limits, pprp, rrr
 from kinematics.errors import KinematicsError
+from kinematics.singular import TIP_FORCE_MAX_COND, singular_reason
 from kinematics.transmission import Transmission
 
 
@@ -43,8 +44,6 @@ class ArmModel:
             self.geom = rrr.RRR(l1=g["l1"], l2=g["l2"], l3=g["l3"])
         else:
             self.geom = pprp.PPRP(r=g["r"], h=g["h"])
-        #: |det J| of a 3-link arm scales as length^3: the reference for "near singular".
-        self._det_scale = float(sum(g.values())) ** 3
         self.transmission = Transmission.from_joints(
             [j.ticks_per_rev for j in profile.joints],
             [j.offset_ticks for j in profile.joints],
@@ -66,15 +65,20 @@ class ArmModel:
 
     def tip_force(self, q: np.ndarray, tau: np.ndarray,
                   J: np.ndarray | None = None) -> np.ndarray | None:
-        """F with J^T F = tau (least squares for the redundant angler); None near singular."""
+        """F with J^T F = tau (least squares for the redundant angler); None where the one
+        singularity rule (cond(J) above TIP_FORCE_MAX_COND, kinematics/singular.py) holds."""
         J = self.jacobian(q) if J is None else J  # the caller's, where it has one already
+        if self.tip_force_unavailable(q, J) is not None:
+            return None
         if self.is_rrr:
-            # near a singularity F is meaningless: |det J| small against the links' scale
-            if abs(np.linalg.det(J)) < 1e-6 * self._det_scale:
-                return None
             return np.linalg.solve(J.T, tau)
         f, *_ = np.linalg.lstsq(J.T, tau, rcond=None)
         return f
+
+    def tip_force_unavailable(self, q: np.ndarray, J: np.ndarray | None = None) -> str | None:
+        """Why no tip force is given at `q` (the condition-number rule), or None."""
+        J = self.jacobian(q) if J is None else J
+        return singular_reason(J, TIP_FORCE_MAX_COND)
 
     # --------------------------------------------------------- limits
 

@@ -275,6 +275,14 @@ class Requests:
                     _body(s.GripperCommand(value=value)), arm=arm)
 
     @staticmethod
+    def tare_force(arm: str) -> Call[s.ForceTare]:
+        return Call("POST", _p("arms", arm, "force", "tare"), _model(s.ForceTare), arm=arm)
+
+    @staticmethod
+    def clear_tare(arm: str) -> Call[s.ForceTare]:
+        return Call("DELETE", _p("arms", arm, "force", "tare"), _model(s.ForceTare), arm=arm)
+
+    @staticmethod
     def forward(arm: str, positions: Sequence[float]) -> Call[s.ForwardResult]:
         return Call("POST", _p("arms", arm, "kinematics", "forward"), _model(s.ForwardResult),
                     _body(s.JointVector(positions=list(positions))), arm=arm, safe=True)
@@ -607,6 +615,13 @@ class AsyncArmClient:
     async def gripper(self, arm: str, value: float) -> s.GripperState:
         """0.0 open .. 1.0 closed; `NoGripper` on an arm without an actuated gripper."""
         return await self.send(Requests.gripper(arm, value))
+
+    async def tare_force(self, arm: str) -> s.ForceTare:
+        """The current joint torques become the zero of `torques` and `tip_force`."""
+        return await self.send(Requests.tare_force(arm))
+
+    async def clear_tare(self, arm: str) -> s.ForceTare:
+        return await self.send(Requests.clear_tare(arm))
 
     # --------------------------------------------------------- kinematics
 

@@ -162,6 +162,12 @@ class ArmClient:
     def gripper(self, arm: str, value: float) -> s.GripperState:
         return self.send(Requests.gripper(arm, value))
 
+    def tare_force(self, arm: str) -> s.ForceTare:
+        return self.send(Requests.tare_force(arm))
+
+    def clear_tare(self, arm: str) -> s.ForceTare:
+        return self.send(Requests.clear_tare(arm))
+
     # --------------------------------------------------------- kinematics
 
     def forward(self, arm: str, positions: Sequence[float]) -> s.ForwardResult:

@@ -62,6 +62,9 @@ class LinkConfig(_Strict):
         False, description="the joints that need homing start homed: true only for a device "
         "that starts at a known pose (the built-in simulated config); a real multi-turn joint "
         "does not know where it is after a power cycle")
+    sim_echo: bool = Field(False, description="rbe3001 simulator only: reply as firmware builds "
+                           "that echo the request's unwritten floats, instead of zeroing them as "
+                           "PidServer.cpp does (the default)")
 
 
 class JointConfig(_Strict):
@@ -80,6 +83,9 @@ class JointConfig(_Strict):
     lead_m: float | None = Field(None, gt=0.0,
                                  description="metres per motor revolution (prismatic)")
     operating_mode: int | None = None
+    settle_tolerance: float | None = Field(
+        None, gt=0.0, description="how close (rad or m) the measured joint must come to a "
+        "move's target for the move to be done; a value the hardware can hold")
     stall_torque_nm: float | None = Field(
         None, gt=0.0, description="motor stall torque, N m (Dynamixel Present Load is 0.1 % of it)"
     )
@@ -107,8 +113,45 @@ class GripperConfig(_Strict):
 
 
 class ForceConfig(_Strict):
-    adc_scale: list[float]
-    adc_offset: list[float]
+    """Strain gauge calibration, per joint: torque = k * adc + y (the published student form;
+    its units are not stated, the server reads the result as N m). Either `k` and `y`, or the
+    equivalent `adc_scale` (= k) and `adc_offset` (= -y / k): tau = scale * (adc - offset).
+    `calibrated` false marks placeholder constants: the arm detail then says the torques and
+    tip force are not a measurement."""
+
+    k: list[float] | None = None
+    y: list[float] | None = None
+    adc_scale: list[float] | None = None
+    adc_offset: list[float] | None = None
+    calibrated: bool = False
+    note: str = ""
+
+    @model_validator(mode="after")
+    def _forms(self) -> ForceConfig:
+        if self.k is not None and self.y is not None:  # k and y win where both forms are given
+            if len(self.k) != len(self.y) or any(v == 0.0 for v in self.k):
+                raise ValueError("force: k and y need one entry per joint, k nonzero")
+            self.adc_scale = list(self.k)
+            self.adc_offset = [-b / a for a, b in zip(self.k, self.y, strict=True)]
+        elif self.adc_scale is not None and self.adc_offset is not None:
+            if len(self.adc_scale) != len(self.adc_offset):
+                raise ValueError("force: adc_scale and adc_offset need one entry per joint")
+            self.k = list(self.adc_scale)
+            self.y = [-a * o for a, o in zip(self.adc_scale, self.adc_offset, strict=True)]
+        else:
+            raise ValueError("force: give k and y (torque = k * adc + y) per joint")
+        for v in (*self.k, *self.y):
+            if not math.isfinite(v):
+                raise ValueError("force: calibration constants must be finite")
+        return self
+
+    @property
+    def scale(self) -> list[float]:
+        return list(self.adc_scale or ())
+
+    @property
+    def offset(self) -> list[float]:
+        return list(self.adc_offset or ())
 
 
 class CartesianLimits(_Strict):

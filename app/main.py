@@ -32,7 +32,18 @@ from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app import schemas
-from app.api import arms, dynamixel, homing, kinematics, lease, motion, rbe3001, safety, telemetry
+from app.api import (
+    arms,
+    dynamixel,
+    force,
+    homing,
+    kinematics,
+    lease,
+    motion,
+    rbe3001,
+    safety,
+    telemetry,
+)
 from app.auth import Access, bearer_token, install_log_redaction
 from app.config import ArmProfile, Settings, load_arms
 from app.errors import ArmError, Unauthorized
@@ -109,7 +120,7 @@ def create_app(settings: Settings | None = None,
     app.state.internal_errors = 0
     app.state.mqtt = None
 
-    for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry, safety):
+    for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry, safety, force):
         app.include_router(r.router, prefix=API_PREFIX)
     arms.install_fast_paths(app, API_PREFIX)  # GET state from the encoded sample
     app.include_router(homing.router, prefix=API_PREFIX)  # faults and homing (v1.1)

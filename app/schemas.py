@@ -88,6 +88,29 @@ class Fault(Model):
     advice: str
 
 
+class ForceInfo(Model):
+    """What the arm's `torques` and `tip_force` are worth (API.md "Force")."""
+
+    source: Literal["strain_gauges", "servo_load"]
+    calibrated: bool = Field(description="false: the conversion constants are placeholders or "
+                             "estimates, the readings are not a measurement")
+    note: str
+    tare: list[float] | None = Field(None, description="joint torques subtracted from every "
+                                     "reading since the last tare (N m or N), or null")
+    max_condition_number: float = Field(description="the singularity rule: tip_force is null "
+                                        "where the Jacobian's condition number exceeds this")
+    condition_number: float | None = Field(None, description="at the latest sample (null if "
+                                           "none, or infinite)")
+    tip_force_unavailable: str | None = Field(None, description="why tip_force is null at the "
+                                              "latest sample, or null")
+
+
+class ForceTare(Model):
+    joints: list[str]
+    offsets: list[float] | None = Field(description="the torques now taken as zero (N m or N, "
+                                        "per joint), null once cleared")
+
+
 class ArmDetail(ArmSummary):
     joints: list[JointInfo]
     geometry: dict[str, float]
@@ -95,6 +118,7 @@ class ArmDetail(ArmSummary):
     poll_hz: float
     faults: list[Fault] = Field(default_factory=list, description="empty when healthy")
     homed: list[bool] = Field(default_factory=list, description="one flag per joint")
+    force: ForceInfo | None = None
 
 
 class HomeRequest(Model):

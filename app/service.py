@@ -32,6 +32,7 @@ from app.errors import (
 from app.links.base import LinkState
 from app.motion import MotionExecutor
 from app.telemetry import TelemetryHub
+from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +91,59 @@ class ArmService:
                            geometry=dict(self.profile.geometry), estop=self.estop,
                            poll_hz=self.profile.link.poll_hz,
                            faults=[s.Fault(**f) for f in self.driver.faults],
-                           homed=list(self.driver.homed))
+                           homed=list(self.driver.homed), force=self.force_info())
+
+    # --------------------------------------------------------- force (API.md "Force")
+
+    def force_info(self) -> s.ForceInfo | None:
+        """How far the torques and tip force can be trusted, and why tip_force is null."""
+        if not self._force_sensing():
+            return None
+        f = self.profile.force
+        if f is not None:
+            source, calibrated = "strain_gauges", f.calibrated
+            note = f.note or ("calibrated strain gauges" if calibrated else "uncalibrated "
+                              "strain gauges: the readings are not a measurement")
+            if not calibrated:
+                note += " (README: Calibrating the strain gauges)"
+        else:
+            source, calibrated = "servo_load", False
+            note = ("joint efforts estimated from the servos' Present Load (0.1 % of the stall "
+                    "torque): an estimate, not a force sensor")
+        tare = self.driver.torque_tare
+        info = s.ForceInfo(source=source, calibrated=calibrated, note=note,  # type: ignore[arg-type]
+                           tare=None if tare is None else [float(v) for v in tare],
+                           max_condition_number=TIP_FORCE_MAX_COND)
+        q = self.driver.positions
+        if q is not None:
+            J = self.model.jacobian(q)
+            c = float(condition_number(J))
+            info.condition_number = c if np.isfinite(c) else None
+            info.tip_force_unavailable = self.model.tip_force_unavailable(q, J)
+        return info
+
+    def tare_force(self) -> s.ForceTare:
+        """The current joint torques become the zero of `torques` and `tip_force`."""
+        self._require_force()
+        drv = self.driver
+        if drv.stale or drv.torques_raw is None:
+            raise LinkDown(f"{self.name}: no fresh torque reading to tare against "
+                           f"({drv.last_error or drv.link.state.value})")
+        drv.torque_tare = np.array(drv.torques_raw, dtype=float)
+        self.hub.event("force_tare", offsets=[float(v) for v in drv.torque_tare])
+        return s.ForceTare(joints=list(self.model.names),
+                           offsets=[float(v) for v in drv.torque_tare])
+
+    def clear_tare(self) -> s.ForceTare:
+        self._require_force()
+        self.driver.torque_tare = None
+        self.hub.event("force_tare", offsets=None)
+        return s.ForceTare(joints=list(self.model.names), offsets=None)
+
+    def _require_force(self) -> None:
+        if not self._force_sensing():
+            raise NotSupported(f"{self.name} senses no joint torques: nothing to tare",
+                               code="no_force_sensing")
 
     def state(self) -> dict[str, Any]:
         """The latest sample; 503 link_down if the device has never answered."""

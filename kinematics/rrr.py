@@ -21,6 +21,7 @@ import numpy.typing as npt
 
 from kinematics.errors import Singular, Unreachable
 from kinematics.limits import distinct_solutions, within
+from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
 
 __all__ = [
     "RRR",
@@ -196,9 +197,7 @@ def ik_near(
 
 
 def _cond(j: FloatArray) -> FloatArray:
-    s = np.linalg.svd(j, compute_uv=False)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.asarray(s[..., 0] / s[..., -1])
+    return condition_number(j)
 
 
 def _guarded_solve(
@@ -241,11 +240,13 @@ def inverse_velocity_one(
 
 
 def tip_force(
-    q: npt.ArrayLike, tau: npt.ArrayLike, g: RRR = RRR(), max_cond: float = 1e4
+    q: npt.ArrayLike, tau: npt.ArrayLike, g: RRR = RRR(),
+    max_cond: float = TIP_FORCE_MAX_COND,
 ) -> FloatArray:
     """Tip force (..., 3) N balancing joint torques ``tau`` (..., 3) N m.
 
-    Solves J^T F = tau; NaN rows where cond(J) exceeds ``max_cond``.
+    Solves J^T F = tau; NaN rows where cond(J) exceeds ``max_cond`` (the one rule,
+    :data:`kinematics.singular.TIP_FORCE_MAX_COND`).
     """
     jt = np.swapaxes(jacobian(q, g), -1, -2)
     f, _ = _guarded_solve(jt, np.asarray(tau, dtype=np.float64), max_cond)
@@ -253,7 +254,8 @@ def tip_force(
 
 
 def tip_force_one(
-    q: npt.ArrayLike, tau: npt.ArrayLike, g: RRR = RRR(), max_cond: float = 1e4
+    q: npt.ArrayLike, tau: npt.ArrayLike, g: RRR = RRR(),
+    max_cond: float = TIP_FORCE_MAX_COND,
 ) -> FloatArray:
     """Single-configuration :func:`tip_force` (3,) N; raises :class:`Singular`."""
     f = tip_force(np.reshape(q, 3), np.reshape(tau, 3), g, max_cond)

@@ -4,7 +4,15 @@ Wire facts (WPIRoboticsEngineering/RBE3001_nucleo_firmware, SimplePacketComs fra
 a packet is 64 bytes, little-endian: bytes 0-3 a uint32 command id, bytes 4-63 fifteen
 float32. The firmware looks the id up, lets the matching server rewrite the float buffer in
 place and sends the same 64 bytes back, so a reply carries the request's id; an unknown id
-gets no reply. The hidapi report-id byte (0) is the HID link's business, not this codec's.
+gets no reply (later SimplePacketComs builds answer it with error id 99, the unknown id in
+bytes 4-7). The hidapi report-id byte (0) is the HID link's business, not this codec's.
+
+What a reply's floats hold depends on the build. PidServer.cpp zeroes the whole float area
+("re-initialize the packet to all zeros") before writing its nine readings, and the STATUS,
+GAIN and CLAW servers of the design were written like it, so their replies carry nothing of
+the request: no tag can be echoed. Other builds echo what their server does not overwrite.
+`ReplyMatcher` accepts both: it matches on the command id and on order (one request
+outstanding per link), never on an echoed value.
 
 Sans-IO: bytes in, dataclasses out; no I/O, no awaits. Positions and velocities are encoder
 ticks and ticks/s (AS5050, 4096 a turn); strain gauges are raw ADC fractions 0..1.
@@ -23,6 +31,9 @@ PACKET_SIZE = 64
 N_FLOATS = 15
 _PACKET = struct.Struct("<I15f")
 _MAX_ID = 0xFFFF_FFFF
+#: SimplePacketComs (madhephaestus/SimplePacketComs, src/SimplePacketComs.cpp, later builds)
+#: answers an id no server handles with this id and the unknown id in bytes 4-7.
+ERROR_ID = 99
 
 
 class CommandId(IntEnum):
@@ -148,7 +159,7 @@ class StatusReply:
 
 @dataclass(frozen=True)
 class Ack:
-    """SET_GAIN and SET_CLAW: the firmware echoes the buffer; the values carry nothing."""
+    """SET_GAIN and SET_CLAW: the reply's floats carry nothing (zeroed or echoed by build)."""
 
     command_id: int
 
@@ -265,21 +276,140 @@ def decode_command(data: bytes | bytearray | memoryview) -> Command:
     return cmd
 
 
-def encode_reply(reply: Reply, request: bytes | None = None) -> bytes:
-    """The firmware's answer. PidServer zeroes the buffer and writes nine readings; the STATUS
-    server writes floats 0-8 and leaves the rest as received; SET_GAIN/SET_CLAW echo the
-    request unchanged. `request` is that received packet (zeros when None)."""
-    base = list(decode_packet(request).values) if request is not None else [0.0] * N_FLOATS
+def encode_reply(reply: Reply, request: bytes | None = None, *, echo: bool = False) -> bytes:
+    """The firmware's answer to the received packet `request` (zeros when None).
+
+    By default as PidServer.cpp: the float area is zeroed, then the server writes its values
+    (nine readings for SET_PID and STATUS, none for SET_GAIN and SET_CLAW). With `echo`, as
+    builds whose servers leave what they do not overwrite: STATUS writes floats 0-8 over the
+    request, SET_GAIN and SET_CLAW send the request back unchanged (SET_PID still zeroes)."""
+    base = [0.0] * N_FLOATS
+    if echo and request is not None and not isinstance(reply, SetPidReply):
+        base = list(decode_packet(request).values)
     if isinstance(reply, SetPidReply):
-        out = [0.0] * N_FLOATS
         for i in range(3):
-            out[3 * i : 3 * i + 3] = [
+            base[3 * i : 3 * i + 3] = [
                 reply.position_ticks[i],
                 reply.velocity_ticks_s[i],
                 reply.strain_adc[i],
             ]
-        return encode_packet(CommandId.SET_PID, out)
+        return encode_packet(CommandId.SET_PID, base)
     if isinstance(reply, StatusReply):
         base[0:9] = [*reply.position_ticks, *reply.velocity_ticks_s, *reply.strain_adc]
         return encode_packet(CommandId.STATUS, base)
     return encode_packet(reply.command_id, base)
+
+
+# --- the host's side: framing and request matching (sans-IO) ----------------------------
+
+
+class UnknownToFirmware(DecodeError):
+    """The firmware answered with SimplePacketComs' error packet: it has no server for the id."""
+
+    def __init__(self, command_id: int) -> None:
+        super().__init__(f"the firmware has no server for command id {command_id}")
+        self.command_id = command_id
+
+
+class FrameParser:
+    """Cut a byte stream (a serial or socket link) into 64-byte packets.
+
+    There is no sync byte and no checksum, so a frame starts only where the first four bytes
+    are a known command id (CommandId or ERROR_ID); anything else is dropped one byte at a
+    time until such an id lines up (`skipped` counts the bytes). A packetised link (HID: one
+    report a read) feeds one report at a time and gets it back whole, or nothing for a
+    report of another length."""
+
+    def __init__(self, known_ids: frozenset[int] | None = None) -> None:
+        self.known_ids = known_ids if known_ids is not None else KNOWN_IDS
+        self._buf = bytearray()
+        self.skipped = 0
+
+    def clear(self) -> None:
+        self._buf.clear()
+
+    @property
+    def pending(self) -> int:
+        return len(self._buf)
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[bytes]:
+        self._buf.extend(data)
+        out: list[bytes] = []
+        while len(self._buf) >= PACKET_SIZE:
+            rid = int.from_bytes(self._buf[0:4], "little")
+            if rid in self.known_ids:
+                out.append(bytes(self._buf[:PACKET_SIZE]))
+                del self._buf[:PACKET_SIZE]
+            else:
+                del self._buf[0]
+                self.skipped += 1
+        return out
+
+    def feed_report(self, data: bytes | bytearray | memoryview) -> bytes | None:
+        """One HID report: the packet, or None for a report that is not 64 bytes."""
+        return bytes(data) if len(data) == PACKET_SIZE else None
+
+
+KNOWN_IDS = frozenset({int(c) for c in CommandId} | {ERROR_ID})
+_TAIL = slice(4 + 9 * 4, PACKET_SIZE)  # floats 9-14: sent as zeros, never written by a server
+
+
+class ReplyMatcher:
+    """Match firmware replies to the one outstanding request, by id and order alone.
+
+    `request(cmd)` encodes the command (floats 9-14 zero) and makes it the outstanding one.
+    `match(frame)` answers the decoded reply, or None for a frame that belongs to no request
+    now outstanding (another id: a late answer to an earlier request; `stale` counts them).
+    It raises UnknownToFirmware for an error packet naming the outstanding id and DecodeError
+    for a frame with the right id that cannot be a true answer:
+    - a reading reply (SET_PID, STATUS) whose floats 9-14 are not zero: every build either
+      zeroes them or echoes the zeros we sent;
+    - a SET_GAIN / SET_CLAW reply whose floats are neither all zero (PidServer-style builds)
+      nor the request's floats (echoing builds);
+    - a NaN or infinity where a reading belongs.
+    What it cannot tell apart is a late reply with the same id as the outstanding request:
+    the caller must not send after a timeout until the link has been quiet (see the driver).
+    """
+
+    def __init__(self) -> None:
+        self.outstanding: Command | None = None
+        self._packet = b""
+        self.stale = 0
+
+    def request(self, cmd: Command) -> bytes:
+        packet = encode_command(cmd)
+        self.outstanding = cmd
+        self._packet = packet
+        return packet
+
+    def cancel(self) -> None:
+        self.outstanding = None
+
+    def match(self, frame: bytes) -> Reply | None:
+        cmd = self.outstanding
+        if len(frame) != PACKET_SIZE:
+            raise DecodeError(f"a reply is {PACKET_SIZE} bytes, got {len(frame)}")
+        rid = int.from_bytes(frame[0:4], "little")
+        if cmd is None:
+            self.stale += 1
+            return None
+        if rid == ERROR_ID:
+            missing = int.from_bytes(frame[4:8], "little")
+            if missing == cmd.command_id:
+                self.outstanding = None
+                raise UnknownToFirmware(missing)
+            self.stale += 1
+            return None
+        if rid != cmd.command_id:
+            self.stale += 1
+            return None
+        if isinstance(cmd, SetPid | Status):
+            if frame[_TAIL] != bytes(PACKET_SIZE - _TAIL.start):
+                raise DecodeError(f"reply to id {cmd.command_id}: floats 9-14 changed "
+                                  "(no build writes them): corrupted")
+        elif frame[4:] != bytes(PACKET_SIZE - 4) and frame[4:] != self._packet[4:]:
+            raise DecodeError(f"reply to id {cmd.command_id} is neither all zeros nor the "
+                              "echo of the request: corrupted")
+        reply = decode_reply(cmd, frame)
+        self.outstanding = None
+        return reply

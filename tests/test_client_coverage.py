@@ -34,6 +34,8 @@ ROUTES: dict[tuple[str, str], str] = {
     ("POST", "/api/v1/arms/{arm}/estop"): "estop",
     ("DELETE", "/api/v1/arms/{arm}/estop"): "release_estop",
     ("POST", "/api/v1/arms/{arm}/gripper"): "gripper",
+    ("POST", "/api/v1/arms/{arm}/force/tare"): "tare_force",
+    ("DELETE", "/api/v1/arms/{arm}/force/tare"): "clear_tare",
     ("POST", "/api/v1/arms/{arm}/kinematics/forward"): "forward",
     ("POST", "/api/v1/arms/{arm}/kinematics/inverse"): "inverse",
     ("GET", "/api/v1/arms/{arm}/workspace"): "workspace",
@@ -79,6 +81,7 @@ ARGS: dict[str, tuple[Any, ...]] = {
     "take_lease": ("a1",),
     "renew_lease": ("a1", "L1"), "release_lease": ("a1", "L1"),
     "safety": ("a1",), "set_safety": ("a1",),
+    "tare_force": ("a1",), "clear_tare": ("a1",),
 }
 
 

@@ -154,7 +154,8 @@ async def test_serial_over_socket_url() -> None:
 
 
 async def open_sim(faults: FaultConfig | None = None) -> SimLink:
-    link = SimLink(Rbe3001Firmware(), faults)
+    # an echoing build: its replies to SET_GAIN are the requests, so order shows byte for byte
+    link = SimLink(Rbe3001Firmware(echo=True), faults)
     await link.open()
     return link
 

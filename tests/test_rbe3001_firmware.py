@@ -63,14 +63,44 @@ def test_status_at_rest() -> None:
     assert all(0.0 <= a <= 1.0 for a in reply.strain_adc)
 
 
-def test_status_echoes_spare_floats_and_set_pid_zeroes_them() -> None:
+def test_every_reply_zeroes_the_float_area_as_pidserver() -> None:
+    """PidServer.cpp: "re-initialize the packet to all zeros" before writing the readings;
+    the design's other servers were written the same way."""
     fw = make()
     status = struct.pack("<I15f", 38, *([7.0] * 15))
     _, data = fw.receive(status, 0.0)[0]
-    assert struct.unpack("<6f", data[40:]) == (7.0,) * 6
+    assert data[40:] == bytes(24)
     pid = struct.pack("<I15f", 37, *([0.0] * 9 + [7.0] * 6))
     _, data = fw.receive(pid, 0.0)[0]
     assert data[40:] == bytes(24)
+    for cmd in (SetGain(1, 0.005, 0.0, 0.0), SetClaw(0.5)):
+        _, data = fw.receive(encode_command(cmd), 0.01)[0]
+        assert data == struct.pack("<I", cmd.command_id) + bytes(60)
+
+
+def test_echo_option_keeps_the_echoing_build() -> None:
+    fw = Rbe3001Firmware(load_profile("rbe3001"), echo=True)
+    status = struct.pack("<I15f", 38, *([7.0] * 15))
+    _, data = fw.receive(status, 0.0)[0]
+    assert struct.unpack("<6f", data[40:]) == (7.0,) * 6
+    raw = encode_command(SetClaw(0.5))
+    assert fw.receive(raw, 0.0)[0][1] == raw
+    profile = load_profile("rbe3001")
+    profile.link.sim_echo = True
+    assert Rbe3001Firmware(profile).echo is True
+    assert Rbe3001Firmware(load_profile("rbe3001")).echo is False
+
+
+def test_velocity_is_recomputed_every_61_cycles_and_stale_between() -> None:
+    fw = make()
+    ask(fw, set_pid(1000.0, 0.0, 0.0), 0.0)
+    seen = []
+    for k in range(1, 200):  # every cycle for half a second of a moving base
+        seen.append(ask(fw, Status(), k * CYCLE_S).velocity_ticks_s[0])
+    changes = [k for k in range(1, len(seen)) if seen[k] != seen[k - 1]]
+    assert len(changes) >= 2
+    assert all(b - a == 61 for a, b in zip(changes, changes[1:], strict=False))
+    assert seen[0] == 0.0 and max(seen) > 100.0  # moving, yet zero until the first update
 
 
 def test_gravity_loads_the_shoulder_when_extended() -> None:
@@ -134,12 +164,11 @@ def test_setpoint_within_deadband_is_ignored() -> None:
     assert fw.setpoint[0] == 100.5
 
 
-def test_set_gain_echo_and_kp_zero_stops_tracking() -> None:
+def test_set_gain_and_kp_zero_stops_tracking() -> None:
     fw = make()
     cmd = SetGain(0, 0.0, 0.0, 0.0)
     raw = encode_command(cmd)
     replies = fw.receive(raw, 0.0)
-    assert replies[0][1] == raw  # the firmware echoes the buffer
     assert decode_reply(cmd, replies[0][1]) == Ack(39)
     ask(fw, set_pid(500.0, 0.0, 0.0), 0.0)
     end = run(fw, 0.0, 0.5)[-1]
@@ -160,7 +189,7 @@ def test_set_claw_moves_at_a_finite_rate() -> None:
     fw = make()
     cmd = SetClaw(1.0)
     raw = encode_command(cmd)
-    assert fw.receive(raw, 0.0)[0][1] == raw
+    assert fw.receive(raw, 0.0)[0][1] == raw[:4] + bytes(60)
     fw.advance(0.1)
     assert 0.1 < fw.claw < 0.5
     fw.advance(1.0)

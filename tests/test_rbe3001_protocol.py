@@ -8,13 +8,16 @@ import struct
 import pytest
 
 from protocol.rbe3001 import (
+    ERROR_ID,
     N_FLOATS,
     PACKET_SIZE,
     Ack,
     CommandId,
     DecodeError,
+    FrameParser,
     JointSetpoint,
     RawPacket,
+    ReplyMatcher,
     SetClaw,
     SetGain,
     SetPid,
@@ -22,6 +25,7 @@ from protocol.rbe3001 import (
     Status,
     StatusReply,
     UnknownCommand,
+    UnknownToFirmware,
     decode_command,
     decode_packet,
     decode_reply,
@@ -169,15 +173,21 @@ def test_encode_reply_matches_firmware_buffers() -> None:
     request = packet(37, 5.0, 5.0, 5.0, 5.0, 5.0, 5.0, 5.0, 5.0, 5.0, 7.0, 7.0)
     expected = packet(37, 10.0, 1.0, 0.5, 20.0, 2.0, 0.25, 30.0, 3.0, 0.75)
     assert encode_reply(pid, request) == expected
-    # STATUS writes floats 0-8 and leaves the rest as received.
+    assert encode_reply(pid, request, echo=True) == expected  # SET_PID zeroes in every build
+    # By default every server zeroes as PidServer: STATUS writes floats 0-8 over zeros ...
     status = StatusReply((1.0, 2.0, 3.0), (4.0, 5.0, 6.0), (0.5, 0.5, 0.5))
-    assert encode_reply(status, packet(38, *[9.0] * 15)) == packet(
+    readings = packet(38, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 0.5, 0.5, 0.5)
+    assert encode_reply(status, packet(38, *[9.0] * 15)) == readings
+    assert encode_reply(status) == readings
+    # ... and SET_GAIN / SET_CLAW answer the id with fifteen zero floats.
+    gain = encode_command(SetGain(2, 0.5, 0.0, 0.25))
+    assert encode_reply(Ack(39), gain) == packet(39)
+    assert encode_reply(Ack(40), encode_command(SetClaw(0.75))) == packet(40)
+    # An echoing build leaves what its server does not write.
+    assert encode_reply(status, packet(38, *[9.0] * 15), echo=True) == packet(
         38, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 0.5, 0.5, 0.5, 9.0, 9.0, 9.0, 9.0, 9.0, 9.0
     )
-    assert encode_reply(status) == packet(38, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 0.5, 0.5, 0.5)
-    # SET_GAIN / SET_CLAW echo the request.
-    gain = encode_command(SetGain(2, 0.5, 0.0, 0.25))
-    assert encode_reply(Ack(39), gain) == gain
+    assert encode_reply(Ack(39), gain, echo=True) == gain
 
 
 def test_reply_round_trip() -> None:
@@ -185,3 +195,63 @@ def test_reply_round_trip() -> None:
     assert decode_reply(Status(), encode_reply(reply)) == reply
     pid = SetPidReply((1.0, 2.0, 3.0), (4.0, 5.0, 6.0), (0.125, 0.25, 0.5))
     assert decode_reply(37, encode_reply(pid)) == pid
+
+
+# --- framing and matching without an echo ------------------------------------------------
+
+
+def test_frame_parser_cuts_a_stream_and_resyncs_on_a_known_id() -> None:
+    a, b = packet(38, 1.0), packet(37, 2.0)
+    fp = FrameParser()
+    assert fp.feed(a[:10]) == []
+    assert fp.feed(a[10:] + b[:3]) == [a]
+    assert fp.pending == 3
+    assert fp.feed(b[3:]) == [b]
+    # Garbage before a packet is dropped byte by byte until an id lines up.
+    fp = FrameParser()
+    assert fp.feed(b"\xff\x01\x02" + a + b) == [a, b]
+    assert fp.skipped == 3
+    assert fp.feed_report(a) == a and fp.feed_report(a[:63]) is None
+
+
+def test_matcher_takes_zeroed_and_echoed_acks_and_refuses_anything_else() -> None:
+    m = ReplyMatcher()
+    req = m.request(SetClaw(0.5))
+    assert req == packet(40, 0.5)
+    assert m.match(packet(40)) == Ack(40)  # PidServer-style build: all zeros
+    m.request(SetClaw(0.5))
+    assert m.match(packet(40, 0.5)) == Ack(40)  # echoing build
+    m.request(SetGain(1, 0.5, 0.0, 0.0))
+    with pytest.raises(DecodeError, match="neither all zeros nor the echo"):
+        m.match(packet(39, 1.0, 0.5, 0.0, 0.25))
+
+
+def test_matcher_uses_id_and_order_not_a_tag() -> None:
+    m = ReplyMatcher()
+    m.request(Status())
+    # A late SET_CLAW answer while STATUS is outstanding is stale, not an error.
+    assert m.match(packet(40)) is None and m.stale == 1
+    reply = m.match(packet(38, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 0.5, 0.5, 0.5))
+    assert reply == StatusReply((1.0, 2.0, 3.0), (4.0, 5.0, 6.0), (0.5, 0.5, 0.5))
+    # Nothing outstanding: every frame is stale.
+    assert m.match(packet(38)) is None and m.stale == 2
+
+
+def test_matcher_refuses_a_reading_with_spare_floats_changed() -> None:
+    m = ReplyMatcher()
+    m.request(Status())
+    with pytest.raises(DecodeError, match="floats 9-14"):
+        m.match(packet(38, *([1.0] * 9), 0.0, 0.0, 0.0, 0.0, 0.0, 3.0))
+    m.request(SetPid((JointSetpoint(1.0), JointSetpoint(2.0), JointSetpoint(3.0))))
+    with pytest.raises(DecodeError, match="nan"):
+        m.match(packet(37, math.nan, *([1.0] * 8)))
+
+
+def test_matcher_reports_the_simplepacketcoms_error_packet() -> None:
+    m = ReplyMatcher()
+    m.request(SetGain(0, 0.1, 0.0, 0.0))
+    err = struct.pack("<II", ERROR_ID, 39) + bytes(56)
+    with pytest.raises(UnknownToFirmware, match="39"):
+        m.match(err)
+    m.request(Status())
+    assert m.match(err) is None  # names another id: stale

@@ -102,6 +102,10 @@ class Driver(abc.ABC):
         self.faults: list[dict[str, Any]] = []
         #: One flag per joint: False for a joint that needs homing until POST /home.
         self.homed = [not j.needs_homing or profile.link.homed_at_start for j in profile.joints]
+        #: The latest joint torques as sensed, before the tare; the tare (POST .../force/tare)
+        #: is subtracted from every reading before it is published.
+        self.torques_raw: np.ndarray | None = None
+        self.torque_tare: np.ndarray | None = None
 
     # ------------------------------------------------------------ public
 
@@ -386,6 +390,9 @@ class Driver(abc.ABC):
         self.stale = False
         self.stale_error = None
         self.positions, self.velocities = q, qd
+        self.torques_raw = tau
+        if tau is not None and self.torque_tare is not None:
+            tau = tau - self.torque_tare
         self._publish(q, qd, tau, stale=False)
 
     # ------------------------------------------------------------ samples

@@ -1,36 +1,48 @@
 """RBE3001 driver: the 64-byte HID packet protocol (protocol/rbe3001.py) over any link.
 
-Reply matching: the firmware sends the request buffer back with only the floats its server
-writes replaced (STATUS writes floats 0-8; SET_GAIN and SET_CLAW write none; PidServer zeroes
-the buffer and writes floats 0-8), so float 14 carries a request tag and floats 9-13 zeros. A
-reply whose id or tag is not the outstanding request's is stale (a late answer to an earlier
-request) and is discarded. SET_PID replies carry no tag, so after a SET_PID times out the
-link must be quiet for one timeout before the next SET_PID: a late reply cannot complete the
-wrong request. The protocol has no checksum: a reply is
-refused as corrupt when its echoed zeros changed, or a value is not finite or not plausible.
+Reply matching without an echo. PidServer.cpp zeroes the reply's whole float area before it
+writes its readings, and the design's STATUS, GAIN and CLAW servers were written like it, so
+no value we send comes back: a tag cannot be used. Other builds echo. The driver relies on
+neither: one request is outstanding per link (the owner task), so a reply is the answer if
+its command id is the request's (`rb.ReplyMatcher`); a frame with another id is a late
+answer to an earlier request and is discarded.
+
+What id and order cannot tell apart is a late reply with the same id as the next request.
+The firmware services the HID endpoints every 1 ms (bInterval 1) and answers within one or
+two intervals (design documents: round trip at most 2 ms); the timeout is 50 ms, 25 times
+that. A reply that has not come by then was lost or is very late (a stalled host or
+firmware). So after any timeout the link must be quiet for one timeout (`_drain`) before the
+next request is written: a late reply arrives during the quiet wait and is swallowed; one
+later than timeout + quiet is treated as never coming. The only way a stale reply can still
+be taken is a reply delayed by more than twice the timeout (100 HID intervals): it would have
+the right id and would also have to pass the checks below.
+
+The protocol has no checksum: a reply is refused as corrupt when floats 9-14 of a reading
+changed (every build zeroes them or echoes our zeros), when an acknowledgement is neither all
+zeros nor the echo, when a value is not finite or not plausible, or when a position jumped
+further than the arm can move since the last reading.
 """
 
 from __future__ import annotations
 
 import asyncio
-import struct
 import time
+from collections import deque
 from typing import Any
 
 import numpy as np
 
 from app.devices.base import Driver
-from app.errors import CorruptReply, DeviceTimeout
+from app.errors import CorruptReply, DeviceError, DeviceTimeout
 from protocol import rbe3001 as rb
 
-_TAG = struct.Struct("<f")
 #: A reading may differ from the last accepted one by at most JUMP_SPEEDS x the joint's
 #: velocity limit x the time since, plus JUMP_SLACK_RAD (encoder noise and averaging).
 JUMP_SPEEDS = 10.0
 JUMP_SLACK_RAD = 0.05
-_TAG_OFFSET = 4 + 14 * 4
-_ECHO = slice(4 + 9 * 4, 4 + 14 * 4)  # floats 9-13, sent as zeros and echoed
-_TAG_MOD = 1 << 20  # exactly representable in float32
+#: Longest the quiet wait after a timeout may take, in timeouts: a link that never stops
+#: talking is not waited on for ever (the next request then goes out; the checks remain).
+DRAIN_MAX_TIMEOUTS = 10
 
 
 class Rbe3001Driver(Driver):
@@ -38,14 +50,16 @@ class Rbe3001Driver(Driver):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self._tag = 0
-        self._buf = bytearray()
+        self._frames = rb.FrameParser()
+        self._ready: deque[bytes] = deque()
+        self._matcher = rb.ReplyMatcher()
+        #: A request timed out: its reply may still come, so wait for quiet before the next.
         self._dirty = False
         self._last_q: np.ndarray | None = None
         self._last_q_t = 0.0
         f = self.profile.force
-        self._adc_scale = np.array(f.adc_scale if f else [0.0] * 3)
-        self._adc_offset = np.array(f.adc_offset if f else [0.0] * 3)
+        self._adc_scale = np.array(f.scale if f else [0.0] * 3)
+        self._adc_offset = np.array(f.offset if f else [0.0] * 3)
         tpr = np.array([j.ticks_per_rev for j in self.profile.joints], dtype=float)
         #: Plausibility bounds for decoded values: 64 turns and 64 turns/s.
         self._max_ticks = 64 * tpr
@@ -79,14 +93,21 @@ class Rbe3001Driver(Driver):
     # --------------------------------------------------------- owner task
 
     def _reset_reader(self) -> None:
-        self._buf.clear()
+        self._frames.clear()
+        self._ready.clear()
 
     async def _drain(self) -> None:
-        """After a timeout, discard input until the link has been quiet for one timeout: a reply
-        later than that is as good as lost, and one sooner is swallowed here."""
-        while await self.link.read(self.timeout):
-            pass
-        self._buf.clear()
+        """After a timeout, discard input until the link has been quiet for one timeout (see
+        the module doc): a reply later than that is as good as lost, one sooner is dropped
+        here. Bounded by DRAIN_MAX_TIMEOUTS so a chattering link cannot stall the driver."""
+        loop = asyncio.get_running_loop()
+        give_up = loop.time() + DRAIN_MAX_TIMEOUTS * self.timeout
+        while loop.time() < give_up:
+            data = await self.link.read(min(self.timeout, max(0.0, give_up - loop.time())))
+            if not data:
+                break
+            self.stats["stale_replies"] += 1
+        self._reset_reader()
         self._dirty = False
 
     async def _poll(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -101,66 +122,49 @@ class Rbe3001Driver(Driver):
         return q, qd, tau
 
     async def _exchange(self, message: Any, timeout: float) -> Any:
-        self._tag = (self._tag + 1) % _TAG_MOD
-        packet = bytearray(rb.encode_command(message))
-        packet[_TAG_OFFSET:_TAG_OFFSET + 4] = _TAG.pack(float(self._tag))
-        want_id = int(rb.CommandId[_command_name(message)])
-        tags = (float(self._tag), 0.0) if want_id == rb.CommandId.SET_PID else (float(self._tag),)
-        if self._dirty and want_id == rb.CommandId.SET_PID:
+        if self._dirty:
             await self._drain()
-        await self.link.write(bytes(packet))
+        packet = self._matcher.request(message)
+        name = _command_name(message)
+        await self.link.write(packet)
         loop = asyncio.get_running_loop()
         deadline = loop.time() + timeout
         while True:
             left = deadline - loop.time()
             if left <= 0:
-                self._dirty = self._dirty or want_id == rb.CommandId.SET_PID
-                raise DeviceTimeout(f"{self.name}: no reply to {_command_name(message)} "
+                self._matcher.cancel()
+                self._dirty = True
+                raise DeviceTimeout(f"{self.name}: no reply to {name} "
                                     f"within {timeout * 1000:.0f} ms")
             frame = await self._next_frame(left)
             if frame is None:
                 continue
-            rid = int.from_bytes(frame[0:4], "little")
-            tag = _TAG.unpack_from(frame, _TAG_OFFSET)[0]
-            if rid != want_id or tag not in tags:
-                self.stats["stale_replies"] += 1
-                continue
-            if want_id in _ECHOED and frame[4:_TAG_OFFSET] != packet[4:_TAG_OFFSET]:
-                self.stats["corrupt"] += 1
-                raise CorruptReply(f"{self.name}: reply to {_command_name(message)} is not the "
-                                   "echo of the request")
-            if frame[_ECHO] != bytes(20):
-                self.stats["corrupt"] += 1
-                raise CorruptReply(f"{self.name}: reply to {_command_name(message)} corrupted "
-                                   "(echoed bytes changed)")
+            stale = self._matcher.stale
             try:
-                reply = rb.decode_reply(message, frame)
+                reply = self._matcher.match(frame)
+            except rb.UnknownToFirmware as exc:
+                raise DeviceError(f"{self.name}: {exc} ({name}): this firmware build does not "
+                                  "serve it") from None
             except rb.DecodeError as exc:
+                self._matcher.cancel()
                 self.stats["corrupt"] += 1
-                raise CorruptReply(f"{self.name}: {exc}") from None
+                raise CorruptReply(f"{self.name}: reply to {name}: {exc}") from None
+            if reply is None:
+                self.stats["stale_replies"] += self._matcher.stale - stale
+                continue
             self._check_plausible(reply)
             return reply
 
     async def _next_frame(self, timeout: float) -> bytes | None:
+        if self._ready:  # a byte stream may carry several packets in one read
+            return self._ready.popleft()
+        data = await self.link.read(timeout)
+        if not data:
+            return None
         if self.link.packetized:
-            data = await self.link.read(timeout)
-            if not data:
-                return None
-            return bytes(data[: rb.PACKET_SIZE]) if len(data) >= rb.PACKET_SIZE else None
-        while len(self._buf) < rb.PACKET_SIZE:
-            data = await self.link.read(timeout)
-            if not data:
-                return None
-            self._buf.extend(data)
-        # resynchronise a byte stream on a known command id
-        while len(self._buf) >= rb.PACKET_SIZE:
-            rid = int.from_bytes(self._buf[0:4], "little")
-            if rid in _KNOWN_IDS:
-                frame = bytes(self._buf[: rb.PACKET_SIZE])
-                del self._buf[: rb.PACKET_SIZE]
-                return frame
-            del self._buf[0]
-        return None
+            return self._frames.feed_report(data)
+        self._ready.extend(self._frames.feed(data))
+        return self._ready.popleft() if self._ready else None
 
     def _check_jump(self, q: np.ndarray) -> None:
         """With no checksum, one changed byte in a reading can stay plausible (a soak caught
@@ -191,11 +195,6 @@ class Rbe3001Driver(Driver):
             self.stats["corrupt"] += 1
             raise CorruptReply(f"{self.name}: implausible values in reply "
                                f"(positions {list(pos)}, velocities {list(vel)}, adc {list(adc)})")
-
-
-_KNOWN_IDS = {int(c) for c in rb.CommandId}
-#: Commands whose reply is the request sent back unchanged (no reply values).
-_ECHOED = {int(rb.CommandId.SET_GAIN), int(rb.CommandId.SET_CLAW)}
 
 
 def _command_name(message: Any) -> str:

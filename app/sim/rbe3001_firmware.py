@@ -6,9 +6,13 @@ Behaviour copied from WPIRoboticsEngineering/RBE3001_nucleo_firmware (see
 - SET_PID (PidServer.cpp): setpoint of joint i in float[3i]; a setpoint within 0.01 tick of
   the last one is ignored (so re-sending is a status poll); the reply buffer is zeroed, then
   float[3i] position, [3i+1] velocity (ticks/s), [3i+2] load-cell ADC (0..1).
-- STATUS (this team's id 38): positions 0-2, velocities 3-5, ADC 6-8; the rest echoed.
+- STATUS (this team's id 38): positions 0-2, velocities 3-5, ADC 6-8.
 - SET_GAIN: disable that joint's controller, set kp/ki/kd, re-enable (integral and
-  derivative history cleared); the buffer is echoed. SET_CLAW: claw setpoint 0..1; echoed.
+  derivative history cleared). SET_CLAW: claw setpoint 0..1.
+- Every reply zeroes the whole float area first, as PidServer.cpp ("re-initialize the packet
+  to all zeros"): SET_GAIN and SET_CLAW replies are the id and fifteen zero floats. With
+  `echo=True` (profile `[link] sim_echo`), as builds that echo: STATUS leaves floats 9-14 as
+  received, SET_GAIN and SET_CLAW send the request back unchanged.
 - Unknown ids, packets that are not 64 bytes and packets with out-of-range fields: silence.
 - Encoder: whole ticks, firmware 4-sample moving average (so readings move in 1/4 ticks).
 - Velocity: position difference over 61 PID cycles (~152 ms), stale between updates.
@@ -86,16 +90,21 @@ class Rbe3001Firmware:
         stall_torque: float = 4.0,
         free_speed: float = 3.0,
         claw_rate: float = 2.0,
+        echo: bool | None = None,
     ) -> None:
         """`link_masses` (kg): link 2, link 3, claw at the tip. `stall_torque` (N m) and
-        `free_speed` (rad/s) are at the joint, after the gearbox. `claw_rate` in 1/s."""
+        `free_speed` (rad/s) are at the joint, after the gearbox. `claw_rate` in 1/s.
+        `echo`: reply as an echoing build (None: the profile's `link.sim_echo`, else False)."""
+        if echo is None:
+            echo = profile.link.sim_echo if profile is not None else False
+        self.echo = echo
         if profile is not None:
             ticks_per_rev = [j.ticks_per_rev for j in profile.joints]
             offset_ticks = [j.offset_ticks for j in profile.joints]
             sign = [j.sign for j in profile.joints]
             geometry = (profile.geometry["l1"], profile.geometry["l2"], profile.geometry["l3"])
             if profile.force is not None:
-                adc_scale, adc_offset = profile.force.adc_scale, profile.force.adc_offset
+                adc_scale, adc_offset = profile.force.scale, profile.force.offset
         #: Mechanical end stops (rad): a little beyond the profile's limits where there is a
         #: profile, else half a turn each way. No gain or setpoint can spin a joint past them.
         stops = [(-math.pi, math.pi)] * 3
@@ -221,10 +230,10 @@ class Rbe3001Firmware:
                     self.setpoint[i] = sp.position_ticks
                     self.enabled[i] = True
             reading = (self.position_ticks, self._velocity(), self.strain_adc)
-            return encode_reply(SetPidReply(*reading), request)
+            return encode_reply(SetPidReply(*reading), request, echo=self.echo)
         if isinstance(cmd, Status):
             reading = (self.position_ticks, self._velocity(), self.strain_adc)
-            return encode_reply(StatusReply(*reading), request)
+            return encode_reply(StatusReply(*reading), request, echo=self.echo)
         if isinstance(cmd, SetGain):
             i = cmd.axis
             self.enabled[i] = False
@@ -232,9 +241,9 @@ class Rbe3001Firmware:
             self._integral[i] = 0.0
             self._last_error[i] = None
             self.enabled[i] = True
-            return encode_reply(Ack(cmd.command_id), request)
+            return encode_reply(Ack(cmd.command_id), request, echo=self.echo)
         self.claw_setpoint = cmd.value
-        return encode_reply(Ack(cmd.command_id), request)
+        return encode_reply(Ack(cmd.command_id), request, echo=self.echo)
 
     def _velocity(self) -> tuple[float, float, float]:
         v = self.velocity_ticks_s

@@ -343,6 +343,21 @@ class Arm {
       : null;
 
     const force = d.capabilities.force_sensing;
+    // Force: what the torques are worth (placeholder constants are labelled) and the tare.
+    const forceCtl = force && d.force
+      ? h("section", { class: "ctl force" }, h("h3", {}, "Force"),
+        (this.el.forceText = h("div", { class: "muted small", id: id("force-note") },
+          `${d.force.calibrated ? "calibrated" : "NOT calibrated"}: ${d.force.note}`)),
+        h("div", { class: "row" },
+          h("button", { type: "button", class: "ghost", id: id("tare"),
+            title: "Make the current joint torques the zero of torques and tip force",
+            onclick: () => this.tare(true) }, "Tare"),
+          h("button", { type: "button", class: "ghost", id: id("tare-clear"),
+            title: "Publish the torques as sensed again", onclick: () => this.tare(false) }, "Clear tare"),
+          (this.el.tareText = h("span", { class: "muted small mono", id: id("tare-text") },
+            d.force.tare ? "tared" : ""))),
+        (this.el.tareError = h("div", { class: "err", id: id("tare-error"), role: "alert" })))
+      : null;
     this.el.card = h("section", { class: "arm", "data-arm": this.name, id: id("card") },
       h("header", { class: "arm-head" },
         h("h2", {}, this.name),
@@ -378,7 +393,7 @@ class Arm {
               (this.el.runBtn = h("button", { type: "button", class: "go", id: id("run"), disabled: true, onclick: () => this.runPose() }, "Run")),
               (this.el.planText = h("span", { class: "muted small", id: id("plan-text") }, "Plan to preview the path"))),
             (this.el.poseError = h("div", { class: "err", id: id("pose-error"), role: "alert" }))),
-          gripper)));
+          gripper, forceCtl)));
     this.el.tq = this.el["plot-tq"];
     this.el.f = this.el["plot-f"];
     if (this.el.tq) this.el.tq.hidden = true;
@@ -614,6 +629,17 @@ class Arm {
       clearError(this.el.gripperError);
     } catch (e) {
       showError(this.el.gripperError, e);
+    }
+  }
+
+  async tare(on) {
+    try {
+      const r = await api(on ? "POST" : "DELETE", `/arms/${encodeURIComponent(this.name)}/force/tare`);
+      this.el.tareText.textContent = r.offsets
+        ? `tared at ${r.offsets.map((v) => v.toFixed(3)).join(", ")}` : "";
+      clearError(this.el.tareError);
+    } catch (e) {
+      showError(this.el.tareError, e);
     }
   }
 
