@@ -50,6 +50,13 @@ MAX_SETPOINT_FAILURES = 3
 #: How long a finished trajectory may take to settle before the motion fails, s.
 SETTLE_TIMEOUT_S = 2.0
 PREVIEW_POINTS = 50
+#: Trajectory time one tick may advance at most, s: a late tick stretches time (the step stays
+#: within the velocity limit over the time it covers) instead of jumping ahead; no setpoint
+#: step is more than the velocity limit times this.
+MAX_STEP_S = 0.05
+#: A tick later than this, s, means control was held up and the setpoint stood still: the
+#: motion's time rate starts again from 0 (see `_stream`).
+HELD_UP_S = 0.1
 
 Status = Literal["queued", "running", "done", "stopped", "failed"]
 
@@ -181,14 +188,16 @@ class MotionExecutor:
         return stopped
 
     async def emergency_stop(self) -> None:
-        """Stop streaming now, clear the queue and command a hold at the measured position."""
+        """Stop streaming now, clear the queue and command a hold at the last commanded
+        setpoint (the measured position sags under gravity: holding there again and again
+        would walk the arm down). The caller commands it once per latch, not per press."""
         self._halt = True
         while self._queue:
             self._finish(self._queue.popleft(), "stopped", "emergency stop")
         cur = self.current
         if cur is not None and not cur.done.is_set():
             self._finish(cur, "stopped", "emergency stop")
-        await self._hold()
+        await self._hold(commanded=True)
         self._halt = False
 
     # --------------------------------------------------------- planning
@@ -351,18 +360,37 @@ class MotionExecutor:
         await self._settle(rec)
 
     async def _stream(self, rec: MotionRecord, traj: Any) -> str:
+        """Send the trajectory's setpoints at the control rate. Trajectory time advances with
+        the clock times a rate (0..1) and never by more than MAX_STEP_S a tick: a late tick
+        stretches time instead of jumping ahead. A loop held up longer than HELD_UP_S left the
+        setpoint standing still: the rate starts again from 0
+        and ramps up within the acceleration limits (`_time_rate`), along the same path, so the
+        commanded speed is never above the planned one and no step is a jump."""
         loop = asyncio.get_running_loop()
         dt = 1.0 / self.svc.profile.link.control_hz
-        t0 = loop.time()
         failures = 0
         duration = float(traj.duration)
+        t = 0.0
+        rate = 1.0
+        qd = qdd = np.zeros(self.model.n)
+        last = loop.time()
         while True:
             if self._halt or rec.done.is_set():
                 return "halt"
             if rec.cancel:
                 return rec.cancel
-            t = min(loop.time() - t0, duration)
+            now = loop.time()
+            late, last = now - last, now
+            if late > HELD_UP_S and 0.0 < t < duration:
+                log.warning("%s: motion %s: control held up %.0f ms; resuming from the last "
+                            "setpoint", self.svc.name, rec.id, late * 1e3)
+                self.svc.hub.event("motion_held_up", id=rec.id, held_up_s=round(late, 4))
+                rate = 0.0
+            else:
+                rate = self._time_rate(rate, qd, qdd, min(late, MAX_STEP_S))
+            t = min(t + rate * min(late, MAX_STEP_S), duration)
             q, qd, qdd = (np.asarray(v, dtype=float) for v in traj.sample(t))
+            q = self._within_limits(q)
             try:
                 await self.svc.driver.command_joints(q)  # type: ignore[attr-defined]
                 # A setpoint that needs no reply (Dynamixel SYNC_WRITE) goes through even when
@@ -376,16 +404,29 @@ class MotionExecutor:
                 return "halt"
             if self._halt:
                 return "halt"
-            self._cmd = (q, qd, qdd)
+            self._cmd = (q, qd * rate, qdd * rate * rate)
             rec.progress = t / duration if duration > 0 else 1.0
             if t >= duration:
                 self._cmd = (q, np.zeros_like(q), np.zeros_like(q))
                 return "end"
-            next_tick = t0 + (int((loop.time() - t0) / dt) + 1) * dt
-            await asyncio.sleep(max(0.0, next_tick - loop.time()))
+            await asyncio.sleep(max(0.0, last + dt - loop.time()))
+
+    def _time_rate(self, rate: float, qd: np.ndarray, qdd: np.ndarray, h: float) -> float:
+        """The next time rate after `h` s: up towards 1 as fast as the acceleration limits
+        allow. Commanded velocity is rate * qd and acceleration rate^2 * qdd + rate' * qd, so
+        rate' may use what the planned acceleration leaves of each joint's limit."""
+        if rate >= 1.0:
+            return 1.0
+        amax = self.model.amax
+        spare = np.maximum(amax - rate * rate * np.abs(qdd), 0.1 * amax)
+        speed = np.abs(qd)
+        moving = speed > 1e-9
+        up = float(np.min(spare[moving] / speed[moving])) if np.any(moving) else np.inf
+        return min(1.0, rate + up * h)
 
     async def _brake(self) -> None:
-        """Decelerate from the commanded state to rest under the acceleration and jerk limits."""
+        """Decelerate from the commanded state to rest under the acceleration and jerk limits
+        (time stretched after a late tick, as in `_stream`)."""
         if self._cmd is None or not np.any(self._cmd[1]):
             return
         q, qd, qdd = self._cmd
@@ -393,10 +434,13 @@ class MotionExecutor:
         traj = trajectory.plan_stop(q, qd, qdd, m.amax, m.jmax, m.vmax)
         loop = asyncio.get_running_loop()
         dt = 1.0 / self.svc.profile.link.control_hz
-        t0 = loop.time()
+        t = 0.0
+        last = loop.time()
         while not self._halt:
-            t = min(loop.time() - t0, float(traj.duration))
-            qs = np.clip(np.asarray(traj.sample(t)[0], dtype=float), m.lower, m.upper)
+            now = loop.time()
+            t = min(t + min(now - last, MAX_STEP_S), float(traj.duration))
+            last = now
+            qs = self._within_limits(traj.sample(t)[0])
             try:
                 await self.svc.driver.command_joints(qs)  # type: ignore[attr-defined]
             except ArmError:
@@ -404,7 +448,7 @@ class MotionExecutor:
             self._cmd = (qs, np.zeros_like(qs), np.zeros_like(qs))
             if t >= traj.duration:
                 break
-            await asyncio.sleep(dt)
+            await asyncio.sleep(max(0.0, last + dt - loop.time()))
 
     async def _settle(self, rec: MotionRecord) -> None:
         loop = asyncio.get_running_loop()
@@ -445,19 +489,25 @@ class MotionExecutor:
         self.svc.hub.event("watchdog", id=rec.id, code=exc.code, reason=exc.detail)
         await self._hold()
 
-    async def _hold(self) -> None:
-        """Command the arm to hold at its measured position, where the link still allows."""
-        q = self.svc.driver.positions
+    async def _hold(self, commanded: bool = False) -> None:
+        """Command the arm to hold, where the link still allows: at the last commanded setpoint
+        if `commanded` and there is one, else at its measured position; within the limits."""
+        q = self._cmd[0] if commanded and self._cmd is not None else self.svc.driver.positions
         if q is None:
             self._cmd = None
             return
-        q = np.clip(q, self.model.lower, self.model.upper)
+        q = self._within_limits(q)
         try:
             await self.svc.driver.command_joints(q)  # type: ignore[attr-defined]
             self._cmd = (q.copy(), np.zeros_like(q), np.zeros_like(q))
         except ArmError as exc:
             log.warning("%s: could not command a hold: %s", self.svc.name, exc.detail)
             self._cmd = None
+
+    def _within_limits(self, q: np.ndarray) -> np.ndarray:
+        """Every position the executor commands (setpoint, brake, hold) is clipped to the joint
+        limits: a plan or a measurement a hair outside must not become a command outside."""
+        return np.clip(np.asarray(q, dtype=float), self.model.lower, self.model.upper)
 
     def _finish(self, rec: MotionRecord, status: Status, reason: str | None,
                 code: str | None = None) -> None:

@@ -166,12 +166,14 @@ class ArmService:
         return s.StopResult(stopped=stopped, estop=self.estop)
 
     async def latch_estop(self) -> s.EstopState:
-        first = not self.estop
+        """Latch, and command the hold once per latch: a press on a latched estop changes
+        nothing (each hold re-commanded at the measured position walked a sagging arm down)."""
+        if self.estop:
+            return s.EstopState(estop=True)
         self.estop = True
+        log.warning("%s: emergency stop latched", self.name)
+        self.hub.event("estop", latched=True)
         await self.motion.emergency_stop()
-        if first:
-            log.warning("%s: emergency stop latched", self.name)
-            self.hub.event("estop", latched=True)
         return s.EstopState(estop=True)
 
     def release_estop(self) -> s.EstopState:
