@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from app import schemas as s
+from app.control import on_control
 from app.errors import (
     ArmError,
     Busy,
@@ -94,7 +95,10 @@ class MotionRecord:
     planner: Any = field(default=None, repr=False)
     goal: np.ndarray | None = field(default=None, repr=False)
     done: asyncio.Event = field(default_factory=asyncio.Event)
+    #: The control loop the record's executor runs on (waiting crosses there).
+    home_loop: Any = field(default=None, repr=False)
 
+    @on_control
     async def wait(self) -> MotionRecord:
         await self.done.wait()
         return self
@@ -125,9 +129,11 @@ class MotionExecutor:
         self._cmd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._halt = False
         self._ids = itertools.count(1)
+        self.home_loop: asyncio.AbstractEventLoop | None = None
 
     def start(self) -> None:
         if self._task is None:
+            self.home_loop = asyncio.get_running_loop()
             self._task = asyncio.create_task(self._run(), name=f"motion:{self.svc.name}")
 
     async def close(self) -> None:
@@ -150,10 +156,12 @@ class MotionExecutor:
             return None
         return {"id": rec.id, "status": rec.status, "progress": round(rec.progress, 4)}
 
+    @on_control
     async def move_joints(self, req: s.MoveJoints) -> MotionRecord:
         q1 = self._joint_vector(req.positions)
         return self._submit("joints", "joint", req, q1, self._plan_joint_from, q1)
 
+    @on_control
     async def move_pose(self, req: s.MovePose) -> MotionRecord:
         p = np.array([req.x, req.y, req.z])
         return self._submit("pose", req.path, req, None, self._plan_pose_from, p)
@@ -166,6 +174,7 @@ class MotionExecutor:
         p = np.array([req.x, req.y, req.z])
         return self._preview("pose", req.path, req, self._plan_pose_from, p)
 
+    @on_control
     async def cancel(self, motion_id: str) -> MotionRecord:
         rec = self.get(motion_id)
         if rec.status == "queued":
@@ -176,6 +185,7 @@ class MotionExecutor:
             await rec.wait()
         return rec
 
+    @on_control
     async def stop_all(self, reason: str) -> list[str]:
         stopped = [r.id for r in self._queue]
         while self._queue:
@@ -187,6 +197,7 @@ class MotionExecutor:
             await cur.wait()
         return stopped
 
+    @on_control
     async def emergency_stop(self) -> None:
         """Stop streaming now, clear the queue and command a hold at the last commanded
         setpoint (the measured position sags under gravity: holding there again and again
@@ -300,6 +311,7 @@ class MotionExecutor:
         plan = planner(start, target, req, at_rest or path == "line")
         rec = self._record(kind, path, req, plan, f"m{next(self._ids)}-{uuid.uuid4().hex[:8]}")
         rec.planner, rec.goal = planner, target
+        rec.home_loop = self.home_loop
         self._records[rec.id] = rec
         while len(self._records) > HISTORY:
             self._records.popitem(last=False)

@@ -14,6 +14,7 @@ import numpy as np
 
 from app import schemas as s
 from app.config import ArmProfile
+from app.control import on_control
 from app.devices.base import Driver
 from app.devices.factory import make_driver
 from app.errors import (
@@ -50,6 +51,11 @@ class ArmService:
     async def close(self) -> None:
         await self.motion.close()
         await self.driver.close()
+
+    @property
+    def home_loop(self) -> Any:
+        """The control loop this arm runs on (`app.control`): its async methods cross there."""
+        return self.driver.home_loop
 
     # --------------------------------------------------------- descriptions
 
@@ -161,10 +167,12 @@ class ArmService:
 
     # --------------------------------------------------------- stop, estop, gripper
 
+    @on_control
     async def stop(self) -> s.StopResult:
         stopped = await self.motion.stop_all(reason="stopped by request")
         return s.StopResult(stopped=stopped, estop=self.estop)
 
+    @on_control
     async def latch_estop(self) -> s.EstopState:
         """Latch, and command the hold once per latch: a press on a latched estop changes
         nothing (each hold re-commanded at the measured position walked a sagging arm down)."""
@@ -183,6 +191,7 @@ class ArmService:
             self.hub.event("estop_released", latched=False)
         return s.EstopState(estop=False)
 
+    @on_control
     async def set_gripper(self, value: float) -> s.GripperState:
         if not self.profile.gripper.actuated:
             raise NoGripper(f"{self.name} has a {self.profile.gripper.kind} end effector, "

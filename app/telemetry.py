@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -23,6 +24,10 @@ from typing import Any
 DEFAULT_BACKLOG = 2000
 #: Events a subscriber may fall behind (events are rare: motion, estop, link).
 EVENT_BACKLOG = 256
+#: Samples and events published on the control thread that may wait for the HTTP loop's
+#: fan-out (1 s at 500 Hz): past it the fan-out is late and new samples skip it (counted in
+#: `crossing_dropped`); the latest sample is always current.
+CROSSING_BACKLOG = 500
 
 
 def _dumps(obj: Any) -> str:
@@ -98,6 +103,38 @@ class TelemetryHub:
         self.latest: dict[str, Any] | None = None
         self.latest_json: str | None = None
         self.published = 0
+        #: The fan-out's loop and thread (the HTTP loop), when the publisher runs elsewhere.
+        self._fanout_loop: asyncio.AbstractEventLoop | None = None
+        self._fanout_thread: int | None = None
+        self._crossed = 0  # written by the publishing thread only
+        self._arrived = 0  # written by the fan-out thread only
+        self.crossing_dropped = 0
+
+    def bind_fanout(self) -> None:
+        """Fan out on the running loop (the HTTP loop) whatever thread publishes: samples and
+        events from the control thread cross with `call_soon_threadsafe`, bounded."""
+        self._fanout_loop = asyncio.get_running_loop()
+        self._fanout_thread = threading.get_ident()
+
+    def _cross(self, fn: Callable[[Any], None], item: Any, droppable: bool) -> bool:
+        """Hand `fn(item)` to the fan-out loop if called from another thread; False if the
+        caller is on the fan-out thread (or none is bound) and should run it itself."""
+        loop = self._fanout_loop
+        if loop is None or threading.get_ident() == self._fanout_thread:
+            return False
+        if droppable and self._crossed - self._arrived >= CROSSING_BACKLOG:
+            self.crossing_dropped += 1
+            return True
+        self._crossed += 1
+        try:
+            loop.call_soon_threadsafe(self._arrive, fn, item)
+        except RuntimeError:  # the HTTP loop is closed: nobody to fan out to
+            pass
+        return True
+
+    def _arrive(self, fn: Callable[[Any], None], item: Any) -> None:
+        self._arrived += 1
+        fn(item)
 
     @property
     def subscriber_count(self) -> int:
@@ -109,25 +146,35 @@ class TelemetryHub:
         return sub
 
     def add_listener(self, fn: Callable[[dict[str, Any]], None]) -> Callable[[], None]:
-        """Call `fn(sample)` on every sample, in the publisher's task; returns an unsubscribe."""
+        """Call `fn(sample)` on every sample, in the publisher's task (on the control thread
+        when there is one); returns an unsubscribe."""
         self._listeners.append(fn)
         return lambda: self._listeners.remove(fn) if fn in self._listeners else None
 
     def publish(self, sample: dict[str, Any]) -> None:
-        """Publish one sample (a dict in the `Sample` schema's shape). Never blocks."""
-        encoded = _dumps(sample)
+        """Publish one sample (a dict in the `Sample` schema's shape), from any thread. Never
+        blocks: `latest` is current at once, the fan-out happens on the fan-out loop."""
         self.latest = sample
-        self.latest_json = encoded
-        self.published += 1
         for fn in list(self._listeners):
             fn(sample)
+        if not self._cross(self._fan_out, sample, droppable=True):
+            self._fan_out(sample)
+
+    def _fan_out(self, sample: dict[str, Any]) -> None:
+        encoded = _dumps(sample)
+        self.latest_json = encoded
+        self.published += 1
         for sub in self._subs:
             sub._push_sample(encoded)
 
     def event(self, name: str, **data: Any) -> dict[str, Any]:
         """Send an event (motion_started, estop, link_lost, ...) to every subscriber."""
         msg = {"type": "event", "arm": self.arm, "event": name, "time": time.time(), "data": data}
+        if not self._cross(self._fan_out_event, msg, droppable=False):
+            self._fan_out_event(msg)
+        return msg
+
+    def _fan_out_event(self, msg: dict[str, Any]) -> None:
         encoded = _dumps(msg)
         for sub in self._subs:
             sub._push_event(encoded)
-        return msg

@@ -97,7 +97,7 @@ async def test_a_held_up_executor_neither_jumps_nor_speeds() -> None:
         rec = await svc.motion.move_joints(s.MoveJoints(positions=[1.2, 1.4, -0.6]))
         await asyncio.sleep(0.4)  # well into the move, at speed
         assert rec.status == "running" and 0.0 < rec.progress < 0.7, rec.progress
-        time.sleep(0.3)  # hold the loop the executor runs on for 300 ms
+        time.sleep(0.3)  # noqa: ASYNC251 - hold the loop the executor runs on for 300 ms
         await rec.wait()
         assert rec.status == "done", rec.reason
     finally:

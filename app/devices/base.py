@@ -23,6 +23,7 @@ import numpy as np
 
 from app.arm_model import ArmModel
 from app.config import ArmProfile
+from app.control import on_control
 from app.errors import ArmError, Busy, CorruptReply, DeviceError, DeviceTimeout, LinkDown
 from app.links.base import Link, LinkError, LinkState
 from app.tasks import cancel_and_wait
@@ -81,6 +82,8 @@ class Driver(abc.ABC):
         self.gripper: float | None = None
         self.positions: np.ndarray | None = None
         self.velocities: np.ndarray | None = None
+        #: The loop the owner task runs on (the control thread's); requests cross into it.
+        self.home_loop: asyncio.AbstractEventLoop | None = None
 
     # ------------------------------------------------------------ public
 
@@ -94,6 +97,7 @@ class Driver(abc.ABC):
 
     async def start(self) -> None:
         if self._task is None:
+            self.home_loop = asyncio.get_running_loop()
             self._task = asyncio.create_task(self._run(), name=f"link:{self.name}")
 
     async def close(self) -> None:
@@ -102,8 +106,10 @@ class Driver(abc.ABC):
         self._fail_pending(LinkDown(f"{self.name}: server shutting down"))
         await self.link.close()
 
+    @on_control
     async def submit(self, message: Any, timeout: float | None = None) -> Any:
-        """Queue `message` for the owner task and await its reply (or its typed error)."""
+        """Queue `message` for the owner task and await its reply (or its typed error); from
+        any loop (it runs on the owner task's loop)."""
         if self.link.state is not LinkState.UP:
             raise LinkDown(f"{self.name} link is {self.link.state.value}: "
                            f"{self.link.last_error or 'not connected yet'}")
