@@ -79,9 +79,14 @@ def _serve(args: argparse.Namespace) -> int:
     if settings.host not in LOOPBACK and not settings.auth_enabled:
         log.warning("binding %s with no tokens: anyone who can reach this port may move the "
                     "arms (set ARMSERVER_OPERATOR_TOKENS)", settings.host)
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level=settings.log_level,
-                ws_max_size=settings.max_ws_message_bytes, proxy_headers=False,
-                ws_per_message_deflate=settings.ws_compression, **http_limits(settings))
+    from app.serving import ArmServer
+
+    config = uvicorn.Config(app, host=settings.host, port=settings.port,
+                            log_level=settings.log_level, ws_max_size=settings.max_ws_message_bytes,
+                            proxy_headers=False, ws_per_message_deflate=settings.ws_compression,
+                            timeout_graceful_shutdown=settings.shutdown_timeout_s,
+                            **http_limits(settings))
+    ArmServer(config, app).run()
     return 0
 
 

@@ -230,6 +230,8 @@ class Settings(BaseSettings):
     #: Telemetry WebSocket subscribers per arm and in all; more are closed with 1013 `busy`.
     max_subscribers_per_arm: int = 100
     max_subscribers: int = 200
+    #: After SIGTERM has stopped the arms: how long open requests may take to finish, s.
+    shutdown_timeout_s: float = 5.0
 
     @staticmethod
     def _split(v: str) -> frozenset[str]:

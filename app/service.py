@@ -18,6 +18,7 @@ from app.control import on_control
 from app.devices.base import Driver
 from app.devices.factory import make_driver
 from app.errors import (
+    ArmError,
     EstopLatched,
     InvalidRequest,
     JointLimit,
@@ -41,6 +42,8 @@ class ArmService:
         self.driver = driver if driver is not None else make_driver(profile, self.hub)
         self.model = self.driver.model
         self.estop = False
+        #: Set when the server shuts down: no new motion (app.serving).
+        self.closing = False
         self.motion = MotionExecutor(self)
         self.driver.annotate = self._annotate
 
@@ -108,6 +111,9 @@ class ArmService:
     # --------------------------------------------------------- safety: one place for all paths
 
     def require_motion_allowed(self) -> None:
+        if self.closing:
+            raise ArmError(f"{self.name}: the server is shutting down", code="shutting_down",
+                           status_code=503)
         if self.estop:
             raise EstopLatched(f"{self.name}: emergency stop is latched; release it with "
                                f"DELETE /api/v1/arms/{self.name}/estop")

@@ -114,6 +114,9 @@ class Driver(abc.ABC):
             raise LinkDown(f"{self.name} link is {self.link.state.value}: "
                            f"{self.link.last_error or 'not connected yet'}")
         fut: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        # A caller that gave up (cancelled, timed out) no longer reads the error the owner task
+        # or close() sets later: mark it read, or asyncio logs "exception never retrieved".
+        fut.add_done_callback(_retrieve)
         req = _Request(message, fut, timeout if timeout is not None else self.timeout)
         try:
             self._queue.put_nowait(req)
@@ -353,6 +356,11 @@ class Driver(abc.ABC):
     def _publish_stale(self) -> None:
         if self.positions is not None and self.velocities is not None:
             self._publish(self.positions, np.zeros_like(self.velocities), None, stale=True)
+
+
+def _retrieve(fut: asyncio.Future[Any]) -> None:
+    if not fut.cancelled():
+        fut.exception()
 
 
 def _vec(v: np.ndarray) -> dict[str, float]:
