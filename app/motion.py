@@ -55,8 +55,7 @@ PREVIEW_POINTS = 50
 #: within the velocity limit over the time it covers) instead of jumping ahead; no setpoint
 #: step is more than the velocity limit times this.
 MAX_STEP_S = 0.05
-#: A tick later than this, s, means control was held up and the setpoint stood still: the
-#: motion's time rate starts again from 0 (see `_stream`).
+#: A tick later than this, s, is reported (log and a `motion_held_up` event).
 HELD_UP_S = 0.1
 
 Status = Literal["queued", "running", "done", "stopped", "failed"]
@@ -373,12 +372,13 @@ class MotionExecutor:
         await self._settle(rec)
 
     async def _stream(self, rec: MotionRecord, traj: Any) -> str:
-        """Send the trajectory's setpoints at the control rate. Trajectory time advances with
-        the clock times a rate (0..1) and never by more than MAX_STEP_S a tick: a late tick
-        stretches time instead of jumping ahead. A loop held up longer than HELD_UP_S left the
-        setpoint standing still: the rate starts again from 0
-        and ramps up within the acceleration limits (`_time_rate`), along the same path, so the
-        commanded speed is never above the planned one and no step is a jump."""
+        """Send the trajectory's setpoints at the control rate. Each tick advances trajectory
+        time by the wall time since the last one times a rate (0..1), and by MAX_STEP_S at
+        most: a late tick stretches time instead of jumping ahead. The rate a tick achieved
+        (trajectory time over wall time) is the commanded speed's scale; the next tick may
+        raise it only as fast as the acceleration limits allow (`_time_rate`). So after the
+        loop was held up (the setpoint stood still meanwhile) the motion picks up again along
+        the same path from the last setpoint, never faster than planned and without a jump."""
         loop = asyncio.get_running_loop()
         dt = 1.0 / self.svc.profile.link.control_hz
         failures = 0
@@ -395,13 +395,13 @@ class MotionExecutor:
             now = loop.time()
             late, last = now - last, now
             if late > HELD_UP_S and 0.0 < t < duration:
-                log.warning("%s: motion %s: control held up %.0f ms; resuming from the last "
+                log.warning("%s: motion %s: control held up %.0f ms; going on from the last "
                             "setpoint", self.svc.name, rec.id, late * 1e3)
                 self.svc.hub.event("motion_held_up", id=rec.id, held_up_s=round(late, 4))
-                rate = 0.0
-            else:
-                rate = self._time_rate(rate, qd, qdd, min(late, MAX_STEP_S))
-            t = min(t + rate * min(late, MAX_STEP_S), duration)
+            step = min(self._time_rate(rate, qd, qdd, late) * late, MAX_STEP_S)
+            if late > 0.0:
+                rate = step / late
+            t = min(t + step, duration)
             q, qd, qdd = (np.asarray(v, dtype=float) for v in traj.sample(t))
             q = self._within_limits(q)
             try:
