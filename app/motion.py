@@ -192,7 +192,6 @@ class MotionExecutor:
         cur = self.current
         if cur is not None and cur.status == "running":
             cur.cancel = "stop"
-            cur.reason = cur.reason or reason
             stopped.append(cur.id)
             await cur.wait()
         return stopped
