@@ -112,7 +112,8 @@ async def test_a_held_up_executor_neither_jumps_nor_speeds() -> None:
     # 300 ms ahead: 0.45 rad at 1.5 rad/s), and no faster than the velocity limit over any
     # 0.5 s (setpoints reach the device through the link's queue, so a short gap between two
     # of them is the link's jitter as much as the executor's timing: 5 % allowed for it).
-    assert np.all(steps <= vmax * 0.05 * (1 + 1e-6)), steps.max(axis=0)
+    # (1 urad for the float32 ticks a SET_PID setpoint travels in.)
+    assert np.all(steps <= vmax * 0.05 + 1e-6), steps.max(axis=0)
     for i in range(len(times)):
         j = int(np.searchsorted(times, times[i] + 0.5))
         if j < len(times):
