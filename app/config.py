@@ -420,6 +420,18 @@ class Settings(BaseSettings):
 
         parse_broker_url(v)
         return v.strip()
+    #: Run the arms (links, polls, motion) on their own thread and loop (app.control).
+    control_thread: bool = True
+    #: Largest request head (request line and headers), bytes: more is refused with 400 after
+    #: that many bytes, before any parsing of the rest (uvicorn's h11 parser).
+    max_header_bytes: int = 32 * 1024
+    #: Open connections (HTTP keep-alive and WebSocket) before new requests get 503.
+    max_connections: int = 1000
+    #: Telemetry WebSocket subscribers per arm and in all; more are closed with 1013 `busy`.
+    max_subscribers_per_arm: int = 100
+    max_subscribers: int = 200
+    #: After SIGTERM has stopped the arms: how long open requests may take to finish, s.
+    shutdown_timeout_s: float = 5.0
 
     @staticmethod
     def _split(v: str) -> frozenset[str]:

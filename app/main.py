@@ -46,6 +46,7 @@ from app.api import (
 )
 from app.auth import Access, bearer_token, install_log_redaction
 from app.config import ArmProfile, Settings, load_arms
+from app.control import ControlThread
 from app.errors import ArmError, Unauthorized
 from app.hostguard import HostOriginGuard
 from app.lease import LeaseManager
@@ -75,13 +76,19 @@ def create_app(settings: Settings | None = None,
         app.state.leases = leases
         store = Store(settings.data_dir)
         app.state.store = store
+        # The arms run on the control thread's loop (app.control); HTTP stays on this one.
+        control = ControlThread() if settings.control_thread else None
+        app.state.control = control
+        if control is not None:
+            control.start()
         try:
             store.open()  # blocking, before anything is served; errors go to health
             for p in profiles:
                 svc = ArmService(p)
                 safety.load_stored(svc, store)
                 services[p.name] = svc
-                await svc.start()
+                svc.hub.bind_fanout()
+                await _on_control(control, svc.start())
                 log.info("arm %s (%s) on %s link %s", p.name, p.model, p.link.kind,
                          svc.driver.link.address or "-")
             leases.start()
@@ -96,10 +103,12 @@ def create_app(settings: Settings | None = None,
             await leases.close()
             for svc in services.values():
                 try:
-                    await svc.close()
+                    await _on_control(control, svc.close())
                 except Exception:  # close the other arms all the same
                     log.exception("%s: close failed", svc.name)
             store.close()
+            if control is not None:
+                control.stop()
 
     app = FastAPI(
         title="armserver",
@@ -141,6 +150,11 @@ def create_app(settings: Settings | None = None,
         app.router.routes.append(_Dashboard("/", StaticFiles(directory=STATIC_DIR, html=True),
                                             name="dashboard"))
     return app
+
+
+async def _on_control(control: ControlThread | None, coro: Any) -> Any:
+    """Await `coro` on the control thread's loop (or here, without a control thread)."""
+    return await (control.run(coro) if control is not None else coro)
 
 
 class _Dashboard(Mount):

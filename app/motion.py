@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from app import schemas as s
+from app.control import on_control
 from app.errors import (
     ArmError,
     Busy,
@@ -58,6 +59,12 @@ MAX_SETPOINT_FAILURES = 3
 #: How long a finished trajectory may take to settle before the motion fails, s.
 SETTLE_TIMEOUT_S = 2.0
 PREVIEW_POINTS = 50
+#: Trajectory time one tick may advance at most, s: a late tick stretches time (the step stays
+#: within the velocity limit over the time it covers) instead of jumping ahead; no setpoint
+#: step is more than the velocity limit times this.
+MAX_STEP_S = 0.05
+#: A tick later than this, s, is reported (log and a `motion_held_up` event).
+HELD_UP_S = 0.1
 
 Status = Literal["queued", "running", "done", "stopped", "failed"]
 
@@ -95,7 +102,10 @@ class MotionRecord:
     planner: Any = field(default=None, repr=False)
     goal: np.ndarray | None = field(default=None, repr=False)
     done: asyncio.Event = field(default_factory=asyncio.Event)
+    #: The control loop the record's executor runs on (waiting crosses there).
+    home_loop: Any = field(default=None, repr=False)
 
+    @on_control
     async def wait(self) -> MotionRecord:
         await self.done.wait()
         return self
@@ -131,9 +141,11 @@ class MotionExecutor:
         self._next_serial = 1  # the serial of the next motion id (for 410 on forgotten ids)
         #: how many motions, and how many seconds of ended ones, the history keeps at least
         self.history, self.history_s = HISTORY, HISTORY_S
+        self.home_loop: asyncio.AbstractEventLoop | None = None
 
     def start(self) -> None:
         if self._task is None:
+            self.home_loop = asyncio.get_running_loop()
             self._task = asyncio.create_task(self._run(), name=f"motion:{self.svc.name}")
 
     async def close(self) -> None:
@@ -197,10 +209,12 @@ class MotionExecutor:
             return None
         return {"id": rec.id, "status": rec.status, "progress": round(rec.progress, 4)}
 
+    @on_control
     async def move_joints(self, req: s.MoveJoints) -> MotionRecord:
         q1 = self._joint_vector(req.positions)
         return self._submit("joints", "joint", req, q1, self._plan_joint_from, q1)
 
+    @on_control
     async def move_pose(self, req: s.MovePose) -> MotionRecord:
         p = np.array([req.x, req.y, req.z])
         return self._submit("pose", req.path, req, None, self._plan_pose_from, p)
@@ -213,6 +227,7 @@ class MotionExecutor:
         p = np.array([req.x, req.y, req.z])
         return self._preview("pose", req.path, req, self._plan_pose_from, p)
 
+    @on_control
     async def cancel(self, motion_id: str, reason: str = "cancelled") -> MotionRecord:
         """Cancel one motion; `reason` says who cancelled it (kept in its record)."""
         rec = self.get(motion_id)
@@ -226,6 +241,7 @@ class MotionExecutor:
             await rec.wait()
         return rec
 
+    @on_control
     async def stop_all(self, reason: str) -> list[str]:
         stopped = [r.id for r in self._queue]
         while self._queue:
@@ -239,15 +255,18 @@ class MotionExecutor:
             await cur.wait()
         return stopped
 
+    @on_control
     async def emergency_stop(self) -> None:
-        """Stop streaming now, clear the queue and command a hold at the measured position."""
+        """Stop streaming now, clear the queue and command a hold at the last commanded
+        setpoint (the measured position sags under gravity: holding there again and again
+        would walk the arm down). The caller commands it once per latch, not per press."""
         self._halt = True
         while self._queue:
             self._finish(self._queue.popleft(), "stopped", "emergency stop")
         cur = self.current
         if cur is not None and not cur.done.is_set():
             self._finish(cur, "stopped", "emergency stop")
-        await self._hold()
+        await self._hold(commanded=True)
         self._halt = False
 
     # --------------------------------------------------------- planning
@@ -366,6 +385,7 @@ class MotionExecutor:
         self._next_serial = serial + 1
         rec = self._record(kind, path, req, plan, f"m{serial}-{uuid.uuid4().hex[:8]}")
         rec.planner, rec.goal = planner, target
+        rec.home_loop = self.home_loop
         self._remember(rec)
         if req.mode == "replace":
             while self._queue:
@@ -425,18 +445,38 @@ class MotionExecutor:
         await self._settle(rec)
 
     async def _stream(self, rec: MotionRecord, traj: Any) -> str:
+        """Send the trajectory's setpoints at the control rate. Each tick advances trajectory
+        time by the wall time since the last one times a rate (0..1), and by MAX_STEP_S at
+        most: a late tick stretches time instead of jumping ahead. The rate a tick achieved
+        (trajectory time over wall time) is the commanded speed's scale; the next tick may
+        raise it only as fast as the acceleration limits allow (`_time_rate`). So after the
+        loop was held up (the setpoint stood still meanwhile) the motion picks up again along
+        the same path from the last setpoint, never faster than planned and without a jump."""
         loop = asyncio.get_running_loop()
         dt = 1.0 / self.svc.profile.link.control_hz
-        t0 = loop.time()
         failures = 0
         duration = float(traj.duration)
+        t = 0.0
+        rate = 1.0
+        qd = qdd = np.zeros(self.model.n)
+        last = loop.time()
         while True:
             if self._halt or rec.done.is_set():
                 return "halt"
             if rec.cancel:
                 return rec.cancel
-            t = min(loop.time() - t0, duration)
+            now = loop.time()
+            late, last = now - last, now
+            if late > HELD_UP_S and 0.0 < t < duration:
+                log.warning("%s: motion %s: control held up %.0f ms; going on from the last "
+                            "setpoint", self.svc.name, rec.id, late * 1e3)
+                self.svc.hub.event("motion_held_up", id=rec.id, held_up_s=round(late, 4))
+            step = min(self._time_rate(rate, qd, qdd, late) * late, MAX_STEP_S)
+            if late > 0.0:
+                rate = step / late
+            t = min(t + step, duration)
             q, qd, qdd = (np.asarray(v, dtype=float) for v in traj.sample(t))
+            q = self._within_limits(q)
             try:
                 await self.svc.driver.command_joints(q)  # type: ignore[attr-defined]
                 # A setpoint that needs no reply (Dynamixel SYNC_WRITE) goes through even when
@@ -450,16 +490,29 @@ class MotionExecutor:
                 return "halt"
             if self._halt:
                 return "halt"
-            self._cmd = (q, qd, qdd)
+            self._cmd = (q, qd * rate, qdd * rate * rate)
             rec.progress = t / duration if duration > 0 else 1.0
             if t >= duration:
                 self._cmd = (q, np.zeros_like(q), np.zeros_like(q))
                 return "end"
-            next_tick = t0 + (int((loop.time() - t0) / dt) + 1) * dt
-            await asyncio.sleep(max(0.0, next_tick - loop.time()))
+            await asyncio.sleep(max(0.0, last + dt - loop.time()))
+
+    def _time_rate(self, rate: float, qd: np.ndarray, qdd: np.ndarray, h: float) -> float:
+        """The next time rate after `h` s: up towards 1 as fast as the acceleration limits
+        allow. Commanded velocity is rate * qd and acceleration rate^2 * qdd + rate' * qd, so
+        rate' may use what the planned acceleration leaves of each joint's limit."""
+        if rate >= 1.0:
+            return 1.0
+        amax = self.model.amax
+        spare = np.maximum(amax - rate * rate * np.abs(qdd), 0.1 * amax)
+        speed = np.abs(qd)
+        moving = speed > 1e-9
+        up = float(np.min(spare[moving] / speed[moving])) if np.any(moving) else np.inf
+        return min(1.0, rate + up * h)
 
     async def _brake(self) -> None:
-        """Decelerate from the commanded state to rest under the acceleration and jerk limits."""
+        """Decelerate from the commanded state to rest under the acceleration and jerk limits
+        (time stretched after a late tick, as in `_stream`)."""
         if self._cmd is None or not np.any(self._cmd[1]):
             return
         q, qd, qdd = self._cmd
@@ -467,10 +520,13 @@ class MotionExecutor:
         traj = trajectory.plan_stop(q, qd, qdd, m.amax, m.jmax, m.vmax)
         loop = asyncio.get_running_loop()
         dt = 1.0 / self.svc.profile.link.control_hz
-        t0 = loop.time()
+        t = 0.0
+        last = loop.time()
         while not self._halt:
-            t = min(loop.time() - t0, float(traj.duration))
-            qs = np.clip(np.asarray(traj.sample(t)[0], dtype=float), m.lower, m.upper)
+            now = loop.time()
+            t = min(t + min(now - last, MAX_STEP_S), float(traj.duration))
+            last = now
+            qs = self._within_limits(traj.sample(t)[0])
             try:
                 await self.svc.driver.command_joints(qs)  # type: ignore[attr-defined]
             except ArmError:
@@ -478,7 +534,7 @@ class MotionExecutor:
             self._cmd = (qs, np.zeros_like(qs), np.zeros_like(qs))
             if t >= traj.duration:
                 break
-            await asyncio.sleep(dt)
+            await asyncio.sleep(max(0.0, last + dt - loop.time()))
 
     async def _settle(self, rec: MotionRecord) -> None:
         """`done` only when every joint is within its settle tolerance of where it was sent
@@ -563,19 +619,25 @@ class MotionExecutor:
         self.svc.hub.event("watchdog", id=rec.id, code=exc.code, reason=exc.detail)
         await self._hold()
 
-    async def _hold(self) -> None:
-        """Command the arm to hold at its measured position, where the link still allows."""
-        q = self.svc.driver.positions
+    async def _hold(self, commanded: bool = False) -> None:
+        """Command the arm to hold, where the link still allows: at the last commanded setpoint
+        if `commanded` and there is one, else at its measured position; within the limits."""
+        q = self._cmd[0] if commanded and self._cmd is not None else self.svc.driver.positions
         if q is None:
             self._cmd = None
             return
-        q = np.clip(q, self.model.lower, self.model.upper)
+        q = self._within_limits(q)
         try:
             await self.svc.driver.command_joints(q)  # type: ignore[attr-defined]
             self._cmd = (q.copy(), np.zeros_like(q), np.zeros_like(q))
         except ArmError as exc:
             log.warning("%s: could not command a hold: %s", self.svc.name, exc.detail)
             self._cmd = None
+
+    def _within_limits(self, q: np.ndarray) -> np.ndarray:
+        """Every position the executor commands (setpoint, brake, hold) is clipped to the joint
+        limits: a plan or a measurement a hair outside must not become a command outside."""
+        return np.clip(np.asarray(q, dtype=float), self.model.lower, self.model.upper)
 
     def _finish(self, rec: MotionRecord, status: Status, reason: str | None,
                 code: str | None = None) -> None:

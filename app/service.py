@@ -14,10 +14,12 @@ import numpy as np
 
 from app import schemas as s
 from app.config import ArmProfile
+from app.control import on_control
 from app.devices.base import Driver
 from app.devices.factory import make_driver
 from app.envelope import ArmSafety
 from app.errors import (
+    ArmError,
     Busy,
     EstopLatched,
     Fault,
@@ -46,6 +48,8 @@ class ArmService:
         self.model = self.driver.model
         self.estop = False
         self.safety = ArmSafety(self.model, profile.safety)
+        #: Set when the server shuts down: no new motion (app.serving).
+        self.closing = False
         self.motion = MotionExecutor(self)
         self.driver.annotate = self._annotate
 
@@ -56,6 +60,11 @@ class ArmService:
     async def close(self) -> None:
         await self.motion.close()
         await self.driver.close()
+
+    @property
+    def home_loop(self) -> Any:
+        """The control loop this arm runs on (`app.control`): its async methods cross there."""
+        return self.driver.home_loop
 
     # --------------------------------------------------------- descriptions
 
@@ -164,6 +173,9 @@ class ArmService:
     # --------------------------------------------------------- safety: one place for all paths
 
     def require_motion_allowed(self) -> None:
+        if self.closing:
+            raise ArmError(f"{self.name}: the server is shutting down", code="shutting_down",
+                           status_code=503)
         if self.estop:
             raise EstopLatched(f"{self.name}: emergency stop is latched; release it with "
                                f"DELETE /api/v1/arms/{self.name}/estop")
@@ -198,6 +210,7 @@ class ArmService:
         if start is None or not abs(float(target[joint]) - float(cur[joint])) <= tol:
             self.check_homed(None, target)
 
+    @on_control
     async def home(self, positions: list[float] | None) -> s.ArmDetail:
         """Declare the arm's current physical pose (the profile's home pose by default): the
         joints that need homing take these positions; the others read absolute positions and
@@ -224,6 +237,7 @@ class ArmService:
         self.hub.event("homed", positions=[float(v) for v in q])
         return self.detail()
 
+    @on_control
     async def reboot(self, dxl_id: int) -> None:
         """REBOOT one servo and set it up again (the driver); the commanded state is
         forgotten: the servo's goal is now its present position."""
@@ -296,19 +310,23 @@ class ArmService:
 
     # --------------------------------------------------------- stop, estop, gripper
 
+    @on_control
     async def stop(self, reason: str = "stopped by request") -> s.StopResult:
         """Stop all motion; `reason` (who or what stopped it) goes into each motion's record."""
         stopped = await self.motion.stop_all(reason=reason)
         return s.StopResult(stopped=stopped, estop=self.estop)
 
+    @on_control
     async def latch_estop(self) -> s.EstopState:
-        first = not self.estop
+        """Latch, and command the hold once per latch: a press on a latched estop changes
+        nothing (each hold re-commanded at the measured position walked a sagging arm down)."""
+        if self.estop:
+            return s.EstopState(estop=True)
         self.estop = True
         self.driver.poll_soon()  # a fresh sample that shows the latch, ahead of the schedule
+        log.warning("%s: emergency stop latched", self.name)
+        self.hub.event("estop", latched=True)
         await self.motion.emergency_stop()
-        if first:
-            log.warning("%s: emergency stop latched", self.name)
-            self.hub.event("estop", latched=True)
         return s.EstopState(estop=True)
 
     def release_estop(self) -> s.EstopState:
@@ -318,6 +336,7 @@ class ArmService:
             self.hub.event("estop_released", latched=False)
         return s.EstopState(estop=False)
 
+    @on_control
     async def set_gripper(self, value: float) -> s.GripperState:
         if not self.profile.gripper.actuated:
             raise NoGripper(f"{self.name} has a {self.profile.gripper.kind} end effector, "

@@ -23,6 +23,7 @@ import pytest
 import uvicorn
 from fastapi import FastAPI
 
+from app.cli import http_limits
 from app.config import Settings
 from app.main import create_app
 
@@ -129,7 +130,7 @@ def serve_live(settings: Settings | None = None, sndbuf: int | None = None) -> I
     sock = _free_socket(sndbuf)
     port = sock.getsockname()[1]
     config = uvicorn.Config(app, log_level="warning", lifespan="on",
-                            ws_max_size=settings.max_ws_message_bytes)
+                            ws_max_size=settings.max_ws_message_bytes, **http_limits(settings))
     server = uvicorn.Server(config)
     loop_box: dict[str, asyncio.AbstractEventLoop] = {}
 

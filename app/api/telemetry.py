@@ -41,6 +41,8 @@ CLOSE_UNAUTHORIZED = 4401
 CLOSE_UNKNOWN_ARM = 4404
 CLOSE_POLICY = 1008
 CLOSE_TOO_BIG = 1009
+#: Too many subscribers (per arm or in all): try again later, reason `{"code": "busy", ...}`.
+CLOSE_BUSY = 1013
 
 
 class BadRate(ValueError):
@@ -80,8 +82,26 @@ async def telemetry(ws: WebSocket, arm: str) -> None:
     except BadRate as exc:
         await ws.close(CLOSE_POLICY, str(exc))
         return
+    busy = subscribers_over_limit(state, svc)
+    if busy is not None:
+        await ws.close(CLOSE_BUSY, json.dumps({"code": "busy", "detail": busy[:90]},
+                                              separators=(",", ":")))
+        return
     stream = _Stream(ws, svc, rate, state.settings.max_ws_message_bytes)
-    await stream.run()
+    await stream.run()  # subscribes before its first await: the count above stays true
+
+
+def subscribers_over_limit(state: object, svc: ArmService) -> str | None:
+    """Why one more subscriber to `svc` is refused (settings `max_subscribers_per_arm`,
+    `max_subscribers`), or None."""
+    settings = state.settings  # type: ignore[attr-defined]
+    here = svc.hub.subscriber_count
+    if here >= settings.max_subscribers_per_arm:
+        return f"{svc.name[:32]} has {here} subscribers (limit {settings.max_subscribers_per_arm})"
+    total = sum(s.hub.subscriber_count for s in state.services.values())  # type: ignore[attr-defined]
+    if total >= settings.max_subscribers:
+        return f"{total} subscribers in all (limit {settings.max_subscribers})"
+    return None
 
 
 class _Stream:

@@ -23,6 +23,7 @@ import numpy as np
 
 from app.arm_model import ArmModel
 from app.config import ArmProfile
+from app.control import on_control
 from app.errors import ArmError, Busy, CorruptReply, DeviceError, DeviceTimeout, LinkDown
 from app.links.base import Link, LinkError, LinkState
 from app.tasks import cancel_and_wait
@@ -106,6 +107,8 @@ class Driver(abc.ABC):
         #: is subtracted from every reading before it is published.
         self.torques_raw: np.ndarray | None = None
         self.torque_tare: np.ndarray | None = None
+        #: The loop the owner task runs on (the control thread's); requests cross into it.
+        self.home_loop: asyncio.AbstractEventLoop | None = None
 
     # ------------------------------------------------------------ public
 
@@ -119,6 +122,7 @@ class Driver(abc.ABC):
 
     async def start(self) -> None:
         if self._task is None:
+            self.home_loop = asyncio.get_running_loop()
             self._task = asyncio.create_task(self._run(), name=f"link:{self.name}")
 
     async def close(self) -> None:
@@ -127,12 +131,17 @@ class Driver(abc.ABC):
         self._fail_pending(LinkDown(f"{self.name}: server shutting down"))
         await self.link.close()
 
+    @on_control
     async def submit(self, message: Any, timeout: float | None = None) -> Any:
-        """Queue `message` for the owner task and await its reply (or its typed error)."""
+        """Queue `message` for the owner task and await its reply (or its typed error); from
+        any loop (it runs on the owner task's loop)."""
         if self.link.state is not LinkState.UP:
             raise LinkDown(f"{self.name} link is {self.link.state.value}: "
                            f"{self.link.last_error or 'not connected yet'}")
         fut: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        # A caller that gave up (cancelled, timed out) no longer reads the error the owner task
+        # or close() sets later: mark it read, or asyncio logs "exception never retrieved".
+        fut.add_done_callback(_retrieve)
         req = _Request(message, fut, timeout if timeout is not None else self.timeout)
         try:
             self._queue.put_nowait(req)
@@ -443,6 +452,11 @@ class Driver(abc.ABC):
 def _resolve(fut: asyncio.Future[None]) -> None:
     if not fut.done():
         fut.set_result(None)
+
+
+def _retrieve(fut: asyncio.Future[Any]) -> None:
+    if not fut.cancelled():
+        fut.exception()
 
 
 def _vec(v: np.ndarray) -> dict[str, float]:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 
 from app.links.base import Link, LinkError, LinkState
 
@@ -59,6 +60,36 @@ def _resolve(fut: asyncio.Future[None] | None) -> None:
         fut.set_result(None)
 
 
+def lock_holder(path: str) -> str | None:
+    """Who holds an flock on the device `path` ("process 1234 (armserver serve ...)"), from
+    /proc/locks (Linux); None if unknown."""
+    try:
+        st = os.stat(os.path.realpath(path))
+        with open("/proc/locks") as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return None
+    for line in lines:
+        fields = line.split()
+        if len(fields) < 6 or fields[1] != "FLOCK":
+            continue
+        try:
+            major, minor, inode = fields[5].split(":")
+            if (int(major, 16), int(minor, 16), int(inode)) != (
+                    os.major(st.st_dev), os.minor(st.st_dev), st.st_ino):
+                continue
+            pid = int(fields[4])
+        except ValueError:
+            continue
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                cmd = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
+        except OSError:
+            cmd = ""
+        return f"process {pid}" + (f" ({cmd[:120]})" if cmd else "")
+    return None
+
+
 class SerialLink(Link):
     """A stream link: `read` returns whatever bytes have arrived (up to READ_CHUNK)."""
 
@@ -83,12 +114,19 @@ class SerialLink(Link):
             raise self._down(f"pyserial-asyncio not available: {exc}") from exc
         self._errors = (OSError, serial.SerialException)
         try:
+            # Exclusive (flock): a second server on the same port would break this one's link
+            # mid-move; it is refused instead, told who holds the port.
             transport, proto = await serial_asyncio.create_serial_connection(
-                asyncio.get_running_loop(), _Buffered, url=self.address, baudrate=self.baudrate
+                asyncio.get_running_loop(), _Buffered, url=self.address, baudrate=self.baudrate,
+                exclusive=True,
             )
             proto.transport = transport  # connection_made comes later, from call_soon
             self._proto = proto
         except (*self._errors, ValueError) as exc:
+            holder = lock_holder(self.address) if "lock" in str(exc) else None
+            if holder is not None:
+                raise self._down(f"cannot open {self.address}: it is in use by {holder}; a "
+                                 "port is driven by one server at a time") from exc
             raise self._down(f"cannot open {self.address}: {exc}") from exc
         self.state = LinkState.UP
         self.last_error = None

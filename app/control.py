@@ -1,0 +1,150 @@
+"""The control thread: the link owners (drivers), their polls, the safety guard and the motion
+executors run here, on their own asyncio loop, away from HTTP parsing and WebSocket fan-out.
+
+Why a thread and not a process: the arms' state (latest sample, commanded setpoint, motion
+records, estop latch) is read by every route; in one process those reads are plain attribute
+reads, a process would need every one of them to become a message. What a thread must get right
+is that nothing on the HTTP loop can hold the control loop up: the GIL is handed over every
+`SWITCH_INTERVAL_S` (not CPython's 5 ms default), the control loop does no parsing and no
+fan-out (samples and events cross to the HTTP loop with `call_soon_threadsafe`, bounded), and
+everything the API asks of an arm crosses into the control loop (`on_control`). The figures
+that back this choice are in the README ("Reliability").
+
+Crossing rules:
+- An object created or started on the control loop remembers it as its `home_loop`; its
+  methods decorated with `@on_control` run there whoever awaits them (the caller awaits a
+  wrapped concurrent future; cancelling the caller cancels the call).
+- Called from its own loop (tests that run a service in their loop, the executor itself), an
+  `@on_control` method is a plain await: no thread, no hop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import functools
+import logging
+import os
+import sys
+import threading
+from collections.abc import Awaitable, Callable, Coroutine
+from typing import Any, ParamSpec, TypeVar
+
+log = logging.getLogger(__name__)
+
+#: GIL hand-over interval while the control thread runs, s (CPython's default is 5 ms: a
+#: thread busy parsing a large header would hold the control loop for that long each turn).
+SWITCH_INTERVAL_S = 0.0005
+#: Niceness the control thread asks for (Linux: per thread), where permitted (root or
+#: CAP_SYS_NICE): on a busy machine the scheduler then runs the link owners and the executor
+#: before the HTTP thread and other processes. Without the permission it runs at the default.
+CONTROL_NICE = -10
+#: How long starting the thread may take, s.
+START_TIMEOUT_S = 10.0
+
+P = ParamSpec("P")
+T = TypeVar("T")
+
+
+class ControlThread:
+    """A thread running its own asyncio loop until `stop()`."""
+
+    def __init__(self, name: str = "armserver-control") -> None:
+        self.name = name
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._stopped: asyncio.Event | None = None
+        self._old_switch: float | None = None
+        #: The niceness the thread got (None: not changed, no permission).
+        self.niceness: int | None = None
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        ready = threading.Event()
+
+        def run() -> None:
+            self.niceness = _raise_priority()
+
+            async def main() -> None:
+                self.loop = asyncio.get_running_loop()
+                self._stopped = asyncio.Event()
+                ready.set()
+                await self._stopped.wait()
+
+            asyncio.run(main())
+
+        self._old_switch = sys.getswitchinterval()
+        sys.setswitchinterval(min(self._old_switch, SWITCH_INTERVAL_S))
+        self._thread = threading.Thread(target=run, name=self.name, daemon=True)
+        self._thread.start()
+        if not ready.wait(START_TIMEOUT_S):
+            raise RuntimeError("the control thread did not start")
+
+    def submit(self, coro: Coroutine[Any, Any, T]) -> concurrent.futures.Future[T]:
+        """Schedule `coro` on the control loop (from any thread)."""
+        if self.loop is None:
+            coro.close()
+            raise RuntimeError("the control thread is not running")
+        return asyncio.run_coroutine_threadsafe(coro, self.loop)
+
+    async def run(self, coro: Coroutine[Any, Any, T]) -> T:
+        """Await `coro` run on the control loop, from another loop."""
+        return await asyncio.wrap_future(self.submit(coro))
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """End the loop (after its tasks were closed by their owners) and join the thread."""
+        if self._thread is None or self.loop is None or self._stopped is None:
+            return
+        with contextlib.suppress(RuntimeError):  # loop already closed
+            self.loop.call_soon_threadsafe(self._stopped.set)
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            log.warning("control thread did not end within %.1f s", timeout)
+        self._thread = None
+        self.loop = None
+        if self._old_switch is not None:
+            sys.setswitchinterval(self._old_switch)
+            self._old_switch = None
+
+
+def _raise_priority() -> int | None:
+    """Give the calling thread CONTROL_NICE if permitted; the niceness it got, or None."""
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, CONTROL_NICE)
+        return os.getpriority(os.PRIO_PROCESS, tid)
+    except (OSError, AttributeError):
+        return None
+
+
+def running_loop() -> asyncio.AbstractEventLoop | None:
+    try:
+        return asyncio.get_running_loop()
+    except RuntimeError:
+        return None
+
+
+async def call_in(loop: asyncio.AbstractEventLoop | None,
+                  fn: Callable[[], Coroutine[Any, Any, T]]) -> T:
+    """`await fn()` on `loop`: directly if that is the running loop (or None), else by
+    crossing into it and awaiting the result here."""
+    if loop is None or loop is running_loop() or loop.is_closed():
+        return await fn()
+    return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(fn(), loop))
+
+
+def on_control(method: Callable[P, Awaitable[T]]) -> Callable[P, Coroutine[Any, Any, T]]:
+    """Run an async method on its object's `home_loop` (see the module doc)."""
+
+    @functools.wraps(method)
+    async def crossing(*args: P.args, **kwargs: P.kwargs) -> T:
+        home = getattr(args[0], "home_loop", None)
+
+        async def call() -> T:
+            return await method(*args, **kwargs)
+
+        return await call_in(home, call)
+
+    return crossing

@@ -1,0 +1,74 @@
+"""`armserver serve`'s uvicorn server, with a shutdown that leaves every arm still.
+
+- First SIGTERM or SIGINT: every arm stops the way `POST /stop` does (its motion decelerates
+  within the limits and the arm holds; a `wait: true` move answers `stopped`, "server shutting
+  down"), no new motion is accepted (503 `shutting_down`), then uvicorn closes: connections get
+  `shutdown_timeout_s` to finish, then the arms' links close.
+- Second signal: the arms are told to hold where they were last commanded (bounded wait of
+  `HOLD_WAIT_S`) and the process stops at once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import logging
+from types import FrameType
+from typing import Any
+
+import uvicorn
+
+log = logging.getLogger("armserver")
+
+#: How long the second signal waits for the hold to be sent, s.
+HOLD_WAIT_S = 1.0
+SHUTDOWN_REASON = "server shutting down"
+
+
+def stop_arms(app: Any, hold: bool) -> list[concurrent.futures.Future[Any]]:
+    """From any thread (a signal handler included): refuse new motion on every arm and stop
+    (decelerate, then hold) or, with `hold`, hold at once. The futures of those calls."""
+    futures = []
+    for svc in getattr(app.state, "services", {}).values():
+        svc.closing = True
+        loop = svc.home_loop
+        if loop is None or loop.is_closed():
+            continue
+        coro = svc.motion.emergency_stop() if hold else _stop_for_shutdown(svc)
+        futures.append(asyncio.run_coroutine_threadsafe(coro, loop))
+    return futures
+
+
+async def _stop_for_shutdown(svc: Any) -> list[str]:
+    """`POST /stop`, with the reason the running motion ends with saying why (on the arm's
+    loop)."""
+    cur = svc.motion.current
+    if cur is not None and cur.status == "running" and cur.reason is None:
+        cur.reason = SHUTDOWN_REASON
+    return list(await svc.motion.stop_all(reason=SHUTDOWN_REASON))
+
+
+class ArmServer(uvicorn.Server):
+    """uvicorn.Server whose signal handling stops the arms first (see the module doc)."""
+
+    def __init__(self, config: uvicorn.Config, app: Any) -> None:
+        super().__init__(config)
+        self.arm_app = app
+
+    def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+        if not self.should_exit:
+            log.warning("signal %d: stopping every arm, then shutting down (a second signal "
+                        "holds the arms and exits at once)", sig)
+            stop_arms(self.arm_app, hold=False)
+            super().handle_exit(sig, frame)
+            return
+        log.warning("signal %d again: holding every arm and exiting now", sig)
+        futures = stop_arms(self.arm_app, hold=True)
+        # Wait for the hold where the arms run on the control thread (without one they run on
+        # this thread's loop, which cannot answer while we wait: the hold is only queued).
+        if getattr(self.arm_app.state, "control", None) is not None:
+            with contextlib.suppress(Exception):
+                concurrent.futures.wait(futures, HOLD_WAIT_S)
+        self._captured_signals.append(sig)
+        self.force_exit = True

@@ -1,0 +1,101 @@
+"""Limits on what one client can make the server do (issue 11, item 2), over a real uvicorn
+server on loopback with the same HTTP options as `armserver serve` (`app.cli.http_limits`):
+a request head over `max_header_bytes` is refused without parsing the rest, connections over
+`max_connections` get 503, and telemetry subscribers over the per-arm or total limit are closed
+with 1013 and a JSON reason whose code is `busy`."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import socket
+import time
+
+import httpx
+import pytest
+from conftest import make_settings, serve_live
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
+
+WS = "/api/v1/arms/{arm}/telemetry"
+
+
+def _raw_request(port: int, head: bytes, chunk: int = 1 << 20) -> bytes:
+    """Send `head` (possibly huge) on a raw socket; whatever the server answers."""
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
+        with contextlib.suppress(OSError):  # the server may close before all is sent
+            for i in range(0, len(head), chunk):
+                sock.sendall(head[i:i + chunk])
+        out = b""
+        with contextlib.suppress(OSError):
+            while True:
+                data = sock.recv(65536)
+                if not data:
+                    break
+                out += data
+        return out
+
+
+def test_a_huge_header_is_refused_after_max_header_bytes() -> None:
+    with serve_live(make_settings(max_header_bytes=16 * 1024)) as live:
+        port = int(live.url.rsplit(":", 1)[1])
+        head = (b"GET /api/v1/health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Big: "
+                + b"a" * (8 << 20) + b"\r\n\r\n")
+        answer = _raw_request(port, head)
+        assert answer.startswith(b"HTTP/1.1 400"), answer[:200]
+        # A head under the limit is served as usual.
+        ok = _raw_request(port, b"GET /api/v1/health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Small: "
+                          + b"a" * 8000 + b"\r\nConnection: close\r\n\r\n")
+        assert ok.startswith(b"HTTP/1.1 200"), ok[:200]
+
+
+def test_connections_over_the_limit_get_503() -> None:
+    with serve_live(make_settings(max_connections=8)) as live:
+        port = int(live.url.rsplit(":", 1)[1])
+        idle = [socket.create_connection(("127.0.0.1", port)) for _ in range(8)]
+        try:
+            time.sleep(0.3)
+            r = httpx.get(live.url + "/api/v1/health", timeout=10)
+            assert r.status_code == 503
+        finally:
+            for s in idle:
+                s.close()
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:  # the server notices the closed sockets
+            if httpx.get(live.url + "/api/v1/health", timeout=10).status_code == 200:
+                break
+            time.sleep(0.05)
+        assert httpx.get(live.url + "/api/v1/health", timeout=10).status_code == 200
+
+
+async def _refused(url: str) -> tuple[int, dict[str, str]]:
+    async with connect(url) as ws:
+        with pytest.raises(ConnectionClosed) as exc:
+            while True:
+                await ws.recv()
+    assert exc.value.rcvd is not None
+    return exc.value.rcvd.code, json.loads(exc.value.rcvd.reason)
+
+
+def test_subscribers_over_the_per_arm_and_total_limits_are_refused_busy() -> None:
+    settings = make_settings(max_subscribers_per_arm=2, max_subscribers=3)
+
+    async def run(base: str) -> None:
+        rb, an = base + WS.format(arm="rbe3001"), base + WS.format(arm="angler")
+        async with connect(rb) as a, connect(rb) as b:
+            await a.recv()
+            await b.recv()
+            code, reason = await _refused(rb)
+            assert code == 1013 and reason["code"] == "busy" and "rbe3001" in reason["detail"]
+            async with connect(an) as c:
+                await c.recv()
+                code, reason = await _refused(an)
+                assert code == 1013 and reason["code"] == "busy"
+                assert "in all" in reason["detail"]
+        # Closed subscribers free their places.
+        async with connect(rb) as a:
+            assert json.loads(await a.recv())["type"] == "telemetry"
+
+    with serve_live(settings) as live:
+        asyncio.run(run(live.ws_url))
