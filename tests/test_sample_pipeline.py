@@ -17,7 +17,6 @@ from app.devices.factory import make_sim_device
 from app.devices.rbe3001 import Rbe3001Driver
 from app.links.serial import SerialLink
 from app.links.sim import SimLink
-from app.sim.mx28_servo import STEP_S, Mx28Servo
 from app.sim.rbe3001_firmware import CYCLE_S, Rbe3001Firmware
 from app.sim.serve import serve_tcp
 from app.telemetry import TelemetryHub
@@ -234,26 +233,6 @@ def test_rbe3001_sim_at_rest_answers_the_same_bytes_as_stepping_every_cycle() ->
     assert lazy.cycles == full.cycles and lazy.q == full.q
     assert skipped > 500  # it did rest (and skip) for a good part of the run
     assert t - 100.0 > 1000 * CYCLE_S
-
-
-def test_mx28_servo_resting_on_its_goal_matches_stepping() -> None:
-    lazy, full = Mx28Servo(1), Mx28Servo(1)
-    for s in (lazy, full):
-        s.set("torque_enable", 1)
-        s.set("goal_position", 2100)
-    for k in range(1, 400):
-        now = 10.0 + k * 0.005
-        lazy.advance(0.005, now)
-        # the reference: every 1 ms step computed, every Present* item written
-        full.set("realtime_tick", int(now * 1000) % 32768)
-        for _ in range(5):
-            full._step_position(STEP_S)
-        full._write_present(full.vel)
-        assert lazy.mem == full.mem, k
-        if k == 200:
-            for s in (lazy, full):
-                s.set("goal_position", 1900)
-    assert lazy.pos == 1900.0 and lazy.get("present_position") == 1900
 
 
 @pytest.mark.parametrize("name", ["rbe3001", "angler"])
