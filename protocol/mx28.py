@@ -126,3 +126,59 @@ def to_unit(it: ControlItem, raw: int) -> float | None:
     if it.unit is None:
         return None
     return raw * it.scale
+
+
+#: Hardware Error Status (70) and Shutdown (63) bits, by name (e-manual, "Shutdown(63)").
+#: Bits 1, 6 and 7 are unused (always 0).
+HARDWARE_ERRORS: dict[str, int] = {
+    "input_voltage": 0x01,
+    "overheating": 0x04,
+    "motor_encoder": 0x08,
+    "electrical_shock": 0x10,
+    "overload": 0x20,
+}
+#: Shutdown (63) default: overheating | electrical shock | overload
+SHUTDOWN_DEFAULT = 0x34
+#: Moving Status (123) bits (e-manual, "Moving Status(123)")
+IN_POSITION = 0x01
+PROFILE_ONGOING = 0x02
+FOLLOWING_ERROR = 0x08
+PROFILE_TYPE_MASK = 0x30
+PROFILE_TRAPEZOIDAL, PROFILE_TRIANGULAR, PROFILE_RECTANGULAR, PROFILE_STEP = 0x30, 0x20, 0x10, 0x00
+#: No-load speed (rpm) at supply voltage (V), from the e-manual's specifications table
+NO_LOAD_RPM: tuple[tuple[float, float], ...] = ((11.1, 50.0), (12.0, 55.0), (14.8, 67.0))
+
+
+def hardware_error_names(bits: int) -> list[str]:
+    """The names of the Hardware Error Status bits set in `bits`, in bit order."""
+    return [name for name, bit in sorted(HARDWARE_ERRORS.items(), key=lambda kv: kv[1])
+            if bits & bit]
+
+
+def hardware_error_bits(names: str | list[str] | tuple[str, ...]) -> int:
+    """The Hardware Error Status bits of one name or several; ValueError naming the valid
+    ones for an unknown name."""
+    bits = 0
+    for name in [names] if isinstance(names, str) else names:
+        key = name.strip().lower().replace(" ", "_").replace("-", "_")
+        if key not in HARDWARE_ERRORS:
+            raise ValueError(f"no MX-28 hardware error {name!r}; one of "
+                             f"{', '.join(HARDWARE_ERRORS)}")
+        bits |= HARDWARE_ERRORS[key]
+    return bits
+
+
+def no_load_rpm(volts: float) -> float:
+    """The datasheet no-load speed at a supply voltage: linear between the e-manual's points
+    (50 rpm at 11.1 V, 55 at 12 V, 67 at 14.8 V), extended along the end segments, never
+    below 0."""
+    pts = NO_LOAD_RPM
+    k = 0 if volts <= pts[1][0] else 1
+    (v0, r0), (v1, r1) = pts[k], pts[k + 1]
+    return max(0.0, r0 + (r1 - r0) * (volts - v0) / (v1 - v0))
+
+
+#: ticks/s per raw velocity unit (0.229 rpm) and ticks/s^2 per raw acceleration unit
+#: (214.577 rev/min^2)
+VEL_TICKS_PER_UNIT = 0.229 * TICKS_PER_REV / 60.0
+ACC_TICKS_PER_UNIT = 214.577 * TICKS_PER_REV / 3600.0

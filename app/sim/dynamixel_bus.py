@@ -179,11 +179,50 @@ class DynamixelBus:
             return ErrorCode.DATA_LENGTH, b""
         return ErrorCode.INSTRUCTION, b""
 
-    def inject_hardware_error(self, id: int, bits: int) -> None:
-        """Fault injection: raise Hardware Error Status bits on servo `id` (alert bit set in
-        its replies until REBOOT)."""
+    # fault injection (tests and `armserver sim dynamixel --fault`) ---------------------------
+    def _one(self, id: int) -> Mx28Servo:
         s = self.servo(id)
         if s is None:
             raise KeyError(f"no servo {id} on the bus")
-        s.inject_hardware_error(bits)
+        return s
 
+    def _some(self, ids: Iterable[int] | None) -> list[Mx28Servo]:
+        return list(self.servos) if ids is None else [self._one(i) for i in ids]
+
+    def inject_hardware_error(self, id: int, bits: int | str | list[str] | tuple[str, ...]
+                              ) -> None:
+        """Raise Hardware Error Status bits on servo `id`: a mask (0x20) or names ("overload",
+        ["overheating", "electrical_shock"]; see protocol.mx28.HARDWARE_ERRORS). The alert bit
+        is set in its replies and, for a bit in its Shutdown item, torque goes off, both until
+        REBOOT."""
+        self._one(id).inject_hardware_error(bits)
+
+    def set_supply_voltage(self, volts: float, ids: Iterable[int] | None = None) -> None:
+        """The supply the servos see (V): their speed scales with it and, outside their
+        voltage limits, they raise the input voltage error."""
+        for s in self._some(ids):
+            s.supply_v = float(volts)
+            s.advance(0.0, self._now or 0.0)
+
+    def set_temperature(self, celsius: float, ids: Iterable[int] | None = None) -> None:
+        """Internal temperature (C): above Temperature Limit, the overheating error."""
+        for s in self._some(ids):
+            s.temperature_c = float(celsius)
+            s.advance(0.0, self._now or 0.0)
+
+    def power_cycle(self, ids: Iterable[int] | None = None) -> None:
+        """Power off and on (all servos, or `ids`): RAM defaults, torque off, errors cleared,
+        position re-initialised within one turn. No reply tells the host."""
+        for s in self._some(ids):
+            s.power_cycle()
+
+    def brown_out(self, ids: Iterable[int] | None = None) -> None:
+        """A supply dip deep enough to reset the servos' controller: a power cycle the host
+        is not told about (it finds torque off and the multi-turn count lost)."""
+        self.power_cycle(ids)
+
+    def set_torque_refusal(self, error: int) -> None:
+        """What a servo answers to Torque Enable = 1 after a shutdown: 0 (default: the write is
+        ignored, only the Alert bit shows) or an error number such as ErrorCode.RESULT_FAIL."""
+        for s in self.servos:
+            s.torque_refusal = int(error)

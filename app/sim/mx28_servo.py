@@ -1,45 +1,64 @@
-"""One simulated MX-28 (Protocol 2.0 firmware): its control table and its motion.
+"""One simulated MX-28 (Protocol 2.0 firmware): its control table, its faults and its motion.
 
-The control table is a bytearray laid out as the e-manual's
-(https://emanual.robotis.com/docs/en/dxl/mx/mx-28-2/), initialised to its defaults. Writes
-are checked as the firmware does: read-only items and EEPROM items with torque on give the
-access error, values outside an item's range the data range error, values beyond a limit
-item (position limits in position mode, Velocity/PWM/Acceleration Limit) the data limit error,
-and partial writes of an item the data length error. A refused write changes nothing.
+Sources: the MX-28(2.0) e-manual (https://emanual.robotis.com/docs/en/dxl/mx/mx-28-2/) and the
+Protocol 2.0 page (https://emanual.robotis.com/docs/en/dxl/protocol2/); docs/hardware.md
+("Dynamixel MX-28") cites the section of each behaviour below.
 
-Motion is a kinematic model with perfect tracking: the profile (trapezoid under Profile
-Velocity and Profile Acceleration, or Velocity Limit and Acceleration Limit where those are 0)
-is integrated in steps of at most 1 ms, and Present Position follows it exactly. Present Load
-(0.1 % units) is a simple model: proportional to acceleration plus Coulomb friction. Drive
-Mode (reverse, time-based profile) is not modelled. Everything is deterministic.
+The control table is a bytearray laid out as the e-manual's, initialised to its defaults.
+Writes are checked as the firmware does: read-only items and EEPROM items with torque on give
+the access error, values outside an item's range the data range error, values beyond a limit
+item (position limits in position mode, Velocity Limit for Profile Velocity and Goal Velocity,
+PWM/Acceleration Limit) the data limit error, and partial writes of an item the data length
+error. A refused write changes nothing.
+
+Faults: Hardware Error Status (70) bits stay set until a REBOOT (or a power cycle); while any
+is set every status packet carries the Alert bit (the bus adds it). A bit that is also set in
+Shutdown (63) clears Torque Enable, and Torque Enable cannot be set again until a REBOOT: the
+e-manual does not say what the servo answers to such a write; this one ignores it (nothing
+changes) and answers with no error number, so the host sees only the Alert bit
+(`TORQUE_REFUSAL`; a bus may choose the result-fail error instead). The input voltage and
+overheating bits are also raised by the conditions themselves (supply outside the voltage
+limits, temperature above the limit).
+
+Motion: in the position modes a profile generator (Profile Velocity/Acceleration: step,
+rectangular, triangular or trapezoidal, as the e-manual's Profile Velocity section) drives
+Position/Velocity Trajectory (140/136); the motor follows the trajectory exactly where it
+can, but never faster than its no-load speed at the present supply voltage (55 rpm at 12 V,
+scaled by the PWM limit in force): a trajectory it cannot follow leaves it behind, with the
+Following Error bit of Moving Status set. Present PWM is the duty that speed needs, so the
+PWM model and the motion agree. Present Load (0.1 %) is proportional to acceleration plus
+Coulomb friction. Drive Mode (reverse, time-based profile) is not modelled. Deterministic.
 """
 
 from __future__ import annotations
 
 import math
 
+from app.sim.mx28_motion import Motion
 from protocol import mx28
 from protocol.dynamixel import CLEAR_MULTI_TURN, ErrorCode, from_bytes, to_bytes
 
-#: ticks/s per raw unit of velocity (0.229 rpm)
-VEL_UNIT = 0.229 * mx28.TICKS_PER_REV / 60.0
-#: ticks/s^2 per raw unit of acceleration (214.577 rev/min^2)
-ACC_UNIT = 214.577 * mx28.TICKS_PER_REV / 3600.0
-#: integration step, s
-STEP_S = 0.001
+#: Present Input Voltage (V) and Present Temperature (C) of a healthy servo on a 12 V supply
+SUPPLY_V = 12.0
+TEMPERATURE_C = 35
+FIRMWARE_VERSION = 45
+#: the status error number answered to Torque Enable = 1 after a shutdown (0: none, the
+#: write is ignored and only the Alert bit shows); the e-manual is silent, see the docstring
+TORQUE_REFUSAL = 0
 #: Present Load model, 0.1 % units: per raw acceleration unit, and Coulomb friction while moving
 LOAD_PER_ACC = 0.05
 FRICTION_LOAD = 40
-#: Present Input Voltage (0.1 V) and Present Temperature (C) of a healthy servo on a 12 V supply
-SUPPLY_V = 120
-TEMPERATURE_C = 35
-FIRMWARE_VERSION = 45
+#: ticks/s per raw velocity unit and ticks/s^2 per raw acceleration unit (old names, kept)
+VEL_UNIT = mx28.VEL_TICKS_PER_UNIT
+ACC_UNIT = mx28.ACC_TICKS_PER_UNIT
 BAUD_CODES = {0: 9600, 1: 57_600, 2: 115_200, 3: 1_000_000, 4: 2_000_000, 5: 3_000_000,
               6: 4_000_000, 7: 4_500_000}
 POSITION, EXTENDED, VELOCITY, PWM = 3, 4, 1, 16
 _MODES = (VELOCITY, POSITION, EXTENDED, PWM)
 _GAINS = ("velocity_i_gain", "velocity_p_gain", "position_d_gain", "position_i_gain",
           "position_p_gain", "feedforward_2nd_gain", "feedforward_1st_gain")
+_LIMITS = {"goal_velocity": "velocity_limit", "profile_velocity": "velocity_limit",
+           "goal_pwm": "pwm_limit", "profile_acceleration": "acceleration_limit"}
 
 
 class Mx28Servo:
@@ -47,17 +66,19 @@ class Mx28Servo:
 
     def __init__(self, id: int, operating_mode: int = POSITION, baud_code: int = 1) -> None:
         self.mem = bytearray(mx28.TABLE_END)
-        self.pos = 0.0  # profile (= present) position, ticks, in the reported frame
-        self.vel = 0.0  # ticks/s
-        self.acc = 0.0  # ticks/s^2 during the last step
+        self.motion = Motion()
         self.registered: tuple[int, bytes] | None = None
+        self.supply_v = SUPPLY_V  # volts at the servo's power input
+        self.temperature_c = float(TEMPERATURE_C)
+        self.shut_down = False  # a shutdown happened: torque stays off until REBOOT
+        self.torque_refusal = TORQUE_REFUSAL
         self._eeprom_defaults(keep_id=False, keep_baud=False)
         self.set("id", id)
         self.set("baud_rate", baud_code)
         self.set("operating_mode", operating_mode)
+        self.motion.reset(2048.0)
         self._ram_defaults()
-        self.pos = 2048.0
-        self._publish(0.0)
+        self._publish()
 
     # raw access ---------------------------------------------------------------------------
     def get(self, name: str) -> int:
@@ -80,6 +101,27 @@ class Mx28Servo:
     def alert(self) -> bool:
         return self.get("hardware_error_status") != 0
 
+    @property
+    def pos(self) -> float:
+        """Present position, ticks, in the reported frame (homing offset included)."""
+        return self.motion.pos
+
+    @pos.setter
+    def pos(self, value: float) -> None:
+        """Put the motor at `value` ticks, at rest (a test's way to wind a carriage out)."""
+        self.motion.reset(float(value))
+        self._publish()
+
+    @property
+    def vel(self) -> float:
+        """Present velocity, ticks/s."""
+        return self.motion.vel
+
+    @property
+    def acc(self) -> float:
+        """Acceleration during the last integration step, ticks/s^2."""
+        return self.motion.acc
+
     def _eeprom_defaults(self, keep_id: bool, keep_baud: bool) -> None:
         keep = {"id": self.mem[7], "baud_rate": self.mem[8]}
         for it in mx28.TABLE.values():
@@ -98,6 +140,14 @@ class Mx28Servo:
         self.set("goal_pwm", self.get("pwm_limit"))
         self.set("goal_position", round(self.pos))
         self.registered = None
+        self.shut_down = False
+        self.motion.stop()
+
+    def _fold(self) -> None:
+        """Present Position re-initialised within one turn (0..4095, then the homing offset
+        added), as at power-up, on entering position mode and on torque-on in it."""
+        offset = self.get("homing_offset")
+        self.motion.reset((self.pos - offset) % mx28.TICKS_PER_REV + offset)
 
     # instructions -------------------------------------------------------------------------
     def read(self, address: int, length: int) -> tuple[int, bytes]:
@@ -130,28 +180,44 @@ class Mx28Servo:
     def _beyond_limit(self, name: str, value: int) -> bool:
         if name == "goal_position" and self.get("operating_mode") == POSITION:
             return not self.get("min_position_limit") <= value <= self.get("max_position_limit")
-        limit = {"goal_velocity": "velocity_limit", "goal_pwm": "pwm_limit",
-                 "profile_acceleration": "acceleration_limit"}.get(name)
+        limit = _LIMITS.get(name)
         return limit is not None and abs(value) > self.get(limit)
+
+    def _torque_refused(self, address: int, data: bytes) -> bool:
+        """A write that would turn torque on after a shutdown (refused until REBOOT)."""
+        at = mx28.TABLE["torque_enable"].address
+        return self.shut_down and address <= at < address + len(data) and data[at - address] != 0
 
     def write(self, address: int, data: bytes) -> int:
         error = self.check_write(address, data)
         if error:
             return error
-        before = {n: self.get(n) for n in ("operating_mode", "torque_enable", "homing_offset")}
+        if self._torque_refused(address, data):
+            return self.torque_refusal
+        names = ("operating_mode", "torque_enable", "homing_offset", "goal_position")
+        before = {n: self.get(n) for n in names}
         self.mem[address:address + len(data)] = data
-        if self.get("operating_mode") != before["operating_mode"]:
+        goal_written = address <= mx28.TABLE["goal_position"].address < address + len(data)
+        mode = self.get("operating_mode")
+        if mode != before["operating_mode"]:
             for name in _GAINS:
                 self.set(name, mx28.TABLE[name].default or 0)
             self.set("profile_velocity", 0)
             self.set("profile_acceleration", 0)
             self.set("goal_pwm", self.get("pwm_limit"))
+            if mode == POSITION:
+                self._fold()
         if self.get("homing_offset") != before["homing_offset"]:
-            self.pos += self.get("homing_offset") - before["homing_offset"]
-            self._publish(0.0)
+            self.motion.reset(self.pos + self.get("homing_offset") - before["homing_offset"])
         if self.torque and not before["torque_enable"]:
+            if mode == POSITION:
+                self._fold()
             self.set("goal_position", round(self.pos))  # hold where it stands
-            self.vel = 0.0
+            self.motion.stop()
+            goal_written = True
+        if goal_written and mode in (POSITION, EXTENDED):
+            self.motion.new_goal(self.get("goal_position"), *self._profile())
+        self._publish()
         return 0
 
     def reg_write(self, address: int, data: bytes) -> int:
@@ -170,13 +236,15 @@ class Mx28Servo:
         return self.write(address, data)
 
     def reboot(self) -> int:
-        """Power cycle: RAM back to defaults (torque off, hardware error cleared); a
-        multi-turn position folds back into one turn as after power-up."""
-        self.pos = self.pos % mx28.TICKS_PER_REV
-        self.vel = self.acc = 0.0
+        """REBOOT (or a power cycle): RAM back to defaults (torque off, Profile Velocity 0,
+        hardware error and shutdown cleared); Present Position re-initialised within one turn,
+        so an extended-position count is lost."""
+        self._fold()
         self._ram_defaults()
-        self._publish(0.0)
+        self._publish()
         return 0
+
+    power_cycle = reboot
 
     def factory_reset(self, mode: int) -> int:
         if self.torque:
@@ -191,92 +259,98 @@ class Mx28Servo:
             return ErrorCode.DATA_RANGE
         if self.get("moving"):
             return ErrorCode.RESULT_FAIL
-        self.pos = self.pos % mx28.TICKS_PER_REV
-        self._publish(0.0)
+        self._fold()
+        self.set("goal_position", round(self.pos))
+        self._publish()
         return 0
 
-    def inject_hardware_error(self, bits: int) -> None:
-        """Fault injection: set Hardware Error Status; a shutdown bit clears Torque Enable."""
-        self.set("hardware_error_status", self.get("hardware_error_status") | bits)
-        if bits & self.get("shutdown"):
+    # faults -------------------------------------------------------------------------------
+    def inject_hardware_error(self, bits: int | str | list[str] | tuple[str, ...]) -> None:
+        """Raise Hardware Error Status bits (a mask, a name such as "overload", or names);
+        a bit also set in Shutdown turns torque off until REBOOT."""
+        mask = bits if isinstance(bits, int) else mx28.hardware_error_bits(bits)
+        self.set("hardware_error_status", self.get("hardware_error_status") | mask)
+        if mask & self.get("shutdown"):
             self.set("torque_enable", 0)
+            self.shut_down = True
+            self.motion.stop()
+        self._publish()
+
+    def _check_conditions(self) -> None:
+        volts = round(self.supply_v * 10)
+        bits = 0
+        if not self.get("min_voltage_limit") <= volts <= self.get("max_voltage_limit"):
+            bits |= mx28.HARDWARE_ERRORS["input_voltage"]
+        if self.temperature_c > self.get("temperature_limit"):
+            bits |= mx28.HARDWARE_ERRORS["overheating"]
+        if bits & ~self.get("hardware_error_status"):
+            self.inject_hardware_error(bits)
 
     # motion -------------------------------------------------------------------------------
+    def _profile(self) -> tuple[float, float]:
+        """(Profile Velocity, Profile Acceleration) in raw units, Profile Velocity never above
+        Velocity Limit; 0 keeps its meaning (step / rectangular profile)."""
+        pv = min(self.get("profile_velocity"), self.get("velocity_limit"))
+        return float(pv), float(self.get("profile_acceleration"))
+
+    def speed_cap(self) -> float:
+        """The fastest the motor turns now, ticks/s: the no-load speed at the supply voltage,
+        scaled by the PWM limit in force (Goal PWM limits PWM in every mode but PWM mode)."""
+        duty = min(abs(self.get("goal_pwm")), self.get("pwm_limit")) / 885.0
+        return mx28.no_load_rpm(self.supply_v) / 60.0 * mx28.TICKS_PER_REV * duty
+
     def advance(self, dt: float, now: float) -> None:
         """Integrate `dt` seconds of motion and refresh the Present* items."""
         self.set("realtime_tick", int(now * 1000) % 32768)
+        self._check_conditions()
         if dt <= 0.0:
+            self._publish()
             return
         if not self.torque:
-            self.vel = self.acc = 0.0
-            self._publish(0.0)
-            return
-        mode = self.get("operating_mode")
-        t_left = dt
-        while t_left > 1e-12:
-            h = min(STEP_S, t_left)
-            t_left -= h
+            self.motion.stop()
+        else:
+            mode = self.get("operating_mode")
+            pv, pa = self._profile()
             if mode in (POSITION, EXTENDED):
-                self._step_position(h)
-            else:
-                self._step_velocity(h, mode)
-        self._publish(self.vel)
+                self.motion.step_position(dt, self.speed_cap(), pv, pa)
+            elif mode == VELOCITY:
+                self.motion.step_velocity(dt, self.get("goal_velocity"), pa, self.speed_cap())
+            else:  # PWM: duty sets the no-load speed; the Acceleration Limit as the ramp
+                full = mx28.no_load_rpm(self.supply_v) / 60.0 * mx28.TICKS_PER_REV
+                target = self.get("goal_pwm") / 885.0 * full / mx28.VEL_TICKS_PER_UNIT
+                self.motion.step_velocity(dt, target, self.get("acceleration_limit"), full)
+        self._publish()
 
-    def _limits(self) -> tuple[float, float]:
-        """Profile (velocity ticks/s, acceleration ticks/s^2); 0 means use the limit item."""
-        pv, pa = self.get("profile_velocity"), self.get("profile_acceleration")
-        vmax = (pv or self.get("velocity_limit") or 1023) * VEL_UNIT
-        amax = (pa or self.get("acceleration_limit") or 32767) * ACC_UNIT
-        return vmax, amax
-
-    def _step_position(self, h: float) -> None:
-        vmax, amax = self._limits()
-        goal = float(self.get("goal_position"))
-        err = goal - self.pos
-        if abs(err) < 1e-9 and abs(self.vel) <= amax * h:
-            self.pos, self.acc, self.vel = goal, -self.vel / h, 0.0
-            return
-        # fastest velocity from which the goal can still be reached without overshoot
-        v_des = math.copysign(min(vmax, math.sqrt(2.0 * amax * abs(err))), err)
-        dv = max(-amax * h, min(amax * h, v_des - self.vel))
-        v_new = self.vel + dv
-        p_new = self.pos + 0.5 * (self.vel + v_new) * h
-        if (goal - p_new) * err <= 0.0:
-            p_new, v_new = goal, 0.0
-        self.acc = (v_new - self.vel) / h
-        self.pos, self.vel = p_new, v_new
-
-    def _step_velocity(self, h: float, mode: int) -> None:
-        vmax, amax = self._limits()
-        if mode == VELOCITY:
-            target = self.get("goal_velocity") * VEL_UNIT
-        else:  # PWM: no-load speed scales with duty; 55 rpm at 12 V and full PWM
-            target = self.get("goal_pwm") / 885.0 * 55.0 / 0.229 * VEL_UNIT
-        target = max(-vmax, min(vmax, target))
-        dv = max(-amax * h, min(amax * h, target - self.vel))
-        v_new = self.vel + dv
-        self.pos += 0.5 * (self.vel + v_new) * h
-        self.acc = dv / h
-        self.vel = v_new
-
-    def _publish(self, vel: float) -> None:
-        raw_vel = int(round(vel / VEL_UNIT))
+    def _publish(self) -> None:
+        m = self.motion
+        raw_vel = int(round(m.vel / mx28.VEL_TICKS_PER_UNIT))
         moving = abs(raw_vel) > self.get("moving_threshold")
-        load = 0
+        mode = self.get("operating_mode")
+        load = pwm = 0
         if self.torque:
-            load = round(self.acc / ACC_UNIT * LOAD_PER_ACC)
+            load = round(m.acc / mx28.ACC_TICKS_PER_UNIT * LOAD_PER_ACC)
             if moving:
-                load += int(math.copysign(FRICTION_LOAD, vel))
+                load += int(math.copysign(FRICTION_LOAD, m.vel))
             load = max(-1000, min(1000, load))
-        self.set("present_position", round(self.pos))
-        self.set("position_trajectory", round(self.pos))
+            if mode == PWM:
+                pwm = self.get("goal_pwm")
+            else:
+                limit = min(abs(self.get("goal_pwm")), self.get("pwm_limit"))
+                full = mx28.no_load_rpm(self.supply_v) / 60.0 * mx28.TICKS_PER_REV
+                need = 885.0 * m.vel / full if full > 0 else 0.0
+                pwm = max(-limit, min(limit, round(need + 0.885 * load)))
+        self.set("present_position", round(m.pos))
         self.set("present_velocity", raw_vel)
-        self.set("velocity_trajectory", raw_vel)
         self.set("present_load", load)
-        self.set("present_pwm", max(-885, min(885, load)) if self.torque else 0)
-        self.set("present_input_voltage", SUPPLY_V)
-        self.set("present_temperature", TEMPERATURE_C)
+        self.set("present_pwm", pwm)
+        self.set("present_input_voltage", round(self.supply_v * 10))
+        self.set("present_temperature", round(self.temperature_c))
         self.set("moving", int(moving))
-        in_position = abs(self.get("goal_position") - self.pos) < 1.0
-        profiling = self.torque and (abs(self.vel) > 0.0 or not in_position)
-        self.set("moving_status", int(in_position) | (int(profiling) << 1))
+        if mode in (POSITION, EXTENDED) and self.torque:
+            self.set("position_trajectory", round(m.traj_pos))
+            self.set("velocity_trajectory", round(m.traj_vel / mx28.VEL_TICKS_PER_UNIT))
+            self.set("moving_status", m.moving_status(self.get("goal_position")))
+        else:
+            self.set("position_trajectory", round(m.pos))
+            self.set("velocity_trajectory", raw_vel)
+            self.set("moving_status", 0)

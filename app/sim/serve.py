@@ -11,7 +11,10 @@ writer, so a later reply never overtakes an earlier one). Packetized devices (HI
 
 Command: `armserver sim dynamixel (--pty PATH | --listen tcp://127.0.0.1:PORT)
 [--ids 1,2,3,4] [--baudrate 1000000] [--mode ID:MODE ...] [--drop F] [--corrupt F]
-[--latency S]` (see `main`).
+[--latency S] [--supply V] [--fault ID:FAULT@T ...]` (see `main`). A fault is a hardware
+error name of protocol.mx28.HARDWARE_ERRORS (overload, overheating, electrical_shock,
+motor_encoder, input_voltage), `power_cycle` or `brown_out`, raised on servo ID (or `all`)
+T seconds after the start: `--fault 1:overload@2.0`.
 """
 
 from __future__ import annotations
@@ -30,7 +33,9 @@ from urllib.parse import urlsplit
 
 from app.config import FaultConfig
 from app.sim.base import SimDevice
+from app.sim.dynamixel_bus import DynamixelBus
 from app.sim.faults import ReplyFaults
+from protocol.mx28 import HARDWARE_ERRORS, hardware_error_bits
 
 log = logging.getLogger(__name__)
 
@@ -258,7 +263,52 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--corrupt", type=float, default=0.0,
                    help="fraction of replies with one byte changed")
     p.add_argument("--latency", type=float, default=0.0, help="extra delay of every reply, s")
+    p.add_argument("--supply", type=float, default=None, metavar="V",
+                   help="supply voltage the servos see (default 12 V): speed scales with it")
+    p.add_argument("--fault", action="append", default=[], metavar="ID:FAULT@T",
+                   help="at T s raise FAULT on servo ID (or all): a hardware error name "
+                        f"({', '.join(HARDWARE_ERRORS)}), power_cycle or brown_out")
     return p
+
+
+_BUS_EVENTS = ("power_cycle", "brown_out")
+
+
+def parse_fault(spec: str) -> tuple[int | None, str, float]:
+    """`ID:FAULT@T` -> (id or None for `all`, fault, t seconds); ValueError if malformed."""
+    head, at, when = spec.partition("@")
+    sid, colon, name = head.partition(":")
+    if not (at and colon and sid and name):
+        raise ValueError(f"--fault wants ID:FAULT@SECONDS, got {spec!r}")
+    name = name.strip().lower().replace("-", "_")
+    if name not in _BUS_EVENTS:
+        hardware_error_bits(name)  # ValueError naming the valid ones
+    t = float(when)
+    if not t >= 0.0 or t == float("inf"):
+        raise ValueError(f"--fault time must be a finite number of seconds >= 0, got {when!r}")
+    return (None if sid.strip().lower() == "all" else int(sid)), name, t
+
+
+def schedule_faults(bus: DynamixelBus, faults: Sequence[tuple[int | None, str, float]],
+                    loop: asyncio.AbstractEventLoop) -> list[asyncio.TimerHandle]:
+    """Raise each (id, fault, t) on `bus` t seconds from now."""
+
+    def fire(sid: int | None, name: str) -> None:
+        ids = None if sid is None else [sid]
+        try:
+            if name == "power_cycle":
+                bus.power_cycle(ids)
+            elif name == "brown_out":
+                bus.brown_out(ids)
+            else:
+                for i in [s.id for s in bus.servos] if sid is None else [sid]:
+                    bus.inject_hardware_error(i, name)
+        except KeyError as exc:
+            log.warning("fault %s not raised: %s", name, exc)
+            return
+        log.info("fault %s raised on %s", name, "all servos" if sid is None else f"id {sid}")
+
+    return [loop.call_later(t, fire, sid, name) for sid, name, t in faults]
 
 
 def _pairs(items: Sequence[str]) -> dict[int, int]:
@@ -270,10 +320,12 @@ def _pairs(items: Sequence[str]) -> dict[int, int]:
 
 
 async def _run(args: argparse.Namespace) -> None:
-    from app.sim.dynamixel_bus import DynamixelBus
-
     ids = [int(i) for i in args.ids.split(",") if i.strip()]
     device = DynamixelBus(ids, args.baudrate, _pairs(args.mode))
+    if args.supply is not None:
+        device.set_supply_voltage(args.supply)
+    timers = schedule_faults(device, [parse_fault(f) for f in args.fault],
+                             asyncio.get_running_loop())
     faults = FaultConfig(drop=args.drop, corrupt=args.corrupt, latency_s=args.latency)
     server: PtyServer | TcpServer
     if args.pty:
@@ -292,7 +344,20 @@ async def _run(args: argparse.Namespace) -> None:
     try:
         await stop.wait()
     finally:
+        for timer in timers:
+            timer.cancel()
         await server.close()
+
+
+def _check_faults_and_supply(args: argparse.Namespace) -> None:
+    """ValueError, before anything starts, for a fault on an absent id or a bad supply."""
+    ids = {int(i) for i in args.ids.split(",") if i.strip()}
+    for spec in args.fault:
+        sid = parse_fault(spec)[0]
+        if sid is not None and sid not in ids:
+            raise ValueError(f"--fault {spec!r}: no servo {sid} in --ids {args.ids}")
+    if args.supply is not None and not 0.0 <= args.supply <= 30.0:
+        raise ValueError(f"--supply wants volts in 0..30, got {args.supply}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -301,6 +366,7 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         _pairs(args.mode)
+        _check_faults_and_supply(args)
         asyncio.run(_run(args))
     except KeyboardInterrupt:
         return 0
