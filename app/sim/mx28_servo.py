@@ -103,7 +103,7 @@ class Mx28Servo:
 
     @property
     def id(self) -> int:
-        return self.mem[self.spec.TABLE["id"].address]
+        return self.mem[mx28.TABLE["id"].address]  # the same address on every model
 
     @property
     def torque(self) -> bool:
@@ -309,7 +309,8 @@ class Mx28Servo:
         """The fastest the motor turns now, ticks/s: the no-load speed at the supply voltage,
         scaled by the PWM limit in force (Goal PWM limits PWM in every mode but PWM mode)."""
         duty = min(abs(self.get("goal_pwm")), self.get("pwm_limit")) / 885.0
-        return self.spec.no_load_rpm(self.supply_v) / 60.0 * mx28.TICKS_PER_REV * duty
+        rpm: float = self.spec.no_load_rpm(self.supply_v)
+        return rpm / 60.0 * mx28.TICKS_PER_REV * duty
 
     def advance(self, dt: float, now: float) -> None:
         """Integrate `dt` seconds of motion and refresh the Present* items."""
