@@ -3,6 +3,10 @@ over a pty, the XM430's control table answers, and MX-28 servos on the same bus 
 
 from __future__ import annotations
 
+import signal
+import socket
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -12,7 +16,7 @@ from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHan
 
 from app.sim.dynamixel_bus import DynamixelBus
 from app.sim.mx28_servo import Mx28Servo
-from app.sim.serve import PtyServer, serve_pty
+from app.sim.serve import PtyServer, main, serve_pty
 from app.sim.xm430_servo import Xm430Servo
 from kinematics import omx
 from protocol import dynamixel as dxl
@@ -128,3 +132,33 @@ def test_sdk_sync_write_moves_the_arm_joints(sdk_omx: SdkBus) -> None:
             break
         time.sleep(0.05)
     assert present == goals
+
+
+def test_cli_xm430_ids_must_be_on_the_bus(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["dynamixel", "--listen", "tcp://127.0.0.1:0", "--ids", "11,12",
+                 "--xm430", "11,13"]) == 2
+    assert "no servo 13" in capsys.readouterr().out
+
+
+def test_cli_serves_xm430_over_tcp() -> None:
+    ids = ",".join(str(i) for i in OMX_IDS)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app.sim.serve", "dynamixel", "--listen", "tcp://127.0.0.1:0",
+         "--ids", f"1,{ids}", "--xm430", ids], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        port = int(proc.stdout.readline().split("socket://127.0.0.1:")[1].rstrip(")\n"))
+        with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+            for sid, model in ((11, 1020), (15, 1020), (1, 30)):
+                sock.sendall(dxl.ping(sid))
+                parser = dxl.Parser()
+                events: list[object] = []
+                while not events:
+                    parser.feed(sock.recv(256))
+                    events = list(parser)
+                reply = events[0]
+                assert isinstance(reply, dxl.Packet) and reply.id == sid
+                assert dxl.from_bytes(reply.params[:2], signed=False) == model
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
