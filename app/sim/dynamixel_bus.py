@@ -38,14 +38,19 @@ class DynamixelBus:
     packetized = False
 
     def __init__(self, ids: Iterable[int] = (1, 2, 3, 4), baudrate: int = 1_000_000,
-                 operating_modes: Mapping[int, int] | None = None) -> None:
+                 operating_modes: Mapping[int, int] | None = None,
+                 models: Mapping[int, type[Mx28Servo]] | None = None) -> None:
+        """`models` gives a servo class per id (default MX-28), e.g. Xm430Servo for an
+        OpenManipulator-X's ids; every class shares the MX-28's baud-rate codes."""
         codes = [c for c, b in BAUD_CODES.items() if b == baudrate]
         if not codes:
             rates = sorted(BAUD_CODES.values())
             raise ValueError(f"baudrate {baudrate} is not an MX-28 rate {rates}")
         modes = dict(operating_modes or {})
         self.baudrate = baudrate
-        self.servos = [Mx28Servo(i, modes.get(i, 3), codes[0]) for i in sorted(set(ids))]
+        kinds = dict(models or {})
+        self.servos = [kinds.get(i, Mx28Servo)(i, modes.get(i, 3), codes[0])
+                       for i in sorted(set(ids))]
         self.parser = dxl.Parser()
         self.errors: list[ParseError] = []  # last framing errors seen, newest last (bounded)
         self._now: float | None = None

@@ -33,6 +33,7 @@ Coulomb friction. Drive Mode (reverse, time-based profile) is not modelled. Dete
 from __future__ import annotations
 
 import math
+from types import ModuleType
 
 from app.sim.mx28_motion import Motion
 from protocol import mx28
@@ -62,10 +63,21 @@ _LIMITS = {"goal_velocity": "velocity_limit", "profile_velocity": "velocity_limi
 
 
 class Mx28Servo:
-    """A servo on the bus. `read`/`write` return ErrorCode values (0: success)."""
+    """A servo on the bus. `read`/`write` return ErrorCode values (0: success).
+
+    The model is data: `spec` is the control-table module (protocol/mx28.py here), `modes`
+    the Operating Mode values it accepts, `position_modes` those run by the profile
+    generator, `limits` the items bounded by another item. A subclass for another
+    Protocol 2.0 model of the same family changes these (app/sim/xm430_servo.py)."""
+
+    spec: ModuleType = mx28
+    modes: tuple[int, ...] = _MODES
+    position_modes: tuple[int, ...] = (POSITION, EXTENDED)
+    limits: dict[str, str] = _LIMITS
+    firmware_version = FIRMWARE_VERSION
 
     def __init__(self, id: int, operating_mode: int = POSITION, baud_code: int = 1) -> None:
-        self.mem = bytearray(mx28.TABLE_END)
+        self.mem = bytearray(self.spec.TABLE_END)
         self.motion = Motion()
         self.registered: tuple[int, bytes] | None = None
         self.supply_v = SUPPLY_V  # volts at the servo's power input
@@ -82,16 +94,16 @@ class Mx28Servo:
 
     # raw access ---------------------------------------------------------------------------
     def get(self, name: str) -> int:
-        it = mx28.TABLE[name]
+        it = self.spec.TABLE[name]
         return from_bytes(bytes(self.mem[it.address:it.address + it.size]), it.signed)
 
     def set(self, name: str, value: int) -> None:
-        it = mx28.TABLE[name]
+        it = self.spec.TABLE[name]
         self.mem[it.address:it.address + it.size] = to_bytes(value, it.size)
 
     @property
     def id(self) -> int:
-        return self.mem[mx28.TABLE["id"].address]
+        return self.mem[mx28.TABLE["id"].address]  # the same address on every model
 
     @property
     def torque(self) -> bool:
@@ -124,17 +136,17 @@ class Mx28Servo:
 
     def _eeprom_defaults(self, keep_id: bool, keep_baud: bool) -> None:
         keep = {"id": self.mem[7], "baud_rate": self.mem[8]}
-        for it in mx28.TABLE.values():
+        for it in self.spec.TABLE.values():
             if it.area == "eeprom":
                 self.set(it.name, it.default if it.default is not None else 0)
-        self.set("firmware_version", FIRMWARE_VERSION)
+        self.set("firmware_version", self.firmware_version)
         if keep_id:
             self.set("id", keep["id"])
         if keep_baud:
             self.set("baud_rate", keep["baud_rate"])
 
     def _ram_defaults(self) -> None:
-        for it in mx28.TABLE.values():
+        for it in self.spec.TABLE.values():
             if it.area == "ram":
                 self.set(it.name, it.default if it.default is not None else 0)
         self.set("goal_pwm", self.get("pwm_limit"))
@@ -160,7 +172,7 @@ class Mx28Servo:
         end = address + len(data)
         if not data or end > len(self.mem):
             return ErrorCode.ACCESS
-        touched = [it for it in mx28.TABLE.values()
+        touched = [it for it in self.spec.TABLE.values()
                    if it.address < end and address < it.address + it.size]
         for it in touched:
             if it.address < address or it.address + it.size > end:
@@ -171,7 +183,7 @@ class Mx28Servo:
             off = it.address - address
             value = from_bytes(data[off:off + it.size], it.signed)
             if not it.min_raw <= value <= it.max_raw or (
-                    it.name == "operating_mode" and value not in _MODES):
+                    it.name == "operating_mode" and value not in self.modes):
                 return ErrorCode.DATA_RANGE
             if self._beyond_limit(it.name, value):
                 return ErrorCode.DATA_LIMIT
@@ -180,12 +192,12 @@ class Mx28Servo:
     def _beyond_limit(self, name: str, value: int) -> bool:
         if name == "goal_position" and self.get("operating_mode") == POSITION:
             return not self.get("min_position_limit") <= value <= self.get("max_position_limit")
-        limit = _LIMITS.get(name)
+        limit = self.limits.get(name)
         return limit is not None and abs(value) > self.get(limit)
 
     def _torque_refused(self, address: int, data: bytes) -> bool:
         """A write that would turn torque on after a shutdown (refused until REBOOT)."""
-        at = mx28.TABLE["torque_enable"].address
+        at = self.spec.TABLE["torque_enable"].address
         return self.shut_down and address <= at < address + len(data) and data[at - address] != 0
 
     def write(self, address: int, data: bytes) -> int:
@@ -197,11 +209,11 @@ class Mx28Servo:
         names = ("operating_mode", "torque_enable", "homing_offset", "goal_position")
         before = {n: self.get(n) for n in names}
         self.mem[address:address + len(data)] = data
-        goal_written = address <= mx28.TABLE["goal_position"].address < address + len(data)
+        goal_written = address <= self.spec.TABLE["goal_position"].address < address + len(data)
         mode = self.get("operating_mode")
         if mode != before["operating_mode"]:
             for name in _GAINS:
-                self.set(name, mx28.TABLE[name].default or 0)
+                self.set(name, self.spec.TABLE[name].default or 0)
             self.set("profile_velocity", 0)
             self.set("profile_acceleration", 0)
             self.set("goal_pwm", self.get("pwm_limit"))
@@ -215,7 +227,7 @@ class Mx28Servo:
             self.set("goal_position", round(self.pos))  # hold where it stands
             self.motion.stop()
             goal_written = True
-        if goal_written and mode in (POSITION, EXTENDED):
+        if goal_written and mode in self.position_modes:
             self.motion.new_goal(self.get("goal_position"), *self._profile())
         self._publish()
         return 0
@@ -268,7 +280,7 @@ class Mx28Servo:
     def inject_hardware_error(self, bits: int | str | list[str] | tuple[str, ...]) -> None:
         """Raise Hardware Error Status bits (a mask, a name such as "overload", or names);
         a bit also set in Shutdown turns torque off until REBOOT."""
-        mask = bits if isinstance(bits, int) else mx28.hardware_error_bits(bits)
+        mask = bits if isinstance(bits, int) else self.spec.hardware_error_bits(bits)
         self.set("hardware_error_status", self.get("hardware_error_status") | mask)
         if mask & self.get("shutdown"):
             self.set("torque_enable", 0)
@@ -297,7 +309,8 @@ class Mx28Servo:
         """The fastest the motor turns now, ticks/s: the no-load speed at the supply voltage,
         scaled by the PWM limit in force (Goal PWM limits PWM in every mode but PWM mode)."""
         duty = min(abs(self.get("goal_pwm")), self.get("pwm_limit")) / 885.0
-        return mx28.no_load_rpm(self.supply_v) / 60.0 * mx28.TICKS_PER_REV * duty
+        rpm: float = self.spec.no_load_rpm(self.supply_v)
+        return rpm / 60.0 * mx28.TICKS_PER_REV * duty
 
     def advance(self, dt: float, now: float) -> None:
         """Integrate `dt` seconds of motion and refresh the Present* items."""
@@ -311,15 +324,24 @@ class Mx28Servo:
         else:
             mode = self.get("operating_mode")
             pv, pa = self._profile()
-            if mode in (POSITION, EXTENDED):
+            if mode in self.position_modes:
                 self.motion.step_position(dt, self.speed_cap(), pv, pa)
             elif mode == VELOCITY:
                 self.motion.step_velocity(dt, self.get("goal_velocity"), pa, self.speed_cap())
             else:  # PWM: duty sets the no-load speed; the Acceleration Limit as the ramp
-                full = mx28.no_load_rpm(self.supply_v) / 60.0 * mx28.TICKS_PER_REV
-                target = self.get("goal_pwm") / 885.0 * full / mx28.VEL_TICKS_PER_UNIT
+                full = self.spec.no_load_rpm(self.supply_v) / 60.0 * mx28.TICKS_PER_REV
+                target = self._drive() * full / mx28.VEL_TICKS_PER_UNIT
                 self.motion.step_velocity(dt, target, self.get("acceleration_limit"), full)
         self._publish()
+
+    def _drive(self) -> float:
+        """The duty (-1..1) the motor runs at in the modes without a goal position or
+        velocity: Goal PWM over its full scale (PWM mode)."""
+        return self.get("goal_pwm") / 885.0
+
+    def _publish_load(self, load: int) -> None:
+        """Publish the load model (0.1 % of the stall torque): Present Load on the MX-28."""
+        self.set("present_load", load)
 
     def _publish(self) -> None:
         m = self.motion
@@ -332,21 +354,21 @@ class Mx28Servo:
             if moving:
                 load += int(math.copysign(FRICTION_LOAD, m.vel))
             load = max(-1000, min(1000, load))
-            if mode == PWM:
-                pwm = self.get("goal_pwm")
+            if mode not in self.position_modes and mode != VELOCITY:
+                pwm = round(self._drive() * 885.0)
             else:
                 limit = min(abs(self.get("goal_pwm")), self.get("pwm_limit"))
-                full = mx28.no_load_rpm(self.supply_v) / 60.0 * mx28.TICKS_PER_REV
+                full = self.spec.no_load_rpm(self.supply_v) / 60.0 * mx28.TICKS_PER_REV
                 need = 885.0 * m.vel / full if full > 0 else 0.0
                 pwm = max(-limit, min(limit, round(need + 0.885 * load)))
         self.set("present_position", round(m.pos))
         self.set("present_velocity", raw_vel)
-        self.set("present_load", load)
+        self._publish_load(load)
         self.set("present_pwm", pwm)
         self.set("present_input_voltage", round(self.supply_v * 10))
         self.set("present_temperature", round(self.temperature_c))
         self.set("moving", int(moving))
-        if mode in (POSITION, EXTENDED) and self.torque:
+        if mode in self.position_modes and self.torque:
             self.set("position_trajectory", round(m.traj_pos))
             self.set("velocity_trajectory", round(m.traj_vel / mx28.VEL_TICKS_PER_UNIT))
             self.set("moving_status", m.moving_status(self.get("goal_position")))

@@ -35,6 +35,7 @@ from app.config import FaultConfig
 from app.sim.base import SimDevice
 from app.sim.dynamixel_bus import DynamixelBus
 from app.sim.faults import ReplyFaults
+from app.sim.xm430_servo import Xm430Servo
 from protocol.mx28 import HARDWARE_ERRORS, hardware_error_bits
 
 log = logging.getLogger(__name__)
@@ -257,6 +258,9 @@ def _parser() -> argparse.ArgumentParser:
     where.add_argument("--listen", metavar="URL", help="tcp://HOST:PORT to listen on")
     p.add_argument("--ids", default="1,2,3,4", help="servo ids, comma separated")
     p.add_argument("--baudrate", type=int, default=1_000_000, help="bus baud rate, bit/s")
+    p.add_argument("--xm430", default="", metavar="IDS",
+                   help="ids (among --ids) that are XM430-W350 servos, model 1020, e.g. an "
+                        "OpenManipulator-X: --ids 11,12,13,14,15 --xm430 11,12,13,14,15")
     p.add_argument("--mode", action="append", default=[], metavar="ID:MODE",
                    help="operating mode of a servo (1 velocity, 3 position, 4 extended, 16 PWM)")
     p.add_argument("--drop", type=float, default=0.0, help="fraction of replies lost")
@@ -321,7 +325,8 @@ def _pairs(items: Sequence[str]) -> dict[int, int]:
 
 async def _run(args: argparse.Namespace) -> None:
     ids = [int(i) for i in args.ids.split(",") if i.strip()]
-    device = DynamixelBus(ids, args.baudrate, _pairs(args.mode))
+    device = DynamixelBus(ids, args.baudrate, _pairs(args.mode),
+                          {i: Xm430Servo for i in _xm430_ids(args)})
     if args.supply is not None:
         device.set_supply_voltage(args.supply)
     timers = schedule_faults(device, [parse_fault(f) for f in args.fault],
@@ -360,6 +365,15 @@ def _check_faults_and_supply(args: argparse.Namespace) -> None:
         raise ValueError(f"--supply wants volts in 0..30, got {args.supply}")
 
 
+def _xm430_ids(args: argparse.Namespace) -> set[int]:
+    """The ids of --xm430; ValueError for one not in --ids."""
+    ids = {int(i) for i in args.ids.split(",") if i.strip()}
+    xm = {int(i) for i in args.xm430.split(",") if i.strip()}
+    if xm - ids:
+        raise ValueError(f"--xm430 {args.xm430}: no servo {min(xm - ids)} in --ids {args.ids}")
+    return xm
+
+
 def main(argv: list[str] | None = None) -> int:
     """`armserver sim ...`: run a simulated device until interrupted; 0 on a clean stop,
     2 on bad arguments."""
@@ -367,6 +381,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         _pairs(args.mode)
         _check_faults_and_supply(args)
+        _xm430_ids(args)
         asyncio.run(_run(args))
     except KeyboardInterrupt:
         return 0
