@@ -20,7 +20,7 @@ from typing import Annotated
 from fastapi import Depends, Header, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from app.auth import Access, Role
+from app.auth import Access, Identity, Role
 from app.config import Settings
 from app.errors import UnknownArm
 from app.lease import LeaseManager
@@ -75,6 +75,23 @@ def require_operator(request: Request, cred: Credentials) -> Role:
 def require_instructor(request: Request, cred: Credentials) -> Role:
     return get_access(request).require(_token(cred), Role.INSTRUCTOR)
 
+
+def caller_viewer(request: Request, cred: Credentials) -> Identity:
+    return get_access(request).require_identity(_token(cred), Role.VIEWER)
+
+
+def caller_operator(request: Request, cred: Credentials) -> Identity:
+    return get_access(request).require_identity(_token(cred), Role.OPERATOR)
+
+
+def caller_instructor(request: Request, cred: Credentials) -> Identity:
+    return get_access(request).require_identity(_token(cred), Role.INSTRUCTOR)
+
+
+#: The caller's name and role (people: API.md "People and roles").
+ViewerCaller = Annotated[Identity, Depends(caller_viewer)]
+OperatorCaller = Annotated[Identity, Depends(caller_operator)]
+InstructorCaller = Annotated[Identity, Depends(caller_instructor)]
 
 ViewerRole = Annotated[Role, Depends(require_viewer)]
 OperatorRole = Annotated[Role, Depends(require_operator)]
