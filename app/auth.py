@@ -78,7 +78,7 @@ def load_tokens_file(path: str | Path) -> list[tuple[str, Role, str]]:
     out: list[tuple[str, Role, str]] = []
     for i, entry in enumerate(data.get("tokens", [])):
         if not isinstance(entry, dict):
-            raise ValueError(f"{path}: tokens[{i}] is not a table")
+            raise ValueError(f"{path}: tokens[{i}] is not a table")  # noqa: TRY004
         name, role, token = entry.get("name"), entry.get("role", "operator"), entry.get("token")
         if not isinstance(token, str) or not token:
             raise ValueError(f"{path}: tokens[{i}] has no token")

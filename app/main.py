@@ -32,8 +32,21 @@ from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app import schemas
-from app.api import arms, dynamixel, kinematics, lease, motion, rbe3001, safety, telemetry
+from app.api import (
+    arms,
+    audit,
+    classroom,
+    dynamixel,
+    kinematics,
+    lease,
+    motion,
+    rbe3001,
+    safety,
+    telemetry,
+)
+from app.audit import AuditLog
 from app.auth import Access, bearer_token, install_log_redaction
+from app.classroom import Classroom
 from app.config import ArmProfile, Settings, load_arms
 from app.errors import ArmError, Unauthorized
 from app.lease import LeaseManager
@@ -62,6 +75,8 @@ def create_app(settings: Settings | None = None,
         app.state.leases = leases
         store = Store(settings.data_dir)
         app.state.store = store
+        room = Classroom(services, leases, store, settings.claim_s, settings.slot_s)
+        app.state.classroom = room
         try:
             store.open()  # blocking, before anything is served; errors go to health
             for p in profiles:
@@ -72,11 +87,14 @@ def create_app(settings: Settings | None = None,
                 log.info("arm %s (%s) on %s link %s", p.name, p.model, p.link.kind,
                          svc.driver.link.address or "-")
             leases.start()
+            room.load()
+            room.start()
             access: Access = app.state.access
             log.log(logging.INFO if access.enabled else logging.WARNING, "access: %s",
                     access.describe())
             yield
         finally:
+            await room.close()
             await leases.close()
             for svc in services.values():
                 try:
@@ -103,7 +121,8 @@ def create_app(settings: Settings | None = None,
     app.state.services = {}
     app.state.internal_errors = 0
 
-    for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry, safety):
+    for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry, safety,
+              classroom, audit):
         app.include_router(r.router, prefix=API_PREFIX)
     _document_websocket_messages(app)
     _install_error_handlers(app)
@@ -116,6 +135,8 @@ def create_app(settings: Settings | None = None,
                            allow_headers=["*"])
     # Outermost of our middleware: nothing below it escapes as a bare 500.
     app.add_middleware(InternalErrors, app_ref=app)
+    # Outside it: every changing request's outcome, refusals and bugs included (app/audit.py).
+    app.add_middleware(AuditLog, app_ref=app, access=app.state.access)
 
     if (STATIC_DIR / "index.html").is_file():
         app.router.routes.append(_Dashboard("/", StaticFiles(directory=STATIC_DIR, html=True),
