@@ -260,7 +260,7 @@ class Classroom:
                 left = self._leases.slot_left(arm)
                 cur.slot_end = None if left is None else time.time() + left
                 if svc is not None:
-                    svc.hub.event("lease_granted", entry=cur.id, name=cur.name,
+                    svc.hub.event("lease_granted", entry=cur.id, who=cur.name,
                                   slot_end=cur.slot_end)
                 self._changed(q)
             return
@@ -273,7 +273,7 @@ class Classroom:
                 reason = "offer not claimed in time"
             self._end(q, cur, status, reason)
             if svc is not None:
-                svc.hub.event("lease_ended", entry=cur.id, name=cur.name, reason=reason)
+                svc.hub.event("lease_ended", entry=cur.id, who=cur.name, reason=reason)
             self._changed(q)
             self._kick(arm, handoff=True)
         elif q.waiting():
@@ -333,7 +333,7 @@ class Classroom:
         head.status = "offered"
         head.lease_id = lease.id
         head.offered_until = time.time() + self.claim_s
-        svc.hub.event("lease_offered", entry=head.id, name=head.name,
+        svc.hub.event("lease_offered", entry=head.id, who=head.name,
                       claim_until=head.offered_until)
         self._changed(q)
 
@@ -376,7 +376,7 @@ class Classroom:
     def _changed(self, q: ArmQueue, persist: bool = True) -> None:
         svc = self._services.get(q.arm)
         if svc is not None:
-            svc.hub.event("queue", entries=[{"id": e.id, "name": e.name, "status": e.status}
+            svc.hub.event("queue", entries=[{"id": e.id, "who": e.name, "status": e.status}
                                             for e in q.entries],
                           handing_off=q.handing_off, blocked=q.blocked)
         if persist and self._store is not None:
