@@ -119,10 +119,13 @@ InstructorArm = Annotated[ArmService, Depends(instructor_arm)]
 async def control_arm(
     svc: OperatorArm,
     leases: LeasesDep,
+    who: OperatorCaller,
     x_arm_lease: Annotated[str | None, Header(description="the lease id, while a lease is "
                                               "held on the arm", max_length=128)] = None,
 ) -> ArmService:
-    await leases.check(svc.name, x_arm_lease)
+    # an instructor may act on an arm that is nobody's (after a failed hand-off: release the
+    # estop, bring the arm back); everyone else waits for the queue
+    await leases.check(svc.name, x_arm_lease, gated=who.role < Role.INSTRUCTOR)
     return svc
 
 

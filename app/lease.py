@@ -155,11 +155,15 @@ class LeaseManager:
         lease = self._leases.get(arm)
         return lease is not None and lease.offered
 
-    async def check(self, arm: str, lease_id: str | None) -> None:
-        """Let a request that moves `arm` through, or 409 `leased` if another holds it."""
+    async def check(self, arm: str, lease_id: str | None, gated: bool = True) -> None:
+        """Let a request that moves `arm` through, or 409 `leased` if another holds it (or,
+        with `gated`, while the classroom queue says the arm is nobody's: hand-off)."""
         await self._expire_if_due(arm)
         lease = self._leases.get(arm)
         if lease is None:
+            why = self.gate(arm) if gated and self.gate is not None else None
+            if why is not None:  # a hand-off runs, or failed, or people wait for their offer
+                raise Leased(why)
             return
         if lease_id is None or not hmac.compare_digest(lease_id.encode(), lease.id.encode()):
             raise Leased(f"{arm} is leased: send the lease id in the X-Arm-Lease header "
