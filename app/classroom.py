@@ -48,6 +48,8 @@ HANDOFF_SPEED = 0.5
 HANDOFF_SLACK_S = 10.0
 #: Ended entries kept per arm for GET /queue/{id}.
 HISTORY = 512
+#: Ended entries kept across a restart per arm (so a client polling its entry learns the end).
+PERSISTED_HISTORY = 100
 SCOPE = "queue:{}"
 KEY = "entries"
 
@@ -138,7 +140,13 @@ class Classroom:
             for item in stored:
                 e = Entry(id=str(item["id"]), arm=arm, name=str(item["name"]),
                           created=float(item["created"]))
-                q.entries.append(e)
+                if item.get("status") in ("done", "expired"):
+                    e.status = item["status"]
+                    e.reason, e.ended = item.get("reason"), item.get("ended")
+                    e.started = item.get("started")
+                    q.history[e.id] = e
+                else:
+                    q.entries.append(e)
             if q.entries:
                 log.info("%s: %d queued from the store", arm, len(q.entries))
 
@@ -382,6 +390,9 @@ class Classroom:
         if persist and self._store is not None:
             # every active entry, the current one first: after a restart it waits at the head
             rows = [{"id": e.id, "name": e.name, "created": e.created} for e in q.entries]
+            rows += [{"id": e.id, "name": e.name, "created": e.created, "status": e.status,
+                      "reason": e.reason, "started": e.started, "ended": e.ended}
+                     for e in list(q.history.values())[-PERSISTED_HISTORY:]]
             self._store.put_setting_nowait(SCOPE.format(q.arm), KEY, rows)
 
 
