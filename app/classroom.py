@@ -151,8 +151,10 @@ class Classroom:
                 log.info("%s: %d queued from the store", arm, len(q.entries))
 
     def start(self) -> None:
+        """Offer the heads of the stored queues; where people wait, hand off first (the arm
+        may be anywhere after a restart)."""
         for arm in self._services:
-            self._kick(arm, handoff=False)
+            self._kick(arm, handoff=bool(self.queue(arm).entries))
 
     async def close(self) -> None:
         for q in self._queues.values():

@@ -117,12 +117,13 @@ class Class:
             await asyncio.sleep(0.2)
 
 
-def check_events(events: list[dict[str, Any]], home: np.ndarray) -> int:
-    """Granted/ended alternate; an offer only after a successful hand-off (or at start)."""
-    holder: str | None = None
-    offered: str | None = None
+def check_events(events: list[dict[str, Any]], home: np.ndarray,
+                 at_start: tuple[str | None, str | None]) -> int:
+    """Granted/ended alternate; an offer only after a successful hand-off (or at start).
+    `at_start`: the (offered, holding) names when the events began to be watched."""
+    offered, holder = at_start
     handoffs = 0
-    clear_to_offer = True
+    clear_to_offer = offered is None and holder is None
     for ev in events:
         kind, data = ev["event"], ev["data"]
         if kind == "lease_offered":
@@ -147,6 +148,11 @@ async def run_phase(room: Class, settings: Any, stop_after_turns: int | None) ->
     async with running_client(settings) as (app, c):
         room.home = {a: home_pose(app.state.services[a]) for a in ARMS}
         subs = {a: app.state.services[a].hub.subscribe() for a in ARMS}
+        at_start = {}
+        for a in ARMS:  # (no await since subscribing: no event can slip in between)
+            cur = app.state.classroom.queue(a).current()
+            at_start[a] = (cur.name if cur is not None and cur.status == "offered" else None,
+                           cur.name if cur is not None and cur.status == "holding" else None)
         tasks = [asyncio.create_task(room.student(c, i)) for i in range(STUDENTS)
                  if i not in room.finished]
         ended = 0
@@ -170,7 +176,7 @@ async def run_phase(room: Class, settings: Any, stop_after_turns: int | None) ->
             _, evs, _ = subs[a].take()
             events[a] += [json.loads(raw) for raw in evs]
             subs[a].close()
-        handoffs = sum(check_events(events[a], room.home[a]) for a in ARMS)
+        handoffs = sum(check_events(events[a], room.home[a], at_start[a]) for a in ARMS)
         teach = {"Authorization": f"Bearer {TEACH}"}
         queues = {a: (await c.get(f"/api/v1/arms/{a}/queue", headers=teach)).json()
                   for a in ARMS}
