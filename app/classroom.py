@@ -406,7 +406,7 @@ def home_pose(svc: ArmService) -> np.ndarray:
     """The profile's home pose, else the middle of the joint limits."""
     if svc.profile.home is not None:
         return np.asarray(svc.profile.home, dtype=float)
-    return (svc.model.lower + svc.model.upper) / 2
+    return np.asarray((svc.model.lower + svc.model.upper) / 2, dtype=float)
 
 
 async def handoff(svc: ArmService) -> str | None:
