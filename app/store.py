@@ -230,6 +230,20 @@ class Store:
                 raise StoreError(self._error or "read failed") from exc
         return [dict(zip(AUDIT_COLUMNS, r, strict=True)) for r in rows]
 
+    # ------------------------------------------------------------ other tables (issue 14)
+
+    async def run(self, fn: Callable[[sqlite3.Connection], T]) -> T:
+        """Run `fn(connection)` on the writer thread (the one place the connection is used):
+        for tables added by later MIGRATIONS, e.g. an audit log. StoreError if the database is
+        not open; sqlite3 errors propagate (and are the caller's to report)."""
+
+        def job() -> T:
+            if self._db is None:
+                raise StoreError(self._error or "the database is not open")
+            return fn(self._db)
+
+        return await asyncio.wrap_future(self._call(job))
+
     # ------------------------------------------------------------ the writer thread
 
     def _call(self, fn: Callable[[], T]) -> concurrent.futures.Future[T]:

@@ -105,3 +105,13 @@ async def test_unusable_directory_is_an_error_not_a_crash(tmp_path: Path) -> Non
         assert await st.get_setting("s", "k") == 1
     finally:
         st.close()
+
+
+async def test_run_uses_the_writer_connection(store: Store) -> None:
+    await store.put_setting("s", "k", {"a": 1})
+    rows = await store.run(lambda db: db.execute("SELECT scope, key, value FROM settings")
+                           .fetchall())
+    assert rows == [("s", "k", '{"a":1}')]
+    with pytest.raises(sqlite3.OperationalError):
+        await store.run(lambda db: db.execute("SELECT * FROM no_such_table").fetchall())
+    assert store.health().ok  # a caller's bad statement is the caller's error
