@@ -46,6 +46,8 @@ EntryStatus = Literal["waiting", "offered", "holding", "done", "expired"]
 HANDOFF_SPEED = 0.5
 #: How long the home move may take beyond its planned duration before the hand-off fails, s.
 HANDOFF_SLACK_S = 10.0
+#: How long a hand-off waits for the device's first sample (at start-up), s.
+FIRST_SAMPLE_S = 10.0
 #: Ended entries kept per arm for GET /queue/{id}.
 HISTORY = 512
 #: Ended entries kept across a restart per arm (so a client polling its entry learns the end).
@@ -414,6 +416,9 @@ async def handoff(svc: ArmService) -> str | None:
     why not."""
     if svc.estop:
         return "the emergency stop is latched"
+    deadline = time.monotonic() + FIRST_SAMPLE_S
+    while svc.driver.positions is None and time.monotonic() < deadline:  # just started
+        await asyncio.sleep(0.05)  # noqa: ASYNC110 - the driver has no event for it
     try:
         await svc.stop()
         home = home_pose(svc)
