@@ -417,8 +417,8 @@ async def handoff(svc: ArmService) -> str | None:
     if svc.estop:
         return "the emergency stop is latched"
     deadline = time.monotonic() + FIRST_SAMPLE_S
-    while svc.driver.positions is None and time.monotonic() < deadline:  # just started
-        await asyncio.sleep(0.05)  # noqa: ASYNC110 - the driver has no event for it
+    while svc.driver.positions is None and time.monotonic() < deadline:  # noqa: ASYNC110
+        await asyncio.sleep(0.05)  # just started: the driver has no event for its first sample
     try:
         await svc.stop()
         home = home_pose(svc)
