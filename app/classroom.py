@@ -29,11 +29,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-import numpy as np
-
 from app import schemas as s
 from app.auth import Identity, Role
-from app.errors import ArmError, Conflict, Forbidden, InvalidRequest, NotFound
+from app.errors import Conflict, Forbidden, InvalidRequest, NotFound
+from app.handoff import device_faults, handoff, home_pose, positions
 from app.lease import LeaseManager
 from app.service import ArmService
 from app.store import Store, StoreError
@@ -42,12 +41,6 @@ from app.tasks import cancel_and_wait
 log = logging.getLogger(__name__)
 
 EntryStatus = Literal["waiting", "offered", "holding", "done", "expired"]
-#: Speed fraction of the move home between two holders.
-HANDOFF_SPEED = 0.5
-#: How long the home move may take beyond its planned duration before the hand-off fails, s.
-HANDOFF_SLACK_S = 10.0
-#: How long a hand-off waits for the device's first sample (at start-up), s.
-FIRST_SAMPLE_S = 10.0
 #: Ended entries kept per arm for GET /queue/{id}.
 HISTORY = 512
 #: Ended entries kept across a restart per arm (so a client polling its entry learns the end).
@@ -327,7 +320,7 @@ class Classroom:
         q.handoffs += 1
         q.last_handoff = {"ok": why is None, "reason": why, "time": time.time()}
         svc.hub.event("handoff", ok=why is None, reason=why,
-                      positions=_positions(svc))
+                      positions=positions(svc))
         if why is not None:
             q.blocked = why
             log.warning("%s: hand-off failed, the arm is left with nobody: %s", q.arm, why)
@@ -404,56 +397,4 @@ class InvalidOrder(InvalidRequest):
     code = "invalid_order"
 
 
-def home_pose(svc: ArmService) -> np.ndarray:
-    """The profile's home pose, else the middle of the joint limits."""
-    if svc.profile.home is not None:
-        return np.asarray(svc.profile.home, dtype=float)
-    return np.asarray((svc.model.lower + svc.model.upper) / 2, dtype=float)
-
-
-async def handoff(svc: ArmService) -> str | None:
-    """Stop, go home at reduced speed, check it got there with no fault. None when it did, else
-    why not."""
-    if svc.estop:
-        return "the emergency stop is latched"
-    deadline = time.monotonic() + FIRST_SAMPLE_S
-    while svc.driver.positions is None and time.monotonic() < deadline:  # noqa: ASYNC110
-        await asyncio.sleep(0.05)  # just started: the driver has no event for its first sample
-    try:
-        await svc.stop()
-        home = home_pose(svc)
-        rec = await svc.motion.move_joints(s.MoveJoints(positions=[float(v) for v in home],
-                                                        speed=HANDOFF_SPEED, mode="replace"))
-        await asyncio.wait_for(rec.wait(), rec.planned_duration + HANDOFF_SLACK_S)
-    except ArmError as exc:
-        return f"going home was refused: {exc.detail} ({exc.code})"
-    except TimeoutError:
-        return "the arm did not reach home in time"
-    if rec.status != "done":
-        return f"the move home ended {rec.status}: {rec.reason or '-'}"
-    faults = device_faults(svc)
-    if faults:
-        return f"device faults after the move home: {faults}"
-    q = svc.driver.positions
-    if q is None:
-        return "no position reading after the move home"
-    return None
-
-
-def device_faults(svc: ArmService) -> list[Any]:
-    """Faults the driver reports (engineer dxl's `faults`, where present), the link's state and
-    staleness. Empty when all is well."""
-    out: list[Any] = []
-    for holder in (svc, svc.driver):
-        found = getattr(holder, "faults", None)
-        if found:
-            out.extend(found if isinstance(found, list) else [found])
-    stale = getattr(svc.driver, "stale_error", None)
-    if stale is not None:
-        out.append(str(getattr(stale, "detail", stale)))
-    return out
-
-
-def _positions(svc: ArmService) -> list[float] | None:
-    q = svc.driver.positions
-    return None if q is None else [round(float(v), 6) for v in q]
+__all__ = ["Classroom", "device_faults", "handoff", "home_pose"]
