@@ -13,6 +13,10 @@ must carry `Authorization: Bearer <token>` (a WebSocket may instead pass `?token
 
 Every presented token is compared against every configured one with `hmac.compare_digest` over
 SHA-256 digests, so the time taken says neither which token nor how much of one matched.
+
+People (API.md "People and roles"): a token may carry a name, `alice:tok1`; a bare token is named
+by the first 8 hex digits of its SHA-256. `ARMSERVER_TOKENS_FILE` (TOML, `[[tokens]] name, role,
+token`) adds a class's worth. Names, never tokens, go into the queue, events, logs and audit.
 """
 
 from __future__ import annotations
@@ -22,6 +26,9 @@ import hashlib
 import hmac
 import logging
 import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
 from urllib.parse import unquote_plus
 
 from app.config import Settings
@@ -40,58 +47,115 @@ def _digest(token: str) -> bytes:
     return hashlib.sha256(token.encode("utf-8", "surrogatepass")).digest()
 
 
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.@-]{0,63}$")
+#: The identity of every caller of a server configured without tokens.
+OPEN_NAME = "anyone"
+
+
+@dataclass(frozen=True)
+class Identity:
+    """Who is calling: a name (never the token) and a role."""
+
+    name: str
+    role: Role
+
+
+def token_name(token: str) -> str:
+    """The name of a bare token: the first 8 hex digits of its SHA-256."""
+    return hashlib.sha256(token.encode("utf-8", "surrogatepass")).hexdigest()[:8]
+
+
+def parse_named(entry: str) -> tuple[str, str]:
+    """`name:token` -> (name, token); a bare token -> (its hash name, token)."""
+    name, sep, token = entry.partition(":")
+    if sep and token and _NAME.match(name):
+        return name, token
+    return token_name(entry), entry
+
+
+def load_tokens_file(path: str | Path) -> list[tuple[str, Role, str]]:
+    """(name, role, token) of each `[[tokens]]` table of a TOML file; ValueError if malformed."""
+    data = tomllib.loads(Path(path).read_text())
+    out: list[tuple[str, Role, str]] = []
+    for i, entry in enumerate(data.get("tokens", [])):
+        if not isinstance(entry, dict):
+            raise ValueError(f"{path}: tokens[{i}] is not a table")  # noqa: TRY004
+        name, role, token = entry.get("name"), entry.get("role", "operator"), entry.get("token")
+        if not isinstance(token, str) or not token:
+            raise ValueError(f"{path}: tokens[{i}] has no token")
+        if not isinstance(name, str) or not _NAME.match(name):
+            raise ValueError(f"{path}: tokens[{i}] needs a name of letters, digits, _.@-")
+        if not isinstance(role, str) or role.upper() not in Role.__members__:
+            raise ValueError(f"{path}: tokens[{i}] role must be viewer, operator or instructor")
+        out.append((name, Role[role.upper()], token))
+    return out
+
+
 class Access:
     """The configured tokens of one server and the checks against them."""
 
     def __init__(self, settings: Settings) -> None:
-        self._operators = [_digest(t) for t in sorted(settings.operator_set)]
-        self._viewers = [_digest(t) for t in sorted(settings.viewer_set)]
-        self._instructors = [_digest(t) for t in sorted(settings.instructor_set)]
-        self.enabled = bool(self._operators or self._viewers or self._instructors)
+        people: list[tuple[str, Role, str]] = []
+        for role, entries in ((Role.INSTRUCTOR, settings.instructor_set),
+                              (Role.OPERATOR, settings.operator_set),
+                              (Role.VIEWER, settings.viewer_set)):
+            people += [(name, role, tok) for name, tok in map(parse_named, sorted(entries))]
+        if settings.tokens_file:
+            people += load_tokens_file(settings.tokens_file)
+        # (digest, name, role), highest role first: a token given twice takes its highest role
+        self._people = sorted(((_digest(tok), name, role) for name, role, tok in people),
+                              key=lambda p: -p[2])
+        self._operators = [d for d, _, r in self._people if r is Role.OPERATOR]
+        self._viewers = [d for d, _, r in self._people if r is Role.VIEWER]
+        self._instructors = [d for d, _, r in self._people if r is Role.INSTRUCTOR]
+        self.enabled = bool(self._people)
+
+    def identify(self, token: str | None) -> Identity | None:
+        """The caller's name and role, None if the token grants none. Constant time over the
+        configured tokens: every one is compared, no early exit."""
+        if not self.enabled:
+            return Identity(OPEN_NAME, Role.INSTRUCTOR)
+        if not token:
+            return None
+        d = _digest(token)
+        found: Identity | None = None
+        for digest, name, role in self._people:
+            match = hmac.compare_digest(d, digest)
+            if match and found is None:
+                found = Identity(name, role)
+        return found
 
     def describe(self) -> str:
         """A start-up line saying whether the server is open (never the tokens)."""
         if not self.enabled:
             return "no tokens configured: the server is OPEN to anyone who can reach it"
         return (f"token-protected: {len(self._instructors)} instructor, "
-                f"{len(self._operators)} operator and {len(self._viewers)} viewer token(s)")
+                f"{len(self._operators)} operator and {len(self._viewers)} viewer token(s) "
+                f"({len({n for _, n, _ in self._people})} name(s))")
 
     def role_of(self, token: str | None) -> Role | None:
         """The role a token grants, None if it grants none. Open servers grant instructor."""
-        if not self.enabled:
-            return Role.INSTRUCTOR
-        if not token:
-            return None
-        d = _digest(token)
-        operator = False
-        viewer = False
-        instructor = False
-        for t in self._instructors:
-            instructor |= hmac.compare_digest(d, t)
-        for t in self._operators:  # no early exit: constant time over the token list
-            operator |= hmac.compare_digest(d, t)
-        for t in self._viewers:
-            viewer |= hmac.compare_digest(d, t)
-        if instructor:
-            return Role.INSTRUCTOR
-        if operator:
-            return Role.OPERATOR
-        if viewer:
-            return Role.VIEWER
-        return None
+        who = self.identify(token)
+        return None if who is None else who.role
 
     def require(self, token: str | None, need: Role) -> Role:
         """The caller's role, or 401 (no or unknown token) / 403 (viewer where operator needed)."""
-        role = self.role_of(token)
-        if role is None:
+        return self.require_identity(token, need).role
+
+    def require_identity(self, token: str | None, need: Role) -> Identity:
+        """The caller, or 401 (no or unknown token) / 403 (a role below `need`)."""
+        who = self.identify(token)
+        if who is None:
             raise Unauthorized("missing bearer token" if not token else "invalid bearer token")
+        role = who.role
         if role < need and need is Role.INSTRUCTOR:
-            raise Forbidden("this needs an instructor token (changing the safety envelope); "
-                            f"this token is a {role.name.lower()}'s")
+            raise Forbidden("this needs an instructor token (safety envelope, revoking leases, "
+                            f"reordering queues, the audit log); this token is a "
+                            f"{role.name.lower()}'s")
         if role < need:
             raise Forbidden("this needs an operator token; a viewer token may read state and "
                             "telemetry and latch the emergency stop")
-        return role
+        return who
 
 
 def bearer_token(authorization: str | None) -> str | None:

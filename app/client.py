@@ -110,6 +110,10 @@ class NotSupported(ArmServerError):
     """not_supported: e.g. a Dynamixel command to the rbe3001."""
 
 
+class QueueTurnLost(ArmServerError):
+    """The queue entry ended (offer expired, removed, cleared) before its lease was claimed."""
+
+
 class Unauthorized(ArmServerError):
     """unauthorized: no or an unknown token."""
 
@@ -137,7 +141,7 @@ class ConnectionFailed(ArmServerError):
 ERRORS: dict[str, type[ArmServerError]] = {
     "not_found": NotFound, "unknown_arm": NotFound, "unknown_motion": NotFound,
     "motion_expired": NotFound, "bad_host": ArmServerError, "cross_origin": Forbidden,
-    "unknown_lease": NotFound, "invalid_json": InvalidRequest,
+    "unknown_lease": NotFound, "unknown_entry": NotFound, "invalid_json": InvalidRequest,
     "invalid_request": InvalidRequest, "unreachable": Unreachable, "joint_limit": JointLimit,
     "velocity_limit": VelocityLimit, "estop_latched": EstopLatched, "busy": Busy,
     "no_gripper": NoGripper, "leased": Leased, "not_supported": NotSupported,
@@ -185,6 +189,8 @@ class Call(Generic[T]):
     safe: bool = False
     timeout: float | None = None
     headers: dict[str, str] = field(default_factory=dict)
+    #: Parse the answer's text rather than its JSON (e.g. the audit log as CSV).
+    text: bool = False
 
 
 def _p(*parts: object) -> str:
@@ -197,6 +203,10 @@ def _model(model: type[BaseModel]) -> Callable[[Any], Any]:
 
 def _none(_: Any) -> None:
     return None
+
+
+def _audit_rows(data: Any) -> list[s.AuditRecord]:
+    return [s.AuditRecord.model_validate(r) for r in data]
 
 
 def _arms(data: Any) -> list[s.ArmSummary]:
@@ -376,6 +386,52 @@ class Requests:
         return Call("DELETE", _p("arms", arm, "lease", lease_id), _none, arm=arm, safe=True,
                     headers={LEASE_HEADER: lease_id})
 
+    # classroom: people, queue, audit (API.md "People and roles", "Queue and hand-off")
+
+    @staticmethod
+    def me() -> Call[s.Me]:
+        return Call("GET", _p("me"), _model(s.Me), safe=True)
+
+    @staticmethod
+    def join_queue(arm: str) -> Call[s.QueueEntry]:
+        return Call("POST", _p("arms", arm, "queue"), _model(s.QueueEntry), arm=arm)
+
+    @staticmethod
+    def queue(arm: str) -> Call[s.QueueStatus]:
+        return Call("GET", _p("arms", arm, "queue"), _model(s.QueueStatus), arm=arm, safe=True)
+
+    @staticmethod
+    def queue_entry(arm: str, entry_id: str) -> Call[s.QueueEntry]:
+        return Call("GET", _p("arms", arm, "queue", entry_id), _model(s.QueueEntry), arm=arm,
+                    safe=True)
+
+    @staticmethod
+    def leave_queue(arm: str, entry_id: str) -> Call[s.QueueEntry]:
+        return Call("DELETE", _p("arms", arm, "queue", entry_id), _model(s.QueueEntry),
+                    arm=arm, safe=True)
+
+    @staticmethod
+    def reorder_queue(arm: str, order: Sequence[str]) -> Call[s.QueueStatus]:
+        return Call("PUT", _p("arms", arm, "queue"), _model(s.QueueStatus),
+                    s.QueueOrder(order=list(order)).model_dump(), arm=arm, safe=True)
+
+    @staticmethod
+    def clear_queue(arm: str) -> Call[s.QueueStatus]:
+        return Call("DELETE", _p("arms", arm, "queue"), _model(s.QueueStatus), arm=arm,
+                    safe=True)
+
+    @staticmethod
+    def revoke_lease(arm: str) -> Call[None]:
+        return Call("DELETE", _p("arms", arm, "lease"), _none, arm=arm)
+
+    @staticmethod
+    def audit(params: Mapping[str, Any], csv: bool = False) -> Call[Any]:
+        given = {k: v for k, v in params.items() if v is not None}
+        if csv:
+            return Call("GET", _p("audit"), str, params=given, safe=True, text=True,
+                        headers={"Accept": "text/csv"})
+        return Call("GET", _p("audit"), _audit_rows, params=given, safe=True)
+
 
 def move_joints_model(positions: Sequence[float], duration: float | None, speed: float,
                       mode: s.QueueMode, wait: bool) -> s.MoveJoints:
@@ -396,7 +452,23 @@ def parse_answer(call: Call[T], resp: httpx.Response) -> T:
         raise error_from_body(resp.status_code, resp.content)
     if resp.status_code == 204 or not resp.content:
         return call.parse(None)
+    if call.text:
+        return call.parse(resp.text)
     return call.parse(resp.json())
+
+
+def turn_pending(arm: str, entry: s.QueueEntry, deadline: float | None,
+                 timeout: float | None) -> bool:
+    """True while a queue entry still waits for its offer; raises once the turn is lost (the
+    entry ended) or `deadline` (monotonic) has passed; False once the offer is ours."""
+    if entry.status == "offered" and entry.lease_id is not None:
+        return False
+    if entry.status not in ("waiting", "offered"):
+        raise QueueTurnLost("turn_lost", f"{arm}: entry {entry.id} is {entry.status}: "
+                            f"{entry.reason}", 409)
+    if deadline is not None and time.monotonic() > deadline:
+        raise TimeoutError(f"{arm}: no offer within {timeout} s (position {entry.position})")
+    return True
 
 
 def backoff(attempt: int) -> float:
@@ -698,11 +770,80 @@ class AsyncArmClient:
     async def release_lease(self, arm: str, lease_id: str) -> None:
         return await self.send(Requests.release_lease(arm, lease_id))
 
+    # --------------------------------------------------------- classroom
+
+    async def me(self) -> s.Me:
+        return await self.send(Requests.me())
+
+    async def join_queue(self, arm: str) -> s.QueueEntry:
+        return await self.send(Requests.join_queue(arm))
+
+    async def queue(self, arm: str) -> s.QueueStatus:
+        return await self.send(Requests.queue(arm))
+
+    async def queue_entry(self, arm: str, entry_id: str) -> s.QueueEntry:
+        return await self.send(Requests.queue_entry(arm, entry_id))
+
+    async def leave_queue(self, arm: str, entry_id: str) -> s.QueueEntry:
+        return await self.send(Requests.leave_queue(arm, entry_id))
+
+    async def reorder_queue(self, arm: str, order: Sequence[str]) -> s.QueueStatus:
+        """Instructor: every waiting entry's id, in the new order."""
+        return await self.send(Requests.reorder_queue(arm, order))
+
+    async def clear_queue(self, arm: str) -> s.QueueStatus:
+        return await self.send(Requests.clear_queue(arm))
+
+    async def revoke_lease(self, arm: str) -> None:
+        """Instructor: end the arm's lease whoever holds it (and retry a failed hand-off)."""
+        return await self.send(Requests.revoke_lease(arm))
+
+    async def audit(self, arm: str | None = None, who: str | None = None,
+                    since: float | None = None, until: float | None = None,
+                    limit: int = 100) -> list[s.AuditRecord]:
+        """Instructor: audit records, newest first."""
+        return await self.send(Requests.audit(  # type: ignore[no-any-return]
+            {"arm": arm, "who": who, "since": since, "until": until, "limit": limit}))
+
+    async def audit_csv(self, arm: str | None = None, who: str | None = None,
+                        since: float | None = None, until: float | None = None,
+                        limit: int = 100) -> str:
+        """The same as CSV text (a header row, then one row per record)."""
+        return await self.send(Requests.audit(  # type: ignore[no-any-return]
+            {"arm": arm, "who": who, "since": since, "until": until, "limit": limit}, csv=True))
+
+    @contextlib.asynccontextmanager
+    async def queue_turn(self, arm: str, poll: float = 0.25, every: float | None = None,
+                         timeout: float | None = None) -> AsyncIterator[LeaseKeeper]:
+        """Join the arm's queue, wait for the offer, claim the lease and renew it for the
+        duration of the block (its id goes on this client's requests to the arm); on exit
+        release it, or leave the queue if the turn never came. The slot ends when the server
+        says: then `keeper.error` is set and moves answer 409 `leased`."""
+        entry = await self.join_queue(arm)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        try:
+            while turn_pending(arm, entry, deadline, timeout):
+                await asyncio.sleep(poll)
+                entry = await self.queue_entry(arm, entry.id)
+            lease = await self.renew_lease(arm, entry.lease_id or "")  # claims it
+        except BaseException:
+            with contextlib.suppress(ArmServerError):
+                await self.leave_queue(arm, entry.id)
+            raise
+        async with self._keep(arm, lease, every) as keeper:
+            yield keeper
+
     @contextlib.asynccontextmanager
     async def hold_lease(self, arm: str, every: float | None = None) -> AsyncIterator[LeaseKeeper]:
         """Take the arm's lease, send its id on this client's requests to the arm and renew it in
         the background (every `ttl / 3` s unless `every`); release it on exit."""
         lease = await self.take_lease(arm)
+        async with self._keep(arm, lease, every) as keeper:
+            yield keeper
+
+    @contextlib.asynccontextmanager
+    async def _keep(self, arm: str, lease: s.Lease, every: float | None
+                    ) -> AsyncIterator[LeaseKeeper]:
         keeper = LeaseKeeper(lease)
         previous = self.leases.get(arm)
         self.leases[arm] = lease.id

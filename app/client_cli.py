@@ -102,7 +102,35 @@ def _add_call(sub: Any) -> None:
     cmd("status", lambda c, a: c.rbe3001_status(a.arm), "rbe3001: raw STATUS (ticks, ADC)")
     pg = cmd("ping", lambda c, a: c.dxl_ping(a.arm, a.id), "dynamixel: ping one id or all")
     pg.add_argument("id", type=int, nargs="?", default=None)
+    qu = cmd("queue", _queue, "the arm's classroom queue: join, leave ID, status")
+    qu.add_argument("what", choices=["join", "leave", "status"])
+    qu.add_argument("id", nargs="?", default=None, help="the entry id (leave)")
+    cmd("revoke", lambda c, a: c.revoke_lease(a.arm), "instructor: end the arm's lease")
+    au = cmd("audit", _audit, "instructor: the arm's audit log, newest first")
+    au.add_argument("--who", default=None, help="only this person's records")
+    au.add_argument("--limit", type=int, default=50)
+    au.add_argument("--csv", action="store_true", help="print CSV")
     p.set_defaults(func=run_call)
+
+
+def _queue(c: ArmClient, a: argparse.Namespace) -> Any:
+    if a.what == "join":
+        return c.join_queue(a.arm)
+    if a.what == "leave":
+        if not a.id:
+            raise ValueError("queue leave needs the entry id (from queue join or status)")
+        return c.leave_queue(a.arm, a.id)
+    return c.queue(a.arm)
+
+
+def _audit(c: ArmClient, a: argparse.Namespace) -> Any:
+    if a.csv:
+        return RawText(c.audit_csv(arm=a.arm, who=a.who, limit=a.limit))
+    return c.audit(arm=a.arm, who=a.who, limit=a.limit)
+
+
+class RawText(str):
+    """An answer printed as it is, not as JSON."""
 
 
 def _add_watch(sub: Any) -> None:
@@ -151,6 +179,9 @@ def run_call(a: argparse.Namespace) -> int:
         print(json.dumps({"code": "invalid_request", "detail": str(exc), "status": 0}, indent=2),
               file=sys.stderr)
         return 1
+    if isinstance(result, RawText):
+        print(result, end="")
+        return 0
     print(_json(result) if result is not None else "null")
     return 0
 

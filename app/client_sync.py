@@ -29,6 +29,7 @@ from app.client import (
     parse_ws_message,
     should_retry,
     transport_error,
+    turn_pending,
     ws_close_error,
     ws_handshake_error,
     ws_url,
@@ -237,10 +238,71 @@ class ArmClient:
     def release_lease(self, arm: str, lease_id: str) -> None:
         return self.send(Requests.release_lease(arm, lease_id))
 
+    # --------------------------------------------------------- classroom
+
+    def me(self) -> s.Me:
+        return self.send(Requests.me())
+
+    def join_queue(self, arm: str) -> s.QueueEntry:
+        return self.send(Requests.join_queue(arm))
+
+    def queue(self, arm: str) -> s.QueueStatus:
+        return self.send(Requests.queue(arm))
+
+    def queue_entry(self, arm: str, entry_id: str) -> s.QueueEntry:
+        return self.send(Requests.queue_entry(arm, entry_id))
+
+    def leave_queue(self, arm: str, entry_id: str) -> s.QueueEntry:
+        return self.send(Requests.leave_queue(arm, entry_id))
+
+    def reorder_queue(self, arm: str, order: Sequence[str]) -> s.QueueStatus:
+        return self.send(Requests.reorder_queue(arm, order))
+
+    def clear_queue(self, arm: str) -> s.QueueStatus:
+        return self.send(Requests.clear_queue(arm))
+
+    def revoke_lease(self, arm: str) -> None:
+        return self.send(Requests.revoke_lease(arm))
+
+    def audit(self, arm: str | None = None, who: str | None = None, since: float | None = None,
+              until: float | None = None, limit: int = 100) -> list[s.AuditRecord]:
+        return self.send(Requests.audit(  # type: ignore[no-any-return]
+            {"arm": arm, "who": who, "since": since, "until": until, "limit": limit}))
+
+    def audit_csv(self, arm: str | None = None, who: str | None = None,
+                  since: float | None = None, until: float | None = None,
+                  limit: int = 100) -> str:
+        return self.send(Requests.audit(  # type: ignore[no-any-return]
+            {"arm": arm, "who": who, "since": since, "until": until, "limit": limit}, csv=True))
+
+    @contextlib.contextmanager
+    def queue_turn(self, arm: str, poll: float = 0.25, every: float | None = None,
+                   timeout: float | None = None) -> Iterator[LeaseKeeper]:
+        """Join the queue, wait for the offer, claim and renew the lease for the block (see
+        `AsyncArmClient.queue_turn`)."""
+        entry = self.join_queue(arm)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        try:
+            while turn_pending(arm, entry, deadline, timeout):
+                time.sleep(poll)
+                entry = self.queue_entry(arm, entry.id)
+            lease = self.renew_lease(arm, entry.lease_id or "")
+        except BaseException:
+            with contextlib.suppress(ArmServerError):
+                self.leave_queue(arm, entry.id)
+            raise
+        with self._keep(arm, lease, every) as keeper:
+            yield keeper
+
     @contextlib.contextmanager
     def hold_lease(self, arm: str, every: float | None = None) -> Iterator[LeaseKeeper]:
         """Take the lease, renew it from a background thread, release it on exit."""
         lease = self.take_lease(arm)
+        with self._keep(arm, lease, every) as keeper:
+            yield keeper
+
+    @contextlib.contextmanager
+    def _keep(self, arm: str, lease: s.Lease, every: float | None) -> Iterator[LeaseKeeper]:
         keeper = LeaseKeeper(lease)
         previous = self.leases.get(arm)
         self.leases[arm] = lease.id

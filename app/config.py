@@ -395,6 +395,12 @@ class Settings(BaseSettings):
     operator_tokens: str = ""
     viewer_tokens: str = ""
     instructor_tokens: str = ""
+    #: A TOML file of named tokens for a class (`[[tokens]] name, role, token`).
+    tokens_file: str | None = None
+    #: Classroom queue: how long an offered lease waits for its first renewal, s.
+    claim_s: float = Field(30.0, gt=0.0, le=3600.0)
+    #: Classroom queue: how long a slot lasts, renewed or not, s.
+    slot_s: float = Field(300.0, gt=0.0, le=86400.0)
     #: Where the SQLite store keeps settings (safety envelopes) across restarts.
     data_dir: str = "./data"
     cors_origins: str = ""
@@ -451,7 +457,8 @@ class Settings(BaseSettings):
 
     @property
     def auth_enabled(self) -> bool:
-        return bool(self.operator_set or self.viewer_set or self.instructor_set)
+        return bool(self.operator_set or self.viewer_set or self.instructor_set
+                    or self.tokens_file)
 
     #: Host names an open server answers to besides its loopback names and bound host
     #: (comma separated; `*`: any). See app/hostguard.py and README "Access and safety".

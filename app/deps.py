@@ -21,7 +21,7 @@ from typing import Annotated
 from fastapi import Depends, Header, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from app.auth import Access, Role
+from app.auth import Access, Identity, Role
 from app.config import Settings
 from app.errors import UnknownArm
 from app.lease import LeaseManager
@@ -77,6 +77,23 @@ def require_instructor(request: Request, cred: Credentials) -> Role:
     return get_access(request).require(_token(cred), Role.INSTRUCTOR)
 
 
+def caller_viewer(request: Request, cred: Credentials) -> Identity:
+    return get_access(request).require_identity(_token(cred), Role.VIEWER)
+
+
+def caller_operator(request: Request, cred: Credentials) -> Identity:
+    return get_access(request).require_identity(_token(cred), Role.OPERATOR)
+
+
+def caller_instructor(request: Request, cred: Credentials) -> Identity:
+    return get_access(request).require_identity(_token(cred), Role.INSTRUCTOR)
+
+
+#: The caller's name and role (people: API.md "People and roles").
+ViewerCaller = Annotated[Identity, Depends(caller_viewer)]
+OperatorCaller = Annotated[Identity, Depends(caller_operator)]
+InstructorCaller = Annotated[Identity, Depends(caller_instructor)]
+
 ViewerRole = Annotated[Role, Depends(require_viewer)]
 OperatorRole = Annotated[Role, Depends(require_operator)]
 InstructorRole = Annotated[Role, Depends(require_instructor)]
@@ -103,10 +120,13 @@ InstructorArm = Annotated[ArmService, Depends(instructor_arm)]
 async def control_arm(
     svc: OperatorArm,
     leases: LeasesDep,
+    who: OperatorCaller,
     x_arm_lease: Annotated[str | None, Header(description="the lease id, while a lease is "
                                               "held on the arm", max_length=128)] = None,
 ) -> ArmService:
-    await leases.check(svc.name, x_arm_lease)
+    # an instructor may act on an arm that is nobody's (after a failed hand-off: release the
+    # estop, bring the arm back); everyone else waits for the queue
+    await leases.check(svc.name, x_arm_lease, gated=who.role < Role.INSTRUCTOR)
     return svc
 
 

@@ -19,7 +19,7 @@ import hmac
 import logging
 import secrets
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from app import schemas as s
@@ -40,6 +40,12 @@ class _Lease:
     arm: str
     ttl: float
     deadline: float  # loop-independent monotonic time, s
+    #: A lease from the classroom queue ends here, renewed or not (monotonic, s).
+    slot_end: float | None = None
+    #: Offered by the queue and not yet claimed (claimed on its first renewal).
+    offered: bool = False
+    #: The slot's length: it starts when the lease is taken, or claimed if it was offered.
+    slot_s: float | None = None
 
     def expired(self, now: float) -> bool:
         return now >= self.deadline
@@ -58,6 +64,18 @@ class LeaseManager:
         self._leases: dict[str, _Lease] = {}
         self._changed = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
+        #: Called with (what, arm, lease id) on "claimed", "released", "lapsed", "slot_over",
+        #: "revoked" (the classroom queue, app/classroom.py, drives hand-offs from these).
+        self.observers: list[Callable[[str, str, str], None]] = []
+        #: Says why a plain POST /lease must wait (e.g. people are queued), else None.
+        self.gate: Callable[[str], str | None] | None = None
+
+    def _notify(self, what: str, arm: str, lease_id: str) -> None:
+        for fn in self.observers:
+            try:
+                fn(what, arm, lease_id)
+            except Exception:  # an observer's bug must not break the lease
+                log.exception("%s: lease observer failed on %s", arm, what)
 
     def start(self) -> None:
         if self._task is None:
@@ -73,12 +91,23 @@ class LeaseManager:
         lease = self._leases.get(arm)
         return None if lease is None else lease.to_schema()
 
-    async def acquire(self, arm: str) -> s.Lease:
+    async def acquire(self, arm: str, *, claim_s: float | None = None,
+                      slot_s: float | None = None, gated: bool = True) -> s.Lease:
+        """Take the arm's lease. With `claim_s`: an offer (the queue's), held that long for its
+        first renewal; with `slot_s`: it ends that long from now even if renewed."""
         await self._expire_if_due(arm)
         if arm in self._leases:
             raise Leased(f"{arm} is leased by another client; wait for it to be released or "
                          "to lapse, or latch the emergency stop")
-        lease = _Lease(secrets.token_urlsafe(16), arm, self.ttl, time.monotonic() + self.ttl)
+        why = self.gate(arm) if gated and self.gate is not None else None
+        if why is not None:
+            raise Leased(why)
+        now = time.monotonic()
+        slot_end = None if slot_s is None or claim_s is not None else now + slot_s
+        deadline = now + (self.ttl if claim_s is None else claim_s)
+        lease = _Lease(secrets.token_urlsafe(16), arm, self.ttl,
+                       deadline if slot_end is None else min(deadline, slot_end), slot_end,
+                       offered=claim_s is not None, slot_s=slot_s)
         self._leases[arm] = lease
         self._changed.set()
         log.info("%s: lease taken (ttl %.1f s)", arm, self.ttl)
@@ -86,8 +115,16 @@ class LeaseManager:
 
     async def renew(self, arm: str, lease_id: str) -> s.Lease:
         lease = await self._find(arm, lease_id)
-        lease.deadline = time.monotonic() + lease.ttl
+        now = time.monotonic()
+        if lease.offered and lease.slot_s is not None:
+            lease.slot_end = now + lease.slot_s
+        lease.deadline = now + lease.ttl
+        if lease.slot_end is not None:
+            lease.deadline = min(lease.deadline, lease.slot_end)
         self._changed.set()
+        if lease.offered:
+            lease.offered = False
+            self._notify("claimed", arm, lease.id)
         return lease.to_schema()
 
     async def release(self, arm: str, lease_id: str) -> None:
@@ -95,12 +132,38 @@ class LeaseManager:
         del self._leases[lease.arm]
         self._changed.set()
         log.info("%s: lease released", arm)
+        self._notify("released", arm, lease.id)
 
-    async def check(self, arm: str, lease_id: str | None) -> None:
-        """Let a request that moves `arm` through, or 409 `leased` if another holds it."""
+    async def revoke(self, arm: str) -> str | None:
+        """End the arm's lease whoever holds it (an instructor's call): stop the arm, send
+        `lease_expired`; the id of the revoked lease, None if there was none."""
         await self._expire_if_due(arm)
         lease = self._leases.get(arm)
         if lease is None:
+            return None
+        await self._expire(lease, "revoked")
+        return lease.id
+
+    def slot_left(self, arm: str) -> float | None:
+        """Seconds left in the held lease's slot, None without a slot."""
+        lease = self._leases.get(arm)
+        if lease is None or lease.slot_end is None:
+            return None
+        return max(0.0, lease.slot_end - time.monotonic())
+
+    def offered(self, arm: str) -> bool:
+        lease = self._leases.get(arm)
+        return lease is not None and lease.offered
+
+    async def check(self, arm: str, lease_id: str | None, gated: bool = True) -> None:
+        """Let a request that moves `arm` through, or 409 `leased` if another holds it (or,
+        with `gated`, while the classroom queue says the arm is nobody's: hand-off)."""
+        await self._expire_if_due(arm)
+        lease = self._leases.get(arm)
+        if lease is None:
+            why = self.gate(arm) if gated and self.gate is not None else None
+            if why is not None:  # a hand-off runs, or failed, or people wait for their offer
+                raise Leased(why)
             return
         if lease_id is None or not hmac.compare_digest(lease_id.encode(), lease.id.encode()):
             raise Leased(f"{arm} is leased: send the lease id in the X-Arm-Lease header "
@@ -121,9 +184,12 @@ class LeaseManager:
         if lease is not None and lease.expired(time.monotonic()):
             await self._expire(lease)
 
-    async def _expire(self, lease: _Lease) -> None:
+    async def _expire(self, lease: _Lease, why: str | None = None) -> None:
         if self._leases.get(lease.arm) is not lease:
             return  # released or expired meanwhile
+        if why is None:
+            at_end = lease.slot_end is not None and time.monotonic() >= lease.slot_end
+            why = "slot_over" if at_end else "lapsed"
         del self._leases[lease.arm]
         svc = self._services.get(lease.arm)
         log.warning("%s: lease lapsed (not renewed within %.1f s): stopping the arm",
@@ -137,6 +203,7 @@ class LeaseManager:
             except ArmError as exc:  # stop failed on the device: still report the lapse
                 log.warning("%s: stop after lease lapse failed: %s", lease.arm, exc.detail)
             svc.hub.event("lease_expired", lease=lease.id, stopped=stopped)
+        self._notify(why, lease.arm, lease.id)
 
     async def _watch(self) -> None:
         while True:

@@ -34,6 +34,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from app import schemas
 from app.api import (
     arms,
+    audit,
+    classroom,
     dynamixel,
     force,
     homing,
@@ -44,7 +46,9 @@ from app.api import (
     safety,
     telemetry,
 )
+from app.audit import AuditLog
 from app.auth import Access, bearer_token, install_log_redaction
+from app.classroom import Classroom
 from app.config import ArmProfile, Settings, load_arms
 from app.control import ControlThread
 from app.errors import ArmError, Unauthorized
@@ -81,6 +85,8 @@ def create_app(settings: Settings | None = None,
         app.state.control = control
         if control is not None:
             control.start()
+        room = Classroom(services, leases, store, settings.claim_s, settings.slot_s)
+        app.state.classroom = room
         try:
             store.open()  # blocking, before anything is served; errors go to health
             for p in profiles:
@@ -93,6 +99,8 @@ def create_app(settings: Settings | None = None,
                          svc.driver.link.address or "-")
             leases.start()
             app.state.mqtt = start_mqtt_bridge(settings, services)
+            room.load()
+            room.start()
             access: Access = app.state.access
             log.log(logging.INFO if access.enabled else logging.WARNING, "access: %s",
                     access.describe())
@@ -100,6 +108,7 @@ def create_app(settings: Settings | None = None,
         finally:
             if getattr(app.state, "mqtt", None) is not None:
                 await app.state.mqtt.close()
+            await room.close()
             await leases.close()
             for svc in services.values():
                 try:
@@ -129,7 +138,8 @@ def create_app(settings: Settings | None = None,
     app.state.internal_errors = 0
     app.state.mqtt = None
 
-    for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry, safety, force):
+    for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry, safety, force,
+              classroom, audit):
         app.include_router(r.router, prefix=API_PREFIX)
     arms.install_fast_paths(app, API_PREFIX)  # GET state from the encoded sample
     app.include_router(homing.router, prefix=API_PREFIX)  # faults and homing (v1.1)
@@ -145,6 +155,8 @@ def create_app(settings: Settings | None = None,
                            allow_headers=["*"])
     # Outermost of our middleware: nothing below it escapes as a bare 500.
     app.add_middleware(InternalErrors, app_ref=app)
+    # Outside it: every changing request's outcome, refusals and bugs included (app/audit.py).
+    app.add_middleware(AuditLog, app_ref=app, access=app.state.access)
 
     if (STATIC_DIR / "index.html").is_file():
         app.router.routes.append(_Dashboard("/", StaticFiles(directory=STATIC_DIR, html=True),

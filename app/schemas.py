@@ -7,7 +7,7 @@ The client (`app.client`) imports these same models.
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -408,6 +408,62 @@ class Lease(Model):
     arm: str
     expires: float = Field(description="Unix time the lease lapses unless renewed")
     ttl: float
+
+
+# ---------------------------------------------------------------- classroom: people, queue, audit
+
+
+class Me(Model):
+    name: str = Field(description="the caller's name (never the token)")
+    role: Literal["viewer", "operator", "instructor"]
+
+
+class QueueEntry(Model):
+    id: str
+    arm: str
+    name: str
+    position: int | None = Field(None, description="1 = next; 0 = offered or holding; None "
+                                 "once ended")
+    status: Literal["waiting", "offered", "holding", "done", "expired"]
+    created: float
+    lease_id: str | None = Field(None, description="the offered lease's id, for its owner only: "
+                                 "renew it (PUT /lease/{id}) within the claim window to hold it")
+    offered_until: float | None = Field(None, description="Unix time the offer passes on")
+    started: float | None = None
+    slot_end: float | None = Field(None, description="Unix time the slot ends, renewed or not")
+    ended: float | None = None
+    reason: str | None = None
+
+
+class QueueStatus(Model):
+    arm: str
+    holder: str | None = Field(None, description="who holds the arm's lease now")
+    slot_left: float | None = Field(None, description="seconds left in the holder's slot")
+    entries: list[QueueEntry] = Field(description="the current (offered or holding) entry "
+                                      "first, then the waiting ones in order")
+    handing_off: bool
+    blocked: str | None = Field(None, description="why the last hand-off failed (the arm is "
+                                "left with nobody until an instructor's DELETE /lease)")
+    last_handoff: dict[str, Any] | None = None
+    claim_s: float
+    slot_s: float
+
+
+class QueueOrder(Model):
+    order: list[Annotated[str, Field(max_length=64)]] = Field(
+        max_length=1000, description="every waiting entry's id, in the new order")
+
+
+class AuditRecord(Model):
+    time: float
+    name: str
+    role: str
+    arm: str | None
+    method: str
+    route: str
+    summary: str
+    status: int
+    code: str | None
 
 
 # ---------------------------------------------------------------- safety envelope

@@ -49,7 +49,24 @@ MIGRATIONS: list[str] = [
            updated REAL NOT NULL,
            PRIMARY KEY (scope, key)
        )""",
+    # issue 14: the audit log (app/audit.py); the queues live in `settings` ("queue:<arm>")
+    """CREATE TABLE audit (
+           seq INTEGER PRIMARY KEY AUTOINCREMENT,
+           time REAL NOT NULL,
+           name TEXT NOT NULL,
+           role TEXT NOT NULL,
+           arm TEXT,
+           method TEXT NOT NULL,
+           route TEXT NOT NULL,
+           summary TEXT NOT NULL,
+           status INTEGER NOT NULL,
+           code TEXT
+       )""",
+    "CREATE INDEX audit_time ON audit (time)",
 ]
+
+#: The columns of an audit record, in order.
+AUDIT_COLUMNS = ("time", "name", "role", "arm", "method", "route", "summary", "status", "code")
 
 
 class StoreError(Exception):
@@ -79,6 +96,11 @@ class Store:
         self._db: sqlite3.Connection | None = None  # the writer thread's only
         self._pending: dict[tuple[str, str], str] = {}  # writer thread's; newest unsaved values
         self._error: str | None = None
+        # audit records not yet on disk: appended by the loop, drained by the writer thread
+        self._audit: list[tuple[Any, ...]] = []
+        self._audit_lock = threading.Lock()
+        self._audit_queued = False
+        self.audit_written = 0
 
     # ------------------------------------------------------------ life
 
@@ -97,6 +119,7 @@ class Store:
             return
         try:
             self._call(self._flush).result(timeout=5.0)
+            self._call(self._flush_audit).result(timeout=5.0)
         except (concurrent.futures.TimeoutError, StoreError):
             pass
         self._jobs.put(None)
@@ -105,7 +128,7 @@ class Store:
 
     def health(self) -> StoreHealth:
         return StoreHealth(ok=self._error is None, path=str(self.path),
-                           pending=len(self._pending), error=self._error)
+                           pending=len(self._pending) + len(self._audit), error=self._error)
 
     # ------------------------------------------------------------ settings
 
@@ -121,6 +144,91 @@ class Store:
         be retried (the reason is in `health()`)."""
         text = json.dumps(value, allow_nan=False, separators=(",", ":"))
         return await asyncio.wrap_future(self._call(lambda: self._put(scope, key, text)))
+
+    def put_setting_nowait(self, scope: str, key: str, value: Any) -> None:
+        """As `put_setting`, without waiting for the write (it lands in order with the others;
+        a failed one is kept and retried)."""
+        text = json.dumps(value, allow_nan=False, separators=(",", ":"))
+        self._call(lambda: self._put(scope, key, text)).add_done_callback(_ignore)
+
+    # ------------------------------------------------------------ audit log
+
+    def audit(self, record: tuple[Any, ...]) -> None:
+        """Append an audit record (AUDIT_COLUMNS, in order) without waiting: it is kept in
+        memory until the writer thread has it on disk, retried like a setting when a write
+        fails, and never dropped."""
+        with self._audit_lock:
+            self._audit.append(record)
+            if self._audit_queued:
+                return
+            self._audit_queued = True
+        fut = self._call(self._flush_audit)
+        if fut.done() and fut.exception() is not None:  # not open, or the job queue full:
+            with self._audit_lock:                       # the next record or retry takes it
+                self._audit_queued = False
+        fut.add_done_callback(_ignore)
+
+    async def query_audit(self, *, arm: str | None = None, who: str | None = None,
+                          since: float | None = None, until: float | None = None,
+                          limit: int = 100) -> list[dict[str, Any]]:
+        """Audit records newest first, those not yet on disk included."""
+        return await asyncio.wrap_future(
+            self._call(lambda: self._query_audit(arm, who, since, until, limit)))
+
+    def _flush_audit(self) -> bool:
+        with self._audit_lock:
+            self._audit_queued = False
+            rows = list(self._audit)
+        if not rows:
+            return True
+        if self._db is None:
+            self._open()
+            if self._db is None:
+                return False
+        try:
+            self._db.execute("BEGIN")
+            self._db.executemany(
+                f"INSERT INTO audit ({', '.join(AUDIT_COLUMNS)}) VALUES "
+                f"({', '.join('?' * len(AUDIT_COLUMNS))})", rows)
+            self._db.execute("COMMIT")
+        except sqlite3.Error as exc:
+            if self._db.in_transaction:
+                self._db.execute("ROLLBACK")
+            self._fail(f"writing {len(rows)} audit record(s) to {self.path}: {exc} (kept in "
+                       f"memory, retried every {self._retry_s:g} s)")
+            return False
+        with self._audit_lock:
+            del self._audit[:len(rows)]
+        self.audit_written += len(rows)
+        if not self._pending:
+            self._ok()
+        return True
+
+    def _query_audit(self, arm: str | None, who: str | None, since: float | None,
+                     until: float | None, limit: int) -> list[dict[str, Any]]:
+        def keep(r: tuple[Any, ...]) -> bool:
+            return ((arm is None or r[3] == arm) and (who is None or r[1] == who)
+                    and (since is None or r[0] >= since) and (until is None or r[0] <= until))
+
+        with self._audit_lock:
+            unsaved = [r for r in self._audit if keep(r)]
+        rows = list(reversed(unsaved))[:limit]
+        if self._db is not None and len(rows) < limit:
+            where, args = [], []
+            for col, op, val in (("arm", "=", arm), ("name", "=", who), ("time", ">=", since),
+                                 ("time", "<=", until)):
+                if val is not None:
+                    where.append(f"{col} {op} ?")
+                    args.append(val)
+            sql = (f"SELECT {', '.join(AUDIT_COLUMNS)} FROM audit"
+                   f"{' WHERE ' + ' AND '.join(where) if where else ''} "
+                   f"ORDER BY time DESC, seq DESC LIMIT ?")
+            try:
+                rows += self._db.execute(sql, (*args, limit - len(rows))).fetchall()
+            except sqlite3.Error as exc:
+                self._fail(f"reading the audit log: {exc}")
+                raise StoreError(self._error or "read failed") from exc
+        return [dict(zip(AUDIT_COLUMNS, r, strict=True)) for r in rows]
 
     # ------------------------------------------------------------ other tables (issue 14)
 
@@ -152,9 +260,11 @@ class Store:
     def _worker(self) -> None:
         while True:
             try:
-                job = self._jobs.get(timeout=self._retry_s if self._pending else None)
+                job = self._jobs.get(timeout=self._retry_s if self._pending or self._audit
+                                     else None)
             except queue.Empty:
                 self._flush()
+                self._flush_audit()
                 continue
             if job is None:
                 break
@@ -238,3 +348,9 @@ class Store:
         if self._error is not None:
             log.info("store: writes land again (%s)", self.path)
         self._error = None
+
+
+def _ignore(fut: concurrent.futures.Future[Any]) -> None:
+    """Done-callback of a fire-and-forget job: its failure is already in `health()`."""
+    if not fut.cancelled():
+        fut.exception()

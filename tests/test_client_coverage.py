@@ -55,6 +55,15 @@ ROUTES: dict[tuple[str, str], str] = {
     ("DELETE", "/api/v1/arms/{arm}/lease/{id}"): "release_lease",
     ("GET", "/api/v1/arms/{arm}/safety"): "safety",
     ("PUT", "/api/v1/arms/{arm}/safety"): "set_safety",
+    ("GET", "/api/v1/me"): "me",
+    ("POST", "/api/v1/arms/{arm}/queue"): "join_queue",
+    ("GET", "/api/v1/arms/{arm}/queue"): "queue",
+    ("PUT", "/api/v1/arms/{arm}/queue"): "reorder_queue",
+    ("DELETE", "/api/v1/arms/{arm}/queue"): "clear_queue",
+    ("GET", "/api/v1/arms/{arm}/queue/{id}"): "queue_entry",
+    ("DELETE", "/api/v1/arms/{arm}/queue/{id}"): "leave_queue",
+    ("DELETE", "/api/v1/arms/{arm}/lease"): "revoke_lease",
+    ("GET", "/api/v1/audit"): "audit",
 }
 
 #: Routes outside OpenAPI (WebSocket) and helpers built on routes: method -> what it uses.
@@ -63,6 +72,8 @@ EXTRA = {
     "telemetry_messages": "WS /api/v1/arms/{arm}/telemetry",
     "wait_motion": "GET /api/v1/arms/{arm}/motions/{id} (polled)",
     "hold_lease": "POST/PUT/DELETE /api/v1/arms/{arm}/lease",
+    "queue_turn": "POST/GET/DELETE /api/v1/arms/{arm}/queue, PUT/DELETE .../lease",
+    "audit_csv": "GET /api/v1/audit (Accept: text/csv)",
 }
 
 #: Arguments to call each method with over the recording transport.
@@ -82,6 +93,9 @@ ARGS: dict[str, tuple[Any, ...]] = {
     "renew_lease": ("a1", "L1"), "release_lease": ("a1", "L1"),
     "safety": ("a1",), "set_safety": ("a1",),
     "tare_force": ("a1",), "clear_tare": ("a1",),
+    "me": (), "join_queue": ("a1",), "queue": ("a1",), "reorder_queue": ("a1", ["e1"]),
+    "clear_queue": ("a1",), "queue_entry": ("a1", "e1"), "leave_queue": ("a1", "e1"),
+    "revoke_lease": ("a1",), "audit": (),
 }
 
 

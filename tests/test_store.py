@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from app.store import DB_NAME, Store
+from app.store import DB_NAME, MIGRATIONS, Store
 
 
 @pytest.fixture
@@ -39,7 +39,8 @@ async def test_round_trip_and_reopen(tmp_path: Path, store: Store) -> None:
     rows = sqlite3.connect(tmp_path / DB_NAME).execute(
         "SELECT scope, key FROM settings ORDER BY scope").fetchall()
     assert rows == [("arm:a", "safety"), ("arm:b", "safety")]
-    assert sqlite3.connect(tmp_path / DB_NAME).execute("PRAGMA user_version").fetchone()[0] == 1
+    assert (sqlite3.connect(tmp_path / DB_NAME).execute("PRAGMA user_version").fetchone()[0]
+            == len(MIGRATIONS))
 
 
 async def test_locked_database_keeps_the_write_and_retries(tmp_path: Path, store: Store) -> None:

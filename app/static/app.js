@@ -5,6 +5,7 @@
 // degrees, and the test hook (window.armDashboard) reports SI.
 
 import { attachSafety, drawSafety } from "./safety.js";
+import { attachClassroom, leaseFor } from "./classroom.js";
 
 const API = "/api/v1";
 const WINDOW_S = 10;            // plot and trail window, s
@@ -108,6 +109,7 @@ async function api(method, path, body) {
     const headers = {};
     if (body !== undefined) headers["Content-Type"] = "application/json";
     if (token()) headers.Authorization = `Bearer ${token()}`;
+    if (leaseFor(path)) headers["X-Arm-Lease"] = leaseFor(path);
     let res;
     try {
       res = await fetch(API + path, {
@@ -290,6 +292,7 @@ class Arm {
     this.lastEvent = null;
     this.build();
     this.safety = attachSafety(this, api, h);
+    this.classroom = attachClassroom(this, api, h);
     this.connect();
   }
 
@@ -508,6 +511,7 @@ class Arm {
     if (msg.event === "link_lost") { this.link = "down"; this.pendingBreak = true; }
     if (msg.event === "link_back") this.link = "up";
     if (msg.event === "safety") this.safety?.refresh();
+    this.classroom?.onEvent(msg);
     const words = {
       motion_started: "motion started", motion_ended: "motion ended", estop: "emergency stop latched",
       estop_released: "emergency stop released", link_lost: "link lost", link_back: "link back",
@@ -1080,6 +1084,7 @@ window.armDashboard = {
   arms: () => [...arms.keys()],
   state: (name) => arms.get(name)?.state() ?? null,
   safety: (name) => arms.get(name)?.safety?.state() ?? null,
+  classroom: (name) => arms.get(name)?.classroom?.state() ?? null,
 };
 
 loadTheme();

@@ -1,0 +1,56 @@
+"""GET /audit: the audit log, newest first, JSON or CSV (instructor; app/audit.py records)."""
+
+from __future__ import annotations
+
+import csv
+import io
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Query, Request, Response
+
+from app import schemas as s
+from app.api.common import errors
+from app.deps import InstructorCaller
+from app.errors import ArmError
+from app.store import AUDIT_COLUMNS, Store, StoreError
+
+router = APIRouter(tags=["audit"])
+
+
+class StoreUnavailable(ArmError):
+    code = "store_unavailable"
+    status_code = 503
+
+
+@router.get("/audit", response_model=list[s.AuditRecord], summary="The audit log",
+            description="Instructor token. Records of every changing request, newest first, "
+            "filtered by arm, caller name (`who`) and Unix time (`since`, `until`). "
+            "`Accept: text/csv` answers CSV with a header row. 503 `store_unavailable` when the "
+            "database cannot be read (records not yet written are kept and retried).",
+            responses={**errors(401, 403, 422, 503),
+                       200: {"content": {"text/csv": {}}, "description": "records"}})
+async def audit(
+    _: InstructorCaller,
+    request: Request,
+    arm: Annotated[str | None, Query(max_length=64)] = None,
+    who: Annotated[str | None, Query(max_length=64)] = None,
+    since: Annotated[float | None, Query(allow_inf_nan=False)] = None,
+    until: Annotated[float | None, Query(allow_inf_nan=False)] = None,
+    limit: Annotated[int, Query(ge=1, le=10_000)] = 100,
+    accept: Annotated[str | None, Header(max_length=256)] = None,
+) -> Response | list[s.AuditRecord]:
+    store: Store | None = getattr(request.app.state, "store", None)
+    if store is None:
+        raise StoreUnavailable("this server has no store")
+    try:
+        rows = await store.query_audit(arm=arm, who=who, since=since, until=until, limit=limit)
+    except StoreError as exc:
+        raise StoreUnavailable(f"the audit log cannot be read: {exc}") from exc
+    if accept is not None and "text/csv" in accept:
+        out = io.StringIO()
+        writer = csv.writer(out)
+        writer.writerow(AUDIT_COLUMNS)
+        for r in rows:
+            writer.writerow([r[c] if r[c] is not None else "" for c in AUDIT_COLUMNS])
+        return Response(out.getvalue(), media_type="text/csv; charset=utf-8")
+    return [s.AuditRecord(**r) for r in rows]

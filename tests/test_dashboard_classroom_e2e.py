@@ -1,0 +1,84 @@
+"""End to end: the dashboard's queue panel (app/static/classroom.js) in headless Chromium against
+a real server with named tokens: a student joins, takes the offered turn (the page claims and
+renews the lease: it is still hers after several ttls), sees herself as the holder; the
+instructor's page shows the instructor controls and revokes the lease, and the student's page
+drops it."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import httpx
+import pytest
+from conftest import OPERATOR, make_settings
+from test_dashboard_e2e import OUT, VIEWPORT, browser, serving, shot, wait_for  # noqa: F401
+
+pytestmark = pytest.mark.browser
+
+ALICE, TEACH = "dash-alice", "dash-teach"
+
+
+def classroom(pg: Any, arm: str) -> dict[str, Any]:
+    return pg.evaluate("(a) => window.armDashboard && window.armDashboard.classroom(a)",
+                       arm) or {}
+
+
+def open_as(browser: Any, url: str, token: str, errors: list[str]) -> Any:  # noqa: F811
+    pg = browser.new_page(viewport=VIEWPORT)
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.add_init_script(f"sessionStorage.setItem('armserver.token', '{token}')")
+    pg.goto(url + "/")
+    return pg
+
+
+def test_join_take_turn_renew_and_instructor_revoke(browser: Any) -> None:  # noqa: F811
+    settings = make_settings(operator_tokens=f"{OPERATOR},alice:{ALICE}",
+                             instructor_tokens=f"teach:{TEACH}", lease_ttl_s=1.5,
+                             claim_s=30.0, slot_s=120.0)
+    errors: list[str] = []
+    OUT.mkdir(exist_ok=True)
+    with serving(settings) as srv:
+        def queue() -> dict[str, Any]:
+            r = httpx.get(f"{srv.url}/api/v1/arms/angler/queue",
+                          headers={"Authorization": f"Bearer {TEACH}"}, timeout=5)
+            return r.json()  # type: ignore[no-any-return]
+
+        pg = open_as(browser, srv.url, ALICE, errors)
+        teach = None
+        try:
+            wait_for(lambda: classroom(pg, "angler").get("data"), 15, "the queue panel")
+            assert classroom(pg, "angler")["me"] == {"name": "alice", "role": "operator"}
+            assert pg.is_hidden("#angler-queue-instructor")
+            pg.click("#angler-queue-join")
+            wait_for(lambda: pg.is_visible("#angler-queue-claim"), 10, "the offer shown")
+            pg.click("#angler-queue-claim")
+            wait_for(lambda: classroom(pg, "angler").get("lease"), 10, "the lease claimed")
+            time.sleep(5.0)  # more than three ttls: only the page's renewals keep it
+            q = queue()
+            assert q["holder"] == "alice" and q["entries"][0]["status"] == "holding"
+            wait_for(lambda: "held by alice" in pg.inner_text("#angler-holder"), 5, "holder")
+            # the page's requests carry the lease: a move from the page is accepted
+            status = pg.evaluate("""async () => {
+                const r = await fetch('/api/v1/arms/angler/move/joints', {method: 'POST',
+                  headers: {'Content-Type': 'application/json',
+                            'Authorization': 'Bearer dash-alice',
+                            'X-Arm-Lease': window.armDashboard.classroom('angler').lease},
+                  body: JSON.stringify({positions: [0.001, 0, 0, 0.05]})});
+                return r.status; }""")
+            assert status == 202
+            # the instructor revokes from their page
+            # (opened only now: Chromium slows the timers of a page in the background)
+            teach = open_as(browser, srv.url, TEACH, errors)
+            wait_for(lambda: teach.is_visible("#angler-queue-revoke"), 15, "instructor controls")
+            shot(teach, "08-classroom")
+            teach.click("#angler-queue-revoke")
+            wait_for(lambda: queue()["holder"] is None, 10, "the lease revoked")
+            wait_for(lambda: classroom(pg, "angler").get("lease") is None, 10,
+                     "the student's page dropped the lease")
+            wait_for(lambda: pg.is_visible("#angler-queue-join"), 10, "join offered again")
+        finally:
+            pg.close()
+            if teach is not None:
+                teach.close()
+    assert not errors, f"uncaught errors in the page: {errors}"
