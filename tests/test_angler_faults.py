@@ -232,7 +232,7 @@ async def test_api_a_real_link_starts_not_homed_and_home_takes_positions():
     async with app.router.lifespan_context(app):
         await wait_ready(app)
         async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
-                                     base_url="http://t", timeout=30.0) as c:
+                                     base_url="http://armserver.test", timeout=30.0) as c:
             assert (await c.get(API)).json()["homed"] == [False, False, True, False]
             r = await c.post(f"{API}/move/pose", json={"x": 0.0, "y": 0.11, "z": 0.0})
             assert r.status_code == 409 and r.json()["code"] == "not_homed"

@@ -155,5 +155,5 @@ def test_record_then_replay(url: str, tmp_path: Path, parallel: dict[str, object
 def test_scripted_session(url: str, parallel: dict[str, object]) -> None:
     out = _run("scripted_session.py", "--url", url, "--quick")
     for line in ("arms: rbe3001", "422 unreachable", "409 estop_latched", "no gaps",
-                 "stopped (stopped by operator", "scripted session passed"):
+                 "stopped (stopped by instructor (open server)", "scripted session passed"):
         assert line in out, f"{line!r} missing:\n{out}"
