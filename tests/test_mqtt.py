@@ -202,7 +202,8 @@ async def test_a_broker_that_never_answers_costs_the_server_nothing() -> None:
     try:
         settings = make_settings(mqtt_url=f"mqtt://127.0.0.1:{port}")
         async with running_client(settings) as (app, client):
-            sub = app.state.services["rbe3001"].hub.subscribe()
+            # a backlog for the whole wait below (2 min at 500 Hz): this subscriber reads once
+            sub = app.state.services["rbe3001"].hub.subscribe(backlog=60_000)
             for _ in range(40):  # accept what the bridge opens, never answer it
                 with contextlib.suppress(OSError):
                     accepted.append(silent.accept()[0])
