@@ -141,6 +141,24 @@ async def test_profile_velocity_never_above_the_velocity_limit():
         await drv.close()
 
 
+async def test_a_silent_servo_of_the_arm_is_a_timeout_not_absent():
+    """Silence from one of the arm's own servos (a lost reply) must not be reported as "no
+    servo there": that answer would be wrong. Only ids the arm does not have are absent."""
+    from app.config import FaultConfig
+    from app.errors import DeviceTimeout
+
+    drv, _ = await _driver()
+    try:
+        link = drv.link
+        assert isinstance(link, SimLink)
+        link.set_faults(FaultConfig(drop=1.0))
+        with pytest.raises(DeviceTimeout):
+            await drv.ping(4)
+        assert await drv.ping(77) == []
+    finally:
+        await drv.close()
+
+
 async def test_ping_of_an_absent_id_is_an_empty_answer():
     drv, _ = await _driver()
     try:

@@ -117,7 +117,11 @@ class AnglerDriver(Driver):
         try:
             packets = await self.submit(req)
         except DeviceTimeout:
-            return []  # no servo with that id: an answer, not a failure (API.md)
+            if dxl_id is not None and dxl_id in self.ids:
+                # One of this arm's own servos: silence is a lost reply or a fault of the
+                # link, not an absent servo; saying "absent" would be a wrong answer.
+                raise
+            return []  # no servo with that id on this arm: an answer, not a failure (API.md)
         return [(p.id, dxl.from_bytes(p.params[0:2], False), p.params[2]) for p in packets]
 
     async def read_register(self, dxl_id: int, item: mx28.ControlItem) -> int:
