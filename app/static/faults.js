@@ -2,7 +2,8 @@
 //
 // app.js announces each arm card ("arm-card" on document) and its newest sample ("arm-sample"
 // on the card); this module adds a panel that shows the servos' hardware faults with their
-// advice, which joints are homed, and offers reboot (per faulted servo), home and tare. The
+// advice, which joints are homed, and offers reboot (per faulted servo) and home (the tare is
+// in app.js's Force panel). The
 // calls go through app.js's `api` (window.armDashboard.api), so tokens work as everywhere.
 
 const API = "/api/v1";
@@ -43,16 +44,12 @@ class Panel {
       error: el("div", { class: "err", id: id("faults-error"), role: "alert" }),
       note: el("span", { class: "muted small", id: id("faults-note") }, ""),
     };
-    const tare = detail.capabilities?.force_sensing
-      ? el("button", { type: "button", class: "ghost", id: id("tare"), title: "Zero the joint torques and tip force",
-        onclick: () => this.run("POST", `/arms/${encodeURIComponent(name)}/force/tare`, undefined, "tared") }, "Tare force")
-      : null;
     this.el.section = el("section", { class: "ctl faults-homing", id: id("faults-panel") },
       el("h3", {}, "Faults and homing"),
       this.el.faults, this.el.homed,
       el("div", { class: "row" }, this.el.positions,
         el("button", { type: "button", class: "primary", id: id("home"), title: "Declare the arm's current pose (nothing moves)",
-          onclick: () => this.home() }, "Home"), tare),
+          onclick: () => this.home() }, "Home")),
       this.el.note, this.el.error);
     (card.querySelector(".controls") || card).append(this.el.section);
     card.addEventListener("arm-sample", (ev) => this.update(ev.detail));
