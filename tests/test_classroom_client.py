@@ -45,11 +45,17 @@ def test_sync_queue_turns_one_after_the_other(room: Server) -> None:
         except BaseException as exc:  # noqa: BLE001 - reported below
             errors.append(exc)
 
-    threads = [threading.Thread(target=student, args=a) for a in (("alice", ALICE),
-                                                                    ("bob", BOB))]
-    for t in threads:
-        t.start()
-        time.sleep(0.2)
+    students = (("alice", ALICE), ("bob", BOB))
+    threads = [threading.Thread(target=student, args=a) for a in students]
+    with ArmClient(room.url, token=TEACH) as teach:
+        for (name, _), t in zip(students, threads, strict=True):
+            t.start()
+            # the next student joins only once this one is in the queue (the order asserted
+            # below is the order of joining, not of starting threads)
+            deadline = time.monotonic() + 30.0
+            while time.monotonic() < deadline and not any(n == name for n, _, _ in order) \
+                    and not any(e.name == name for e in teach.queue("angler").entries):
+                time.sleep(0.02)
     for t in threads:
         t.join(timeout=60.0)
     assert not errors, errors
