@@ -122,7 +122,7 @@ def check(arm: str, sc: dict[str, Any]) -> None:
 
 @pytest.mark.parametrize("arm", ["rbe3001", "angler"])
 def test_accepted_motions_stay_out_and_refusals_name_a_zone_the_path_enters(arm: str) -> None:
-    @settings(max_examples=60, deadline=None, derandomize=True,
+    @settings(max_examples=30, deadline=None, derandomize=True,
               suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
     @given(scenario(arm))
     def prop(sc: dict[str, Any]) -> None:

@@ -10,8 +10,8 @@ none). Hostile input must never crash anything:
 - afterwards both arms' link tasks and motion executors are alive, the links up and the
   telemetry still advancing, and the last-resort error handler was never hit.
 
-The number of generated cases per operation, arm and mode is ARMSERVER_FUZZ_CASES (default 6:
-about 18 per operation on the open server, 30 s for the module; `make fuzz` runs 300). Valid
+The number of generated cases per operation, arm and mode is ARMSERVER_FUZZ_CASES (default 3:
+about 9 per operation on the open server, about 40 s for the module; `make fuzz` runs 300). Valid
 cases are per arm (the `arm` path parameter fixed), invalid ones break the arm name as well.
 Positive runs also draw bodies that pass every check (see `_valid_bodies`), so moves, line
 paths and set-points really run. Between cases the fuzzer's side
@@ -51,7 +51,7 @@ from app.main import create_app
 
 pytestmark = pytest.mark.slow
 
-CASES = int(os.environ.get("ARMSERVER_FUZZ_CASES", "6"))
+CASES = int(os.environ.get("ARMSERVER_FUZZ_CASES", "3"))
 #: The suite's short run is the same every time; a long run (`make fuzz`) explores anew.
 DETERMINISTIC = CASES <= 50
 ARMS = ("rbe3001", "angler")
