@@ -4,6 +4,7 @@ driven by the public DynamixelSDK through a pseudo-terminal and by a raw TCP soc
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import sys
 import threading
 import time
@@ -208,6 +209,22 @@ class LoopThread:
 SdkBus = tuple[PortHandler, Any, DynamixelBus]
 
 
+@contextlib.contextmanager
+def sdk_over_pty(bus: DynamixelBus, link: Path) -> Iterator[SdkBus]:
+    """`bus` served on a real pseudo-terminal at `link` from its own loop thread, and a
+    DynamixelSDK port open on it at 1 Mbps; closed (and the pty removed) afterwards."""
+    lt = LoopThread()
+    server: PtyServer = lt.run(serve_pty(bus, link))
+    port = PortHandler(str(link))
+    assert port.openPort() and port.setBaudRate(1_000_000)
+    try:
+        yield port, PacketHandler(2.0), bus
+    finally:
+        port.closePort()
+        lt.run(server.close())
+        lt.stop()
+
+
 def patient(call: Callable[..., Any], *args: Any) -> Any:
     """One DynamixelSDK exchange (ping, readNByteTxRx, writeNByteTxRx, reboot, a group's
     txRxPacket), repeated only
@@ -230,19 +247,10 @@ def patient(call: Callable[..., Any], *args: Any) -> Any:
 
 @pytest.fixture()
 def sdk_bus(tmp_path: Path) -> Iterator[SdkBus]:
-    lt = LoopThread()
-    bus = DynamixelBus(ids=(1, 2, 3, 4), operating_modes={1: 4})
     link = tmp_path / "ttyDXL"
-    server: PtyServer = lt.run(serve_pty(bus, link))
-    port = PortHandler(str(link))
-    assert port.openPort() and port.setBaudRate(1_000_000)
-    try:
-        yield port, PacketHandler(2.0), bus
-    finally:
-        port.closePort()
-        lt.run(server.close())
-        lt.stop()
-        assert not link.exists()
+    with sdk_over_pty(DynamixelBus(ids=(1, 2, 3, 4), operating_modes={1: 4}), link) as sdk:
+        yield sdk
+    assert not link.exists()
 
 
 def test_sdk_ping_and_broadcast_ping(sdk_bus: SdkBus) -> None:

@@ -12,11 +12,10 @@ import pytest
 from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
 
 from app.sim.dynamixel_bus import DynamixelBus
-from app.sim.serve import PtyServer, serve_pty
 from protocol import dynamixel as dxl
 from protocol import mx28
 from protocol.dynamixel import ErrorCode
-from tests.test_dynamixel_sim import LoopThread, patient
+from tests.test_dynamixel_sim import patient, sdk_over_pty
 
 RPM = 0.229  # rpm per raw velocity unit
 
@@ -163,18 +162,8 @@ def test_torque_off_mid_move_stops_and_reports_nothing_moving() -> None:
 
 @pytest.fixture()
 def sdk(tmp_path: Path) -> Iterator[tuple[PortHandler, PacketHandler, DynamixelBus]]:
-    lt = LoopThread()
-    bus = DynamixelBus(ids=(1,), operating_modes={1: 4})
-    link = tmp_path / "ttyDXL"
-    server: PtyServer = lt.run(serve_pty(bus, link))
-    port = PortHandler(str(link))
-    assert port.openPort() and port.setBaudRate(1_000_000)
-    try:
-        yield port, PacketHandler(2.0), bus
-    finally:
-        port.closePort()
-        lt.run(server.close())
-        lt.stop()
+    with sdk_over_pty(DynamixelBus(ids=(1,), operating_modes={1: 4}), tmp_path / "ttyDXL") as sdk:
+        yield sdk
 
 
 def test_sdk_velocity_limit_refusal_and_speed_cap(

@@ -12,17 +12,17 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHandler, PortHandler
+from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite
 
 from app.sim.dynamixel_bus import DynamixelBus
 from app.sim.mx28_servo import Mx28Servo
-from app.sim.serve import PtyServer, main, serve_pty
+from app.sim.serve import main
 from app.sim.xm430_servo import Xm430Servo
 from kinematics import omx
 from protocol import dynamixel as dxl
 from protocol import xm430
 from protocol.dynamixel import ErrorCode
-from tests.test_dynamixel_sim import LoopThread, SdkBus, patient
+from tests.test_dynamixel_sim import SdkBus, patient, sdk_over_pty
 
 OMX_IDS = omx.IDS  # 11..15: joints 1..4 and the gripper
 
@@ -86,18 +86,8 @@ def test_sim_xm430_is_slower_than_the_mx28() -> None:
 
 @pytest.fixture()
 def sdk_omx(tmp_path: Path) -> Iterator[SdkBus]:
-    lt = LoopThread()
-    bus = _omx_bus(extra_mx28=(1,))
-    link = tmp_path / "ttyOMX"
-    server: PtyServer = lt.run(serve_pty(bus, link))
-    port = PortHandler(str(link))
-    assert port.openPort() and port.setBaudRate(1_000_000)
-    try:
-        yield port, PacketHandler(2.0), bus
-    finally:
-        port.closePort()
-        lt.run(server.close())
-        lt.stop()
+    with sdk_over_pty(_omx_bus(extra_mx28=(1,)), tmp_path / "ttyOMX") as sdk:
+        yield sdk
 
 
 def test_sdk_pings_model_1020(sdk_omx: SdkBus) -> None:
