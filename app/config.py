@@ -167,9 +167,9 @@ class CartesianLimits(_Strict):
 class Point3(_Strict):
     """A point in an arm's base frame, m (within 10 m of the base: no arm here reaches further)."""
 
-    x: float = Field(ge=-10.0, le=10.0)
-    y: float = Field(ge=-10.0, le=10.0)
-    z: float = Field(ge=-10.0, le=10.0)
+    x: float = Field(ge=-10.0, le=10.0, strict=True)
+    y: float = Field(ge=-10.0, le=10.0, strict=True)
+    z: float = Field(ge=-10.0, le=10.0, strict=True)
 
 
 class KeepOutBox(_Strict):

@@ -474,8 +474,10 @@ class SafetyUpdate(Model):
     omitted keeps it (`floor_z: null` removes the floor)."""
 
     zones: list[KeepOutBox] | None = Field(None, max_length=32)
-    floor_z: Annotated[float, Field(ge=-10.0, le=10.0, allow_inf_nan=False)] | None = None
-    speed_override: Annotated[float, Field(ge=0.05, le=1.0, allow_inf_nan=False)] | None = None
+    floor_z: Annotated[
+        float, Field(ge=-10.0, le=10.0, allow_inf_nan=False, strict=True)] | None = None
+    speed_override: Annotated[
+        float, Field(ge=0.05, le=1.0, allow_inf_nan=False, strict=True)] | None = None
 
 
 class Safety(Model):

@@ -13,7 +13,8 @@ done to it before it is sent:
 Whatever is sent: no 500, no `internal_error`, every error body is `{detail, code}`, and
 afterwards both arms are alive and the last-resort handler was never hit. (A lone surrogate
 travels as the JSON escape `\\ud800`: valid JSON, but not text.)
-Cases per operation and arm: ARMSERVER_FUZZ_CASES (default 6; `make fuzz` runs 300).
+Cases per operation and arm: ARMSERVER_FUZZ_CASES, at least 6 (so that every hostile kind
+is drawn); `make fuzz` runs 300.
 """
 
 from __future__ import annotations
@@ -129,7 +130,7 @@ def test_hostile_inputs_never_crash_anything(open_target: Target) -> None:
         op = result.ok()
         arms = ARMS if "{arm}" in op.path else (None,)
         for arm in arms:
-            @settings(max_examples=CASES, deadline=None, database=None,
+            @settings(max_examples=max(CASES, 6), deadline=None, database=None,
                       derandomize=DETERMINISTIC, phases=[Phase.generate],
                       suppress_health_check=list(HealthCheck))
             @given(drawn=hostile(op, arm))
