@@ -162,7 +162,7 @@ def hardware_error_bits(names: str | list[str] | tuple[str, ...]) -> int:
     for name in [names] if isinstance(names, str) else names:
         key = name.strip().lower().replace(" ", "_").replace("-", "_")
         if key not in HARDWARE_ERRORS:
-            raise ValueError(f"no MX-28 hardware error {name!r}; one of "
+            raise ValueError(f"no Dynamixel hardware error {name!r}; one of "
                              f"{', '.join(HARDWARE_ERRORS)}")
         bits |= HARDWARE_ERRORS[key]
     return bits

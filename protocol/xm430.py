@@ -29,6 +29,8 @@ from protocol.mx28 import (
     TICKS_PER_REV,
     VEL_TICKS_PER_UNIT,
     ControlItem,
+    hardware_error_bits,  # the X series has the MX-28 (2.0)'s Hardware Error Status bits
+    hardware_error_names,
 )
 
 __all__ = [
@@ -157,21 +159,3 @@ def rad_per_tick() -> float:
 def rad_s_per_unit() -> float:
     """Velocity items' unit (0.229 rpm) in rad/s."""
     return 0.229 * 2.0 * math.pi / 60.0
-
-
-def hardware_error_names(bits: int) -> list[str]:
-    """The names of the Hardware Error Status bits set in `bits` (same bits as the MX-28)."""
-    return [name for name, bit in sorted(HARDWARE_ERRORS.items(), key=lambda kv: kv[1])
-            if bits & bit]
-
-
-def hardware_error_bits(names: str | list[str] | tuple[str, ...]) -> int:
-    """The Hardware Error Status bits of one name or several; ValueError for an unknown one."""
-    bits = 0
-    for name in [names] if isinstance(names, str) else names:
-        key = name.strip().lower().replace(" ", "_").replace("-", "_")
-        if key not in HARDWARE_ERRORS:
-            raise ValueError(f"no XM430 hardware error {name!r}; one of "
-                             f"{', '.join(HARDWARE_ERRORS)}")
-        bits |= HARDWARE_ERRORS[key]
-    return bits
