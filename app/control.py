@@ -6,7 +6,8 @@ records, estop latch) is read by every route; in one process those reads are pla
 reads, a process would need every one of them to become a message. What a thread must get right
 is that nothing on the HTTP loop can hold the control loop up: the GIL is handed over every
 `SWITCH_INTERVAL_S` (not CPython's 5 ms default), the control loop does no parsing and no
-fan-out (samples and events cross to the HTTP loop with `call_soon_threadsafe`, bounded), and
+fan-out (samples go into the hub's locked shared log, events cross to the HTTP loop with
+`call_soon_threadsafe`), and
 everything the API asks of an arm crosses into the control loop (`on_control`). The figures
 that back this choice are in the README ("Reliability").
 

@@ -42,11 +42,6 @@ def dumps_bytes(obj: Any) -> bytes:
     """Compact JSON bytes (orjson; numpy scalars and arrays allowed, NaN becomes null)."""
     return orjson.dumps(obj, option=_OPTIONS)
 
-#: Events published on the control thread that may wait for the HTTP loop's fan-out; past it
-#: new ones skip it (counted in `crossing_dropped`). Samples need no crossing: the shared log
-#: is locked and a waiting subscriber is woken with `call_soon_threadsafe`.
-CROSSING_BACKLOG = 500
-
 
 def _dumps(obj: Any) -> str:
     return orjson.dumps(obj, option=_OPTIONS).decode()
@@ -162,35 +157,26 @@ class TelemetryHub:
         #: The fan-out's loop and thread (the HTTP loop), when the publisher runs elsewhere.
         self._fanout_loop: asyncio.AbstractEventLoop | None = None
         self._fanout_thread: int | None = None
-        self._crossed = 0  # written by the publishing thread only
-        self._arrived = 0  # written by the fan-out thread only
-        self.crossing_dropped = 0
 
     def bind_fanout(self) -> None:
-        """Fan out on the running loop (the HTTP loop) whatever thread publishes: samples and
-        events from the control thread cross with `call_soon_threadsafe`, bounded."""
+        """Fan events out on the running loop (the HTTP loop) whatever thread sends them: from
+        the control thread they cross with `call_soon_threadsafe` (rare, never dropped; each
+        subscriber's event backlog is bounded). Samples need no crossing: the shared log is
+        locked and a waiting subscriber is woken with `call_soon_threadsafe`."""
         self._fanout_loop = asyncio.get_running_loop()
         self._fanout_thread = threading.get_ident()
 
-    def _cross(self, fn: Callable[[Any], None], item: Any, droppable: bool) -> bool:
+    def _cross(self, fn: Callable[[Any], None], item: Any) -> bool:
         """Hand `fn(item)` to the fan-out loop if called from another thread; False if the
         caller is on the fan-out thread (or none is bound) and should run it itself."""
         loop = self._fanout_loop
         if loop is None or threading.get_ident() == self._fanout_thread:
             return False
-        if droppable and self._crossed - self._arrived >= CROSSING_BACKLOG:
-            self.crossing_dropped += 1
-            return True
-        self._crossed += 1
         try:
-            loop.call_soon_threadsafe(self._arrive, fn, item)
+            loop.call_soon_threadsafe(fn, item)
         except RuntimeError:  # the HTTP loop is closed: nobody to fan out to
             pass
         return True
-
-    def _arrive(self, fn: Callable[[Any], None], item: Any) -> None:
-        self._arrived += 1
-        fn(item)
 
     # ---------------------------------------------------------------- latest sample
 
@@ -266,7 +252,7 @@ class TelemetryHub:
     def event(self, name: str, **data: Any) -> dict[str, Any]:
         """Send an event (motion_started, estop, link_lost, ...) to every subscriber."""
         msg = {"type": "event", "arm": self.arm, "event": name, "time": time.time(), "data": data}
-        if not self._cross(self._fan_out_event, msg, droppable=False):
+        if not self._cross(self._fan_out_event, msg):
             self._fan_out_event(msg)
         return msg
 
