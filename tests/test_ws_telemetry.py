@@ -90,7 +90,7 @@ async def test_client_may_change_its_rate(live_server: LiveServer) -> None:
 
 
 async def test_slow_client_is_told_what_it_lost(live_server_small_pipe: LiveServer) -> None:
-    """A client that stops reading for 2 s loses the oldest samples and is told so in
+    """A client that stops reading for 4 s loses the oldest samples and is told so in
     `dropped`, while a fast client on the same arm stays gap-free.
 
     The slow client is a raw socket (the websockets client keeps reading into its own buffer
@@ -101,8 +101,10 @@ async def test_slow_client_is_told_what_it_lost(live_server_small_pipe: LiveServ
     port = int(live.url.rsplit(":", 1)[1])
     slow = _RawWebSocket(port, path)
     async with connect(live.ws_url + path) as fast:
-        fast_task = asyncio.create_task(_collect(fast, 3.0))
-        await asyncio.sleep(2.0)  # slow does not read
+        fast_task = asyncio.create_task(_collect(fast, 5.0))
+        # slow does not read: 4 s, so that the socket buffers (which the kernel may grow) fill
+        # whatever the machine's timing, and the server's sends really block
+        await asyncio.sleep(4.0)
         slow_tele = await slow.read_messages(1.0)
         fast_tele, _ = await fast_task
     slow.close()
