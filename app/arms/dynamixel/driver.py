@@ -1,4 +1,6 @@
-"""Angler driver: four Dynamixel MX-28 servos on Protocol 2.0 (protocol/dynamixel.py).
+"""Dynamixel driver: a chain of Dynamixel MX-28 (2.0) servos on Protocol 2.0
+(protocol/dynamixel.py), one per joint (the profile's `motor_id`s); the angler's, and the base
+for any other arm of Dynamixel servos (app/arms/dynamixel/__init__.py).
 
 Polling is one SYNC_READ of Moving, Moving Status, Present PWM, Load, Velocity and Position
 (addresses 122-135) for every servo; motion setpoints are one SYNC_WRITE of Goal Position.
@@ -85,7 +87,7 @@ class _Reboot:
     dxl_id: int
 
 
-class AnglerDriver(Driver):
+class DynamixelDriver(Driver):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._parser = dxl.Parser()
@@ -172,7 +174,8 @@ class AnglerDriver(Driver):
                               {i: int(round(t)) for i, t in zip(self.ids, ticks, strict=True)})
 
     async def set_gripper(self, value: float) -> None:
-        raise NoGripper(f"{self.name} has a passive magnet, not an actuated gripper")
+        raise NoGripper(f"{self.name} has a {self.profile.gripper.kind} end effector, not an "
+                        "actuated gripper")
 
     async def settle_state(self) -> SettleState:
         """Torque Enable read now from every servo; Moving / Moving Status from the last poll
