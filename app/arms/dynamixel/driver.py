@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from app.config import JointConfig
 from app.devices.base import Driver, SettleState
 from app.errors import ArmError, CorruptReply, DeviceError, DeviceTimeout, NoGripper
 from protocol import dynamixel as dxl
@@ -191,7 +192,7 @@ class DynamixelDriver(Driver):
         self._parser = dxl.Parser()
         self._dirty = True
 
-    def _profile_velocity(self, joint: Any, velocity_limit: int) -> int:
+    def _profile_velocity(self, joint: JointConfig, velocity_limit: int) -> int:
         """Profile Velocity (0.229 rpm units) for a joint's velocity limit, with 20 % headroom
         so the servo follows the planned trajectory but never runs away from it; never above
         the servo's Velocity Limit (44), the ceiling of Profile Velocity (e-manual)."""
@@ -363,7 +364,7 @@ class DynamixelDriver(Driver):
         self._hw_errors[i] = (p.params[-1], time.monotonic())
 
     def _publish_faults(self) -> None:
-        faults = []
+        faults: list[dict[str, Any]] = []
         for k, i in enumerate(self.ids):
             if i in self._hw_errors:
                 raw = self._hw_errors[i][0]
@@ -372,8 +373,8 @@ class DynamixelDriver(Driver):
                                "advice": fault_advice(i, raw, self.name)})
         if faults == self.faults:
             return
-        old = {f["servo"]: f for f in self.faults}
-        new = {f["servo"]: f for f in faults}
+        old: dict[int, dict[str, Any]] = {f["servo"]: f for f in self.faults}
+        new: dict[int, dict[str, Any]] = {f["servo"]: f for f in faults}
         self.faults = faults
         for i in sorted(old.keys() | new.keys()):
             if old.get(i) != new.get(i):
@@ -407,7 +408,7 @@ class DynamixelDriver(Driver):
         deadline = loop.time() + timeout
         got: list[dxl.Packet] = []
         while True:
-            for ev in iter(self._parser.next_event, None):
+            while (ev := self._parser.next_event()) is not None:
                 if isinstance(ev, dxl.ParseError):
                     if ev.kind == "garbage":
                         continue
