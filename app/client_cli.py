@@ -1,4 +1,5 @@
-"""Moved to `app.client.cli`; this name stays for `app.cli`'s hook and `python -m app.client_cli`."""
+"""Moved to `app.client.cli`; this name stays for `app.cli`'s hook and `python -m app.client_cli`.
+"""
 
 from __future__ import annotations
 

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from app.config import SafetyConfig, SafetySettings
-from app.errors import ArmError, KeepOut
+from app.errors import KeepOut
 from kinematics import chain
 from kinematics.trajectory import time_grid
 

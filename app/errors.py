@@ -69,7 +69,8 @@ _ROWS: tuple[tuple[str, int | None, str, str, str], ...] = (
     ("torque_off", 409, "TorqueOff", "TorqueOff", "a joint's servo holds no torque"),
     ("in_use", 409, "InUse", "Conflict",
      "the driver relies on this register: pass-through may not write it"),
-    ("already_queued", 409, "AlreadyQueued", "Conflict", "the caller is in the arm's queue already"),
+    ("already_queued", 409, "AlreadyQueued", "Conflict",
+     "the caller is in the arm's queue already"),
     ("gone", 410, "Gone", "Gone", "the resource existed but is no longer kept"),
     ("motion_expired", 410, "MotionExpired", "Gone",
      "a motion id this server issued but no longer keeps"),
@@ -124,10 +125,11 @@ def describe(status: int) -> str:
 
 
 class ArmError(Exception):
-    """Base of every error the server reports to a client."""
+    """Base of every error the server reports to a client. Raise a subclass (or give a `code`
+    of the table): the base's own code says a bug, as the last-resort handler does."""
 
-    code: str = "error"
-    status_code: int = 400
+    code: str = "internal_error"
+    status_code: int = 502
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

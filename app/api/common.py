@@ -11,7 +11,6 @@ from app.errors import InvalidRequest, describe
 from app.schemas import ErrorBody
 from app.service import ArmService
 
-
 #: Errors any authenticated arm route may answer.
 READ = (401, 404, 422)
 #: ... and a route that talks to the device.

@@ -200,7 +200,7 @@ class AsyncArmClient:
         req = s.InverseRequest(x=x, y=y, z=z, ik_case=ik_case, theta3=theta3)
         return await self.send(Requests.inverse(arm, req))
 
-    async def workspace(self, arm: str, **params: Any) -> s.Workspace:
+    async def workspace(self, /, arm: str, **params: Any) -> s.Workspace:
         return await self.send(Requests.workspace(arm, params))
 
     # --------------------------------------------------------- rbe3001 pass-through
@@ -250,7 +250,7 @@ class AsyncArmClient:
         """The arm's safety envelope: keep-out zones, floor, speed override."""
         return await self.send(Requests.safety(arm))
 
-    async def set_safety(self, arm: str, **fields: Any) -> s.Safety:
+    async def set_safety(self, /, arm: str, **fields: Any) -> s.Safety:
         """Change the envelope (instructor): `zones=[...]`, `floor_z=` (None removes the
         floor), `speed_override=`; fields not given are kept."""
         return await self.send(Requests.set_safety(arm, s.SafetyUpdate(**fields)))

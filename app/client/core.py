@@ -68,7 +68,7 @@ def turn_pending(arm: str, entry: s.QueueEntry, deadline: float | None,
 
 
 def backoff(attempt: int) -> float:
-    return min(BACKOFF_S * (2 ** attempt), BACKOFF_MAX_S)
+    return min(BACKOFF_S * float(2 ** attempt), BACKOFF_MAX_S)
 
 
 def should_retry(call: Call[Any], attempt: int, exc: BaseException | None,

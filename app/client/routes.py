@@ -92,13 +92,13 @@ class Requests:
 
     @staticmethod
     def joints_request(verb: str, arm: str, req: s.MoveJoints, safe: bool) -> Call[s.Motion]:
-        return Call("POST", url_path("arms", arm, verb, "joints"), _model(s.Motion), _body(req), arm=arm,
-                    safe=safe, timeout=WAIT_TIMEOUT_S if req.wait else None)
+        return Call("POST", url_path("arms", arm, verb, "joints"), _model(s.Motion), _body(req),
+                    arm=arm, safe=safe, timeout=WAIT_TIMEOUT_S if req.wait else None)
 
     @staticmethod
     def pose_request(verb: str, arm: str, req: s.MovePose, safe: bool) -> Call[s.Motion]:
-        return Call("POST", url_path("arms", arm, verb, "pose"), _model(s.Motion), _body(req), arm=arm,
-                    safe=safe, timeout=WAIT_TIMEOUT_S if req.wait else None)
+        return Call("POST", url_path("arms", arm, verb, "pose"), _model(s.Motion), _body(req),
+                    arm=arm, safe=safe, timeout=WAIT_TIMEOUT_S if req.wait else None)
 
     @staticmethod
     def motion(arm: str, motion_id: str) -> Call[s.Motion]:
@@ -108,8 +108,8 @@ class Requests:
     @staticmethod
     def cancel_motion(arm: str, motion_id: str) -> Call[s.Motion]:
         # The server answers once a running motion has decelerated: allow for it.
-        return Call("DELETE", url_path("arms", arm, "motions", motion_id), _model(s.Motion), arm=arm,
-                    safe=True, timeout=60.0)
+        return Call("DELETE", url_path("arms", arm, "motions", motion_id), _model(s.Motion),
+                    arm=arm, safe=True, timeout=60.0)
 
     @staticmethod
     def stop(arm: str) -> Call[s.StopResult]:
@@ -118,11 +118,13 @@ class Requests:
 
     @staticmethod
     def estop(arm: str) -> Call[s.EstopState]:
-        return Call("POST", url_path("arms", arm, "estop"), _model(s.EstopState), arm=arm, safe=True)
+        return Call("POST", url_path("arms", arm, "estop"), _model(s.EstopState), arm=arm,
+                    safe=True)
 
     @staticmethod
     def release_estop(arm: str) -> Call[s.EstopState]:
-        return Call("DELETE", url_path("arms", arm, "estop"), _model(s.EstopState), arm=arm, safe=True)
+        return Call("DELETE", url_path("arms", arm, "estop"), _model(s.EstopState), arm=arm,
+                    safe=True)
 
     @staticmethod
     def gripper(arm: str, value: float) -> Call[s.GripperState]:
@@ -149,24 +151,25 @@ class Requests:
 
     @staticmethod
     def workspace(arm: str, params: Mapping[str, Any]) -> Call[s.Workspace]:
-        return Call("GET", url_path("arms", arm, "workspace"), _model(s.Workspace), params=params or None,
-                    arm=arm, safe=True)
+        return Call("GET", url_path("arms", arm, "workspace"), _model(s.Workspace),
+                    params=params or None, arm=arm, safe=True)
 
     @staticmethod
     def rbe3001_set_pid(arm: str, joints: Sequence[Any]) -> Call[s.SetPidReply]:
         body = _body(s.SetPid(joints=[_pid(j) for j in joints]))
-        return Call("POST", url_path("arms", arm, "rbe3001", "set-pid"), _model(s.SetPidReply), body,
-                    arm=arm)
+        return Call("POST", url_path("arms", arm, "rbe3001", "set-pid"), _model(s.SetPidReply),
+                    body, arm=arm)
 
     @staticmethod
     def rbe3001_status(arm: str) -> Call[s.Rbe3001Status]:
-        return Call("GET", url_path("arms", arm, "rbe3001", "status"), _model(s.Rbe3001Status), arm=arm,
-                    safe=True)
+        return Call("GET", url_path("arms", arm, "rbe3001", "status"), _model(s.Rbe3001Status),
+                    arm=arm, safe=True)
 
     @staticmethod
     def rbe3001_set_gain(arm: str, axis: int, kp: float, ki: float, kd: float) -> Call[s.Ack]:
         body = _body(s.SetGain(axis=axis, kp=kp, ki=ki, kd=kd))
-        return Call("POST", url_path("arms", arm, "rbe3001", "set-gain"), _model(s.Ack), body, arm=arm)
+        return Call("POST", url_path("arms", arm, "rbe3001", "set-gain"), _model(s.Ack), body,
+                    arm=arm)
 
     @staticmethod
     def rbe3001_set_claw(arm: str, value: float) -> Call[s.Ack]:
@@ -190,7 +193,8 @@ class Requests:
 
     @staticmethod
     def dxl_sync_read(arm: str, name: str, ids: Sequence[int]) -> Call[s.SyncReadResult]:
-        return Call("POST", url_path("arms", arm, "dynamixel", "sync-read"), _model(s.SyncReadResult),
+        return Call("POST", url_path("arms", arm, "dynamixel", "sync-read"),
+                    _model(s.SyncReadResult),
                     _body(s.SyncReadRequest(name=name, ids=list(ids))), arm=arm, safe=True)
 
     @staticmethod
@@ -200,7 +204,8 @@ class Requests:
 
     @staticmethod
     def dxl_reboot(arm: str, dxl_id: int) -> Call[s.Ack]:
-        return Call("POST", url_path("arms", arm, "dynamixel", dxl_id, "reboot"), _model(s.Ack), arm=arm)
+        return Call("POST", url_path("arms", arm, "dynamixel", dxl_id, "reboot"), _model(s.Ack),
+                    arm=arm)
 
     @staticmethod
     def safety(arm: str) -> Call[s.Safety]:
@@ -243,7 +248,8 @@ class Requests:
 
     @staticmethod
     def queue(arm: str) -> Call[s.QueueStatus]:
-        return Call("GET", url_path("arms", arm, "queue"), _model(s.QueueStatus), arm=arm, safe=True)
+        return Call("GET", url_path("arms", arm, "queue"), _model(s.QueueStatus), arm=arm,
+                    safe=True)
 
     @staticmethod
     def queue_entry(arm: str, entry_id: str) -> Call[s.QueueEntry]:
