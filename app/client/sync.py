@@ -19,7 +19,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
-import inspect
 import threading
 from collections.abc import AsyncIterator, Callable, Coroutine, Iterator
 from contextlib import AbstractAsyncContextManager
@@ -212,22 +211,13 @@ class ArmClient:
     telemetry = blocking_iter(AsyncArmClient.telemetry)
 
 
-def _kind(fn: Any) -> str:
-    if inspect.isasyncgenfunction(fn):
-        return "iter"
-    if inspect.isasyncgenfunction(getattr(fn, "__wrapped__", None)):
-        return "cm"  # contextlib.asynccontextmanager
-    return "coroutine" if inspect.iscoroutinefunction(fn) else "other"
+def missing_twins(async_cls: type, sync_cls: type) -> list[str]:
+    """The public members of `async_cls` that `sync_cls` does not make from it."""
+    return [name for name, fn in vars(async_cls).items()
+            if not name.startswith("_") and name != "aclose" and callable(fn)
+            and getattr(vars(sync_cls).get(name), "__wrapped__", None) is not fn]
 
 
-def _check_complete() -> None:
-    """Every public member of AsyncArmClient has its blocking twin, made from it."""
-    for name, fn in vars(AsyncArmClient).items():
-        if name.startswith("_") or name == "aclose" or not callable(fn):
-            continue
-        if getattr(vars(ArmClient).get(name), "__wrapped__", None) is not fn:
-            raise TypeError(f"AsyncArmClient.{name} ({_kind(fn)}) has no blocking twin in "
-                            f"ArmClient: add `{name} = blocking...(AsyncArmClient.{name})`")
-
-
-_check_complete()
+if missing := missing_twins(AsyncArmClient, ArmClient):
+    raise TypeError(f"AsyncArmClient members without a blocking twin in ArmClient: {missing}; "
+                    "add `name = blocking(AsyncArmClient.name)` (or blocking_cm / blocking_iter)")
