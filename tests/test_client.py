@@ -419,6 +419,21 @@ def test_error_without_code_maps_by_status() -> None:
     assert cl.error_from_body(418, b"").code == "error"
 
 
+def test_telemetry_close_reasons_map_through_the_table() -> None:
+    from websockets.exceptions import ConnectionClosedError, ConnectionClosedOK
+    from websockets.frames import Close
+
+    def closed(code: int, reason: str) -> Exception:
+        return ConnectionClosedError(Close(code, reason), None)
+
+    busy = cl.ws_close_error(closed(1013, '{"code":"busy","detail":"100 subscribers"}'))
+    assert isinstance(busy, cl.Busy) and (busy.status, busy.detail) == (409, "100 subscribers")
+    denied = cl.ws_close_error(closed(4401, "bad token"))
+    assert isinstance(denied, cl.Unauthorized) and denied.status == 401
+    assert isinstance(cl.ws_close_error(closed(1011, "oops")), cl.ConnectionFailed)
+    assert cl.ws_close_error(ConnectionClosedOK(Close(1000, ""), None)) is None
+
+
 # ---------------------------------------------------------------- command line
 
 

@@ -28,6 +28,7 @@ from app.client.errors import (
     make_error,
 )
 from app.client.routes import Call, url_path
+from app.errors import CODES
 
 T = TypeVar("T")
 
@@ -138,6 +139,11 @@ def ws_close_error(exc: Exception) -> ArmServerError | None:
     reason = getattr(frame, "reason", "") or ""
     if code in (1000, 1001):
         return None
+    carried = _reason_body(reason)
+    if carried is not None:  # e.g. 1013 {"code": "busy", "detail": ...}: the table says the rest
+        name, detail = carried
+        row = CODES.get(name)
+        return make_error(name, detail, row.status if row and row.status else 0)
     if code in WS_CLOSE:
         name, status = WS_CLOSE[code]
         return make_error(name, reason or name, status)
@@ -146,7 +152,17 @@ def ws_close_error(exc: Exception) -> ArmServerError | None:
     return ConnectionFailed("connection_failed", f"telemetry closed: {exc}", 0)
 
 
-# ---------------------------------------------------------------- the asyncio client
+def _reason_body(reason: str) -> tuple[str, Any] | None:
+    """A close reason that is an error body: its (code, detail)."""
+    if not reason.startswith("{"):
+        return None
+    try:
+        data = json.loads(reason)
+    except ValueError:
+        return None
+    if isinstance(data, dict) and isinstance(data.get("code"), str):
+        return data["code"], data.get("detail", reason)
+    return None
 
 
 @dataclass
