@@ -223,7 +223,7 @@ def run_watch(a: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m app.client_cli",
+    parser = argparse.ArgumentParser(prog="python -m app.client.cli",
                                      description="armserver client commands")
     sub = parser.add_subparsers(dest="cmd", required=True)
     register_client_commands(sub)
