@@ -31,7 +31,7 @@ from typing import Any, Literal
 
 from app import schemas as s
 from app.auth import Identity, Role
-from app.errors import Conflict, Forbidden, InvalidRequest, NotFound
+from app.errors import AlreadyQueued, Forbidden, InvalidOrder, UnknownEntry
 from app.handoff import device_faults, handoff, home_pose, positions
 from app.lease import LeaseManager
 from app.service import ArmService
@@ -47,14 +47,6 @@ HISTORY = 512
 PERSISTED_HISTORY = 100
 SCOPE = "queue:{}"
 KEY = "entries"
-
-
-class UnknownEntry(NotFound):
-    code = "unknown_entry"
-
-
-class AlreadyQueued(Conflict):
-    code = "already_queued"
 
 
 @dataclass
@@ -391,10 +383,6 @@ class Classroom:
                       "reason": e.reason, "started": e.started, "ended": e.ended}
                      for e in list(q.history.values())[-PERSISTED_HISTORY:]]
             self._store.put_setting_nowait(SCOPE.format(q.arm), KEY, rows)
-
-
-class InvalidOrder(InvalidRequest):
-    code = "invalid_order"
 
 
 __all__ = ["Classroom", "device_faults", "handoff", "home_pose"]

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from app.config import SafetyConfig, SafetySettings
-from app.errors import ArmError
+from app.errors import KeepOut
 from kinematics.trajectory import time_grid
 
 if TYPE_CHECKING:
@@ -33,11 +33,6 @@ if TYPE_CHECKING:
 #: at most MAX_PATH_POINTS long (a full-range sweep of the rbe3001's shoulder is ~1000).
 PATH_STEP = {"revolute": 0.002, "prismatic": 0.0005}
 MAX_PATH_POINTS = 4000
-
-
-class KeepOut(ArmError):
-    code = "keep_out"
-    status_code = 422
 
 
 @dataclass(frozen=True)

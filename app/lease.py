@@ -23,15 +23,11 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from app import schemas as s
-from app.errors import ArmError, Leased, NotFound
+from app.errors import ArmError, Leased, UnknownLease
 from app.service import ArmService
 from app.tasks import cancel_and_wait
 
 log = logging.getLogger(__name__)
-
-
-class UnknownLease(NotFound):
-    code = "unknown_lease"
 
 
 @dataclass

@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from app.config import KeepOutBox
+from app.errors import CODES
 
 #: Numbers are strict (issue 11.10): `true` or `"1"` is not a number (it moved a joint to 1 rad);
 #: an integer is a number. Integers are strict likewise: `true`, `"1"` and `1.0` are refused.
@@ -33,7 +34,11 @@ class Model(BaseModel):
 
 class ErrorBody(Model):
     detail: str | list[dict[str, object]]
-    code: str
+    code: str = Field(description="a stable machine code of the error table (`app.errors`): "
+                      + "; ".join(f"`{c.code}` ({c.status}) {c.meaning}"
+                                  for c in CODES.values() if c.status is not None),
+                      json_schema_extra={"enum": [c for c, r in CODES.items()
+                                                  if r.status is not None]})
 
 
 # ---------------------------------------------------------------- arms

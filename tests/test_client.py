@@ -1,6 +1,7 @@
-"""The client (app.client, app.client_sync, app.client_cli) against a real uvicorn server over
-the simulated arms: typed answers, the server's error codes as exceptions, the lease keeper,
-telemetry iterators; and the retry policy against a scripted transport."""
+"""The client (app.client: the async client, the sync one made from it, the CLI) against a
+real uvicorn server over the simulated arms: typed answers, the server's error codes as
+exceptions, the lease keeper, telemetry iterators; and the retry policy against a scripted
+transport."""
 
 from __future__ import annotations
 
@@ -320,6 +321,36 @@ def test_sync_telemetry(client: ArmClient) -> None:
     assert seqs == list(range(seqs[0], seqs[0] + 30))
 
 
+def test_sync_telemetry_left_early_then_the_client_goes_on(client: ArmClient) -> None:
+    got: list[s.Sample] = []
+    for sample in client.telemetry("rbe3001", rate=50):
+        assert isinstance(sample, s.Sample)
+        got.append(sample)
+        if len(got) == 5:
+            break  # closes the WebSocket on the client's loop
+    assert [x.seq for x in got] == list(range(got[0].seq, got[0].seq + 5))
+    assert client.state("rbe3001").seq >= got[-1].seq
+
+
+def test_sync_client_close_stops_its_loop_thread(server: Server) -> None:
+    c = ArmClient(server.url)
+    assert c.health().status == "ok" and c._thread.is_alive()
+    c.close()
+    c.close()  # idempotent
+    assert not c._thread.is_alive()
+    with pytest.raises(RuntimeError, match="closed"):
+        c.health()
+
+
+async def test_sync_client_works_inside_a_running_event_loop(server: Server) -> None:
+    """Its loop is its own thread's: a script that happens to run under asyncio may use it."""
+    with ArmClient(server.url) as c:
+        assert c.arm("angler").name == "angler"
+        with pytest.raises(cl.NotFound) as info:
+            c.arm("no-such-arm")
+    assert info.value.code == "unknown_arm" and info.value.status == 404
+
+
 # ---------------------------------------------------------------- retry policy (scripted transport)
 
 
@@ -386,6 +417,21 @@ def test_error_without_code_maps_by_status() -> None:
     exc = cl.error_from_body(504, b"gateway timeout")
     assert isinstance(exc, cl.DeviceTimeout) and exc.detail == "gateway timeout"
     assert cl.error_from_body(418, b"").code == "error"
+
+
+def test_telemetry_close_reasons_map_through_the_table() -> None:
+    from websockets.exceptions import ConnectionClosedError, ConnectionClosedOK
+    from websockets.frames import Close
+
+    def closed(code: int, reason: str) -> Exception:
+        return ConnectionClosedError(Close(code, reason), None)
+
+    busy = cl.ws_close_error(closed(1013, '{"code":"busy","detail":"100 subscribers"}'))
+    assert isinstance(busy, cl.Busy) and (busy.status, busy.detail) == (409, "100 subscribers")
+    denied = cl.ws_close_error(closed(4401, "bad token"))
+    assert isinstance(denied, cl.Unauthorized) and denied.status == 401
+    assert isinstance(cl.ws_close_error(closed(1011, "oops")), cl.ConnectionFailed)
+    assert cl.ws_close_error(ConnectionClosedOK(Close(1000, ""), None)) is None
 
 
 # ---------------------------------------------------------------- command line

@@ -165,3 +165,60 @@ async def test_each_async_method_sends_its_route() -> None:
             with pytest.raises(ArmServerError):
                 await getattr(c, name)(*ARGS[name])
             assert len(seen) == 1 and _matches(route, seen[0]), (name, seen)
+
+
+# ------------------------------------------------------------ the sync client is made, not mirrored
+
+
+def _public(cls: type) -> dict[str, Any]:
+    return {n: f for n, f in vars(cls).items() if not n.startswith("_") and callable(f)}
+
+
+def test_each_sync_method_is_made_from_the_async_one() -> None:
+    for name, fn in _public(AsyncArmClient).items():
+        if name == "aclose":
+            continue
+        twin = getattr(ArmClient, name)
+        assert twin.__wrapped__ is fn, name  # made by app.client.sync, not written by hand
+        assert inspect.signature(twin) == inspect.signature(fn), name
+        assert twin.__doc__ == fn.__doc__, name
+        assert twin.__name__ == name and twin.__module__ == fn.__module__
+
+
+def test_a_new_async_method_without_its_twin_is_reported() -> None:
+    from app.client.sync import missing_twins
+
+    assert missing_twins(AsyncArmClient, ArmClient) == []
+
+    class Grown(AsyncArmClient):
+        async def new_route(self) -> None:
+            """A route added to the async client only."""
+
+    assert missing_twins(Grown, ArmClient) == ["new_route"]
+
+
+def test_the_client_package_has_no_import_cycle() -> None:
+    """Within app/client/ (and to app.errors): each module's imports, followed, never return."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    graph: dict[str, set[str]] = {}
+    for path in sorted((root / "app" / "client").glob("*.py")):
+        mod = "app.client" + ("" if path.stem == "__init__" else "." + path.stem)
+        deps: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                if node.module.startswith("app.client") and node.module != mod:
+                    deps.add(node.module)
+        graph[mod] = deps
+    assert {"app.client.aio", "app.client.sync", "app.client.core"} <= set(graph)
+    assert "app.client.sync" not in graph["app.client.aio"]
+
+    def reaches(start: str, goal: str, seen: set[str]) -> bool:
+        for dep in graph.get(start, ()):
+            if dep == goal or (dep not in seen and reaches(dep, goal, seen | {dep})):
+                return True
+        return False
+    cyclic = [m for m in graph if m != "app.client" and reaches(m, m, set())]
+    assert not cyclic, cyclic

@@ -11,15 +11,10 @@ from fastapi import APIRouter, Header, Query, Request, Response
 from app import schemas as s
 from app.api.common import errors
 from app.deps import InstructorCaller
-from app.errors import ArmError
+from app.errors import StoreUnavailable
 from app.store import AUDIT_COLUMNS, Store, StoreError
 
 router = APIRouter(tags=["audit"])
-
-
-class StoreUnavailable(ArmError):
-    code = "store_unavailable"
-    status_code = 503
 
 
 @router.get("/audit", response_model=list[s.AuditRecord], summary="The audit log",

@@ -7,23 +7,9 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from app.errors import InvalidRequest
+from app.errors import InvalidRequest, describe
 from app.schemas import ErrorBody
 from app.service import ArmService
-
-_WHY = {
-    400: "bad request",
-    401: "missing or invalid bearer token (`unauthorized`)",
-    403: "a viewer token where an operator token is needed (`forbidden`)",
-    404: "unknown arm (`unknown_arm`) or resource",
-    409: "conflict: `estop_latched`, `leased`, `busy`, `not_supported`, `no_gripper`",
-    413: "request body too large (`too_large`)",
-    422: "invalid request (`invalid_request`, `invalid_json`) or refused by a check "
-         "(`joint_limit`, `unreachable`, `velocity_limit`)",
-    502: "the device answered with an error (`device_error`, `corrupt_reply`)",
-    503: "the link is down (`link_down`) or the request queue is full (`busy`)",
-    504: "the device did not answer in time (`device_timeout`)",
-}
 
 #: Errors any authenticated arm route may answer.
 READ = (401, 404, 422)
@@ -32,10 +18,11 @@ DEVICE = (401, 403, 404, 409, 422, 502, 503, 504)
 
 
 def errors(*statuses: int, extra: dict[int, str] | None = None) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI `responses` entries, each an `ErrorBody`."""
+    """OpenAPI `responses` entries, each an `ErrorBody` described by the codes the error table
+    (`app.errors.CODES`) gives its status; `extra` replaces a status's description."""
     out: dict[int | str, dict[str, Any]] = {}
     for st in sorted(set(statuses) | set(extra or {})):
-        out[st] = {"model": ErrorBody, "description": (extra or {}).get(st, _WHY.get(st, ""))}
+        out[st] = {"model": ErrorBody, "description": (extra or {}).get(st) or describe(st)}
     return out
 
 

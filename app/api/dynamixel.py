@@ -21,7 +21,7 @@ from app import schemas as s
 from app.api.common import DEVICE, errors
 from app.arms import arm_type
 from app.deps import ControlArm
-from app.errors import Conflict, InvalidRequest
+from app.errors import InUse, OutOfRange, ReadOnly, UnknownId, UnknownRegister
 from app.service import ArmService
 from protocol import mx28
 
@@ -47,7 +47,7 @@ def _item(svc: ArmService, name: str) -> mx28.ControlItem:
     try:
         item: mx28.ControlItem = _table(svc).item(name)
     except KeyError as exc:
-        raise InvalidRequest(str(exc.args[0]), code="unknown_register") from None
+        raise UnknownRegister(str(exc.args[0])) from None
     return item
 
 
@@ -56,9 +56,8 @@ def _joint_of(svc: ArmService, dxl_id: int) -> int:
         if j.motor_id == dxl_id:
             return k
     ids = ", ".join(str(j.motor_id) for j in svc.profile.joints)
-    raise InvalidRequest(f"id {dxl_id} is not a motor of {svc.name} (its ids: {ids}); "
-                         "goal_position writes go only to the arm's own motors",
-                         code="unknown_id")
+    raise UnknownId(f"id {dxl_id} is not a motor of {svc.name} (its ids: {ids}); "
+                    "goal_position writes go only to the arm's own motors")
 
 
 _PROFILE = "the arm profile's {what} (then restart the server)"
@@ -104,16 +103,16 @@ DRIVER_SETTINGS: dict[str, tuple[str, str]] = {
 def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int) -> None:
     """Everything a write must pass before it is queued."""
     if not item.writable:
-        raise InvalidRequest(f"{item.name} is read-only", code="read_only")
+        raise ReadOnly(f"{item.name} is read-only")
     if not item.min_raw <= raw <= item.max_raw:
-        raise InvalidRequest(f"{item.name} takes raw values {item.min_raw}..{item.max_raw}, "
-                             f"got {raw}", code="out_of_range")
+        raise OutOfRange(f"{item.name} takes raw values {item.min_raw}..{item.max_raw}, "
+                         f"got {raw}")
     if item.name in DRIVER_SETTINGS and not svc.profile.raw_access and any(
             j.motor_id == dxl_id for j in svc.profile.joints):
         why, route = DRIVER_SETTINGS[item.name]
-        raise Conflict(f"{item.name} of servo {dxl_id} is set by the {svc.name} driver ({why}); "
-                       f"change it with {route.format(arm=svc.name, id=dxl_id)}. Pass-through "
-                       "may not write it: the profile does not allow raw access", code="in_use")
+        raise InUse(f"{item.name} of servo {dxl_id} is set by the {svc.name} driver ({why}); "
+                    f"change it with {route.format(arm=svc.name, id=dxl_id)}. Pass-through "
+                    "may not write it: the profile does not allow raw access")
     if item.name == "goal_position":
         svc.check_passthrough_joint_ticks(_joint_of(svc, dxl_id), float(raw))
     elif not (item.name == "led" or (item.name == "torque_enable" and raw == 0)):

@@ -1,0 +1,415 @@
+"""`AsyncArmClient`: the asyncio client, one method per route of the contract, returning the
+contract's own pydantic models (`app.schemas`). Request bodies are built from those models
+too, so a bad request (a NaN, a speed above 1) is refused before it leaves the process.
+
+Errors: every non-2xx answer raises `ArmServerError` (or its subclass for the `code`, from the
+server's table: `app.client.errors`) carrying `code`, `detail` and HTTP `status`. A transport
+failure raises `ConnectionFailed` (code "connection_failed", status 0). Retries: see
+`app.client.core`. The blocking `ArmClient` (`app.client.sync`) is made from this class.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import AsyncIterator, Mapping, Sequence
+from typing import Any, Literal, TypeVar
+
+import httpx
+
+from app import schemas as s
+from app.client.core import (
+    TERMINAL,
+    LeaseKeeper,
+    auth_headers,
+    backoff,
+    parse_answer,
+    parse_ws_message,
+    should_retry,
+    transport_error,
+    turn_pending,
+    ws_close_error,
+    ws_handshake_error,
+    ws_url,
+)
+from app.client.errors import ArmServerError
+from app.client.routes import (
+    LEASE_HEADER,
+    Call,
+    Requests,
+    move_joints_model,
+    move_pose_model,
+)
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+class AsyncArmClient:
+    """Asyncio client: one method per route, returning `app.schemas` models.
+
+    `token` is sent as `Authorization: Bearer`; `lease` (a lease id) as `X-Arm-Lease` on every
+    request, unless the arm has its own lease taken with `hold_lease`.
+    """
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", token: str | None = None,
+                 lease: str | None = None, timeout: float = 10.0,
+                 transport: httpx.AsyncBaseTransport | None = None) -> None:
+        self.base_url = base_url.rstrip("/")
+        self.token = token
+        self.lease = lease
+        self.leases: dict[str, str] = {}
+        self.timeout = timeout
+        self._http = httpx.AsyncClient(base_url=self.base_url, headers=auth_headers(token),
+                                       timeout=timeout, transport=transport)
+
+    async def __aenter__(self) -> AsyncArmClient:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        await self._http.aclose()
+
+    def _headers(self, call: Call[Any]) -> dict[str, str]:
+        headers = dict(call.headers)
+        lease = self.leases.get(call.arm or "", self.lease)
+        if lease and LEASE_HEADER not in headers:
+            headers[LEASE_HEADER] = lease
+        return headers
+
+    async def send(self, call: Call[T]) -> T:
+        """Send one request, retrying only where `should_retry` says it is safe."""
+        timeout = self.timeout if call.timeout is None else max(call.timeout, self.timeout)
+        attempt = 0
+        while True:
+            try:
+                resp = await self._http.request(call.method, call.path, json=call.body,
+                                                params=call.params, headers=self._headers(call),
+                                                timeout=timeout)
+            except httpx.HTTPError as exc:
+                if should_retry(call, attempt, exc, None):
+                    await asyncio.sleep(backoff(attempt))
+                    attempt += 1
+                    continue
+                raise transport_error(exc, call) from exc
+            if should_retry(call, attempt, None, resp):
+                await asyncio.sleep(backoff(attempt))
+                attempt += 1
+                continue
+            return parse_answer(call, resp)
+
+    # --------------------------------------------------------- arms
+
+    async def health(self) -> s.Health:
+        return await self.send(Requests.health())
+
+    async def arms(self) -> list[s.ArmSummary]:
+        return await self.send(Requests.arms())
+
+    async def arm(self, arm: str) -> s.ArmDetail:
+        return await self.send(Requests.arm(arm))
+
+    async def state(self, arm: str) -> s.Sample:
+        return await self.send(Requests.state(arm))
+
+    # --------------------------------------------------------- motion
+
+    async def move_joints(self, arm: str, positions: Sequence[float], *,
+                          duration: float | None = None, speed: float = 1.0,
+                          mode: s.QueueMode = "queue", wait: bool = False) -> s.Motion:
+        """Joint-space move (rad / m). 202 with the queued motion, or the final one if `wait`."""
+        req = move_joints_model(positions, duration, speed, mode, wait)
+        return await self.send(Requests.joints_request("move", arm, req, safe=False))
+
+    async def move_pose(self, arm: str, x: float, y: float, z: float, *,
+                        path: Literal["joint", "line"] = "joint", branch: int | None = None,
+                        ik_case: Literal["dx_zero", "dx_used"] | None = None,
+                        duration: float | None = None, speed: float = 1.0,
+                        mode: s.QueueMode = "queue", wait: bool = False) -> s.Motion:
+        """Move the tip to (x, y, z) m along a joint-space or straight-line path."""
+        req = move_pose_model(x, y, z, path, branch, ik_case, duration, speed, mode, wait)
+        return await self.send(Requests.pose_request("move", arm, req, safe=False))
+
+    async def plan_joints(self, arm: str, positions: Sequence[float], *,
+                          duration: float | None = None, speed: float = 1.0,
+                          mode: s.QueueMode = "queue") -> s.Motion:
+        """Preview a joint move: the motion it would be, nothing moves."""
+        req = move_joints_model(positions, duration, speed, mode, False)
+        return await self.send(Requests.joints_request("plan", arm, req, safe=True))
+
+    async def plan_pose(self, arm: str, x: float, y: float, z: float, *,
+                        path: Literal["joint", "line"] = "joint", branch: int | None = None,
+                        ik_case: Literal["dx_zero", "dx_used"] | None = None,
+                        duration: float | None = None, speed: float = 1.0,
+                        mode: s.QueueMode = "queue") -> s.Motion:
+        """Preview a pose move (planned duration, target joints, tip path); nothing moves."""
+        req = move_pose_model(x, y, z, path, branch, ik_case, duration, speed, mode, False)
+        return await self.send(Requests.pose_request("plan", arm, req, safe=True))
+
+    async def motion(self, arm: str, motion_id: str) -> s.Motion:
+        return await self.send(Requests.motion(arm, motion_id))
+
+    async def cancel_motion(self, arm: str, motion_id: str) -> s.Motion:
+        return await self.send(Requests.cancel_motion(arm, motion_id))
+
+    async def wait_motion(self, arm: str, motion_id: str, timeout: float = 120.0,
+                          poll: float = 0.05) -> s.Motion:
+        """Poll a motion until it is done, stopped or failed; TimeoutError after `timeout` s."""
+        deadline = time.monotonic() + timeout
+        while True:
+            m = await self.motion(arm, motion_id)
+            if m.status in TERMINAL:
+                return m
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"motion {motion_id} still {m.status} after {timeout} s")
+            await asyncio.sleep(poll)
+
+    async def stop(self, arm: str) -> s.StopResult:
+        return await self.send(Requests.stop(arm))
+
+    async def estop(self, arm: str) -> s.EstopState:
+        return await self.send(Requests.estop(arm))
+
+    async def release_estop(self, arm: str) -> s.EstopState:
+        return await self.send(Requests.release_estop(arm))
+
+    async def gripper(self, arm: str, value: float) -> s.GripperState:
+        """0.0 open .. 1.0 closed; `NoGripper` on an arm without an actuated gripper."""
+        return await self.send(Requests.gripper(arm, value))
+
+    async def tare_force(self, arm: str) -> s.ForceTare:
+        """The current joint torques become the zero of `torques` and `tip_force`."""
+        return await self.send(Requests.tare_force(arm))
+
+    async def clear_tare(self, arm: str) -> s.ForceTare:
+        return await self.send(Requests.clear_tare(arm))
+
+    # --------------------------------------------------------- kinematics
+
+    async def forward(self, arm: str, positions: Sequence[float]) -> s.ForwardResult:
+        return await self.send(Requests.forward(arm, positions))
+
+    async def inverse(self, arm: str, x: float, y: float, z: float, *,
+                      ik_case: Literal["dx_zero", "dx_used"] | None = None,
+                      theta3: float | None = None) -> s.InverseResult:
+        req = s.InverseRequest(x=x, y=y, z=z, ik_case=ik_case, theta3=theta3)
+        return await self.send(Requests.inverse(arm, req))
+
+    async def workspace(self, /, arm: str, **params: Any) -> s.Workspace:
+        return await self.send(Requests.workspace(arm, params))
+
+    # --------------------------------------------------------- rbe3001 pass-through
+
+    async def rbe3001_set_pid(self, arm: str, joints: Sequence[Any]) -> s.SetPidReply:
+        """Three setpoints: `PidSetpoint`s, dicts, or bare position ticks."""
+        return await self.send(Requests.rbe3001_set_pid(arm, joints))
+
+    async def rbe3001_status(self, arm: str) -> s.Rbe3001Status:
+        return await self.send(Requests.rbe3001_status(arm))
+
+    async def rbe3001_set_gain(self, arm: str, axis: int, kp: float, ki: float,
+                               kd: float) -> s.Ack:
+        return await self.send(Requests.rbe3001_set_gain(arm, axis, kp, ki, kd))
+
+    async def rbe3001_set_claw(self, arm: str, value: float) -> s.Ack:
+        return await self.send(Requests.rbe3001_set_claw(arm, value))
+
+    # --------------------------------------------------------- dynamixel pass-through
+
+    async def dxl_ping(self, arm: str, dxl_id: int | None = None) -> s.PingResult:
+        return await self.send(Requests.dxl_ping(arm, dxl_id))
+
+    async def dxl_read_register(self, arm: str, dxl_id: int, name: str) -> s.RegisterValue:
+        return await self.send(Requests.dxl_read_register(arm, dxl_id, name))
+
+    async def dxl_write_register(self, arm: str, dxl_id: int, name: str,
+                                 raw: int) -> s.RegisterValue:
+        return await self.send(Requests.dxl_write_register(arm, dxl_id, name, raw))
+
+    async def dxl_sync_read(self, arm: str, name: str, ids: Sequence[int]) -> s.SyncReadResult:
+        return await self.send(Requests.dxl_sync_read(arm, name, ids))
+
+    async def dxl_sync_write(self, arm: str, name: str, values: Mapping[int, int]) -> s.Ack:
+        return await self.send(Requests.dxl_sync_write(arm, name, values))
+
+    async def dxl_reboot(self, arm: str, dxl_id: int) -> s.Ack:
+        return await self.send(Requests.dxl_reboot(arm, dxl_id))
+
+    async def home(self, arm: str, positions: Sequence[float] | None = None) -> s.ArmDetail:
+        """Declare the arm's current pose (the profile's home pose without positions)."""
+        return await self.send(Requests.home(arm, positions))
+
+    # --------------------------------------------------------- lease
+
+    async def safety(self, arm: str) -> s.Safety:
+        """The arm's safety envelope: keep-out zones, floor, speed override."""
+        return await self.send(Requests.safety(arm))
+
+    async def set_safety(self, /, arm: str, **fields: Any) -> s.Safety:
+        """Change the envelope (instructor): `zones=[...]`, `floor_z=` (None removes the
+        floor), `speed_override=`; fields not given are kept."""
+        return await self.send(Requests.set_safety(arm, s.SafetyUpdate(**fields)))
+
+    async def take_lease(self, arm: str) -> s.Lease:
+        return await self.send(Requests.take_lease(arm))
+
+    async def renew_lease(self, arm: str, lease_id: str) -> s.Lease:
+        return await self.send(Requests.renew_lease(arm, lease_id))
+
+    async def release_lease(self, arm: str, lease_id: str) -> None:
+        return await self.send(Requests.release_lease(arm, lease_id))
+
+    # --------------------------------------------------------- classroom
+
+    async def me(self) -> s.Me:
+        return await self.send(Requests.me())
+
+    async def join_queue(self, arm: str) -> s.QueueEntry:
+        return await self.send(Requests.join_queue(arm))
+
+    async def queue(self, arm: str) -> s.QueueStatus:
+        return await self.send(Requests.queue(arm))
+
+    async def queue_entry(self, arm: str, entry_id: str) -> s.QueueEntry:
+        return await self.send(Requests.queue_entry(arm, entry_id))
+
+    async def leave_queue(self, arm: str, entry_id: str) -> s.QueueEntry:
+        return await self.send(Requests.leave_queue(arm, entry_id))
+
+    async def reorder_queue(self, arm: str, order: Sequence[str]) -> s.QueueStatus:
+        """Instructor: every waiting entry's id, in the new order."""
+        return await self.send(Requests.reorder_queue(arm, order))
+
+    async def clear_queue(self, arm: str) -> s.QueueStatus:
+        return await self.send(Requests.clear_queue(arm))
+
+    async def revoke_lease(self, arm: str) -> None:
+        """Instructor: end the arm's lease whoever holds it (and retry a failed hand-off)."""
+        return await self.send(Requests.revoke_lease(arm))
+
+    async def audit(self, arm: str | None = None, who: str | None = None,
+                    since: float | None = None, until: float | None = None,
+                    limit: int = 100) -> list[s.AuditRecord]:
+        """Instructor: audit records, newest first."""
+        return await self.send(Requests.audit(
+            {"arm": arm, "who": who, "since": since, "until": until, "limit": limit}))
+
+    async def audit_csv(self, arm: str | None = None, who: str | None = None,
+                        since: float | None = None, until: float | None = None,
+                        limit: int = 100) -> str:
+        """The same as CSV text (a header row, then one row per record)."""
+        return await self.send(Requests.audit_csv(
+            {"arm": arm, "who": who, "since": since, "until": until, "limit": limit}))
+
+    @contextlib.asynccontextmanager
+    async def queue_turn(self, arm: str, poll: float = 0.25, every: float | None = None,
+                         timeout: float | None = None) -> AsyncIterator[LeaseKeeper]:
+        """Join the arm's queue, wait for the offer, claim the lease and renew it for the
+        duration of the block (its id goes on this client's requests to the arm); on exit
+        release it, or leave the queue if the turn never came. The slot ends when the server
+        says: then `keeper.error` is set and moves answer 409 `leased`."""
+        entry = await self.join_queue(arm)
+        deadline = None if timeout is None else time.monotonic() + timeout
+        try:
+            while turn_pending(arm, entry, deadline, timeout):
+                await asyncio.sleep(poll)
+                entry = await self.queue_entry(arm, entry.id)
+            lease = await self.renew_lease(arm, entry.lease_id or "")  # claims it
+        except BaseException:
+            with contextlib.suppress(ArmServerError):
+                await self.leave_queue(arm, entry.id)
+            raise
+        async with self._keep(arm, lease, every) as keeper:
+            yield keeper
+
+    @contextlib.asynccontextmanager
+    async def hold_lease(self, arm: str, every: float | None = None) -> AsyncIterator[LeaseKeeper]:
+        """Take the arm's lease, send its id on this client's requests to the arm and renew it in
+        the background (every `ttl / 3` s unless `every`); release it on exit."""
+        lease = await self.take_lease(arm)
+        async with self._keep(arm, lease, every) as keeper:
+            yield keeper
+
+    @contextlib.asynccontextmanager
+    async def _keep(self, arm: str, lease: s.Lease, every: float | None
+                    ) -> AsyncIterator[LeaseKeeper]:
+        keeper = LeaseKeeper(lease)
+        previous = self.leases.get(arm)
+        self.leases[arm] = lease.id
+        period = every if every is not None else max(lease.ttl / 3.0, 0.05)
+
+        async def beat() -> None:
+            while True:
+                await asyncio.sleep(period)
+                try:
+                    keeper.lease = await self.renew_lease(arm, lease.id)
+                    keeper.renewals += 1
+                except ArmServerError as exc:
+                    keeper.error = exc
+                    log.warning("%s: lease %s not renewed: %s", arm, lease.id, exc)
+                    if exc.status != 0:
+                        return
+
+        task = asyncio.create_task(beat(), name=f"lease:{arm}")
+        try:
+            yield keeper
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+            if previous is None:
+                self.leases.pop(arm, None)
+            else:
+                self.leases[arm] = previous
+            with contextlib.suppress(ArmServerError):
+                await self.release_lease(arm, lease.id)
+
+    # --------------------------------------------------------- telemetry
+
+    async def telemetry_messages(self, arm: str, rate: float | None = None
+                                 ) -> AsyncIterator[s.TelemetryMessage | s.EventMessage]:
+        """Every WebSocket message, parsed: telemetry batches (with `dropped`) and events."""
+        from websockets.asyncio.client import connect
+        from websockets.exceptions import ConnectionClosed, InvalidHandshake
+
+        headers = auth_headers(self.token) or None
+        url = ws_url(self.base_url, arm, rate, None)
+        try:
+            ws = await connect(url, additional_headers=headers, open_timeout=self.timeout,
+                               max_size=2 ** 24)
+        except (InvalidHandshake, OSError, TimeoutError) as exc:
+            raise ws_handshake_error(exc) from exc
+        try:
+            while True:
+                try:
+                    raw = await ws.recv()
+                except ConnectionClosed as exc:
+                    err = ws_close_error(exc)
+                    if err is not None:
+                        raise err from exc
+                    return
+                yield parse_ws_message(raw)
+        finally:
+            await ws.close()
+
+    async def telemetry(self, arm: str, rate: float | None = None, events: bool = False
+                        ) -> AsyncIterator[s.Sample | s.EventMessage]:
+        """Samples in `seq` order, each once (a sample repeated across messages is skipped);
+        events too if `events`. A gap in `seq` means the server dropped samples for this
+        client (see `telemetry_messages` for the `dropped` counts)."""
+        last = -1
+        async for msg in self.telemetry_messages(arm, rate):
+            if isinstance(msg, s.EventMessage):
+                if events:
+                    yield msg
+                continue
+            for sample in msg.samples:
+                if sample.seq > last:
+                    last = sample.seq
+                    yield sample
+
