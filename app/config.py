@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import tomllib
-from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
 
@@ -23,7 +22,8 @@ from pydantic import (
 )
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-BUILTIN_PROFILES = ("rbe3001", "angler")
+from app.arms import arm_type, builtin_profiles
+
 #: Most copies one `[[arms]]` entry may ask for (`count`).
 MAX_COPIES = 256
 
@@ -224,7 +224,7 @@ class SafetyConfig(SafetySettings):
 
 class ArmProfile(_Strict):
     name: str = Field(pattern=r"^[a-z0-9][a-z0-9_-]{0,31}$")
-    model: Literal["rbe3001", "angler"]
+    model: str = Field(description="the arm type (a name in app/arms ARM_TYPES)")
     description: str = ""
     link: LinkConfig = Field(default_factory=LinkConfig)
     geometry: dict[str, float]
@@ -244,14 +244,15 @@ class ArmProfile(_Strict):
                 raise ValueError(f"geometry {k} must be finite")
         return v
 
+    @field_validator("model")
+    @classmethod
+    def _known_type(cls, v: str) -> str:
+        arm_type(v)  # ValueError naming the known arm types
+        return v
+
     @model_validator(mode="after")
     def _check(self) -> ArmProfile:
-        need = {"rbe3001": ({"l1", "l2", "l3"}, 3), "angler": ({"r", "h"}, 4)}[self.model]
-        missing = need[0] - set(self.geometry)
-        if missing:
-            raise ValueError(f"{self.model} geometry needs {sorted(missing)}")
-        if len(self.joints) != need[1]:
-            raise ValueError(f"{self.model} has {need[1]} joints, profile gives {len(self.joints)}")
+        arm_type(self.model).validate(self)  # geometry keys, joint count, the type's own
         return self
 
     @property
@@ -274,7 +275,7 @@ class ConfigError(ValueError):
 
 
 def _builtins() -> str:
-    return ", ".join(f'"{n}"' for n in BUILTIN_PROFILES)
+    return ", ".join(f'"{n}"' for n in builtin_profiles())
 
 
 def _read_toml(path: Path, what: str) -> dict[str, Any]:
@@ -299,10 +300,12 @@ def _invalid(exc: ValidationError, where: str) -> ConfigError:
 
 
 def load_profile(source: str | Path) -> ArmProfile:
-    """Load a profile by built-in name (`rbe3001`, `angler`) or from a TOML file path.
+    """Load a profile by built-in name (a `*.toml` shipped in an arm type's package, e.g.
+    `rbe3001`, `angler`) or from a TOML file path.
     Raises :class:`ConfigError` naming the file and what is wrong with it."""
-    if isinstance(source, str) and source in BUILTIN_PROFILES:
-        text = resources.files("app.profiles").joinpath(f"{source}.toml").read_text()
+    builtins = builtin_profiles()
+    if isinstance(source, str) and source in builtins:
+        text = builtins[source].read_text(encoding="utf-8")
         data, where = tomllib.loads(text), f"built-in profile {source!r}"
     else:
         path = Path(source)
@@ -324,7 +327,7 @@ class ServerConfig(_Strict):
 
 
 def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
-    """The arms a server hosts. With no config file: the simulated rbe3001 and angler.
+    """The arms a server hosts. With no config file: every built-in profile, simulated.
 
     A config file is TOML with `[[arms]]` tables, each either `profile = "rbe3001"` (or a
     path) plus overrides such as `name = "left"` and `[arms.link]`, or a whole profile.
@@ -333,7 +336,7 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
     `kind = "sim"`).
     """
     if config_file is None:  # the built-in simulators start at a known pose: homed
-        return [homed_at_start(load_profile(n)) for n in BUILTIN_PROFILES]
+        return [homed_at_start(load_profile(n)) for n in builtin_profiles()]
     path = Path(config_file)
     data = _read_toml(path, "config file")
     arms = data.get("arms", [])
@@ -351,7 +354,7 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
             if not isinstance(base_name, str) or not base_name:
                 raise ConfigError(f"{where}: `profile` must be a built-in profile name "
                                   f"({_builtins()}) or a path to a profile file")
-            src = base_name if base_name in BUILTIN_PROFILES else path.parent / base_name
+            src = base_name if base_name in builtin_profiles() else path.parent / base_name
             if isinstance(src, Path) and not src.is_file():
                 raise ConfigError(f"{where}: profile = {base_name!r} is neither a built-in "
                                   f"profile ({_builtins()}) nor a profile file ({src})")

@@ -1,10 +1,10 @@
 """The safety envelope of one arm: keep-out boxes, a floor plane and a speed override.
 
 Every planned motion is checked along its whole trajectory, at the executor's control rate,
-through the position of every joint origin and of the tip (`kinematics.chain`), before anything
-moves; so is every pass-through position command, on the straight joint-space path from the
-measured position to its target. A body point is inside a zone when it lies in the box grown
-by its margin on every side (the tip's margin is the tool's size, `tool_margin` in the
+through the position of every joint origin and of the tip (the model's `joint_origins`), before
+anything moves; so is every pass-through position command, on the straight joint-space path
+from the measured position to its target. A body point is inside a zone when it lies in the box
+grown by its margin on every side (the tip's margin is the tool's size, `tool_margin` in the
 profile's `[safety]`; the other points use `body_margin`), and below the floor when its height
 is under `floor_z` plus that margin. A hit is refused with 422 `keep_out` naming the zone (or
 `floor`), the body point, where it would be and when.
@@ -23,11 +23,10 @@ import numpy as np
 
 from app.config import SafetyConfig, SafetySettings
 from app.errors import ArmError
-from kinematics import chain
 from kinematics.trajectory import time_grid
 
 if TYPE_CHECKING:
-    from app.arm_model import ArmModel
+    from app.arms.model import KinematicsModel
 
 #: Joint-space resolution of a pass-through path check: rad for revolute, m for prismatic
 #: joints. 2 mrad moves the rbe3001's 0.37 m reach by under 1 mm, and the sampled path is
@@ -71,10 +70,10 @@ class Hit:
 class ArmSafety:
     """The envelope of one arm: the profile's settings until an instructor changes them."""
 
-    def __init__(self, model: ArmModel, profile: SafetyConfig) -> None:
+    def __init__(self, model: KinematicsModel, profile: SafetyConfig) -> None:
         self.model = model
         self.profile = profile
-        self.bodies = chain.RRR_POINTS if model.is_rrr else chain.PPRP_POINTS
+        self.bodies = model.points
         self.source: Literal["profile", "stored"] = "profile"
         self.settings: SafetySettings = SafetySettings(
             zones=profile.zones, floor_z=profile.floor_z, speed_override=profile.speed_override)
@@ -121,9 +120,7 @@ class ArmSafety:
 
     def points(self, q: np.ndarray) -> np.ndarray:
         """Body points (..., B, 3) m for joints q (..., n)."""
-        if self.model.is_rrr:
-            return chain.rrr_points(q, self.model.geom)  # type: ignore[arg-type]
-        return chain.pprp_points(q, self.model.geom)  # type: ignore[arg-type]
+        return self.model.joint_origins(q)
 
     def first_hit(self, q: np.ndarray, t: np.ndarray) -> Hit | None:
         """The earliest of the poses q (T, n), at times t (T,), with a body point inside a

@@ -36,16 +36,15 @@ from app.api import (
     arms,
     audit,
     classroom,
-    dynamixel,
     force,
     homing,
     kinematics,
     lease,
     motion,
-    rbe3001,
     safety,
     telemetry,
 )
+from app.arms import arm_routers
 from app.audit import AuditLog
 from app.auth import Access, bearer_token, install_log_redaction
 from app.classroom import Classroom
@@ -138,9 +137,10 @@ def create_app(settings: Settings | None = None,
     app.state.internal_errors = 0
     app.state.mqtt = None
 
-    for r in (arms, motion, kinematics, rbe3001, dynamixel, lease, telemetry, safety, force,
-              classroom, audit):
+    for r in (arms, motion, kinematics, lease, telemetry, safety, force, classroom, audit):
         app.include_router(r.router, prefix=API_PREFIX)
+    for router in arm_routers():  # each arm type's pass-through routes (app/arms)
+        app.include_router(router, prefix=API_PREFIX)
     arms.install_fast_paths(app, API_PREFIX)  # GET state from the encoded sample
     app.include_router(homing.router, prefix=API_PREFIX)  # faults and homing (v1.1)
     _document_websocket_messages(app)

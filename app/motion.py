@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from app import schemas as s
+from app.arms import arm_type
 from app.control import on_control
 from app.errors import (
     ArmError,
@@ -35,7 +36,7 @@ from app.errors import (
 )
 from app.links.base import LinkState
 from app.tasks import cancel_and_wait
-from kinematics import pprp, trajectory
+from kinematics import trajectory
 from kinematics.errors import KinematicsError, LimitViolation, TrajectoryError
 from kinematics.errors import Unreachable as KinematicsUnreachable
 
@@ -307,22 +308,20 @@ class MotionExecutor:
                         at_rest: bool) -> Plan:
         q0 = start[0]
         m = self.model
-        # angler: the named IK case, else the design's choice; a line in case dx_used keeps
-        # theta3 (the carriages draw it), a joint move takes the design's theta3 (-/+90 deg)
-        case = req.ik_case
-        if case is None and not m.is_rrr:
-            case = pprp.auto_case(p, m.geom)  # type: ignore[arg-type]
-        theta3 = float(q0[2]) if case == "dx_used" else None
-        best = m.ik_best(p, q0, req.branch, req.ik_case, None)
+        # the arm type's IK options from the request (e.g. the angler's ik_case); the model
+        # says how a line keeps a redundant joint (model.line_ik)
+        opts = arm_type(self.svc.profile.model).options(req)
+        pitch = getattr(req, "pitch", None)
+        best = m.ik_best(p, q0, req.branch, pitch, opts)
         if req.path == "joint":
             return self._plan_joint_from(start, best.positions, req, at_rest)
         cart = self.svc.profile.cartesian
+        line_ik = m.line_ik(p, q0, pitch, opts)
 
         def ik_near(point: np.ndarray, q_prev: np.ndarray | None) -> np.ndarray:
             ref = q0 if q_prev is None else q_prev
-            th = float(ref[2]) if theta3 is not None else None
             try:
-                return m.ik_nearest(point, ref, case, th)
+                return line_ik(point, ref)
             except ArmError as exc:
                 raise KinematicsUnreachable(exc.detail) from None
 

@@ -45,6 +45,37 @@ class Vec3(Model):
     z: Finite
 
 
+class Tip(Vec3):
+    """A tool tip: its position (m, base frame) and, for an arm with a wrist, the tool's pitch
+    (rad, from the horizontal in the arm's vertical plane; API.md "Wrist pitch"). Absent (not
+    null) for arms without a wrist."""
+
+    pitch: Finite | None = Field(None, exclude_if=lambda v: v is None,
+                                 description="rad, arms with a wrist only")
+
+
+class ChainStep(Model):
+    """One elementary transform of the joint chain (app/arms/model.py `ChainStep`)."""
+
+    kind: Literal["rotate", "translate"]
+    axis: list[float] = Field(min_length=3, max_length=3, description="unit axis in the "
+                              "current frame")
+    offset: float = Field(description="rad or m, added to the joint's position")
+    joint: int | None = Field(description="index of the joint that drives it, or null: fixed")
+    point: str | None = Field(description="the body point at this frame's origin, or null")
+
+
+class ArmChain(Model):
+    """How to draw the arm: start at the base (origin) and apply `steps` in order, each in
+    the frame the previous ones left; every step with a `point` gives a body point (`points`,
+    base first, tip last; the same points the safety envelope checks)."""
+
+    points: list[str]
+    side_axis: int = Field(description="the horizontal axis (0 x, 1 y) a side view plots "
+                           "against z")
+    steps: list[ChainStep]
+
+
 class JointInfo(Model):
     name: str
     kind: Literal["revolute", "prismatic"]
@@ -65,7 +96,8 @@ class LinkStatus(Model):
 class Capabilities(Model):
     gripper: bool
     force_sensing: bool
-    protocol: Literal["rbe3001", "dynamixel"]
+    protocol: str = Field(description="what the pass-through routes speak: rbe3001, dynamixel")
+    pitch: bool = Field(False, description="poses carry the tool's `pitch` (a wrist)")
     paths: list[Literal["joint", "line"]] = ["joint", "line"]
 
 
@@ -119,6 +151,7 @@ class ArmDetail(ArmSummary):
     faults: list[Fault] = Field(default_factory=list, description="empty when healthy")
     homed: list[bool] = Field(default_factory=list, description="one flag per joint")
     force: ForceInfo | None = None
+    chain: ArmChain | None = Field(None, description="the joint chain, to draw the arm")
 
 
 class HomeRequest(Model):
@@ -175,7 +208,7 @@ class Sample(Model):
     positions: list[float]
     velocities: list[float]
     torques: list[float] | None = None
-    tip: Vec3
+    tip: Tip
     tip_velocity: Vec3
     tip_force: Vec3 | None = None
     gripper: float | None = None
@@ -220,6 +253,9 @@ class MovePose(Model):
     x: Finite
     y: Finite
     z: Finite
+    pitch: Finite | None = Field(None, description="the tool's pitch, rad (arms with a wrist; "
+                                 "422 `unreachable` on an arm without one); none: the arm's "
+                                 "choice")
     path: Literal["joint", "line"] = "joint"
     branch: Int | None = Field(None, ge=0, le=16, description="IK solution index; default: the "
                                "within-limits solution nearest the current joints")
@@ -279,11 +315,11 @@ class JointVector(Model):
 
 
 class ForwardResult(Model):
-    tip: Vec3
+    tip: Tip
     jacobian: list[list[float]]
 
 
-class InverseRequest(Vec3):
+class InverseRequest(Tip):
     ik_case: Literal["dx_zero", "dx_used"] | None = None
     theta3: Finite | None = Field(None, description="angler dx_used case: theta3 to use, rad "
                                   "(none: the design's -/+90 deg)")

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from app import schemas as s
+from app.arms import arm_type
 from app.config import ArmProfile
 from app.control import on_control
 from app.devices.base import Driver
@@ -70,7 +71,7 @@ class ArmService:
 
     @property
     def protocol(self) -> str:
-        return "rbe3001" if self.profile.model == "rbe3001" else "dynamixel"
+        return arm_type(self.profile.model).protocol
 
     def link_status(self) -> s.LinkStatus:
         link = self.driver.link
@@ -80,7 +81,8 @@ class ArmService:
 
     def capabilities(self) -> s.Capabilities:
         return s.Capabilities(gripper=self.profile.gripper.actuated,
-                              force_sensing=self._force_sensing(), protocol=self.protocol)
+                              force_sensing=self._force_sensing(), protocol=self.protocol,
+                              pitch=self.model.has_pitch)
 
     def _force_sensing(self) -> bool:
         if self.profile.force is not None:
@@ -100,7 +102,8 @@ class ArmService:
                            geometry=dict(self.profile.geometry), estop=self.estop,
                            poll_hz=self.profile.link.poll_hz,
                            faults=[s.Fault(**f) for f in self.driver.faults],
-                           homed=list(self.driver.homed), force=self.force_info())
+                           homed=list(self.driver.homed), force=self.force_info(),
+                           chain=s.ArmChain.model_validate(self.model.describe()))
 
     # --------------------------------------------------------- force (API.md "Force")
 

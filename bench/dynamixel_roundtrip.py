@@ -65,8 +65,8 @@ def sdk_write_rdt(path: str, rdt: int) -> None:
 
 
 async def driver_rate(path: str, seconds: float) -> tuple[float, int, float]:
+    from app.arms.angler.driver import AnglerDriver
     from app.config import load_profile
-    from app.devices.angler import AnglerDriver
     from app.links.serial import SerialLink
     from app.telemetry import TelemetryHub
     from protocol import mx28

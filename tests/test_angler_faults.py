@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from fastapi import FastAPI
 
+from app.arms.angler.driver import AnglerDriver
 from app.config import homed_at_start, load_profile
-from app.devices.angler import AnglerDriver
 from app.devices.factory import make_sim_device
 from app.links.serial import SerialLink
 from app.links.sim import SimLink

@@ -11,10 +11,10 @@ import time
 import numpy as np
 import pytest
 
+from app.arms.angler.driver import AnglerDriver
+from app.arms.rbe3001.driver import Rbe3001Driver
 from app.config import FaultConfig, load_profile
-from app.devices.angler import AnglerDriver
 from app.devices.factory import make_sim_device
-from app.devices.rbe3001 import Rbe3001Driver
 from app.errors import ArmError, CorruptReply, DeviceTimeout, LinkDown
 from app.links.serial import SerialLink
 from app.links.sim import SimLink

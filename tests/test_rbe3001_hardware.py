@@ -15,8 +15,8 @@ import pytest
 from conftest import OPERATOR, VIEWER, make_settings, running_client
 
 from app.arm_model import ArmModel
+from app.arms.rbe3001.driver import Rbe3001Driver
 from app.config import FaultConfig, ForceConfig, load_profile
-from app.devices.rbe3001 import Rbe3001Driver
 from app.errors import DeviceTimeout
 from app.links.serial import SerialLink
 from app.links.sim import SimLink

@@ -12,9 +12,9 @@ from collections import deque
 import numpy as np
 import pytest
 
+from app.arms.rbe3001.driver import Rbe3001Driver
 from app.config import load_profile
 from app.devices.factory import make_sim_device
-from app.devices.rbe3001 import Rbe3001Driver
 from app.links.serial import SerialLink
 from app.links.sim import SimLink
 from app.sim.rbe3001_firmware import CYCLE_S, Rbe3001Firmware

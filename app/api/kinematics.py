@@ -11,10 +11,9 @@ from fastapi import APIRouter, Query
 
 from app import schemas as s
 from app.api.common import READ, check_joint_count, errors, finite
+from app.arms import arm_type
 from app.deps import ViewerArm
 from app.errors import Unreachable
-from app.service import ArmService
-from kinematics import pprp, rrr
 
 router = APIRouter(tags=["kinematics"])
 
@@ -43,7 +42,10 @@ async def forward(svc: ViewerArm, req: s.JointVector) -> s.ForwardResult:
     jac = svc.model.jacobian(q)
     finite(tip, "the tip")
     finite(jac, "the Jacobian")
-    return s.ForwardResult(tip=_vec(tip), jacobian=[[float(x) for x in row] for row in jac])
+    pitch = svc.model.pitch(q)
+    return s.ForwardResult(tip=s.Tip(x=float(tip[0]), y=float(tip[1]), z=float(tip[2]),
+                                     pitch=None if pitch is None else float(pitch)),
+                           jacobian=[[float(x) for x in row] for row in jac])
 
 
 @router.post(
@@ -60,7 +62,7 @@ async def forward(svc: ViewerArm, req: s.JointVector) -> s.ForwardResult:
 )
 async def inverse(svc: ViewerArm, req: s.InverseRequest) -> s.InverseResult:
     p = np.array([req.x, req.y, req.z], dtype=float)
-    sols = svc.model.ik(p, req.ik_case, req.theta3)
+    sols = svc.model.ik(p, req.pitch, arm_type(svc.profile.model).options(req))
     out = [s.IKSolution(positions=[float(x) for x in sol.positions],
                         within_limits=sol.within_limits, violations=list(sol.violations),
                         branch=sol.branch)
@@ -68,22 +70,6 @@ async def inverse(svc: ViewerArm, req: s.InverseRequest) -> s.InverseResult:
     if not out:
         raise Unreachable(f"no inverse kinematics solution for ({req.x}, {req.y}, {req.z}) m")
     return s.InverseResult(solutions=out)
-
-
-#: Workspace boxes by profile (the rrr box is estimated from 20 000 samples: compute once).
-_BOUNDS: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-
-
-def _bounds(svc: ArmService) -> tuple[np.ndarray, np.ndarray]:
-    key = svc.profile.model_dump_json()
-    if key not in _BOUNDS:
-        m = svc.model
-        if m.is_rrr:
-            _BOUNDS[key] = rrr.bounds(m.geom, m.lower, m.upper,  # type: ignore[arg-type]
-                                      rng=np.random.default_rng(0))
-        else:
-            _BOUNDS[key] = pprp.bounds(m.geom, m.lower, m.upper)  # type: ignore[arg-type]
-    return _BOUNDS[key]
 
 
 @router.get(
@@ -100,7 +86,7 @@ async def workspace(
     n: Annotated[int, Query(ge=1, le=WORKSPACE_MAX, description="points to sample")] = (
         WORKSPACE_DEFAULT),
 ) -> s.Workspace:
-    lo, hi = _bounds(svc)
+    lo, hi = svc.model.bounds()  # computed once per model
     pts = svc.model.workspace(n)
     return s.Workspace(lower=_vec(lo), upper=_vec(hi),
                        points=[s.Vec3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in pts],

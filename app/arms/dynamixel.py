@@ -1,0 +1,34 @@
+"""What every arm of Dynamixel Protocol 2.0 servos shares, for its package to use: the
+simulated bus, the U2D2 adapter's USB ids and the pass-through router's module. Nothing here
+names an arm type."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from app.arms.base import UsbMatch
+
+if TYPE_CHECKING:
+    from app.config import ArmProfile
+    from app.sim.base import SimDevice
+    from app.sim.mx28_servo import Mx28Servo
+
+#: The Dynamixel pass-through routes (generic, parameterised by the arm's control table).
+ROUTER = "app.api.dynamixel"
+#: The ROBOTIS U2D2 (FTDI FT232H); its latency timer defaults to 16 ms, ROBOTIS says 1 ms.
+U2D2 = UsbMatch("serial", 0x0403, 0x6014, "dynamixel-u2d2", ftdi_latency=True)
+
+
+def simulated_bus(profile: ArmProfile,
+                  servo: type[Mx28Servo] | None = None) -> SimDevice:
+    """A simulated bus holding the profile's servos (its joints' `motor_id`s)
+    at the link's baud rate, in the joints' operating modes; `servo` is
+    the servo class (default MX-28, e.g. an XM430 class)."""
+    from app.sim.dynamixel_bus import DynamixelBus
+
+    modes = {int(j.motor_id): j.operating_mode for j in profile.joints
+             if j.motor_id is not None and j.operating_mode is not None}
+    ids = tuple(int(j.motor_id) for j in profile.joints if j.motor_id is not None)
+    models = None if servo is None else dict.fromkeys(ids, servo)
+    return DynamixelBus(ids=ids, baudrate=profile.link.baudrate, operating_modes=modes,
+                        models=models)
