@@ -336,7 +336,8 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
     `kind = "sim"`).
     """
     if config_file is None:  # the built-in simulators start at a known pose: homed
-        return [homed_at_start(load_profile(n)) for n in builtin_profiles()]
+        profiles = [load_profile(n) for n in builtin_profiles()]
+        return [homed_at_start(p) for p in profiles if arm_type(p.model).default_server]
     path = Path(config_file)
     data = _read_toml(path, "config file")
     arms = data.get("arms", [])
