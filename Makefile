@@ -78,6 +78,7 @@ lint: install-test
 	$(BIN)/python -m pip install --quiet ruff mypy
 	$(BIN)/ruff check protocol kinematics app tests bench examples
 	$(BIN)/mypy protocol kinematics
+	$(BIN)/python tools/check_cycles.py app
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

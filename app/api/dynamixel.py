@@ -1,5 +1,7 @@
 """Dynamixel Protocol 2.0 pass-through: ping, registers by control-table name, SYNC read and
-write, reboot. Raw register values (`raw`), named by the MX-28 table (protocol/mx28.py).
+write, reboot. Raw register values (`raw`), named by the arm's control table (its arm type's
+`control_table`, e.g. protocol/mx28.py for the MX-28; the XM430's has the same layout). One
+router for every Dynamixel arm type: it names none.
 
 Every check happens before anything is sent: the name must be in the table (422
 `unknown_register`), a write must be to a writable item (422 `read_only`) and within the item's
@@ -11,12 +13,13 @@ while the estop is latched, except the safe ones: torque off and the LED. Reads 
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Path
 
 from app import schemas as s
 from app.api.common import DEVICE, errors
+from app.arms import arm_type
 from app.deps import ControlArm
 from app.errors import Conflict, InvalidRequest
 from app.service import ArmService
@@ -35,11 +38,17 @@ def _driver(svc: ArmService):  # type: ignore[no-untyped-def]
     return svc.driver
 
 
-def _item(name: str) -> mx28.ControlItem:
+def _table(svc: ArmService) -> Any:
+    """The arm's control table module (protocol/mx28.py's shape); the MX-28's by default."""
+    return arm_type(svc.profile.model).control_table or mx28
+
+
+def _item(svc: ArmService, name: str) -> mx28.ControlItem:
     try:
-        return mx28.item(name)
+        item: mx28.ControlItem = _table(svc).item(name)
     except KeyError as exc:
         raise InvalidRequest(str(exc.args[0]), code="unknown_register") from None
+    return item
 
 
 def _joint_of(svc: ArmService, dxl_id: int) -> int:
@@ -111,9 +120,9 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
         svc.require_motion_allowed()
 
 
-def _value(dxl_id: int, item: mx28.ControlItem, raw: int) -> s.RegisterValue:
+def _value(svc: ArmService, dxl_id: int, item: mx28.ControlItem, raw: int) -> s.RegisterValue:
     return s.RegisterValue(id=dxl_id, name=item.name, address=item.address, size=item.size,
-                           raw=raw, unit=item.unit, value=mx28.to_unit(item, raw))
+                           raw=raw, unit=item.unit, value=_table(svc).to_unit(item, raw))
 
 
 @router.post(
@@ -137,14 +146,14 @@ async def ping(svc: ControlArm,
     response_model=s.RegisterValue,
     summary="READ one control-table item",
     description="The raw value and, where the item has a unit, the value in it (e.g. deg). "
-    "422 `unknown_register` for a name not in the MX-28 table. Operator token (it uses the "
+    "422 `unknown_register` for a name not in the arm's control table. Operator token (it uses the "
     "bus). " + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
 async def read_register(svc: ControlArm, dxl_id: DxlId, name: RegName) -> s.RegisterValue:
     drv = _driver(svc)
-    item = _item(name)
-    return _value(dxl_id, item, await drv.read_register(dxl_id, item))
+    item = _item(svc, name)
+    return _value(svc, dxl_id, item, await drv.read_register(dxl_id, item))
 
 
 @router.put(
@@ -162,10 +171,10 @@ async def read_register(svc: ControlArm, dxl_id: DxlId, name: RegName) -> s.Regi
 async def write_register(svc: ControlArm, dxl_id: DxlId, name: RegName,
                          req: s.RegisterWrite) -> s.RegisterValue:
     drv = _driver(svc)
-    item = _item(name)
+    item = _item(svc, name)
     _check_write(svc, item, dxl_id, req.raw)
     await drv.write_register(dxl_id, item, req.raw)
-    return _value(dxl_id, item, req.raw)
+    return _value(svc, dxl_id, item, req.raw)
 
 
 @router.post(
@@ -178,7 +187,7 @@ async def write_register(svc: ControlArm, dxl_id: DxlId, name: RegName,
 )
 async def sync_read(svc: ControlArm, req: s.SyncReadRequest) -> s.SyncReadResult:
     drv = _driver(svc)
-    item = _item(req.name)
+    item = _item(svc, req.name)
     ids = list(dict.fromkeys(req.ids))
     return s.SyncReadResult(name=item.name, values=await drv.sync_read(item, ids))
 
@@ -193,7 +202,7 @@ async def sync_read(svc: ControlArm, req: s.SyncReadRequest) -> s.SyncReadResult
 )
 async def sync_write(svc: ControlArm, req: s.SyncWriteRequest) -> s.Ack:
     drv = _driver(svc)
-    item = _item(req.name)
+    item = _item(svc, req.name)
     for dxl_id, raw in req.values.items():
         _check_write(svc, item, dxl_id, raw)
     await drv.sync_write(item, dict(req.values))

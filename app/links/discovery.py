@@ -1,11 +1,11 @@
 """Which serial ports and HID devices are attached, and which look like a known arm.
 
 For `armserver devices`. Each back end is optional: a missing pyserial or hidapi shows up
-as a warning in the listing, never as a crash. Known arms:
-- HID 3742:0007, the RBE3001 Nucleo firmware's USBHID(64, 64) -> "rbe3001";
-- FTDI 0403:6014, the ROBOTIS U2D2 -> "dynamixel-u2d2". Its latency timer defaults to
-  16 ms, which caps a Dynamixel read loop near 60 Hz; ROBOTIS recommends 1 ms, so a
-  U2D2 whose timer is above 1 ms gets a warning with the fix.
+as a warning in the listing, never as a crash. The known USB ids are the arm types' own
+(`ArmType.usb`, app/arms), e.g. the RBE3001 Nucleo firmware's HID 3742:0007 and the ROBOTIS
+U2D2 (FTDI 0403:6014). An FTDI adapter's latency timer defaults to 16 ms, which caps a
+Dynamixel read loop near 60 Hz; ROBOTIS recommends 1 ms, so one whose timer is above 1 ms
+gets a warning with the fix.
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-Match = Literal["rbe3001", "dynamixel-u2d2"]
-KNOWN: dict[tuple[str, int, int], Match] = {
-    ("hid", 0x3742, 0x0007): "rbe3001",
-    ("serial", 0x0403, 0x6014): "dynamixel-u2d2",
-}
+from app.arms import all_arm_types
+from app.arms.base import UsbMatch
+
+#: The label of a known device (an arm type's `UsbMatch.label`).
+Match = str
 SYSFS_USB_SERIAL = Path("/sys/bus/usb-serial/devices")
 MAX_LATENCY_MS = 1  # ROBOTIS' recommended U2D2 latency timer
 
@@ -39,7 +39,13 @@ def match_device(kind: str, vid: int | None, pid: int | None) -> Match | None:
     """The known arm a USB id pair belongs to, if any."""
     if vid is None or pid is None:
         return None
-    return KNOWN.get((kind, vid, pid))
+    found = known_usb().get((kind, vid, pid))
+    return None if found is None else found.label
+
+
+def known_usb() -> dict[tuple[str, int, int], UsbMatch]:
+    """(kind, vid, pid) -> the match, from every registered arm type."""
+    return {(u.kind, u.vid, u.pid): u for t in all_arm_types() for u in t.usb}
 
 
 def latency_warning(tty: str, sysfs: Path = SYSFS_USB_SERIAL) -> str | None:
@@ -72,7 +78,8 @@ def _serial_devices(sysfs: Path) -> list[DeviceInfo]:
     for port in sorted(list_ports.comports(), key=lambda p: p.device):
         match = match_device("serial", port.vid, port.pid)
         warning = None
-        if match == "dynamixel-u2d2":
+        usb = known_usb().get(("serial", port.vid or -1, port.pid or -1))
+        if usb is not None and usb.ftdi_latency:
             warning = latency_warning(Path(port.device).name, sysfs)
         out.append(
             DeviceInfo(

@@ -15,6 +15,10 @@ Command: `armserver sim dynamixel (--pty PATH | --listen tcp://127.0.0.1:PORT)
 error name of protocol.mx28.HARDWARE_ERRORS (overload, overheating, electrical_shock,
 motor_encoder, input_voltage), `power_cycle` or `brown_out`, raised on servo ID (or `all`)
 T seconds after the start: `--fault 1:overload@2.0`.
+
+`armserver sim PROFILE (--pty PATH | --listen URL) [--drop F] [--corrupt F] [--latency S]`
+serves the simulated hardware of any arm type instead (PROFILE: a built-in profile name
+such as `rbe3001`, or a profile TOML path; the device is its arm type's `simulator`).
 """
 
 from __future__ import annotations
@@ -252,7 +256,8 @@ async def serve_tcp(device: SimDevice, host: str = "127.0.0.1", port: int = 0,
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="armserver sim", description="Serve a simulated device.")
-    p.add_argument("device", choices=["dynamixel"])
+    p.add_argument("device", help="`dynamixel` (a bus of --ids), or a profile (built-in name "
+                   "or TOML path) whose arm type's simulator to serve")
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", metavar="PATH", help="symlink to create for the pseudo-terminal")
     where.add_argument("--listen", metavar="URL", help="tcp://HOST:PORT to listen on")
@@ -323,14 +328,34 @@ def _pairs(items: Sequence[str]) -> dict[int, int]:
     return out
 
 
+def _profile_device(source: str) -> tuple[SimDevice, str]:
+    """The simulator of a profile's arm type, and a line saying what it is."""
+    from app.arms import arm_type
+    from app.config import ConfigError, load_profile
+
+    try:
+        profile = load_profile(source)
+    except ConfigError as exc:
+        raise ValueError(f"{source!r} is neither `dynamixel` nor a usable profile: {exc}") from None
+    return arm_type(profile.model).simulator(profile), f"{profile.model} ({profile.name})"
+
+
 async def _run(args: argparse.Namespace) -> None:
-    ids = [int(i) for i in args.ids.split(",") if i.strip()]
-    device = DynamixelBus(ids, args.baudrate, _pairs(args.mode),
-                          {i: Xm430Servo for i in _xm430_ids(args)})
-    if args.supply is not None:
-        device.set_supply_voltage(args.supply)
-    timers = schedule_faults(device, [parse_fault(f) for f in args.fault],
-                             asyncio.get_running_loop())
+    timers: list[asyncio.TimerHandle] = []
+    device: SimDevice
+    if args.device == "dynamixel":
+        ids = [int(i) for i in args.ids.split(",") if i.strip()]
+        bus = DynamixelBus(ids, args.baudrate, _pairs(args.mode),
+                           {i: Xm430Servo for i in _xm430_ids(args)})
+        if args.supply is not None:
+            bus.set_supply_voltage(args.supply)
+        timers = schedule_faults(bus, [parse_fault(f) for f in args.fault],
+                                 asyncio.get_running_loop())
+        device, what = bus, f"dynamixel bus ids {ids} at {args.baudrate} bit/s"
+    else:
+        if args.fault or args.supply is not None or args.mode or args.xm430:
+            raise ValueError("--fault, --supply, --mode and --xm430 are for `dynamixel` only")
+        device, what = _profile_device(args.device)
     faults = FaultConfig(drop=args.drop, corrupt=args.corrupt, latency_s=args.latency)
     server: PtyServer | TcpServer
     if args.pty:
@@ -342,7 +367,7 @@ async def _run(args: argparse.Namespace) -> None:
             raise ValueError(f"--listen wants tcp://HOST:PORT, got {args.listen!r}")
         server = await serve_tcp(device, url.hostname, url.port, faults=faults, seed=None)
         where = f"tcp://{url.hostname}:{server.port} (socket://{url.hostname}:{server.port})"
-    print(f"dynamixel bus ids {ids} at {args.baudrate} bit/s on {where}", flush=True)
+    print(f"{what} on {where}", flush=True)
     stop = asyncio.Event()
     with contextlib.suppress(NotImplementedError):  # SIGTERM: close cleanly (remove the link)
         asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)

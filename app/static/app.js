@@ -134,25 +134,44 @@ async function api(method, path, body) {
 
 // ------------------------------------------------------------------ kinematics (same formulas as the server)
 
-/** Points from the base to the tip, each [x, y, z] m, for joint positions q. Null if unknown model. */
-function chain(model, g, q) {
-  if (model === "rbe3001") {
-    const [q0, q1, q2] = q;
-    const c0 = Math.cos(q0), s0 = Math.sin(q0);
-    const rho2 = g.l2 * Math.cos(q1), z2 = g.l1 + g.l2 * Math.sin(q1);
-    const rho3 = rho2 + g.l3 * Math.sin(q1 - q2), z3 = z2 - g.l3 * Math.cos(q1 - q2);
-    return [[0, 0, 0], [0, 0, g.l1], [c0 * rho2, s0 * rho2, z2], [c0 * rho3, s0 * rho3, z3]];
-  }
-  if (model === "angler") {
-    const [dx, dy, t3, dz] = q;
-    const mx = dx - g.r * Math.sin(t3), my = dy + g.r * Math.cos(t3);
-    return [[dx, dy, dz], [mx, my, dz], [mx, my, dz - g.h]];
-  }
-  return null;
+/** Rotation matrix (row-major 3x3) of `angle` rad about the unit `axis` (Rodrigues). */
+function rotation(axis, angle) {
+  const n = Math.hypot(axis[0], axis[1], axis[2]) || 1;
+  const [x, y, z] = [axis[0] / n, axis[1] / n, axis[2] / n];
+  const c = Math.cos(angle), s = Math.sin(angle), t = 1 - c;
+  return [
+    [c + x * x * t, x * y * t - z * s, x * z * t + y * s],
+    [y * x * t + z * s, c + y * y * t, y * z * t - x * s],
+    [z * x * t - y * s, z * y * t + x * s, c + z * z * t],
+  ];
 }
 
-/** Horizontal axis of the side view: the one the arm reaches along at rest. */
-const SIDE_AXIS = { rbe3001: 0, angler: 1 };
+function matmul(a, b) {
+  return a.map((row) => [0, 1, 2].map((j) => row[0] * b[0][j] + row[1] * b[1][j] + row[2] * b[2][j]));
+}
+
+/**
+ * Body points from the base to the tip, each [x, y, z] m, for joint positions q: the joint
+ * chain the server describes (`ArmDetail.chain`, app/arms/model.py `chain_points` is the
+ * reference). Null if the server gave no chain. Works for any arm type.
+ */
+function chainPoints(ch, q) {
+  if (!ch) return null;
+  let R = [[1, 0, 0], [0, 1, 0], [0, 0, 1]];
+  let p = [0, 0, 0];
+  const out = [p.slice()];
+  for (const st of ch.steps) {
+    const amount = st.offset + (st.joint === null || st.joint === undefined ? 0 : q[st.joint]);
+    if (st.kind === "rotate") {
+      R = matmul(R, rotation(st.axis, amount));
+    } else {
+      const v = st.axis.map((a) => a * amount);
+      p = [0, 1, 2].map((i) => p[i] + R[i][0] * v[0] + R[i][1] * v[1] + R[i][2] * v[2]);
+    }
+    if (st.point !== null && st.point !== undefined) out.push(p.slice());
+  }
+  return out;
+}
 
 function bounds(detail) {
   const lo = [0, 0, 0], hi = [0, 0, 0];
@@ -160,7 +179,7 @@ function bounds(detail) {
   const q = new Array(n).fill(0);
   const visit = (j) => {
     if (j === n) {
-      for (const p of chain(detail.model, detail.geometry, q) || []) {
+      for (const p of chainPoints(detail.chain, q) || []) {
         for (let k = 0; k < 3; k++) { lo[k] = Math.min(lo[k], p[k]); hi[k] = Math.max(hi[k], p[k]); }
       }
       return;
@@ -259,9 +278,9 @@ class Arm {
     this.name = detail.name;
     this.detail = detail;
     this.nj = detail.joints.length;
-    this.fkKnown = chain(detail.model, detail.geometry, new Array(this.nj).fill(0)) !== null;
+    this.fkKnown = !!detail.chain;
     this.box = this.fkKnown ? bounds(detail) : { lo: [-0.5, -0.5, -0.1], hi: [0.5, 0.5, 0.6] };
-    this.sideAxis = SIDE_AXIS[detail.model] ?? 0;
+    this.sideAxis = detail.chain?.side_axis ?? 0;
     const hz = Math.min(detail.poll_hz || 500, 2000);
     this.ring = new Ring(Math.ceil(hz * WINDOW_S * 1.3) + 64, this.nj);
     this.gapS = Math.max(0.2, 25 / hz);
@@ -723,7 +742,7 @@ class Arm {
     const q = this.latest?.positions;
     let pts = null;
     if (q) {
-      pts = this.fkKnown ? chain(this.detail.model, this.detail.geometry, q) : [[this.latest.tip.x, this.latest.tip.y, this.latest.tip.z]];
+      pts = this.fkKnown ? chainPoints(this.detail.chain, q) : [[this.latest.tip.x, this.latest.tip.y, this.latest.tip.z]];
       const tip = pts[pts.length - 1];
       this.tipDrawn = { x: tip[0], y: tip[1], z: tip[2] };
       this.el.tipText.textContent = `tip  x ${(tip[0] * 1000).toFixed(1)}  y ${(tip[1] * 1000).toFixed(1)}  z ${(tip[2] * 1000).toFixed(1)} mm`;
@@ -828,36 +847,14 @@ class Arm {
     }
   }
 
-  /** The parts of the arm that do not move with the joints: base, rails, columns. */
+  /** What does not move with the joints: a plate at the base origin (any arm type). */
   drawFixtures(ctx, X, Y, which) {
-    const g = this.detail.geometry, q = this.latest?.positions;
     ctx.strokeStyle = theme.axis; ctx.fillStyle = theme.grid; ctx.lineWidth = 2;
-    if (this.detail.model === "rbe3001") {
-      if (which === "top") {
-        ctx.beginPath(); ctx.arc(X([0, 0, 0]), Y([0, 0, 0]), 12, 0, 2 * Math.PI); ctx.fill(); ctx.stroke();
-      } else {
-        const a = X([0, 0, 0]), b = Y([0, 0, 0]);
-        ctx.fillRect(a - 18, b, 36, 6); ctx.strokeRect(a - 18, b, 36, 6);
-      }
-    } else if (this.detail.model === "angler" && q) {
-      const [jx, jy, , jz] = this.detail.joints;
-      const top = jz.max + 0.02;
-      ctx.setLineDash([3, 3]);
-      if (which === "top") {
-        ctx.strokeRect(X([jx.min, 0, 0]), Y([0, jy.max, 0]), X([jx.max, 0, 0]) - X([jx.min, 0, 0]), Y([0, jy.min, 0]) - Y([0, jy.max, 0]));
-        ctx.setLineDash([]);
-        ctx.beginPath();
-        ctx.moveTo(X([jx.min, q[1], 0]), Y([jx.min, q[1], 0])); ctx.lineTo(X([jx.max, q[1], 0]), Y([jx.max, q[1], 0]));
-        ctx.moveTo(X([q[0], jy.min, 0]), Y([q[0], jy.min, 0])); ctx.lineTo(X([q[0], jy.max, 0]), Y([q[0], jy.max, 0]));
-        ctx.stroke();
-      } else {
-        const c = [q[0], q[1], top], c0 = [q[0], q[1], jz.min - g.h];
-        ctx.beginPath(); ctx.moveTo(X(c), Y(c)); ctx.lineTo(X(c0), Y(c0)); ctx.stroke();
-        ctx.setLineDash([]);
-        const p = [q[0], q[1], q[3]];
-        ctx.beginPath(); ctx.moveTo(X(c), Y(c)); ctx.lineTo(X(p), Y(p)); ctx.stroke();
-      }
-      ctx.setLineDash([]);
+    const a = X([0, 0, 0]), b = Y([0, 0, 0]);
+    if (which === "top") {
+      ctx.beginPath(); ctx.arc(a, b, 12, 0, 2 * Math.PI); ctx.fill(); ctx.stroke();
+    } else {
+      ctx.fillRect(a - 18, b, 36, 6); ctx.strokeRect(a - 18, b, 36, 6);
     }
   }
 
