@@ -181,3 +181,10 @@ async def test_passthrough_ping_and_register_read(
     assert body["raw"] == pytest.approx(2048 + s.positions[1] * 4096 / (2 * math.pi), abs=3)
     r = await c.get(f"{OMX}/dynamixel/12/registers/no_such_item")
     assert r.status_code == 422 and r.json()["code"] == "unknown_register"
+    # the XM430's table, not the MX-28's: Present Current at 126, no Present Load
+    r = await c.get(f"{OMX}/dynamixel/12/registers/present_current")
+    assert r.status_code == 200 and r.json()["address"] == 126 and r.json()["unit"] == "mA"
+    r = await c.get(f"{OMX}/dynamixel/12/registers/present_load")
+    assert r.status_code == 422 and r.json()["code"] == "unknown_register"
+    r = await c.get(f"{API}/arms/angler/dynamixel/1/registers/present_load")
+    assert r.status_code == 200 and r.json()["address"] == 126

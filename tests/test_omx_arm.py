@@ -7,6 +7,10 @@ from __future__ import annotations
 
 import asyncio
 import math
+import signal
+import socket
+import subprocess
+import sys
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
@@ -26,6 +30,7 @@ from app.sim.dynamixel_bus import DynamixelBus
 from app.sim.xm430_servo import Xm430Servo
 from app.telemetry import TelemetryHub
 from kinematics import omx
+from protocol import dynamixel as dxl
 from protocol import xm430
 from tests.test_dynamixel_sim import SdkBus, patient, sdk_over_pty
 
@@ -171,6 +176,31 @@ def test_sdk_pings_model_1020_on_the_package_simulator(sdk_package_bus: SdkBus) 
     for i in omx.IDS:
         assert patient(ph.ping, port, i) == (1020, COMM_SUCCESS, 0)
     assert patient(ph.read1ByteTxRx, port, 15, 11) == (5, COMM_SUCCESS, 0)
+
+
+def test_sim_cli_serves_the_profile_over_tcp() -> None:
+    """`armserver sim openmanipulator_x`: the package's simulator, the same bytes as the arm."""
+    proc = subprocess.Popen([sys.executable, "-m", "app.sim.serve", "openmanipulator_x",
+                             "--listen", "tcp://127.0.0.1:0"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        port = int(proc.stdout.readline().split("socket://127.0.0.1:")[1].split(")")[0])
+        with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+            for packet, sid in ((dxl.ping(15), 15), (dxl.read(15, 11, 1), 15)):
+                sock.sendall(packet)
+                parser = dxl.Parser()
+                events: list[object] = []
+                while not events:
+                    parser.feed(sock.recv(256))
+                    events = list(parser)
+                assert isinstance(events[0], dxl.Packet) and events[0].id == sid
+                if packet[7] == dxl.Instruction.PING:
+                    assert dxl.from_bytes(events[0].params[:2], signed=False) == 1020
+                else:
+                    assert events[0].params == bytes([5])  # current-based position mode
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
 
 
 # ------------------------------------------------------------------ driver
