@@ -21,32 +21,15 @@ from tests.conftest import make_settings, running_client
 
 API = "/api/v1"
 OMX = f"{API}/arms/omx"
-JOINT_TOL = 0.01  # rad: the settle tolerance is 8 ticks (0.012 rad); the servo holds closer
+JOINT_TOL = 8 * 2 * math.pi / 4096  # rad: the default settle tolerance, 8 encoder ticks
 
-CONFIG = """\
-[[arms]]
-profile = "rbe3001"
-
-[[arms]]
-profile = "angler"
-[arms.link]
-homed_at_start = true   # the simulated angler starts at a known pose
-
-[[arms]]
-profile = "openmanipulator_x"
-"""
-
-
-@pytest.fixture(scope="module")
-def config_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("omx") / "three-arms.toml"
-    path.write_text(CONFIG)
-    return path
+#: The README's example: the three arm types, each simulated.
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "three-arms.example.toml"
 
 
 @pytest.fixture()
-async def three(config_file: Path) -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
-    async with running_client(make_settings(config=str(config_file))) as pair:
+async def three() -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
+    async with running_client(make_settings(config=str(CONFIG))) as pair:
         yield pair
 
 
