@@ -97,7 +97,8 @@ class Capabilities(Model):
     gripper: bool
     force_sensing: bool
     protocol: str = Field(description="what the pass-through routes speak: rbe3001, dynamixel")
-    pitch: bool = Field(False, description="poses carry the tool's `pitch` (a wrist)")
+    pitch: bool = Field(False, exclude_if=lambda v: not v, description="true: poses carry the "
+                        "tool's `pitch` (a wrist); absent for arms without one")
     paths: list[Literal["joint", "line"]] = ["joint", "line"]
 
 

@@ -65,7 +65,7 @@ def sdk_write_rdt(path: str, rdt: int) -> None:
 
 
 async def driver_rate(path: str, seconds: float) -> tuple[float, int, float]:
-    from app.arms.angler.driver import AnglerDriver
+    from app.arms.dynamixel.driver import DynamixelDriver
     from app.config import load_profile
     from app.links.serial import SerialLink
     from app.telemetry import TelemetryHub
@@ -73,7 +73,7 @@ async def driver_rate(path: str, seconds: float) -> tuple[float, int, float]:
 
     profile = load_profile("angler")
     profile.link.poll_hz = 1.0  # the bench drives the requests itself
-    driver = AnglerDriver(profile, SerialLink(path), TelemetryHub("angler"))
+    driver = DynamixelDriver(profile, SerialLink(path), TelemetryHub("angler"))
     await driver.start()
     assert await driver.wait_connected(10.0), driver.link.last_error
     item = mx28.ControlItem("present_state", ADDR, LEN, "ram", "r", None, None, 1.0, False, 0, 0)

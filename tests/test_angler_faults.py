@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from fastapi import FastAPI
 
-from app.arms.angler.driver import AnglerDriver
+from app.arms.dynamixel.driver import DynamixelDriver
 from app.config import homed_at_start, load_profile
 from app.devices.factory import make_sim_device
 from app.links.serial import SerialLink
@@ -40,13 +40,13 @@ async def _until(cond: Any, timeout: float = 5.0) -> None:
 
 
 async def _driver(bus: DynamixelBus | None = None, link: Any = None,
-                  homed: bool = True) -> tuple[AnglerDriver, DynamixelBus | None]:
+                  homed: bool = True) -> tuple[DynamixelDriver, DynamixelBus | None]:
     profile = load_profile("angler")
     profile = homed_at_start(profile) if homed else profile
     if link is None:
         bus = bus or make_sim_device(profile)  # type: ignore[assignment]
         link = SimLink(bus, address="sim:angler")  # type: ignore[arg-type]
-    drv = AnglerDriver(profile, link, TelemetryHub("angler"))
+    drv = DynamixelDriver(profile, link, TelemetryHub("angler"))
     await drv.start()
     assert await drv.wait_connected(5.0), link.last_error
     return drv, bus

@@ -199,7 +199,7 @@ async def test_arm_detail_describes_the_chain(app_client: httpx.AsyncClient) -> 
         r = await app_client.get(f"{API}/arms/{name}")
         assert r.status_code == 200, r.text
         body = r.json()
-        assert body["capabilities"]["pitch"] is False
+        assert "pitch" not in body["capabilities"]  # unchanged for arms without a wrist
         assert body["capabilities"]["protocol"] == arm_type(name).protocol
         ch = body["chain"]
         assert ch["points"][0] == "base" and ch["points"][-1] == "tip"

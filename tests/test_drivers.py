@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from app.arms.angler.driver import AnglerDriver
+from app.arms.dynamixel.driver import DynamixelDriver
 from app.arms.rbe3001.driver import Rbe3001Driver
 from app.config import FaultConfig, load_profile
 from app.devices.factory import make_sim_device
@@ -23,7 +23,7 @@ from app.telemetry import TelemetryHub
 from protocol import mx28
 from protocol import rbe3001 as rb
 
-DRIVERS = {"rbe3001": Rbe3001Driver, "angler": AnglerDriver}
+DRIVERS = {"rbe3001": Rbe3001Driver, "angler": DynamixelDriver}
 
 
 async def started(name: str, link, timeout: float = 5.0):

@@ -53,8 +53,8 @@ def _imports(tree: ast.Module, types: bool) -> list[ast.Import | ast.ImportFrom]
             out.append(node)
             return
         if isinstance(node, ast.If) and _is_type_checking(node.test) and not types:
-            for child in node.orelse:
-                walk(child)
+            for stmt in node.orelse:
+                walk(stmt)
             return
         for child in ast.iter_child_nodes(node):
             walk(child)

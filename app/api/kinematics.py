@@ -38,13 +38,10 @@ def _vec(v: np.ndarray) -> s.Vec3:
 async def forward(svc: ViewerArm, req: s.JointVector) -> s.ForwardResult:
     check_joint_count(svc, req.positions)
     q = np.asarray(req.positions, dtype=float)
-    tip = svc.model.fk(q)
     jac = svc.model.jacobian(q)
-    finite(tip, "the tip")
+    finite(svc.model.fk(q), "the tip")
     finite(jac, "the Jacobian")
-    pitch = svc.model.pitch(q)
-    return s.ForwardResult(tip=s.Tip(x=float(tip[0]), y=float(tip[1]), z=float(tip[2]),
-                                     pitch=None if pitch is None else float(pitch)),
+    return s.ForwardResult(tip=s.Tip(**svc.model.tip(q)),
                            jacobian=[[float(x) for x in row] for row in jac])
 
 

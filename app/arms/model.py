@@ -152,6 +152,16 @@ class KinematicsModel(abc.ABC):
         """The tool's pitch (...) rad for joints (..., n); None for an arm without a wrist."""
         return None
 
+    def tip(self, q: np.ndarray) -> dict[str, float]:
+        """The tip as reported (a `schemas.Tip`): x, y, z m, and `pitch` rad only for an arm
+        with a wrist. For one q (n,)."""
+        p = np.asarray(self.fk(q), dtype=float)
+        out = {"x": float(p[0]), "y": float(p[1]), "z": float(p[2])}
+        pitch = self.pitch(q)
+        if pitch is not None:
+            out["pitch"] = float(pitch)
+        return out
+
     @abc.abstractmethod
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         """d tip / d q, (3, n) for one q (an arm with a wrist may add the pitch row: (4, n))."""

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from app.arm_model import model_for
+from app.arm_model import ArmModel
 from app.config import ArmProfile
 from app.control import on_control
 from app.errors import ArmError, Busy, CorruptReply, DeviceError, DeviceTimeout, LinkDown
@@ -74,7 +74,7 @@ class Driver(abc.ABC):
         self.profile = profile
         self.link = link
         self.hub = hub
-        self.model = model_for(profile)
+        self.model = ArmModel(profile)
         self.timeout = profile.link.timeout_s
         self._queue: asyncio.Queue[_Request] = asyncio.Queue(maxsize=profile.link.queue_size)
         self._task: asyncio.Task[None] | None = None
@@ -420,10 +420,7 @@ class Driver(abc.ABC):
         else:
             m = self.model
             J = m.jacobian(q)
-            tip, tip_v, force = _vec(m.fk(q)), _vec(J @ qd), None
-            pitch = m.pitch(q)  # arms with a wrist (API.md "Wrist pitch")
-            if pitch is not None:
-                tip["pitch"] = float(pitch)
+            tip, tip_v, force = m.tip(q), _vec(J @ qd), None  # tip: with pitch for a wrist
             if tau is not None:
                 f = m.tip_force(q, tau, J)
                 if f is not None and np.all(np.isfinite(f)):

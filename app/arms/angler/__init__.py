@@ -1,7 +1,7 @@
 """The angler arm type: a PPRP arm (x and y carriages, the t3 arm, the z carriage) of four
 Dynamixel MX-28 (2.0) servos on Protocol 2.0 through a U2D2. Package: the profile
-(angler.toml), the kinematics model and IK options (model.py, kinematics/pprp.py), the driver
-(driver.py). Shared with every Dynamixel arm (app/arms/dynamixel.py): the simulated bus
+(angler.toml), the kinematics model and IK options (model.py, kinematics/pprp.py). Shared
+with every Dynamixel arm (app/arms/dynamixel/): the driver, the simulated bus
 (app/sim/dynamixel_bus.py) and the pass-through router (app/api/dynamixel.py)."""
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ if TYPE_CHECKING:
 
 
 def _driver(profile: ArmProfile, link: Link, hub: TelemetryHub) -> Driver:
-    from app.arms.angler.driver import AnglerDriver
+    from app.arms.dynamixel.driver import DynamixelDriver
 
-    return AnglerDriver(profile, link, hub)
+    return DynamixelDriver(profile, link, hub)
 
 
 def _simulator(profile: ArmProfile) -> SimDevice:

@@ -1,5 +1,5 @@
 """The OpenManipulator-X driver: five XM430-W350-T servos on Protocol 2.0 through a U2D2, a
-Dynamixel servo chain (app/devices/dynamixel_chain.py: polling, set-up, faults, reboot,
+Dynamixel servo chain (app/arms/dynamixel/chain.py: polling, set-up, faults, reboot,
 pass-through). Its own parts:
 
 - Effort: the XM430's item 126 is Present Current (about 2.69 mA a unit, e-manual
@@ -19,12 +19,12 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from app.devices.dynamixel_chain import DynamixelChainDriver
+from app.arms.dynamixel.driver import DynamixelDriver
 from app.errors import NoGripper
 from protocol import xm430
 
 
-class OmxDriver(DynamixelChainDriver):
+class OmxDriver(DynamixelDriver):
     effort_per_unit = xm430.CURRENT_A_PER_UNIT / xm430.STALL_CURRENT_A
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:

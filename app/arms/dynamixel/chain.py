@@ -1,6 +1,6 @@
-"""A chain of Dynamixel servos on one Protocol 2.0 bus (protocol/dynamixel.py): the driver the
-angler (MX-28) and the OpenManipulator-X (XM430-W350) share; an arm's own driver adds only
-what is its own (the effort unit, a gripper, ...).
+"""A chain of Dynamixel servos on one Protocol 2.0 bus (protocol/dynamixel.py): the driver every
+arm of Dynamixel servos shares (MX-28 (2.0) or X series: the items used have one layout); an
+arm's own driver adds only what is its own (the effort unit, a gripper servo, ...).
 
 Polling is one SYNC_READ of Moving, Moving Status, Present PWM, Present Load (MX-28) or
 Present Current (X series), Velocity and Position (addresses 122-135, the same layout on both
@@ -28,10 +28,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from app.arms.dynamixel.exchange import DxlRequest, DynamixelBusDriver, check_len
+from app.arms.dynamixel.faults import decode_faults, fault_advice
 from app.config import JointConfig
 from app.devices.base import SettleState
-from app.devices.dynamixel_exchange import DxlRequest, DynamixelBusDriver, check_len
-from app.devices.dynamixel_faults import decode_faults, fault_advice
 from app.errors import ArmError, CorruptReply, DeviceError, DeviceTimeout
 from protocol import dynamixel as dxl
 from protocol import mx28

@@ -1,9 +1,11 @@
-"""What every arm of Dynamixel Protocol 2.0 servos shares, for its package to use: the
-simulated bus, the U2D2 adapter's USB ids and the pass-through router's module. Nothing here
-names an arm type."""
+"""What every arm of Dynamixel Protocol 2.0 servos shares, for its package to use: the driver
+(driver.py, `DynamixelDriver`: one servo per joint), the simulated bus, the U2D2 adapter's
+USB ids and the pass-through router's module. Not an arm type itself (not in ARM_TYPES);
+nothing here names one."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
 from app.arms.base import UsbMatch
@@ -19,16 +21,17 @@ ROUTER = "app.api.dynamixel"
 U2D2 = UsbMatch("serial", 0x0403, 0x6014, "dynamixel-u2d2", ftdi_latency=True)
 
 
-def simulated_bus(profile: ArmProfile,
-                  servo: type[Mx28Servo] | None = None) -> SimDevice:
-    """A simulated bus holding the profile's servos (its joints' `motor_id`s)
-    at the link's baud rate, in the joints' operating modes; `servo` is
-    the servo class (default MX-28, e.g. an XM430 class)."""
+def simulated_bus(profile: ArmProfile, servo: type[Mx28Servo] | None = None,
+                  extra_ids: Iterable[int] = ()) -> SimDevice:
+    """A simulated bus holding the profile's servos (its joints' `motor_id`s, then
+    `extra_ids`, e.g. a gripper's servo) at the link's baud rate, in the joints' operating
+    modes; `servo` is the servo class of them all (default MX-28, e.g. an XM430 class)."""
     from app.sim.dynamixel_bus import DynamixelBus
 
     modes = {int(j.motor_id): j.operating_mode for j in profile.joints
              if j.motor_id is not None and j.operating_mode is not None}
     ids = tuple(int(j.motor_id) for j in profile.joints if j.motor_id is not None)
+    ids += tuple(int(i) for i in extra_ids if int(i) not in ids)
     models = None if servo is None else dict.fromkeys(ids, servo)
     return DynamixelBus(ids=ids, baudrate=profile.link.baudrate, operating_modes=modes,
                         models=models)
