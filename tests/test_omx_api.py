@@ -171,3 +171,17 @@ async def test_passthrough_ping_and_register_read(
     assert r.status_code == 422 and r.json()["code"] == "unknown_register"
     r = await c.get(f"{API}/arms/angler/dynamixel/1/registers/present_load")
     assert r.status_code == 200 and r.json()["address"] == 126
+
+
+async def test_passthrough_protects_the_gripper_servo_settings(
+        three: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """The gripper's servo is the arm's own: its operating mode (current-based position, which
+    the gripper needs) is the driver's, as the joints' are (409 `in_use`, nothing written)."""
+    app, c = three
+    bus = app.state.services["omx"].driver.link.device
+    r = await c.put(f"{OMX}/dynamixel/15/registers/operating_mode", json={"raw": 3})
+    assert r.status_code == 409 and r.json()["code"] == "in_use", r.text
+    assert bus.servo(15).get("operating_mode") == 5
+    r = await c.put(f"{OMX}/dynamixel/15/registers/led", json={"raw": 1})
+    assert r.status_code == 200 and bus.servo(15).get("led") == 1
+
