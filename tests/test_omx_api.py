@@ -185,3 +185,30 @@ async def test_passthrough_protects_the_gripper_servo_settings(
     r = await c.put(f"{OMX}/dynamixel/15/registers/led", json={"raw": 1})
     assert r.status_code == 200 and bus.servo(15).get("led") == 1
 
+
+
+async def test_a_servo_fault_refuses_moves_until_its_reboot(
+        three: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    app, c = three
+    svc = app.state.services["omx"]
+    svc.driver.link.device.inject_hardware_error(13, "overheating")  # the elbow's servo
+    for _ in range(250):
+        if svc.driver.faults:
+            break
+        await asyncio.sleep(0.02)
+    detail = (await c.get(OMX)).json()
+    assert [(f["servo"], f["joint"], f["bits"]) for f in detail["faults"]] == [
+        (13, "elbow", ["overheating"])]
+    r = await c.post(f"{OMX}/move/joints", json={"positions": [0.1, 0.0, 0.0, 0.0]})
+    assert r.status_code == 409 and r.json()["code"] == "fault"
+    assert "/dynamixel/13/reboot" in r.json()["detail"]
+    r = await c.post(f"{OMX}/dynamixel/13/reboot")
+    assert r.status_code == 200, r.text
+    for _ in range(250):
+        if not svc.driver.faults:
+            break
+        await asyncio.sleep(0.02)
+    detail = (await c.get(OMX)).json()
+    assert detail["faults"] == [] and detail["homed"] == [True] * 4  # absolute encoders
+    r = await c.post(f"{OMX}/move/joints", json={"positions": [0.1, 0.0, 0.0, 0.0], "wait": True})
+    assert r.status_code == 200 and r.json()["status"] == "done", r.text
