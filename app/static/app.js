@@ -847,7 +847,11 @@ class Arm {
     }
   }
 
-  /** What does not move with the joints: a plate at the base origin (any arm type). */
+  /**
+   * What does not move with the joints, for any arm type: a plate at the base origin, and the
+   * travel of every prismatic joint (its rail: where its body point goes from the joint's
+   * minimum to its maximum, the other joints as they are), dashed.
+   */
   drawFixtures(ctx, X, Y, which) {
     ctx.strokeStyle = theme.axis; ctx.fillStyle = theme.grid; ctx.lineWidth = 2;
     const a = X([0, 0, 0]), b = Y([0, 0, 0]);
@@ -856,6 +860,23 @@ class Arm {
     } else {
       ctx.fillRect(a - 18, b, 36, 6); ctx.strokeRect(a - 18, b, 36, 6);
     }
+    const ch = this.detail.chain, q = this.latest?.positions;
+    if (!ch || !q) return;
+    ctx.setLineDash([3, 3]);
+    ctx.beginPath();
+    let point = 0;
+    for (const st of ch.steps) {
+      if (st.point !== null && st.point !== undefined) point += 1;
+      const j = st.joint;
+      if (st.kind !== "translate" || j === null || j === undefined || st.point === null) continue;
+      const { min, max } = this.detail.joints[j];
+      const lo = q.slice(), hi = q.slice();
+      lo[j] = min; hi[j] = max;
+      const p0 = chainPoints(ch, lo)[point], p1 = chainPoints(ch, hi)[point];
+      ctx.moveTo(X(p0), Y(p0)); ctx.lineTo(X(p1), Y(p1));
+    }
+    ctx.stroke();
+    ctx.setLineDash([]);
   }
 
   drawPlots() {
