@@ -106,6 +106,14 @@ class JointConfig(_Strict):
 
 class GripperConfig(_Strict):
     kind: Literal["none", "claw", "magnet"] = "none"
+    # A claw on its own servo (a Dynamixel on the arm's bus); unset for one the arm's
+    # controller drives (the rbe3001's claw).
+    motor_id: int | None = Field(None, ge=0, le=252, description="the gripper's servo id")
+    operating_mode: int | None = Field(None, description="the gripper servo's operating mode")
+    min: float = Field(0.0, description="finger travel when closed (1.0), m")
+    max: float = Field(0.0, description="finger travel when open (0.0), m")
+    rad_per_m: float = Field(1.0, description="servo angle per metre of finger travel")
+    offset_ticks: float = Field(2048.0, description="servo ticks at zero travel")
 
     @property
     def actuated(self) -> bool:
@@ -328,7 +336,8 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
     `kind = "sim"`).
     """
     if config_file is None:  # the built-in simulators start at a known pose: homed
-        return [homed_at_start(load_profile(n)) for n in builtin_profiles()]
+        profiles = [load_profile(n) for n in builtin_profiles()]
+        return [homed_at_start(p) for p in profiles if arm_type(p.model).default_server]
     path = Path(config_file)
     data = _read_toml(path, "config file")
     arms = data.get("arms", [])

@@ -1,5 +1,5 @@
 """The OpenManipulator-X profile parses as TOML and agrees with kinematics/omx.py and the
-XM430-W350 data (it is not loadable by the server until the arm-type registry exists)."""
+XM430-W350 data (tests/test_omx_arm.py loads it through the arm-type registry)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,8 @@ from app.config import JointConfig
 from kinematics import omx
 from protocol import xm430
 
-PROFILE = Path(__file__).resolve().parents[1] / "app" / "profiles" / "openmanipulator_x.toml"
+PROFILE = (Path(__file__).resolve().parents[1] / "app" / "arms" / "openmanipulator_x"
+           / "openmanipulator_x.toml")
 
 
 @pytest.fixture(scope="module")

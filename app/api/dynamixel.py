@@ -107,8 +107,9 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
     if not item.min_raw <= raw <= item.max_raw:
         raise OutOfRange(f"{item.name} takes raw values {item.min_raw}..{item.max_raw}, "
                          f"got {raw}")
-    if item.name in DRIVER_SETTINGS and not svc.profile.raw_access and any(
-            j.motor_id == dxl_id for j in svc.profile.joints):
+    if item.name in DRIVER_SETTINGS and not svc.profile.raw_access and (any(
+            j.motor_id == dxl_id for j in svc.profile.joints)
+            or dxl_id == svc.profile.gripper.motor_id):  # a gripper's own servo is the arm's
         why, route = DRIVER_SETTINGS[item.name]
         raise InUse(f"{item.name} of servo {dxl_id} is set by the {svc.name} driver ({why}); "
                     f"change it with {route.format(arm=svc.name, id=dxl_id)}. Pass-through "

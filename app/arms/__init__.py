@@ -19,6 +19,7 @@ if TYPE_CHECKING:
 ARM_TYPES: dict[str, str] = {
     "rbe3001": "app.arms.rbe3001",
     "angler": "app.arms.angler",
+    "openmanipulator_x": "app.arms.openmanipulator_x",
 }
 
 __all__ = ["ARM_TYPES", "all_arm_types", "arm_routers", "arm_type", "builtin_profiles", "known"]

@@ -93,6 +93,9 @@ class ArmType:
     usb: tuple[UsbMatch, ...] = ()
     #: Extra profile checks beyond geometry keys and joint count: raise ValueError.
     check: Callable[[ArmProfile], None] | None = field(default=None, repr=False)
+    #: The default server (no config file) hosts this type's built-in profiles (API.md: the
+    #: rbe3001 and the angler); False: only a config naming them does.
+    default_server: bool = True
 
     def validate(self, profile: ArmProfile) -> None:
         """Raise ValueError where a profile does not fit this type (called by ArmProfile)."""
