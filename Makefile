@@ -77,7 +77,7 @@ soak: install-test
 lint: install-test
 	$(BIN)/python -m pip install --quiet ruff mypy
 	$(BIN)/ruff check protocol kinematics app tests bench examples
-	$(BIN)/mypy protocol kinematics
+	$(BIN)/mypy --strict protocol kinematics app
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -72,7 +72,7 @@ class ArmModel:
             return None
         if self.is_rrr:
             return np.linalg.solve(J.T, tau)
-        f, *_ = np.linalg.lstsq(J.T, tau, rcond=None)
+        f: np.ndarray = np.linalg.lstsq(J.T, tau, rcond=None)[0]
         return f
 
     def tip_force_unavailable(self, q: np.ndarray, J: np.ndarray | None = None) -> str | None:
@@ -123,6 +123,7 @@ class ArmModel:
         """The IK solution nearest `ref` (limits not applied): the fast path for dense IK along
         a line (~30 us a point, against ~0.5 ms for `ik` with its reasons and limit messages).
         Raises Unreachable with the reason where there is none."""
+        sols: rrr.IKSolutions | pprp.IKSolutions
         if self.is_rrr:
             sols = rrr.ik(p, self.geom)  # type: ignore[arg-type]
         else:
@@ -132,7 +133,8 @@ class ArmModel:
         if q.shape[0] == 0:
             self.ik(p, ik_case, theta3)  # raises with the reason
             raise Unreachable(f"no IK solution for {np.round(p, 4).tolist()}")
-        return q[int(np.argmin(np.sum((q - ref) ** 2, axis=-1)))]
+        best: np.ndarray = q[int(np.argmin(np.sum((q - ref) ** 2, axis=-1)))]
+        return best
 
     def ik_best(self, p: np.ndarray, near: np.ndarray | None, branch: int | None = None,
                 ik_case: str | None = None, theta3: float | None = None) -> Solution:

@@ -66,7 +66,7 @@ def _add_call(sub: Any) -> None:
     cmds = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def cmd(name: str, action: Action, help: str) -> argparse.ArgumentParser:
-        c = cmds.add_parser(name, help=help, description=help)
+        c: argparse.ArgumentParser = cmds.add_parser(name, help=help, description=help)
         c.set_defaults(action=action)
         _add_connection(c, suppress=True)
         return c

@@ -83,9 +83,6 @@ class JointConfig(_Strict):
     lead_m: float | None = Field(None, gt=0.0,
                                  description="metres per motor revolution (prismatic)")
     operating_mode: int | None = None
-    settle_tolerance: float | None = Field(
-        None, gt=0.0, description="how close (rad or m) the measured joint must come to a "
-        "move's target for the move to be done; a value the hardware can hold")
     stall_torque_nm: float | None = Field(
         None, gt=0.0, description="motor stall torque, N m (Dynamixel Present Load is 0.1 % of it)"
     )

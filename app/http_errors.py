@@ -65,7 +65,7 @@ def _encodable(value: Any) -> Any:
 
 
 def _has_surrogate(value: Any) -> bool:
-    return _encodable(value) != value
+    return bool(_encodable(value) != value)
 
 
 def _json_safe(value: Any) -> bool:

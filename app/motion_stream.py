@@ -272,7 +272,9 @@ class MotionStream:
     def _within_limits(self, q: np.ndarray) -> np.ndarray:
         """Every position the executor commands (setpoint, brake, hold) is clipped to the joint
         limits: a plan or a measurement a hair outside must not become a command outside."""
-        return np.clip(np.asarray(q, dtype=float), self.model.lower, self.model.upper)
+        clipped: np.ndarray = np.clip(np.asarray(q, dtype=float), self.model.lower,
+                                      self.model.upper)
+        return clipped
 
     def _finish(self, rec: MotionRecord, status: Status, reason: str | None,
                 code: str | None = None) -> None:

@@ -114,7 +114,7 @@ class ArmService:
             note = ("joint efforts estimated from the servos' Present Load (0.1 % of the stall "
                     "torque): an estimate, not a force sensor")
         tare = self.driver.torque_tare
-        info = s.ForceInfo(source=source, calibrated=calibrated, note=note,  # type: ignore[arg-type]
+        info = s.ForceInfo(source=source, calibrated=calibrated, note=note,
                            tare=None if tare is None else [float(v) for v in tare],
                            max_condition_number=TIP_FORCE_MAX_COND)
         q = self.driver.positions

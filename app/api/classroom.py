@@ -34,7 +34,7 @@ ClassroomDep = Annotated[Classroom, Depends(get_classroom)]
 @router.get("/me", response_model=s.Me, summary="Who am I",
             description="The caller's name and role (never the token).", responses=errors(401))
 async def me(who: ViewerCaller) -> s.Me:
-    return s.Me(name=who.name, role=who.role.name.lower())  # type: ignore[arg-type]
+    return s.Me(name=who.name, role=who.role.name.lower())
 
 
 @router.post("/arms/{arm}/queue", response_model=s.QueueEntry,

@@ -79,7 +79,7 @@ async def move_pose(svc: ControlArm, req: s.MovePose, response: Response) -> s.M
 )
 async def plan_joints(svc: ViewerArm, req: s.MoveJoints) -> s.Motion:
     check_joint_count(svc, req.positions)
-    return svc.motion.preview_joints(req)  # type: ignore[no-any-return]
+    return svc.motion.preview_joints(req)
 
 
 @router.post(
@@ -91,7 +91,7 @@ async def plan_joints(svc: ViewerArm, req: s.MoveJoints) -> s.Motion:
     responses=errors(*READ, 409),
 )
 async def plan_pose(svc: ViewerArm, req: s.MovePose) -> s.Motion:
-    return svc.motion.preview_pose(req)  # type: ignore[no-any-return]
+    return svc.motion.preview_pose(req)
 
 
 @router.get(
@@ -105,7 +105,7 @@ async def plan_pose(svc: ViewerArm, req: s.MovePose) -> s.Motion:
     responses=errors(*READ, 410, extra=_GONE),
 )
 async def get_motion(svc: ViewerArm, motion_id: MotionId) -> s.Motion:
-    return svc.motion.get(motion_id).to_schema()  # type: ignore[no-any-return]
+    return svc.motion.get(motion_id).to_schema()
 
 
 @router.delete(
@@ -119,7 +119,7 @@ async def get_motion(svc: ViewerArm, motion_id: MotionId) -> s.Motion:
 )
 async def cancel_motion(svc: OperatorArm, motion_id: MotionId, who: CallerDep) -> s.Motion:
     rec = await svc.motion.cancel(motion_id, f"cancelled by {who}")
-    return rec.to_schema()  # type: ignore[no-any-return]
+    return rec.to_schema()
 
 
 @router.post(

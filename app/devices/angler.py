@@ -195,7 +195,7 @@ class AnglerDriver(Driver):
         per_rev = joint.lead_m if joint.lead_m else 2 * math.pi
         rpm = joint.max_velocity / per_rev * 60.0 * 1.2
         raw = max(1, math.ceil(rpm / _RPM_PER_UNIT))
-        return min(raw, velocity_limit) if velocity_limit > 0 else raw
+        return int(min(raw, velocity_limit) if velocity_limit > 0 else raw)
 
     async def _on_connected(self) -> None:
         for k in range(len(self.ids)):
@@ -360,7 +360,7 @@ class AnglerDriver(Driver):
         self._hw_errors[i] = (p.params[-1], time.monotonic())
 
     def _publish_faults(self) -> None:
-        faults = []
+        faults: list[dict[str, Any]] = []
         for k, i in enumerate(self.ids):
             if i in self._hw_errors:
                 raw = self._hw_errors[i][0]
@@ -404,7 +404,7 @@ class AnglerDriver(Driver):
         deadline = loop.time() + timeout
         got: list[dxl.Packet] = []
         while True:
-            for ev in iter(self._parser.next_event, None):
+            while (ev := self._parser.next_event()) is not None:
                 if isinstance(ev, dxl.ParseError):
                     if ev.kind == "garbage":
                         continue
