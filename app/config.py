@@ -375,7 +375,7 @@ def _merge(base: dict[str, object], over: dict[str, object]) -> dict[str, object
     out = dict(base)
     for k, v in over.items():
         if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v)  # type: ignore[arg-type]
+            out[k] = _merge(out[k], v)  # type: ignore[arg-type]  # both dicts: checked above
         else:
             out[k] = v
     return out

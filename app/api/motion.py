@@ -11,6 +11,7 @@ from fastapi import APIRouter, Path, Response, status
 from app import schemas as s
 from app.api.common import DEVICE, READ, check_joint_count, errors
 from app.deps import CallerDep, ControlArm, OperatorArm, ViewerArm
+from app.motion import MotionRecord
 
 router = APIRouter(tags=["motion"])
 
@@ -27,12 +28,12 @@ _MOVE_DOC = (
 )
 
 
-async def _answer(record: object, wait: bool, response: Response) -> s.Motion:
+async def _answer(record: MotionRecord, wait: bool, response: Response) -> s.Motion:
     """202 with the motion now, or (wait) 200 with its final state when it ends."""
     if wait:
-        await record.wait()  # type: ignore[attr-defined]
+        await record.wait()
         response.status_code = status.HTTP_200_OK
-    return record.to_schema()  # type: ignore[attr-defined,no-any-return]
+    return record.to_schema()
 
 
 @router.post(
