@@ -102,6 +102,16 @@ class SafetyGuard:
         require_finite(q, "joint positions")
         self.model.check_limits(q)
 
+    # --------------------------------------------------------- planned motion
+
+    def scaled(self, *limits: np.ndarray | float) -> tuple[np.ndarray, ...]:
+        """Motion limits times the speed override (the envelope's setting)."""
+        return self.safety.scaled(*limits)
+
+    def check_trajectory(self, traj: object, dt: float) -> None:
+        """The safety envelope along a planned trajectory at the control period `dt`."""
+        self.safety.check_trajectory(traj, dt)
+
     # --------------------------------------------------------- pass-through commands
 
     def check_passthrough_ticks(self, ticks: np.ndarray,

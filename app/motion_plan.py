@@ -44,15 +44,15 @@ class Planner:
     def joint(self, start: State, q1: np.ndarray, req: Any, at_rest: bool) -> Plan:
         q0, v0, a0 = start
         m = self.model
-        safety = self.guard.safety
-        vmax, amax, jmax = safety.scaled(m.vmax, m.amax, m.jmax)  # speed_override
+        guard = self.guard
+        vmax, amax, jmax = guard.scaled(m.vmax, m.amax, m.jmax)  # speed_override
         try:
             traj = trajectory.plan_joint(q0, q1, vmax, amax, jmax,
                                          v0=None if at_rest else v0, a0=None if at_rest else a0,
                                          duration=req.duration, speed=req.speed)
         except KinematicsError as exc:
             raise InvalidRequest(f"cannot plan the move: {exc}") from None
-        safety.check_trajectory(traj, self.dt)
+        guard.check_trajectory(traj, self.dt)
         return Plan(traj, q0, q1, "joint")
 
     def pose(self, start: State, p: np.ndarray, req: Any, at_rest: bool) -> Plan:
@@ -77,8 +77,8 @@ class Planner:
             except ArmError as exc:
                 raise KinematicsUnreachable(exc.detail) from None
 
-        safety = self.guard.safety
-        cv, ca, cj, vmax = safety.scaled(  # speed_override
+        guard = self.guard
+        cv, ca, cj, vmax = guard.scaled(  # speed_override
             cart.max_velocity, cart.max_acceleration, cart.max_jerk, m.vmax)
         try:
             traj, _tips = trajectory.plan_line(
@@ -92,5 +92,5 @@ class Planner:
         except KinematicsError as exc:
             raise Unreachable(f"line path leaves the workspace: {exc}") from None
         end = traj.sample(traj.duration)[0]
-        safety.check_trajectory(traj, self.dt)
+        guard.check_trajectory(traj, self.dt)
         return Plan(traj, q0, np.asarray(end, dtype=float), "line")
