@@ -32,6 +32,7 @@ class MotionExecutor(MotionStream):
     task of `MotionStream`. Built from the arm's name, model, safety guard, actuator and
     event sink, and its control rate and Cartesian limits (not from the service)."""
 
+    # the history's bounds (how many motions, how many seconds of ended ones), settable
     @property
     def history(self) -> int:
         return self.records.history

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+import uuid
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -97,8 +98,6 @@ class MotionHistory:
 
     def new_id(self, serial: int) -> str:
         """The id of motion number `serial` (m<serial>-<8 hex>)."""
-        import uuid
-
         self._next_serial = max(self._next_serial, serial + 1)
         return f"m{serial}-{uuid.uuid4().hex[:8]}"
 

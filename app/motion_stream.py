@@ -73,7 +73,6 @@ class MotionStream:
         self._ids = itertools.count(1)
         self.home_loop: asyncio.AbstractEventLoop | None = None
 
-    # history bounds (tests shrink them)
     def start(self) -> None:
         if self._task is None:
             self.home_loop = asyncio.get_running_loop()
