@@ -77,7 +77,7 @@ soak: install-test
 lint: install-test
 	$(BIN)/python -m pip install --quiet ruff mypy
 	$(BIN)/ruff check protocol kinematics app tests bench examples
-	$(BIN)/mypy protocol kinematics
+	$(BIN)/mypy --strict protocol kinematics app
 	$(BIN)/python tools/check_cycles.py app
 
 clean:

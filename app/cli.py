@@ -130,5 +130,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 2
 
 
-if __name__ == "__main__":
+def run() -> None:
+    """The console entry point `armserver` (pyproject [project.scripts])."""
     raise SystemExit(main())
+
+
+if __name__ == "__main__":
+    run()

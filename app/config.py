@@ -83,9 +83,6 @@ class JointConfig(_Strict):
     lead_m: float | None = Field(None, gt=0.0,
                                  description="metres per motor revolution (prismatic)")
     operating_mode: int | None = None
-    settle_tolerance: float | None = Field(
-        None, gt=0.0, description="how close (rad or m) the measured joint must come to a "
-        "move's target for the move to be done; a value the hardware can hold")
     stall_torque_nm: float | None = Field(
         None, gt=0.0, description="motor stall torque, N m (Dynamixel Present Load is 0.1 % of it)"
     )
@@ -336,8 +333,8 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
     `kind = "sim"`).
     """
     if config_file is None:  # the built-in simulators start at a known pose: homed
-        profiles = [load_profile(n) for n in builtin_profiles()]
-        return [homed_at_start(p) for p in profiles if arm_type(p.model).default_server]
+        builtin = [load_profile(n) for n in builtin_profiles()]
+        return [homed_at_start(p) for p in builtin if arm_type(p.model).default_server]
     path = Path(config_file)
     data = _read_toml(path, "config file")
     arms = data.get("arms", [])
@@ -390,7 +387,7 @@ def _merge(base: dict[str, object], over: dict[str, object]) -> dict[str, object
     out = dict(base)
     for k, v in over.items():
         if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v)  # type: ignore[arg-type]
+            out[k] = _merge(out[k], v)  # type: ignore[arg-type]  # both dicts: checked above
         else:
             out[k] = v
     return out

@@ -16,7 +16,7 @@ about which arms exist.
 from __future__ import annotations
 
 import hashlib
-from typing import Annotated
+from typing import Annotated, cast
 
 from fastapi import Depends, Header, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -34,19 +34,19 @@ ArmName = Annotated[str, Path(description="arm name, as in GET /api/v1/arms", ma
 
 
 def get_settings(request: Request) -> Settings:
-    return request.app.state.settings  # type: ignore[no-any-return]
+    return cast(Settings, request.app.state.settings)  # app.state is untyped: set in main
 
 
 def get_services(request: Request) -> dict[str, ArmService]:
-    return request.app.state.services  # type: ignore[no-any-return]
+    return cast("dict[str, ArmService]", request.app.state.services)
 
 
 def get_access(request: Request) -> Access:
-    return request.app.state.access  # type: ignore[no-any-return]
+    return cast(Access, request.app.state.access)
 
 
 def get_leases(request: Request) -> LeaseManager:
-    return request.app.state.leases  # type: ignore[no-any-return]
+    return cast(LeaseManager, request.app.state.leases)
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

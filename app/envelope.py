@@ -102,7 +102,7 @@ class ArmSafety:
     def speed_override(self) -> float:
         return self.settings.speed_override
 
-    def scaled(self, *limits: np.ndarray) -> tuple[np.ndarray, ...]:
+    def scaled(self, *limits: np.ndarray | float) -> tuple[np.ndarray, ...]:
         """Velocity, acceleration and jerk limits (or Cartesian ones) times the override."""
         k = self.settings.speed_override
         return tuple(np.asarray(v, dtype=float) * k for v in limits)
@@ -163,7 +163,7 @@ class ArmSafety:
         if not self.active:
             return
         t = time_grid(float(traj.duration), dt)  # type: ignore[attr-defined]
-        q = np.asarray(traj.sample(t)[0], dtype=float)  # type: ignore[attr-defined]
+        q = np.asarray(traj.sample(t)[0], dtype=np.float64)  # type: ignore[attr-defined]
         hit = self.first_hit(q, t)
         if hit is not None:
             raise KeepOut(self._describe(hit, q[hit.index], f"{hit.t:.2f} s into the motion"))

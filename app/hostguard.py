@@ -25,7 +25,6 @@ cross-site request without the token, and the token check stands in front of eve
 from __future__ import annotations
 
 import ipaddress
-import json
 import logging
 import socket
 from urllib.parse import urlsplit
@@ -33,6 +32,7 @@ from urllib.parse import urlsplit
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from app.config import Settings
+from app.http_errors import send_error
 
 log = logging.getLogger(__name__)
 
@@ -157,8 +157,4 @@ class HostOriginGuard:
             await send({"type": "websocket.close", "code": CLOSE_CROSS_ORIGIN,
                         "reason": f"{code}: refused"})
             return
-        body = json.dumps({"detail": detail, "code": code}).encode()
-        await send({"type": "http.response.start", "status": status,
-                    "headers": [(b"content-type", b"application/json"),
-                                (b"content-length", str(len(body)).encode())]})
-        await send({"type": "http.response.body", "body": body})
+        await send_error(send, status, detail, code)

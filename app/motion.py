@@ -10,191 +10,49 @@ answering fails it with the device's error code (the watchdog), and the arm is t
 
 from __future__ import annotations
 
-import asyncio
-import itertools
-import logging
-import time
-import uuid
-from collections import OrderedDict, deque
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any
 
 import numpy as np
 
 from app import schemas as s
-from app.arms import arm_type
 from app.control import on_control
-from app.errors import (
-    ArmError,
-    Busy,
-    InvalidRequest,
-    JointLimit,
-    LinkDown,
-    MotionExpired,
-    UnknownMotion,
-    Unreachable,
-)
-from app.links.base import LinkState
-from app.tasks import cancel_and_wait
-from kinematics import trajectory
-from kinematics.errors import KinematicsError, LimitViolation, TrajectoryError
-from kinematics.errors import Unreachable as KinematicsUnreachable
+from app.errors import Busy
+from app.motion_plan import State
+from app.motion_record import MotionRecord, Plan
+from app.motion_stream import Events, MotionStream
 
-if TYPE_CHECKING:
-    from app.service import ArmService
-
-log = logging.getLogger(__name__)
+__all__ = ["Events", "MotionExecutor", "MotionRecord", "Plan"]
 
 MAX_QUEUED = 32
-#: Motion history (issue 11.12): the last HISTORY motions or those ended within HISTORY_S,
-#: whichever is more, never more than MAX_HISTORY records; a forgotten id leaves a tombstone
-#: (status, code, times) for the last TOMBSTONES ids, so GET answers 410 `motion_expired`
-#: with what is known instead of a 404 as if it never existed.
-HISTORY = 256
-HISTORY_S = 600.0
-MAX_HISTORY = 4096
-TOMBSTONES = 16384
-#: Consecutive failed setpoints before a motion fails (3 control periods: a single dropped or
-#: corrupt reply is ridden through, a device that stopped answering is not).
-MAX_SETPOINT_FAILURES = 3
-#: How long a finished trajectory may take to settle before the motion fails, s.
-SETTLE_TIMEOUT_S = 2.0
 PREVIEW_POINTS = 50
-#: Trajectory time one tick may advance at most, s: a late tick stretches time (the step stays
-#: within the velocity limit over the time it covers) instead of jumping ahead; no setpoint
-#: step is more than the velocity limit times this.
-MAX_STEP_S = 0.05
-#: A tick later than this, s, is reported (log and a `motion_held_up` event).
-HELD_UP_S = 0.1
-
-Status = Literal["queued", "running", "done", "stopped", "failed"]
 
 
-@dataclass
-class Plan:
-    traj: Any  # JointTrajectory or SampledTrajectory: .duration, .sample(t) -> (q, qd, qdd)
-    start: np.ndarray
-    target: np.ndarray
-    path: Literal["joint", "line"]
+class MotionExecutor(MotionStream):
+    """One arm's motion queue: requests are checked and planned here, and streamed by the
+    task of `MotionStream`. Built from the arm's name, model, safety guard, actuator and
+    event sink, and its control rate and Cartesian limits (not from the service)."""
 
+    # the history's bounds (how many motions, how many seconds of ended ones), settable
+    @property
+    def history(self) -> int:
+        return self.records.history
 
-@dataclass
-class MotionRecord:
-    id: str
-    arm: str
-    kind: Literal["joints", "pose"]
-    path: Literal["joint", "line"]
-    request: Any
-    target: np.ndarray
-    target_tip: np.ndarray
-    planned_duration: float
-    planned_path: np.ndarray  # (k, 3) m, kept as one small array: the history holds 256
-    status: Status = "queued"
-    progress: float = 0.0
-    reason: str | None = None
-    code: str | None = None
-    created: float = field(default_factory=time.time)
-    started: float | None = None
-    ended: float | None = None
-    final_positions: list[float] | None = None
-    final_tip: dict[str, float] | None = None
-    cancel: str | None = None  # "stop" (decelerate), "replace" (hand over now)
-    #: How to plan it again when it starts (the planner and its goal); dropped when it ends.
-    planner: Any = field(default=None, repr=False)
-    goal: np.ndarray | None = field(default=None, repr=False)
-    done: asyncio.Event = field(default_factory=asyncio.Event)
-    #: The control loop the record's executor runs on (waiting crosses there).
-    home_loop: Any = field(default=None, repr=False)
+    @history.setter
+    def history(self, n: int) -> None:
+        self.records.history = n
 
-    @on_control
-    async def wait(self) -> MotionRecord:
-        await self.done.wait()
-        return self
+    @property
+    def history_s(self) -> float:
+        return self.records.history_s
 
-    def to_schema(self) -> s.Motion:
-        return s.Motion(
-            id=self.id, arm=self.arm, kind=self.kind, path=self.path, status=self.status,
-            progress=round(self.progress, 4), planned_duration=self.planned_duration,
-            target_positions=[float(v) for v in self.target], target_tip=_vec(self.target_tip),
-            reason=self.reason, code=self.code, created=self.created, started=self.started,
-            ended=self.ended, final_positions=self.final_positions,
-            final_tip=None if self.final_tip is None else s.Vec3(**self.final_tip),
-            planned_path=[s.Vec3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
-                          for p in self.planned_path])
-
-
-class MotionExecutor:
-    def __init__(self, svc: ArmService) -> None:
-        self.svc = svc
-        self.model = svc.model
-        self._queue: deque[MotionRecord] = deque()
-        self._records: OrderedDict[str, MotionRecord] = OrderedDict()
-        self._tombstones: OrderedDict[str, tuple[str, str | None, float, float | None]] = (
-            OrderedDict())
-        self._wake = asyncio.Event()
-        self._task: asyncio.Task[None] | None = None
-        self.current: MotionRecord | None = None
-        self.last: MotionRecord | None = None
-        #: Commanded state (q, qd, qdd) of the last setpoint sent, for blending and holding.
-        self._cmd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._halt = False
-        self._ids = itertools.count(1)
-        self._next_serial = 1  # the serial of the next motion id (for 410 on forgotten ids)
-        #: how many motions, and how many seconds of ended ones, the history keeps at least
-        self.history, self.history_s = HISTORY, HISTORY_S
-        self.home_loop: asyncio.AbstractEventLoop | None = None
-
-    def start(self) -> None:
-        if self._task is None:
-            self.home_loop = asyncio.get_running_loop()
-            self._task = asyncio.create_task(self._run(), name=f"motion:{self.svc.name}")
-
-    async def close(self) -> None:
-        await cancel_and_wait(self._task)
-        self._task = None
-        for rec in [*self._queue, *( [self.current] if self.current else [])]:
-            self._finish(rec, "stopped", "server shutting down")
+    @history_s.setter
+    def history_s(self, s_: float) -> None:
+        self.records.history_s = s_
 
     # --------------------------------------------------------- requests
 
     def get(self, motion_id: str) -> MotionRecord:
-        rec = self._records.get(motion_id)
-        if rec is None:
-            gone = self._tombstones.get(motion_id)
-            if gone is not None:
-                status, code, created, ended = gone
-                raise MotionExpired(
-                    f"motion {motion_id} of {self.svc.name} has left the history (kept: the last "
-                    f"{self.history} motions or those of the last {self.history_s:g} s); it was "
-                    f"created "
-                    f"at {_utc(created)} and ended {status}"
-                    + (f" ({code})" if code else "") + (f" at {_utc(ended)}" if ended else ""))
-            if self._issued(motion_id):
-                raise MotionExpired(f"motion {motion_id} of {self.svc.name} has left the history "
-                                    "long ago; nothing more is known about it")
-            raise UnknownMotion(f"{self.svc.name} has no motion {motion_id!r}")
-        return rec
-
-    def _issued(self, motion_id: str) -> bool:
-        """Whether this executor handed out `motion_id` (ids are m<serial>-<8 hex>)."""
-        head, _, tail = motion_id.partition("-")
-        if not (head[:1] == "m" and head[1:].isdigit() and len(tail) == 8):
-            return False
-        return int(head[1:]) < self._next_serial
-
-    def _remember(self, rec: MotionRecord) -> None:
-        """Add `rec` to the history; forget ended records beyond both the count and the age."""
-        self._records[rec.id] = rec
-        now = time.time()
-        while len(self._records) > self.history:
-            old = next(iter(self._records.values()))
-            young = old.ended is None or now - old.ended < self.history_s
-            if young and len(self._records) <= MAX_HISTORY:
-                break
-            del self._records[old.id]
-            self._tombstones[old.id] = (old.status, old.code, old.created, old.ended)
-            while len(self._tombstones) > TOMBSTONES:
-                self._tombstones.popitem(last=False)
+        return self.records.get(motion_id)
 
     def queued(self) -> bool:
         return bool(self._queue)
@@ -212,16 +70,16 @@ class MotionExecutor:
 
     @on_control
     async def move_joints(self, req: s.MoveJoints) -> MotionRecord:
-        q1 = self._joint_vector(req.positions)
-        return self._submit("joints", "joint", req, q1, self._plan_joint_from, q1)
+        q1 = self.planner.joint_vector(req.positions)
+        return self._submit("joints", "joint", req, self._plan_joint_from, q1)
 
     @on_control
     async def move_pose(self, req: s.MovePose) -> MotionRecord:
         p = np.array([req.x, req.y, req.z])
-        return self._submit("pose", req.path, req, None, self._plan_pose_from, p)
+        return self._submit("pose", req.path, req, self._plan_pose_from, p)
 
     def preview_joints(self, req: s.MoveJoints) -> s.Motion:
-        q1 = self._joint_vector(req.positions)
+        q1 = self.planner.joint_vector(req.positions)
         return self._preview("joints", "joint", req, self._plan_joint_from, q1)
 
     def preview_pose(self, req: s.MovePose) -> s.Motion:
@@ -272,77 +130,13 @@ class MotionExecutor:
 
     # --------------------------------------------------------- planning
 
-    def _joint_vector(self, positions: list[float]) -> np.ndarray:
-        if len(positions) != self.model.n:
-            raise InvalidRequest(f"{self.svc.name} has {self.model.n} joints "
-                                 f"({', '.join(self.model.names)}), got {len(positions)} positions")
-        q = np.array(positions, dtype=float)
-        self.svc.check_joint_target(q)
-        return q
+    def _plan_joint_from(self, start: State, q1: np.ndarray, req: Any, at_rest: bool) -> Plan:
+        return self.planner.joint(start, q1, req, at_rest)
 
-    def _start_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if self._cmd is not None:
-            return self._cmd
-        q = self.svc.driver.positions
-        if q is None:
-            raise ArmError(f"{self.svc.name}: no joint positions from the device yet",
-                           code="link_down", status_code=503)
-        z = np.zeros_like(q)
-        return q.copy(), z, z.copy()
+    def _plan_pose_from(self, start: State, p: np.ndarray, req: Any, at_rest: bool) -> Plan:
+        return self.planner.pose(start, p, req, at_rest)
 
-    def _plan_joint_from(self, start: tuple[np.ndarray, ...], q1: np.ndarray, req: Any,
-                         at_rest: bool) -> Plan:
-        q0, v0, a0 = start
-        m = self.model
-        vmax, amax, jmax = self.svc.safety.scaled(m.vmax, m.amax, m.jmax)  # speed_override
-        try:
-            traj = trajectory.plan_joint(q0, q1, vmax, amax, jmax,
-                                         v0=None if at_rest else v0, a0=None if at_rest else a0,
-                                         duration=req.duration, speed=req.speed)
-        except KinematicsError as exc:
-            raise InvalidRequest(f"cannot plan the move: {exc}") from None
-        self.svc.safety.check_trajectory(traj, 1.0 / self.svc.profile.link.control_hz)
-        return Plan(traj, q0, q1, "joint")
-
-    def _plan_pose_from(self, start: tuple[np.ndarray, ...], p: np.ndarray, req: Any,
-                        at_rest: bool) -> Plan:
-        q0 = start[0]
-        m = self.model
-        # the arm type's IK options from the request (e.g. the angler's ik_case); the model
-        # says how a line keeps a redundant joint (model.line_ik)
-        opts = arm_type(self.svc.profile.model).options(req)
-        pitch = getattr(req, "pitch", None)
-        best = m.ik_best(p, q0, req.branch, pitch, opts)
-        if req.path == "joint":
-            return self._plan_joint_from(start, best.positions, req, at_rest)
-        cart = self.svc.profile.cartesian
-        line_ik = m.line_ik(p, q0, pitch, opts)
-
-        def ik_near(point: np.ndarray, q_prev: np.ndarray | None) -> np.ndarray:
-            ref = q0 if q_prev is None else q_prev
-            try:
-                return line_ik(point, ref)
-            except ArmError as exc:
-                raise KinematicsUnreachable(exc.detail) from None
-
-        cv, ca, cj, vmax = self.svc.safety.scaled(  # speed_override
-            cart.max_velocity, cart.max_acceleration, cart.max_jerk, m.vmax)
-        try:
-            traj, _tips = trajectory.plan_line(
-                m.fk(q0), p, ik_near, m.fk, float(cv), float(ca),
-                float(cj), 1.0 / self.svc.profile.link.control_hz, vmax, m.lower, m.upper,
-                m.names, m.kinds, q_start=q0, speed=req.speed)
-        except LimitViolation as exc:
-            raise JointLimit(f"line path leaves the joint limits: {exc}") from None
-        except TrajectoryError as exc:  # e.g. a speed so small the line would last hours
-            raise InvalidRequest(f"cannot plan the line: {exc}") from None
-        except KinematicsError as exc:
-            raise Unreachable(f"line path leaves the workspace: {exc}") from None
-        end = traj.sample(traj.duration)[0]
-        self.svc.safety.check_trajectory(traj, 1.0 / self.svc.profile.link.control_hz)
-        return Plan(traj, q0, np.asarray(end, dtype=float), "line")
-
-    def _tail_state(self, mode: str) -> tuple[tuple[np.ndarray, ...], bool]:
+    def _tail_state(self, mode: str) -> tuple[State, bool]:
         """Where a new motion will start: after the queue (at rest) or from now (replace)."""
         if mode == "queue":
             pending = list(self._queue) or ([self.current] if self.current else [])
@@ -359,33 +153,32 @@ class MotionExecutor:
 
     def _preview(self, kind: str, path: str, req: Any, planner: Any,
                  target: np.ndarray) -> s.Motion:
-        self.svc.require_motion_allowed()
+        self.guard.require_motion_allowed()
         start, at_rest = self._tail_state(req.mode)
         plan = planner(start, target, req, at_rest or path == "line")
         rec = self._record(kind, path, req, plan, "preview")
         return rec.to_schema()
 
     def _record(self, kind: str, path: str, req: Any, plan: Plan, mid: str) -> MotionRecord:
-        return MotionRecord(id=mid, arm=self.svc.name, kind=kind, path=path,  # type: ignore[arg-type]
+        return MotionRecord(id=mid, arm=self.name, kind="joints" if kind == "joints" else "pose",
+                            path="line" if path == "line" else "joint",
                             request=req, target=plan.target, target_tip=self.model.fk(plan.target),
                             planned_duration=float(plan.traj.duration),
                             planned_path=self._preview_path(plan))
 
-    def _submit(self, kind: str, path: str, req: Any, _q: Any, planner: Any,
+    def _submit(self, kind: str, path: str, req: Any, planner: Any,
                 target: np.ndarray) -> MotionRecord:
-        self.svc.require_motion_allowed()
-        self.svc.require_no_fault()
+        self.guard.require_motion_allowed()
+        self.guard.require_no_fault()
         if req.mode == "queue" and len(self._queue) >= MAX_QUEUED:
-            raise Busy(f"{self.svc.name}: {MAX_QUEUED} motions already queued")
+            raise Busy(f"{self.name}: {MAX_QUEUED} motions already queued")
         start, at_rest = self._tail_state(req.mode)
         plan = planner(start, target, req, at_rest or path == "line")
-        self.svc.check_homed(start[0], plan.target)
-        serial = next(self._ids)
-        self._next_serial = serial + 1
-        rec = self._record(kind, path, req, plan, f"m{serial}-{uuid.uuid4().hex[:8]}")
+        self.guard.check_homed(start[0], plan.target)
+        rec = self._record(kind, path, req, plan, self.records.new_id(next(self._ids)))
         rec.planner, rec.goal = planner, target
         rec.home_loop = self.home_loop
-        self._remember(rec)
+        self.records.remember(rec)
         if req.mode == "replace":
             while self._queue:
                 self._finish(self._queue.popleft(), "stopped", f"replaced by {rec.id}")
@@ -397,267 +190,3 @@ class MotionExecutor:
         self._wake.set()
         return rec
 
-    # --------------------------------------------------------- execution
-
-    async def _run(self) -> None:
-        while True:
-            if not self._queue:
-                self._wake.clear()
-                await self._wake.wait()
-                continue
-            rec = self._queue.popleft()
-            self.current = rec
-            try:
-                await self._execute(rec)
-            except ArmError as exc:
-                self._finish(rec, "failed", exc.detail, exc.code)
-            except Exception as exc:  # a planner bug must not kill the executor
-                log.exception("%s: motion %s crashed", self.svc.name, rec.id)
-                self._finish(rec, "failed", f"internal error: {type(exc).__name__}", "internal")
-            finally:
-                self.last = rec
-                self.current = None
-
-    async def _execute(self, rec: MotionRecord) -> None:
-        self.svc.require_motion_allowed()
-        self.svc.require_no_fault()
-        start = self._start_state()
-        at_rest = not np.any(start[1]) or rec.path == "line"
-        if rec.path == "line" and np.any(start[1]):
-            await self._brake()
-            start = self._start_state()
-        plan = rec.planner(start, rec.goal, rec.request, at_rest)
-        rec.target, rec.target_tip = plan.target, self.model.fk(plan.target)
-        rec.planned_duration = float(plan.traj.duration)
-        rec.status, rec.started = "running", time.time()
-        self.svc.hub.event("motion_started", id=rec.id, duration=rec.planned_duration)
-        outcome = await self._stream(rec, plan.traj)
-        if outcome == "replace":
-            self._finish(rec, "stopped", "replaced by a new motion")
-            return
-        if outcome == "stop":
-            await self._brake()
-            self._finish(rec, "stopped", "cancelled" if rec.reason is None else rec.reason)
-            return
-        if outcome == "halt":
-            return
-        await self._settle(rec)
-
-    async def _stream(self, rec: MotionRecord, traj: Any) -> str:
-        """Send the trajectory's setpoints at the control rate. Each tick advances trajectory
-        time by the wall time since the last one times a rate (0..1), and by MAX_STEP_S at
-        most: a late tick stretches time instead of jumping ahead. The rate a tick achieved
-        (trajectory time over wall time) is the commanded speed's scale; the next tick may
-        raise it only as fast as the acceleration limits allow (`_time_rate`). So after the
-        loop was held up (the setpoint stood still meanwhile) the motion picks up again along
-        the same path from the last setpoint, never faster than planned and without a jump."""
-        loop = asyncio.get_running_loop()
-        dt = 1.0 / self.svc.profile.link.control_hz
-        failures = 0
-        duration = float(traj.duration)
-        t = 0.0
-        rate = 1.0
-        qd = qdd = np.zeros(self.model.n)
-        last = loop.time()
-        while True:
-            if self._halt or rec.done.is_set():
-                return "halt"
-            if rec.cancel:
-                return rec.cancel
-            now = loop.time()
-            late, last = now - last, now
-            if late > HELD_UP_S and 0.0 < t < duration:
-                log.warning("%s: motion %s: control held up %.0f ms; going on from the last "
-                            "setpoint", self.svc.name, rec.id, late * 1e3)
-                self.svc.hub.event("motion_held_up", id=rec.id, held_up_s=round(late, 4))
-            step = min(self._time_rate(rate, qd, qdd, late) * late, MAX_STEP_S)
-            if late > 0.0:
-                rate = step / late
-            t = min(t + step, duration)
-            q, qd, qdd = (np.asarray(v, dtype=float) for v in traj.sample(t))
-            q = self._within_limits(q)
-            try:
-                await self.svc.driver.command_joints(q)  # type: ignore[attr-defined]
-                # A setpoint that needs no reply (Dynamixel SYNC_WRITE) goes through even when
-                # the device is silent: failing polls count as failed setpoints too.
-                err = self.svc.driver.stale_error
-            except ArmError as exc:
-                err = exc
-            failures = failures + 1 if err is not None else 0
-            if err is not None and (err.code == "link_down" or failures >= MAX_SETPOINT_FAILURES):
-                await self._watchdog(rec, err)
-                return "halt"
-            if self._halt:
-                return "halt"
-            self._cmd = (q, qd * rate, qdd * rate * rate)
-            rec.progress = t / duration if duration > 0 else 1.0
-            if t >= duration:
-                self._cmd = (q, np.zeros_like(q), np.zeros_like(q))
-                return "end"
-            await asyncio.sleep(max(0.0, last + dt - loop.time()))
-
-    def _time_rate(self, rate: float, qd: np.ndarray, qdd: np.ndarray, h: float) -> float:
-        """The next time rate after `h` s: up towards 1 as fast as the acceleration limits
-        allow. Commanded velocity is rate * qd and acceleration rate^2 * qdd + rate' * qd, so
-        rate' may use what the planned acceleration leaves of each joint's limit."""
-        if rate >= 1.0:
-            return 1.0
-        amax = self.model.amax
-        spare = np.maximum(amax - rate * rate * np.abs(qdd), 0.1 * amax)
-        speed = np.abs(qd)
-        moving = speed > 1e-9
-        up = float(np.min(spare[moving] / speed[moving])) if np.any(moving) else np.inf
-        return min(1.0, rate + up * h)
-
-    async def _brake(self) -> None:
-        """Decelerate from the commanded state to rest under the acceleration and jerk limits
-        (time stretched after a late tick, as in `_stream`)."""
-        if self._cmd is None or not np.any(self._cmd[1]):
-            return
-        q, qd, qdd = self._cmd
-        m = self.model
-        traj = trajectory.plan_stop(q, qd, qdd, m.amax, m.jmax, m.vmax)
-        loop = asyncio.get_running_loop()
-        dt = 1.0 / self.svc.profile.link.control_hz
-        t = 0.0
-        last = loop.time()
-        while not self._halt:
-            now = loop.time()
-            t = min(t + min(now - last, MAX_STEP_S), float(traj.duration))
-            last = now
-            qs = self._within_limits(traj.sample(t)[0])
-            try:
-                await self.svc.driver.command_joints(qs)  # type: ignore[attr-defined]
-            except ArmError:
-                break
-            self._cmd = (qs, np.zeros_like(qs), np.zeros_like(qs))
-            if t >= traj.duration:
-                break
-            await asyncio.sleep(max(0.0, last + dt - loop.time()))
-
-    async def _settle(self, rec: MotionRecord) -> None:
-        """`done` only when every joint is within its settle tolerance of where it was sent
-        and its actuator holds torque and says it has arrived (where it tells: Dynamixel
-        Moving / Moving Status); a joint without torque fails the motion at once."""
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + SETTLE_TIMEOUT_S
-        tol = self.tolerance()
-        err = np.full(self.model.n, np.inf)
-        moving = await self._arrived(rec)  # a joint without torque fails at once
-        if moving is None:
-            return
-        while loop.time() < deadline:
-            if self._halt or rec.done.is_set():
-                return
-            fault = self._device_fault()
-            if fault is not None:  # silent device or lost link: say so, not "did not settle"
-                await self._watchdog(rec, fault)
-                return
-            q = self.svc.driver.positions
-            if q is not None and not self.svc.driver.stale:
-                err = np.abs(q - rec.target)
-                if np.all(err <= tol):
-                    verdict = await self._arrived(rec)
-                    if verdict is None:
-                        return  # failed
-                    moving = verdict
-                    if not moving:
-                        self._finish(rec, "done", None)
-                        return
-            await asyncio.sleep(0.01)
-        if moving and np.all(err <= tol):
-            names = ", ".join(self.model.names[k] for k in moving)
-            reason = f"{names} within tolerance but its servo still reports moving"
-        else:
-            worst = int(np.argmax(err / tol))
-            reason = (f"{self.model.names[worst]} is {err[worst]:.6f} off (tolerance "
-                      f"{tol[worst]:.6f})")
-        self._finish(rec, "failed", f"did not settle at the target within {SETTLE_TIMEOUT_S} s: "
-                     f"{reason}", "not_settled")
-
-    async def _arrived(self, rec: MotionRecord) -> tuple[int, ...] | None:
-        """The joints whose actuator still says it is moving; None after failing `rec`
-        (a hardware fault, or a joint whose servo holds no torque: it can never be done)."""
-        svc = self.svc
-        if svc.driver.faults:
-            f = svc.driver.faults[0]
-            await self._watchdog(rec, ArmError(
-                f"servo {f['servo']} ({f['joint']}) reports a hardware fault: "
-                f"{', '.join(f['bits']) or 'alert'}; {f['advice']}", code="fault"))
-            return None
-        try:
-            st = await svc.driver.settle_state()
-        except ArmError:
-            return tuple(range(self.model.n))  # not known now: ask again on the next round
-        if st.torque_off:
-            names = ", ".join(self.model.names[k] for k in st.torque_off)
-            await self._watchdog(rec, ArmError(
-                f"{names}: the servo holds no torque (torque off after a reboot or a fault, or "
-                f"switched off), so the joint cannot be at its target; enable torque or reboot "
-                f"it with POST /api/v1/arms/{svc.name}/dynamixel/{{id}}/reboot",
-                code="torque_off"))
-            return None
-        return st.moving
-
-    def _device_fault(self) -> ArmError | None:
-        drv = self.svc.driver
-        if drv.link.state is not LinkState.UP:
-            return LinkDown(f"{self.svc.name} link lost: {drv.link.last_error or 'down'}")
-        return drv.stale_error
-
-    def tolerance(self) -> np.ndarray:
-        """Per joint (rad or m): the profile's `settle_tolerance`, else 8 encoder ticks."""
-        tr = self.model.transmission
-        ticks = np.abs(8.0 / tr.ticks_per_unit)
-        return np.array([j.settle_tolerance if j.settle_tolerance is not None else ticks[k]
-                         for k, j in enumerate(self.svc.profile.joints)], dtype=float)
-
-    async def _watchdog(self, rec: MotionRecord, exc: ArmError) -> None:
-        log.warning("%s: motion %s failed: %s", self.svc.name, rec.id, exc.detail)
-        self._finish(rec, "failed", exc.detail, exc.code)
-        self.svc.hub.event("watchdog", id=rec.id, code=exc.code, reason=exc.detail)
-        await self._hold()
-
-    async def _hold(self, commanded: bool = False) -> None:
-        """Command the arm to hold, where the link still allows: at the last commanded setpoint
-        if `commanded` and there is one, else at its measured position; within the limits."""
-        q = self._cmd[0] if commanded and self._cmd is not None else self.svc.driver.positions
-        if q is None:
-            self._cmd = None
-            return
-        q = self._within_limits(q)
-        try:
-            await self.svc.driver.command_joints(q)  # type: ignore[attr-defined]
-            self._cmd = (q.copy(), np.zeros_like(q), np.zeros_like(q))
-        except ArmError as exc:
-            log.warning("%s: could not command a hold: %s", self.svc.name, exc.detail)
-            self._cmd = None
-
-    def _within_limits(self, q: np.ndarray) -> np.ndarray:
-        """Every position the executor commands (setpoint, brake, hold) is clipped to the joint
-        limits: a plan or a measurement a hair outside must not become a command outside."""
-        return np.clip(np.asarray(q, dtype=float), self.model.lower, self.model.upper)
-
-    def _finish(self, rec: MotionRecord, status: Status, reason: str | None,
-                code: str | None = None) -> None:
-        if rec.done.is_set():
-            return
-        rec.status, rec.reason, rec.code, rec.ended = status, reason, code, time.time()
-        rec.planner = None  # the history keeps what happened, not how to plan it
-        if status == "done":
-            rec.progress = 1.0
-        q = self.svc.driver.positions
-        if q is not None:
-            rec.final_positions = [float(v) for v in q]
-            rec.final_tip = _vec(self.model.fk(q))
-        rec.done.set()
-        if rec.started is not None or status != "stopped":
-            self.svc.hub.event("motion_ended", id=rec.id, status=status, reason=reason, code=code)
-
-
-def _utc(t: float) -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
-
-
-def _vec(v: np.ndarray) -> dict[str, float]:
-    return {"x": float(v[0]), "y": float(v[1]), "z": float(v[2])}

@@ -238,7 +238,7 @@ class MqttBridge:
         async with aiomqtt.Client(
             b.host, b.port, username=b.username, password=b.password, identifier=self.identifier,
             will=will, keepalive=10, timeout=PUBLISH_TIMEOUT_S,
-            max_queued_outgoing_messages=10_000, **tls,  # type: ignore[arg-type]
+            max_queued_outgoing_messages=10_000, **tls,  # type: ignore[arg-type]  # tls_params only
         ) as client:
             # a tick publishes up to 4 messages per arm at once: not a "concerning number of
             # pending calls" (aiomqtt warns, once per publish, above its threshold)

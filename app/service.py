@@ -1,7 +1,10 @@
-"""One hosted arm: its driver (which owns the link), telemetry hub, motion executor, emergency
-stop latch and the safety checks that every path that moves the arm goes through.
+"""One hosted arm: its driver (which owns the link), telemetry hub, motion executor and safety
+guard (the emergency stop latch and the checks that every path that moves the arm goes
+through, app/guard.py), wired together here and nowhere else.
 
-Routes call this; it never touches a link itself (the driver's task does).
+Routes call this; it never touches a link itself (the driver's task does). The motion executor
+gets the guard, the driver as its actuator and the model, not the service; the hub stamps each
+sample with the estop latch and the motion in progress (app/arm_hub.py).
 """
 
 from __future__ import annotations
@@ -13,25 +16,15 @@ from typing import Any
 import numpy as np
 
 from app import schemas as s
+from app.arm_hub import ArmHub
 from app.arms import arm_type
 from app.config import ArmProfile
 from app.control import on_control
 from app.devices.base import Driver
 from app.devices.factory import make_driver
 from app.envelope import ArmSafety
-from app.errors import (
-    ArmError,
-    Busy,
-    EstopLatched,
-    Fault,
-    InvalidRequest,
-    JointLimit,
-    LinkDown,
-    NoGripper,
-    NotHomed,
-    NotSupported,
-    VelocityLimit,
-)
+from app.errors import Busy, InvalidRequest, LinkDown, NoGripper, NotSupported
+from app.guard import SafetyGuard
 from app.links.base import LinkState
 from app.motion import MotionExecutor
 from app.telemetry import TelemetryHub
@@ -44,15 +37,16 @@ class ArmService:
     def __init__(self, profile: ArmProfile, driver: Driver | None = None) -> None:
         self.profile = profile
         self.name = profile.name
-        self.hub = driver.hub if driver is not None else TelemetryHub(profile.name)
+        #: The arm's hub; a driver built elsewhere (tests) keeps its own, and its samples
+        #: then carry the device's fields only.
+        self.hub: TelemetryHub = (driver.hub if driver is not None
+                                  else ArmHub(profile.name, self._stamp))
         self.driver = driver if driver is not None else make_driver(profile, self.hub)
         self.model = self.driver.model
-        self.estop = False
-        self.safety = ArmSafety(self.model, profile.safety)
-        #: Set when the server shuts down: no new motion (app.serving).
-        self.closing = False
-        self.motion = MotionExecutor(self)
-        self.driver.annotate = self._annotate
+        self.guard = SafetyGuard(profile, self.model, self.driver)
+        self.motion = MotionExecutor(profile.name, self.model, self.guard, self.driver, self.hub,
+                                     control_hz=profile.link.control_hz,
+                                     cartesian=profile.cartesian)
 
     async def start(self) -> None:
         await self.driver.start()
@@ -123,7 +117,7 @@ class ArmService:
             note = ("joint efforts estimated from the servos' Present Load (0.1 % of the stall "
                     "torque): an estimate, not a force sensor")
         tare = self.driver.torque_tare
-        info = s.ForceInfo(source=source, calibrated=calibrated, note=note,  # type: ignore[arg-type]
+        info = s.ForceInfo(source=source, calibrated=calibrated, note=note,
                            tare=None if tare is None else [float(v) for v in tare],
                            max_condition_number=TIP_FORCE_MAX_COND)
         q = self.driver.positions
@@ -165,53 +159,48 @@ class ArmService:
                            f"({self.driver.link.last_error or self.driver.link.state.value})")
         return latest
 
-    def _annotate(self, sample: dict[str, Any]) -> None:
-        sample["estop"] = self.estop
+    def _stamp(self, sample: dict[str, Any]) -> None:
+        """The arm's own fields of a sample, set where it is published (the hub)."""
+        sample["estop"] = self.guard.estop
         sample["motion"] = self.motion.brief()
-        sample["faults"] = list(self.driver.faults)
-        sample["homed"] = list(self.driver.homed)
-        if self.profile.gripper.actuated:
-            sample["gripper"] = self.driver.gripper
 
-    # --------------------------------------------------------- safety: one place for all paths
+    # --------------------------------------------------------- safety: the guard's, one place
 
+    @property
+    def estop(self) -> bool:
+        return self.guard.estop
+
+    @property
+    def closing(self) -> bool:
+        return self.guard.closing
+
+    @closing.setter
+    def closing(self, value: bool) -> None:
+        self.guard.closing = value
+
+    @property
+    def safety(self) -> ArmSafety:
+        return self.guard.safety
+
+    # The pass-through routes ask these (one line each: the checks live in app/guard.py).
     def require_motion_allowed(self) -> None:
-        if self.closing:
-            raise ArmError(f"{self.name}: the server is shutting down", code="shutting_down",
-                           status_code=503)
-        if self.estop:
-            raise EstopLatched(f"{self.name}: emergency stop is latched; release it with "
-                               f"DELETE /api/v1/arms/{self.name}/estop")
+        self.guard.require_motion_allowed()
 
     def require_no_fault(self) -> None:
-        """409 `fault` while a servo reports a hardware fault: which, which bits, how to clear."""
-        faults = self.driver.faults
-        if faults:
-            raise Fault(f"{self.name}: refused while a servo reports a hardware fault: "
-                        + " | ".join(f"servo {f['servo']} ({f['joint']}): "
-                                     f"{', '.join(f['bits']) or 'alert'}: {f['advice']}"
-                                     for f in faults))
+        self.guard.require_no_fault()
 
-    def check_homed(self, start: np.ndarray | None, target: np.ndarray) -> None:
-        """409 `not_homed` for a command that would move a joint that is not homed."""
-        tol = self.motion.tolerance()
-        moved = [k for k, homed in enumerate(self.driver.homed) if not homed and (
-            start is None or abs(float(target[k]) - float(start[k])) > tol[k])]
-        if moved:
-            names = ", ".join(self.model.names[k] for k in moved)
-            raise NotHomed(f"{self.name}: joint {names} is not homed (its position is not known "
-                           f"after a power cycle or reboot): home the arm with POST "
-                           f"/api/v1/arms/{self.name}/home first")
+    def check_joint_target(self, q: np.ndarray) -> None:
+        self.guard.check_joint_target(q)
 
-    def check_homed_joint(self, joint: int, start: np.ndarray | None, ticks: float) -> None:
-        """`check_homed` for one joint's raw goal (ticks)."""
-        q = np.full(self.model.n, np.nan)
-        q[joint] = ticks
-        target = self.model.transmission.from_ticks(q)
-        cur = np.full(self.model.n, np.nan) if start is None else np.full(self.model.n, start[0])
-        tol = self.motion.tolerance()[joint]
-        if start is None or not abs(float(target[joint]) - float(cur[joint])) <= tol:
-            self.check_homed(None, target)
+    def check_passthrough_ticks(self, ticks: np.ndarray,
+                                velocities: np.ndarray | None = None) -> None:
+        self.guard.check_passthrough_ticks(ticks, velocities)
+
+    def check_passthrough_velocity_ticks(self, velocities: np.ndarray) -> None:
+        self.guard.check_passthrough_velocity_ticks(velocities)
+
+    def check_passthrough_joint_ticks(self, joint: int, ticks: float) -> None:
+        self.guard.check_passthrough_joint_ticks(joint, ticks)
 
     @on_control
     async def home(self, positions: list[float] | None) -> s.ArmDetail:
@@ -229,7 +218,7 @@ class ArmService:
         if q.shape != (self.model.n,):
             raise InvalidRequest(f"{self.name} has {self.model.n} joints "
                                  f"({', '.join(self.model.names)}), got {len(positions)} positions")
-        self.check_joint_target(q)
+        self.guard.check_joint_target(q)
         if self.driver.positions is None or self.driver.stale:
             raise LinkDown(f"{self.name}: no fresh joint positions from the device to home from")
         for k, j in enumerate(self.profile.joints):
@@ -244,72 +233,12 @@ class ArmService:
     async def reboot(self, dxl_id: int) -> None:
         """REBOOT one servo and set it up again (the driver); the commanded state is
         forgotten: the servo's goal is now its present position."""
-        self.require_motion_allowed()
+        self.guard.require_motion_allowed()
         if self.motion.current is not None or self.motion.queued():
             raise Busy(f"{self.name}: a motion is running or queued; stop it before a reboot")
-        await self.driver.reboot(dxl_id)  # type: ignore[attr-defined]
+        await self.driver.reboot(dxl_id)
         self.motion.forget_command()
         self.hub.event("rebooted", servo=dxl_id, homed=list(self.driver.homed))
-
-    def check_joint_target(self, q: np.ndarray) -> None:
-        """Joint limits for any commanded position, planned or pass-through."""
-        _require_finite(q, "joint positions")
-        self.model.check_limits(q)
-
-    def check_passthrough_ticks(self, ticks: np.ndarray,
-                                velocities: np.ndarray | None = None) -> None:
-        """A raw position command (rbe3001 SET_PID ticks, Dynamixel goal positions) obeys the
-        joint limits unless the profile allows raw access, and the estop always. With
-        `velocities` (ticks/s, e.g. SET_PID's velocity_ticks_s), those obey the velocity limits
-        too (`check_passthrough_velocity_ticks`)."""
-        self.require_motion_allowed()
-        self.require_no_fault()
-        _require_finite(ticks, "pass-through positions")
-        if velocities is not None:
-            self.check_passthrough_velocity_ticks(velocities)
-        q = self.model.transmission.from_ticks(np.asarray(ticks, dtype=float))
-        self.check_homed(self.driver.positions, q)
-        v = [] if self.profile.raw_access else self.model.violations(q)
-        if v:
-            raise JointLimit("pass-through position outside the joint limits (the profile does "
-                             "not allow raw access): " + "; ".join(v))
-        # the envelope holds with raw access too: the target and the straight joint-space path
-        self.safety.check_joint_path(self.driver.positions, q)
-
-    def check_passthrough_velocity_ticks(self, velocities: np.ndarray) -> None:
-        """Raw joint velocities (ticks/s, one per joint) within the profile's joint velocity
-        limits converted to ticks/s, unless the profile allows raw access; 422
-        `velocity_limit` naming the joint, the limit and the excess otherwise."""
-        _require_finite(velocities, "pass-through velocities")
-        if self.profile.raw_access:
-            return
-        v = np.abs(np.asarray(velocities, dtype=float))
-        cap = np.abs(self.model.transmission.velocity_to_ticks(self.model.vmax))
-        over = [f"{name} {v[k]:.0f} ticks/s is above its limit {cap[k]:.0f} ticks/s "
-                f"({self.model.vmax[k]:g} {'rad' if kind == 'revolute' else 'm'}/s) by "
-                f"{v[k] - cap[k]:.0f} ticks/s"
-                for k, (name, kind) in enumerate(zip(self.model.names, self.model.kinds,
-                                                     strict=True))
-                if v[k] > cap[k] * (1 + 1e-9)]
-        if over:
-            raise VelocityLimit("pass-through velocity over the joint velocity limits (the "
-                                "profile does not allow raw access): " + "; ".join(over))
-
-    def check_passthrough_joint_ticks(self, joint: int, ticks: float) -> None:
-        """As `check_passthrough_ticks` for one joint's goal (the others unchanged)."""
-        self.require_motion_allowed()
-        self.require_no_fault()
-        if not self.driver.homed[joint]:
-            cur = self.driver.positions
-            start = None if cur is None else cur[joint:joint + 1]
-            self.check_homed_joint(joint, start, ticks)
-        if self.profile.raw_access:
-            return
-        current = self.driver.positions
-        base = current.copy() if current is not None else (self.model.lower + self.model.upper) / 2
-        all_ticks = self.model.transmission.to_ticks(base)
-        all_ticks[joint] = ticks
-        self.check_passthrough_ticks(all_ticks)
 
     # --------------------------------------------------------- stop, estop, gripper
 
@@ -323,9 +252,8 @@ class ArmService:
     async def latch_estop(self) -> s.EstopState:
         """Latch, and command the hold once per latch: a press on a latched estop changes
         nothing (each hold re-commanded at the measured position walked a sagging arm down)."""
-        if self.estop:
+        if not self.guard.latch():
             return s.EstopState(estop=True)
-        self.estop = True
         self.driver.poll_soon()  # a fresh sample that shows the latch, ahead of the schedule
         log.warning("%s: emergency stop latched", self.name)
         self.hub.event("estop", latched=True)
@@ -333,8 +261,7 @@ class ArmService:
         return s.EstopState(estop=True)
 
     def release_estop(self) -> s.EstopState:
-        if self.estop:
-            self.estop = False
+        if self.guard.release():
             log.info("%s: emergency stop released", self.name)
             self.hub.event("estop_released", latched=False)
         return s.EstopState(estop=False)
@@ -344,8 +271,8 @@ class ArmService:
         if not self.profile.gripper.actuated:
             raise NoGripper(f"{self.name} has a {self.profile.gripper.kind} end effector, "
                             "not an actuated gripper")
-        self.require_motion_allowed()
-        await self.driver.set_gripper(value)  # type: ignore[attr-defined]
+        self.guard.require_motion_allowed()
+        await self.driver.set_gripper(value)
         return s.GripperState(value=value)
 
     def require_protocol(self, protocol: str) -> None:
@@ -355,9 +282,3 @@ class ArmService:
     def now(self) -> float:
         return time.time()
 
-
-def _require_finite(values: Any, what: str) -> None:
-    """422 for NaN or infinity: the limit checks below compare, and a NaN compares false."""
-    a = np.asarray(values, dtype=float)
-    if not np.all(np.isfinite(a)):
-        raise InvalidRequest(f"{what} must be finite numbers, got {a.tolist()}")

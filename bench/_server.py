@@ -42,7 +42,7 @@ class ServerProcess:
         self.ws_url = f"ws://127.0.0.1:{self.port}"
         env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", "from app.main import cli; cli()", "serve", "--port",
+            [sys.executable, "-c", "from app.cli import run; run()", "serve", "--port",
              str(self.port), "--log-level", "warning"],
             cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.pinned = pin_apart(self.proc.pid) if pin else False

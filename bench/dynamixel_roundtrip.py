@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "ttyDXL")
-        sim = subprocess.Popen([sys.executable, "-c", "from app.main import cli; cli()", "sim",
+        sim = subprocess.Popen([sys.executable, "-c", "from app.cli import run; run()", "sim",
                                 "dynamixel", "--pty", path, "--mode", "1:4", "--mode", "2:4",
                                 "--mode", "4:4"], cwd=ROOT)
         try:

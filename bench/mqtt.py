@@ -148,7 +148,7 @@ class Server:
         if broker_url:
             env.update(ARMSERVER_MQTT_URL=broker_url, ARMSERVER_MQTT_RATE=str(rate))
         self.proc = subprocess.Popen(
-            [sys.executable, "-c", "from app.main import cli; cli()", "serve", "--port",
+            [sys.executable, "-c", "from app.cli import run; run()", "serve", "--port",
              str(self.port), "--log-level", "warning"], cwd=ROOT, env=env,
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         # server on one core, bench and broker on the rest (on a shared machine the others' load

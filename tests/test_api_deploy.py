@@ -74,7 +74,7 @@ def test_armserver_serve_runs_and_says_it_is_open(tmp_path: Path) -> None:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
-    proc = subprocess.Popen([sys.executable, "-c", "from app.main import cli; cli()", "serve",
+    proc = subprocess.Popen([sys.executable, "-c", "from app.cli import run; run()", "serve",
                              "--port", str(port), "--log-level", "info"],
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)

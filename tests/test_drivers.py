@@ -342,7 +342,7 @@ async def test_a_bug_in_a_session_restarts_the_link_instead_of_ending_the_task()
         if calls["n"] == 1:
             raise KeyError("boom")
 
-    driver.annotate = broken
+    driver.hub.add_listener(broken)  # runs in the owner task's publish
     try:
         await asyncio.sleep(0.3)
         assert not driver._task.done()

@@ -30,7 +30,7 @@ def _start() -> tuple[subprocess.Popen[str], str]:
     port = _port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
     env["ARMSERVER_SHUTDOWN_TIMEOUT_S"] = "3"
-    proc = subprocess.Popen([sys.executable, "-c", "from app.main import cli; cli()", "serve",
+    proc = subprocess.Popen([sys.executable, "-c", "from app.cli import run; run()", "serve",
                              "--port", str(port), "--log-level", "info"],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     url = f"http://127.0.0.1:{port}"

@@ -121,7 +121,7 @@ class StateFastPath(BaseRoute):
 def _header(scope: Scope, name: bytes) -> str | None:
     for key, value in scope.get("headers", ()):
         if key == name:
-            return value.decode("latin-1")  # type: ignore[no-any-return]
+            return value.decode("latin-1")  # type: ignore[no-any-return]  # ASGI: bytes
     return None
 
 

@@ -11,6 +11,7 @@ from fastapi import APIRouter, Path, Response, status
 from app import schemas as s
 from app.api.common import DEVICE, READ, check_joint_count, errors
 from app.deps import CallerDep, ControlArm, OperatorArm, ViewerArm
+from app.motion import MotionRecord
 
 router = APIRouter(tags=["motion"])
 
@@ -27,12 +28,12 @@ _MOVE_DOC = (
 )
 
 
-async def _answer(record: object, wait: bool, response: Response) -> s.Motion:
+async def _answer(record: MotionRecord, wait: bool, response: Response) -> s.Motion:
     """202 with the motion now, or (wait) 200 with its final state when it ends."""
     if wait:
-        await record.wait()  # type: ignore[attr-defined]
+        await record.wait()
         response.status_code = status.HTTP_200_OK
-    return record.to_schema()  # type: ignore[attr-defined,no-any-return]
+    return record.to_schema()
 
 
 @router.post(
@@ -79,7 +80,7 @@ async def move_pose(svc: ControlArm, req: s.MovePose, response: Response) -> s.M
 )
 async def plan_joints(svc: ViewerArm, req: s.MoveJoints) -> s.Motion:
     check_joint_count(svc, req.positions)
-    return svc.motion.preview_joints(req)  # type: ignore[no-any-return]
+    return svc.motion.preview_joints(req)
 
 
 @router.post(
@@ -91,7 +92,7 @@ async def plan_joints(svc: ViewerArm, req: s.MoveJoints) -> s.Motion:
     responses=errors(*READ, 409),
 )
 async def plan_pose(svc: ViewerArm, req: s.MovePose) -> s.Motion:
-    return svc.motion.preview_pose(req)  # type: ignore[no-any-return]
+    return svc.motion.preview_pose(req)
 
 
 @router.get(
@@ -105,7 +106,7 @@ async def plan_pose(svc: ViewerArm, req: s.MovePose) -> s.Motion:
     responses=errors(*READ, 410, extra=_GONE),
 )
 async def get_motion(svc: ViewerArm, motion_id: MotionId) -> s.Motion:
-    return svc.motion.get(motion_id).to_schema()  # type: ignore[no-any-return]
+    return svc.motion.get(motion_id).to_schema()
 
 
 @router.delete(
@@ -119,7 +120,7 @@ async def get_motion(svc: ViewerArm, motion_id: MotionId) -> s.Motion:
 )
 async def cancel_motion(svc: OperatorArm, motion_id: MotionId, who: CallerDep) -> s.Motion:
     rec = await svc.motion.cancel(motion_id, f"cancelled by {who}")
-    return rec.to_schema()  # type: ignore[no-any-return]
+    return rec.to_schema()
 
 
 @router.post(

@@ -55,7 +55,7 @@ def parse_rate(value: object, default: float) -> float:
         rate = default
     else:
         try:
-            rate = float(value)  # type: ignore[arg-type]
+            rate = float(value)  # type: ignore[arg-type]  # any object: float() refuses below
         except (TypeError, ValueError):
             raise BadRate(f"rate must be a number of Hz, got {value!r}") from None
         if not math.isfinite(rate):
@@ -94,11 +94,12 @@ async def telemetry(ws: WebSocket, arm: str) -> None:
 def subscribers_over_limit(state: object, svc: ArmService) -> str | None:
     """Why one more subscriber to `svc` is refused (settings `max_subscribers_per_arm`,
     `max_subscribers`), or None."""
-    settings = state.settings  # type: ignore[attr-defined]
+    settings = state.settings  # type: ignore[attr-defined]  # app.state: untyped
     here = svc.hub.subscriber_count
     if here >= settings.max_subscribers_per_arm:
         return f"{svc.name[:32]} has {here} subscribers (limit {settings.max_subscribers_per_arm})"
-    total = sum(s.hub.subscriber_count for s in state.services.values())  # type: ignore[attr-defined]
+    services = state.services  # type: ignore[attr-defined]  # app.state: untyped
+    total = sum(s.hub.subscriber_count for s in services.values())
     if total >= settings.max_subscribers:
         return f"{total} subscribers in all (limit {settings.max_subscribers})"
     return None
@@ -129,7 +130,7 @@ class _Stream:
                     await t
             for t in done:
                 if t.exception() is not None:
-                    raise t.exception()  # type: ignore[misc]
+                    raise t.exception()  # type: ignore[misc]  # checked not None above
         except (WebSocketDisconnect, OSError, RuntimeError):
             pass  # the client went away: nothing to tell it
         finally:

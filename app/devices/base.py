@@ -15,16 +15,23 @@ import abc
 import asyncio
 import logging
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from app.arm_model import ArmModel
+from app.arm_model import model_for
 from app.config import ArmProfile
 from app.control import on_control
-from app.errors import ArmError, Busy, CorruptReply, DeviceError, DeviceTimeout, LinkDown
+from app.errors import (
+    ArmError,
+    Busy,
+    CorruptReply,
+    DeviceError,
+    DeviceTimeout,
+    LinkDown,
+    NotSupported,
+)
 from app.links.base import Link, LinkError, LinkState
 from app.tasks import cancel_and_wait
 from app.telemetry import TelemetryHub
@@ -59,6 +66,25 @@ class SettleState:
     moving: tuple[int, ...] = ()
 
 
+class Actuator(Protocol):
+    """What the motion executor and the safety guard need from an arm's device: the last
+    reading and its health, and the commands that move it. Every `Driver` is one; a test or a
+    new device type may provide it without the link machinery."""
+
+    link: Link
+    positions: np.ndarray | None
+    stale: bool
+    stale_error: ArmError | None
+    faults: list[dict[str, Any]]
+    homed: list[bool]
+
+    async def command_joints(self, q: np.ndarray) -> None: ...
+
+    async def set_gripper(self, value: float) -> None: ...
+
+    async def settle_state(self) -> SettleState: ...
+
+
 @dataclass
 class _Request:
     message: Any
@@ -74,7 +100,7 @@ class Driver(abc.ABC):
         self.profile = profile
         self.link = link
         self.hub = hub
-        self.model = ArmModel(profile)
+        self.model = model_for(profile)
         self.timeout = profile.link.timeout_s
         self._queue: asyncio.Queue[_Request] = asyncio.Queue(maxsize=profile.link.queue_size)
         self._task: asyncio.Task[None] | None = None
@@ -93,8 +119,6 @@ class Driver(abc.ABC):
         self.last_error: str | None = None
         self.stats = {"requests": 0, "replies": 0, "timeouts": 0, "corrupt": 0, "stale_replies": 0,
                       "polls": 0, "poll_failures": 0, "reconnects": 0}
-        #: Filled in by the arm service: adds motion, estop and gripper fields to each sample.
-        self.annotate: Callable[[dict[str, Any]], None] = lambda s: None
         self.gripper: float | None = None
         self.positions: np.ndarray | None = None
         self.velocities: np.ndarray | None = None
@@ -174,9 +198,23 @@ class Driver(abc.ABC):
             return False
         return asyncio.ensure_future(_wait())
 
+    # ------------------------------------------------------------ the motion contract
+
+    @abc.abstractmethod
+    async def command_joints(self, q: np.ndarray) -> None:
+        """Send one joint setpoint (rad or m, within the limits: the caller checked them)."""
+
+    @abc.abstractmethod
+    async def set_gripper(self, value: float) -> None:
+        """Command the end effector (0 open .. 1 closed); NoGripper where there is none."""
+
     async def settle_state(self) -> SettleState:
         """Torque and arrival per joint, where the device reports them (base: it does not)."""
         return SettleState()
+
+    async def reboot(self, dxl_id: int) -> None:
+        """Reboot one actuator of the arm, where the device can (base: it cannot)."""
+        raise NotSupported(f"{self.name} cannot reboot servo {dxl_id}: its device has no reboot")
 
     def set_home(self, k: int, q: float) -> None:
         """Declare joint `k`'s current physical position to be `q` (rad or m): shift the
@@ -440,9 +478,10 @@ class Driver(abc.ABC):
             "estop": False,
             "link": self.link.state.value,
             "stale": stale,
+            "faults": list(self.faults),
+            "homed": list(self.homed),
         }
-        self.annotate(sample)
-        self.hub.publish(sample)
+        self.hub.publish(sample)  # the arm's hub adds the estop, motion, fault and homing fields
 
     def _publish_stale(self) -> None:
         if self.positions is not None and self.velocities is not None:

@@ -35,7 +35,7 @@ class _Buffered(asyncio.Protocol):
         self.paused: asyncio.Future[None] | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport  # type: ignore[assignment]
+        self.transport = transport  # type: ignore[assignment]  # a pyserial-asyncio Transport
 
     def data_received(self, data: bytes) -> None:
         self.buf += data

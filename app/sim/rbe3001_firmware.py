@@ -137,7 +137,7 @@ class Rbe3001Firmware:
         self._integral = [0.0, 0.0, 0.0]  # tick s
         self._last_error: list[float | None] = [None, None, None]
         self.velocity_ticks_s = [0.0, 0.0, 0.0]
-        self._vel_ref = list(start)
+        self._vel_ref: list[float] = list(start)
         self._vel_count = 0
         self.claw = 0.0
         self.claw_setpoint = 0.0
