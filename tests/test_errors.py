@@ -26,8 +26,13 @@ from app.main import create_app
 
 ROOT = Path(__file__).resolve().parents[1]
 APP = ROOT / "app"
-#: Helpers that take a code positionally: name -> index of the code argument.
-CODE_ARG = {"_body": 1, "_refuse": 4, "_finish": 3}
+#: Helpers that take a code positionally: name -> (index of the code, of the status or None).
+#: (`error_response` / `send_error`: the one JSON error writer `core` is moving the raw ASGI
+#: layers to.)
+CODE_ARG: dict[str, tuple[int, int | None]] = {
+    "_body": (1, None), "_refuse": (4, 3), "_finish": (3, None), "error_response": (1, 2),
+    "send_error": (3, 1),
+}
 #: The client's own codes (no server answer carries them).
 CLIENT_ONLY = {"connection_failed", "turn_lost"}
 SERVER_CLASSES = {name for name, obj in vars(errors).items()
@@ -193,9 +198,10 @@ def problems(source: str, where: str, in_errors_module: bool = False) -> list[st
                     check(code, _int_const(kw.get("status_code")), node.lineno)
             elif _name(node.func) == "ArmError":
                 out.append(f"{where}:{node.lineno}: ArmError(...) without a code")
-            index = CODE_ARG.get(_name(node.func))
-            if index is not None and len(node.args) > index:
-                status = _int_const(node.args[3]) if _name(node.func) == "_refuse" else None
+            where_code = CODE_ARG.get(_name(node.func))
+            if where_code is not None and len(node.args) > where_code[0]:
+                index, at = where_code
+                status = _int_const(node.args[at]) if at is not None else None
                 for code in _str_consts(node.args[index]):
                     check(code, status, node.lineno)
         elif isinstance(node, ast.Dict):
@@ -234,9 +240,12 @@ def h():
 BODY = {"detail": "d", "code": "nope"}
 async def i(send):
     await _refuse(None, None, send, 400, "not_a_code", "d")
+    await send_error(send, 400, "too big", "too_large")
+    return error_response("d", "bad_host", 400)
 '''
     found = problems(planted, "planted.py")
-    assert len(found) == 7, found
+    assert len(found) == 8, found
+    assert any("'too_large' answered 400, the table says 413" in p for p in found)
     assert any("'made_up'" in p for p in found) and any("'nope'" in p for p in found)
     assert any("'mine'" in p for p in found)
     assert any("answered 503" in p for p in found) and any("Mine" in p for p in found)

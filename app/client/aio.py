@@ -35,6 +35,7 @@ from app.client.core import (
     ws_url,
 )
 from app.client.errors import ArmServerError
+from app.client.lease import keep_lease
 from app.client.routes import (
     LEASE_HEADER,
     Call,
@@ -324,7 +325,7 @@ class AsyncArmClient:
             with contextlib.suppress(ArmServerError):
                 await self.leave_queue(arm, entry.id)
             raise
-        async with self._keep(arm, lease, every) as keeper:
+        async with keep_lease(self, arm, lease, every) as keeper:
             yield keeper
 
     @contextlib.asynccontextmanager
@@ -332,42 +333,8 @@ class AsyncArmClient:
         """Take the arm's lease, send its id on this client's requests to the arm and renew it in
         the background (every `ttl / 3` s unless `every`); release it on exit."""
         lease = await self.take_lease(arm)
-        async with self._keep(arm, lease, every) as keeper:
+        async with keep_lease(self, arm, lease, every) as keeper:
             yield keeper
-
-    @contextlib.asynccontextmanager
-    async def _keep(self, arm: str, lease: s.Lease, every: float | None
-                    ) -> AsyncIterator[LeaseKeeper]:
-        keeper = LeaseKeeper(lease)
-        previous = self.leases.get(arm)
-        self.leases[arm] = lease.id
-        period = every if every is not None else max(lease.ttl / 3.0, 0.05)
-
-        async def beat() -> None:
-            while True:
-                await asyncio.sleep(period)
-                try:
-                    keeper.lease = await self.renew_lease(arm, lease.id)
-                    keeper.renewals += 1
-                except ArmServerError as exc:
-                    keeper.error = exc
-                    log.warning("%s: lease %s not renewed: %s", arm, lease.id, exc)
-                    if exc.status != 0:
-                        return
-
-        task = asyncio.create_task(beat(), name=f"lease:{arm}")
-        try:
-            yield keeper
-        finally:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-            if previous is None:
-                self.leases.pop(arm, None)
-            else:
-                self.leases[arm] = previous
-            with contextlib.suppress(ArmServerError):
-                await self.release_lease(arm, lease.id)
 
     # --------------------------------------------------------- telemetry
 
