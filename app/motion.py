@@ -17,6 +17,7 @@ import time
 import uuid
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
@@ -329,9 +330,9 @@ class MotionExecutor:
             except ArmError as exc:
                 raise KinematicsUnreachable(exc.detail) from None
 
-        k = self.svc.profile.tracking_margin  # the measured speed, not only the plan, in limits
+        k = self.svc.profile.tracking_margin  # the measured joint speed, not only the plan
         cv, ca, cj, vmax = self.svc.safety.scaled(  # speed_override
-            cart.max_velocity * k, cart.max_acceleration * k, cart.max_jerk, m.vmax * k)
+            cart.max_velocity, cart.max_acceleration, cart.max_jerk, m.vmax * k)
         try:
             traj, _tips = trajectory.plan_line(
                 m.fk(q0), p, ik_near, m.fk, float(cv), float(ca),
@@ -455,7 +456,9 @@ class MotionExecutor:
         (trajectory time over wall time) is the commanded speed's scale; the next tick may
         raise it only as fast as the acceleration limits allow (`_time_rate`). So after the
         loop was held up (the setpoint stood still meanwhile) the motion picks up again along
-        the same path from the last setpoint, never faster than planned and without a jump."""
+        the same path from the last setpoint, never faster than planned and without a jump.
+        A joint move asked to last `duration` is planned again instead, after a hold-up, to
+        end when it was asked to (`_replan_on_time`)."""
         loop = asyncio.get_running_loop()
         dt = 1.0 / self.svc.profile.link.control_hz
         failures = 0
@@ -463,7 +466,8 @@ class MotionExecutor:
         t = 0.0
         rate = 1.0
         qd = qdd = np.zeros(self.model.n)
-        last = loop.time()
+        last = begun = loop.time()
+        due, done_before = begun + duration, 0.0  # when it was asked to end; progress so far
         while True:
             if self._halt or rec.done.is_set():
                 return "halt"
@@ -475,6 +479,16 @@ class MotionExecutor:
                 log.warning("%s: motion %s: control held up %.0f ms; going on from the last "
                             "setpoint", self.svc.name, rec.id, late * 1e3)
                 self.svc.hub.event("motion_held_up", id=rec.id, held_up_s=round(late, 4))
+                fresh = self._replan_on_time(rec, due - now)
+                if fresh is not None:
+                    done_before += (1.0 - done_before) * t / duration
+                    traj, duration, t, rate = fresh, float(fresh.duration), 0.0, 1.0
+                    qd = qdd = np.zeros(self.model.n)
+                    rec.planned_duration = now - begun + duration
+                    self.svc.hub.event("motion_replanned", id=rec.id,
+                                       remaining_s=round(duration, 4),
+                                       duration=round(rec.planned_duration, 4),
+                                       late_s=round(max(0.0, now + duration - due), 4))
             step = min(self._time_rate(rate, qd, qdd, late) * late, MAX_STEP_S)
             if late > 0.0:
                 rate = step / late
@@ -495,11 +509,31 @@ class MotionExecutor:
             if self._halt:
                 return "halt"
             self._cmd = (q, qd * rate, qdd * rate * rate)
-            rec.progress = t / duration if duration > 0 else 1.0
+            rec.progress = done_before + (1.0 - done_before) * (t / duration if duration > 0
+                                                                 else 1.0)
             if t >= duration:
                 self._cmd = (q, np.zeros_like(q), np.zeros_like(q))
                 return "end"
             await asyncio.sleep(max(0.0, last + dt - loop.time()))
+
+    def _replan_on_time(self, rec: MotionRecord, remaining: float) -> Any:
+        """After a hold-up, a joint move with a requested `duration` is planned again from the
+        last setpoint (where the arm held, at rest) to its target, to end `remaining` s from
+        now, when it was asked to end; as soon as the limits allow if that is too soon. The
+        trajectory, or None for a move without a duration (it goes on along its plan, time
+        stretched: already as fast as the limits allow) or a line (its path is the point)."""
+        req = rec.request
+        if rec.path != "joint" or getattr(req, "duration", None) is None or self._cmd is None:
+            return None
+        q = self._cmd[0]
+        rest = (q, np.zeros_like(q), np.zeros_like(q))
+        for duration in ((remaining,) if remaining > 0 else ()) + (None,):
+            ask = SimpleNamespace(duration=duration, speed=req.speed)
+            try:
+                return self._plan_joint_from(rest, rec.target, ask, True).traj
+            except InvalidRequest:  # sooner than the limits allow: as soon as they do
+                continue
+        return None
 
     def _time_rate(self, rate: float, qd: np.ndarray, qdd: np.ndarray, h: float) -> float:
         """The next time rate after `h` s: up towards 1 as fast as the acceleration limits
