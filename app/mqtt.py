@@ -17,13 +17,19 @@ the link task never waits for the broker and a broker that is down or slow costs
 the samples it cannot send (counted, and reported in the next message's `dropped`), never
 memory or time. One task does everything: connect (with capped exponential backoff), then every
 1/rate s take what each hub has and publish it. The server subscribes to nothing.
+
+The QoS 0 messages of a tick (telemetry and state, two per arm) go straight to paho's
+outgoing queue as bytes, in one synchronous pass, not one aiomqtt coroutine each (a gathered
+coroutine is a Task: two thirds of the bridge's CPU went there). Their bound is the tick: while
+the broker has not taken the previous tick's last message, the next tick sends nothing and the
+samples wait in the hub (bounded, counted); 5 s of that and the bridge reconnects. The QoS 1
+messages (events, online flags: rare) go through aiomqtt, which waits for their PUBACKs.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import functools
 import logging
 import math
 import time
@@ -35,6 +41,7 @@ from typing import TYPE_CHECKING, Literal
 from urllib.parse import unquote, urlsplit
 
 import aiomqtt
+import paho.mqtt.client as mqtt
 from aiomqtt.exceptions import MqttConnectError
 
 if TYPE_CHECKING:
@@ -126,6 +133,11 @@ class MqttBridge:
         self.dropped_samples = 0
         self.dropped_events = 0
         self.connected_since: float | None = None
+        # the last tick's QoS 0 messages: the last one's info (written to the socket yet?),
+        # since when it has waited, and the samples it carried (lost if the session ends first)
+        self._pending: mqtt.MQTTMessageInfo | None = None
+        self._pending_since = 0.0
+        self._in_flight: list[tuple[_ArmOut, int]] = []
 
     # ------------------------------------------------------------ lifecycle
 
@@ -200,6 +212,9 @@ class MqttBridge:
         if isinstance(gone, asyncio.Future) and gone.done() and not gone.cancelled():
             gone.exception()
         self._client = None
+        if self._pending is not None and not self._pending.is_published():
+            self._lost_in_flight(self._in_flight)
+        self._pending, self._in_flight = None, []
         for a in self._arms:
             a.online = None  # republish every flag and state on the next connect
             a.state_sent = False
@@ -263,41 +278,53 @@ class MqttBridge:
                 await asyncio.sleep(next_tick - now)
 
     async def _tick(self, client: aiomqtt.Client) -> None:
-        # The tick as a whole has a deadline (_session): a per-publish timeout would cost a task
-        # per message inside aiomqtt (asyncio.wait_for), a third of the bridge's CPU.
-        publish = functools.partial(client.publish, timeout=math.inf)
-        pubs = []
-        lost: list[tuple[_ArmOut, int]] = []
+        pending = self._pending
+        if pending is not None and not pending.is_published():
+            # the broker has not taken the last tick's messages: leave the samples in the hubs
+            # (bounded there, drops counted) rather than queue more in paho
+            if time.monotonic() - self._pending_since > PUBLISH_TIMEOUT_S:
+                raise TimeoutError(f"the broker took no message for {PUBLISH_TIMEOUT_S:g} s")
+            return
+        paho = client._client  # aiomqtt < 3 keeps paho's client here; QoS 0 needs no await
+        qos1 = []
+        sent: list[tuple[_ArmOut, int]] = []
+        info: mqtt.MQTTMessageInfo | None = None
+        count = 0
         for a in self._arms:
             samples = self._collect(a)
             online = a.svc.link_status().connected
             if online != a.online:
-                pubs.append(publish(f"{a.topic}/online", b"true" if online else b"false",
-                                    qos=1, retain=True))
+                qos1.append(client.publish(f"{a.topic}/online", b"true" if online else b"false",
+                                           qos=1, retain=True, timeout=math.inf))
                 a.online = online
             while a.events:
-                pubs.append(publish(f"{a.topic}/events", a.events.popleft(), qos=1))
+                qos1.append(client.publish(f"{a.topic}/events", a.events.popleft(), qos=1,
+                                           timeout=math.inf))
             if samples or a.dropped:
-                msg = a.sub.telemetry_message(samples, a.dropped)
+                msg = a.sub.telemetry_message(samples, a.dropped).encode()
                 a.dropped = 0
-                pubs.append(publish(f"{a.topic}/telemetry", msg, qos=0))
+                info = paho.publish(f"{a.topic}/telemetry", msg, 0, False)
+                _check(info, client)
+                sent.append((a, len(samples)))
+                count += 1
             if a.latest is not None and (samples or not a.state_sent):
-                pubs.append(publish(f"{a.topic}/state", a.latest, qos=0, retain=True))
+                info = paho.publish(f"{a.topic}/state", a.latest.encode(), 0, True)
+                _check(info, client)
                 a.state_sent = True
-            lost.append((a, len(samples)))
-        if not pubs:
+                count += 1
+        if info is not None:
+            self._pending, self._pending_since, self._in_flight = info, time.monotonic(), sent
+        if not qos1:
+            self.published += count
             return
-        try:
-            # every publish ends before the tick does (no orphan fails later, unretrieved)
-            results = await asyncio.gather(*pubs, return_exceptions=True)
-        except BaseException:
-            self._lost_in_flight(lost)  # cancelled: the tick's deadline passed
-            raise
+        # The tick as a whole has a deadline (_session): a per-publish timeout would cost a task
+        # per message inside aiomqtt (asyncio.wait_for). Every publish ends before the tick
+        # does (no orphan fails later, unretrieved).
+        results = await asyncio.gather(*qos1, return_exceptions=True)
         failed = next((r for r in results if isinstance(r, BaseException)), None)
         if failed is not None:
-            self._lost_in_flight(lost)
             raise failed
-        self.published += len(pubs)
+        self.published += count + len(qos1)
 
     def _lost_in_flight(self, lost: list[tuple[_ArmOut, int]]) -> None:
         """What a failed tick carried may not have reached the broker: the next message says
@@ -305,6 +332,12 @@ class MqttBridge:
         for a, n in lost:
             a.dropped += n
             self.dropped_samples += n
+
+
+def _check(info: mqtt.MQTTMessageInfo, client: aiomqtt.Client) -> None:
+    """A publish paho could not queue (no connection): end the session, as aiomqtt would."""
+    if info.rc != mqtt.MQTT_ERR_SUCCESS:
+        raise aiomqtt.MqttCodeError(info.rc, "Could not publish message")
 
 
 def _is_refusal(exc: aiomqtt.MqttCodeError) -> bool:
