@@ -37,7 +37,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import httpx
 import websockets
 from _server import ROOT, pct, pin_apart  # bench/_server.py
 
@@ -178,11 +177,24 @@ class Server:
         with urllib.request.urlopen(self.url + "/api/v1/health", timeout=20) as r:
             return json.loads(r.read())  # type: ignore[no-any-return]
 
-    async def published(self, arms: list[str]) -> dict[str, int]:
-        """Each arm's latest `seq` (the samples published so far)."""
-        async with httpx.AsyncClient(base_url=self.url, timeout=60) as http:
-            return {a: int((await http.get(f"/api/v1/arms/{a}/state")).json()["seq"])
-                    for a in arms}
+    async def published(self, arms: list[str]) -> dict[str, tuple[int, float]]:
+        """Each arm's latest `seq` (the samples published so far) and its device time: one
+        request at a time, each
+        on its own connection (24 at once timed out on a loaded host, and a kept-alive one
+        can be closed under the next request)."""
+        def seq(arm: str) -> tuple[int, float]:
+            url = f"{self.url}/api/v1/arms/{arm}/state"
+            for attempt in range(3):
+                try:
+                    with urllib.request.urlopen(url, timeout=60) as r:
+                        state = json.loads(r.read())
+                        return int(state["seq"]), float(state["time"])
+                except OSError:
+                    if attempt == 2:
+                        raise
+            raise AssertionError("unreachable")
+
+        return {a: await asyncio.to_thread(seq, a) for a in arms}
 
     def cpu_seconds(self) -> float:
         f = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -244,14 +256,20 @@ async def run_on(srv: Server, args: argparse.Namespace, broker: Broker | None,
     # before `first`: what arrives while we ask is counted (only the window is)
     for s in [*subs, *([stalled] if stalled else [])]:
         s.recording = True
-    first = await srv.published(arms)
+    first_st = await srv.published(arms)
+    first = {a: v[0] for a, v in first_st.items()}
     h0 = (await asyncio.to_thread(srv.health)).get("mqtt") or {}
     cpu0, t0 = srv.cpu_seconds(), time.monotonic()
     times = await sample_times(f"ws://127.0.0.1:{srv.port}/api/v1/arms/{arms[0]}/telemetry"
                                "?rate=10", args.seconds)
     cpu_s, wall = srv.cpu_seconds() - cpu0, time.monotonic() - t0
-    last = await srv.published(arms)
+    last_st = await srv.published(arms)
+    last = {a: v[0] for a, v in last_st.items()}
     samples = sum(last[a] - first[a] for a in arms)
+    # each arm's poll rate from its own samples (seq over device time): the requests for the
+    # states take a while on a loaded host, so the window's wall time would not do
+    poll_hz = statistics.fmean((last_st[a][0] - first_st[a][0])
+                               / max(1e-9, last_st[a][1] - first_st[a][1]) for a in arms)
     # what was published in the window reaches the subscribers (or 10 s pass)
     def caught_up() -> bool:
         for s in subs:
@@ -278,8 +296,8 @@ async def run_on(srv: Server, args: argparse.Namespace, broker: Broker | None,
         s.close()
     mq = health.get("mqtt") or {}
     out: dict[str, object] = {"cpu": cpu_s / wall, "cpu_s": cpu_s, "wall": wall,
-                              "cpu_per_sample_us": 1e6 * cpu_s / samples,
-                              "poll_hz": samples / len(arms) / wall,
+                              "cpu_per_sample_us": 1e6 * cpu_s / (poll_hz * len(arms) * wall),
+                              "poll_hz": poll_hz,
                               "jitter": jitter_ms(times, args.hz), "mqtt": mq}
     if mq:  # what the bridge itself spent, CPU time measured in its ticks (health `tick_cpu_s`)
         n = mq["published"] - h0.get("published", 0)
