@@ -68,6 +68,7 @@ class Sub(asyncio.Protocol):
     name: str
     topic: str
     seqs: dict[str, set[int]] = field(default_factory=dict)
+    newest: dict[str, int] = field(default_factory=dict)  # each arm's highest seq seen
     latency_s: list[float] = field(default_factory=list)
     messages: int = 0
     recording: bool = False
@@ -135,6 +136,7 @@ class Sub(asyncio.Protocol):
         samples = msg["samples"]
         if samples:
             self.seqs.setdefault(msg["arm"], set()).update(s["seq"] for s in samples)
+            self.newest[msg["arm"]] = max(self.newest.get(msg["arm"], 0), samples[-1]["seq"])
             self.latency_s.append(now - samples[-1]["time"])
 
     def close(self) -> None:
@@ -274,7 +276,7 @@ async def run_on(srv: Server, args: argparse.Namespace, broker: Broker | None,
     def caught_up() -> bool:
         for s in subs:
             s.parse()
-        return all(max(s.seqs.get(a, {0})) >= last[a] for s in subs
+        return all(s.newest.get(a, 0) >= last[a] for s in subs
                    for a in (arms if s.name == "all" else [s.topic.split("/")[1]]))
 
     for _ in range(100):
