@@ -97,7 +97,9 @@ def http_limits(settings: Any) -> dict[str, Any]:
     """uvicorn options that bound what one client can make the server do before any route
     runs: the h11 parser (httptools has no header limit: a 64 MiB header took 3.8 s to parse)
     refusing a request head over `max_header_bytes`, and `max_connections` open at once."""
-    return {"http": "h11", "h11_max_incomplete_event_size": settings.max_header_bytes,
+    from app.serving import BusyH11Protocol  # over max_connections: 503 `busy`, JSON
+
+    return {"http": BusyH11Protocol, "h11_max_incomplete_event_size": settings.max_header_bytes,
             "limit_concurrency": settings.max_connections}
 
 

@@ -232,6 +232,12 @@ class ArmProfile(_Strict):
     home: list[float] | None = Field(None, description="joint positions of the home pose")
     raw_access: bool = Field(False, description="allow pass-through commands outside the limits")
     safety: SafetyConfig = Field(default_factory=SafetyConfig)
+    tracking_margin: float = Field(
+        0.9, gt=0.0, le=1.0, description="moves are planned with the joints' velocity and "
+        "acceleration limits times this (a line: its joint velocity bound; the Cartesian "
+        "limits are the tip's own), so that the device's own tracking "
+        "(a PID catching up on a plan at the limit) stays within the limits the guard "
+        "enforces, which stay the joints' own")
 
     @field_validator("geometry")
     @classmethod

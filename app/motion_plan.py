@@ -46,7 +46,8 @@ class Planner:
         q0, v0, a0 = start
         m = self.model
         guard = self.guard
-        vmax, amax, jmax = guard.scaled(m.vmax, m.amax, m.jmax)  # speed_override
+        k = m.profile.tracking_margin  # the measured speed, not only the plan, in limits
+        vmax, amax, jmax = guard.scaled(m.vmax * k, m.amax * k, m.jmax)  # speed_override
         try:
             traj = trajectory.plan_joint(q0, q1, vmax, amax, jmax,
                                          v0=None if at_rest else v0, a0=None if at_rest else a0,
@@ -77,8 +78,9 @@ class Planner:
                 raise KinematicsUnreachable(exc.detail) from None
 
         guard = self.guard
+        k = m.profile.tracking_margin  # the measured joint speed, not only the plan
         cv, ca, cj, vmax = guard.scaled(  # speed_override
-            cart.max_velocity, cart.max_acceleration, cart.max_jerk, m.vmax)
+            cart.max_velocity, cart.max_acceleration, cart.max_jerk, m.vmax * k)
         try:
             traj, _tips = trajectory.plan_line(
                 m.fk(q0), p, ik_near, m.fk, float(cv), float(ca),

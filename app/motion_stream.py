@@ -12,6 +12,7 @@ import itertools
 import logging
 import time
 from collections import deque
+from types import SimpleNamespace
 from typing import Any, Protocol
 
 import numpy as np
@@ -19,7 +20,7 @@ import numpy as np
 from app.arm_model import KinematicsModel
 from app.config import CartesianLimits
 from app.devices.base import Actuator
-from app.errors import ArmError
+from app.errors import ArmError, InvalidRequest
 from app.guard import SafetyGuard
 from app.motion_plan import Planner
 from app.motion_record import MotionHistory, MotionRecord, Status, vec
@@ -34,8 +35,10 @@ log = logging.getLogger(__name__)
 MAX_SETPOINT_FAILURES = 3
 #: Trajectory time one tick may advance at most, s: a late tick stretches time (the step stays
 #: within the velocity limit over the time it covers) instead of jumping ahead; no setpoint
-#: step is more than the velocity limit times this.
-MAX_STEP_S = 0.05
+#: step is more than the velocity limit times this. Two control periods at 100 Hz: a longer
+#: step is a setpoint jump the device's controller chases faster than the limit (0.05 s let
+#: the rbe3001's measured speed reach 1.1 x its limit on a loaded host, margin or not).
+MAX_STEP_S = 0.02
 #: A tick later than this, s, is reported (log and a `motion_held_up` event).
 HELD_UP_S = 0.1
 
@@ -147,7 +150,9 @@ class MotionStream:
         (trajectory time over wall time) is the commanded speed's scale; the next tick may
         raise it only as fast as the acceleration limits allow (`_time_rate`). So after the
         loop was held up (the setpoint stood still meanwhile) the motion picks up again along
-        the same path from the last setpoint, never faster than planned and without a jump."""
+        the same path from the last setpoint, never faster than planned and without a jump.
+        A joint move asked to last `duration` is planned again instead, after a hold-up, to
+        end when it was asked to (`_replan_on_time`)."""
         loop = asyncio.get_running_loop()
         dt = 1.0 / self.control_hz
         failures = 0
@@ -155,7 +160,8 @@ class MotionStream:
         t = 0.0
         rate = 1.0
         qd = qdd = np.zeros(self.model.n)
-        last = loop.time()
+        last = begun = loop.time()
+        due, done_before = begun + duration, 0.0  # when it was asked to end; progress so far
         while True:
             if self._halt or rec.done.is_set():
                 return "halt"
@@ -167,6 +173,16 @@ class MotionStream:
                 log.warning("%s: motion %s: control held up %.0f ms; going on from the last "
                             "setpoint", self.name, rec.id, late * 1e3)
                 self.events.event("motion_held_up", id=rec.id, held_up_s=round(late, 4))
+                fresh = self._replan_on_time(rec, due - now)
+                if fresh is not None:
+                    done_before += (1.0 - done_before) * t / duration
+                    traj, duration, t, rate = fresh, float(fresh.duration), 0.0, 1.0
+                    qd = qdd = np.zeros(self.model.n)
+                    rec.planned_duration = now - begun + duration
+                    self.events.event("motion_replanned", id=rec.id,
+                                      remaining_s=round(duration, 4),
+                                      duration=round(rec.planned_duration, 4),
+                                      late_s=round(max(0.0, now + duration - due), 4))
             step = min(self._time_rate(rate, qd, qdd, late) * late, MAX_STEP_S)
             if late > 0.0:
                 rate = step / late
@@ -187,11 +203,31 @@ class MotionStream:
             if self._halt:
                 return "halt"
             self._cmd = (q, qd * rate, qdd * rate * rate)
-            rec.progress = t / duration if duration > 0 else 1.0
+            rec.progress = done_before + (1.0 - done_before) * (t / duration if duration > 0
+                                                                 else 1.0)
             if t >= duration:
                 self._cmd = (q, np.zeros_like(q), np.zeros_like(q))
                 return "end"
             await asyncio.sleep(max(0.0, last + dt - loop.time()))
+
+    def _replan_on_time(self, rec: MotionRecord, remaining: float) -> Any:
+        """After a hold-up, a joint move with a requested `duration` is planned again from the
+        last setpoint (where the arm held, at rest) to its target, to end `remaining` s from
+        now, when it was asked to end; as soon as the limits allow if that is too soon. The
+        trajectory, or None for a move without a duration (it goes on along its plan, time
+        stretched: already as fast as the limits allow) or a line (its path is the point)."""
+        req = rec.request
+        if rec.path != "joint" or getattr(req, "duration", None) is None or self._cmd is None:
+            return None
+        q = self._cmd[0]
+        rest = (q, np.zeros_like(q), np.zeros_like(q))
+        for duration in ((remaining,) if remaining > 0 else ()) + (None,):
+            ask = SimpleNamespace(duration=duration, speed=req.speed)
+            try:
+                return self.planner.joint(rest, rec.target, ask, True).traj
+            except InvalidRequest:  # sooner than the limits allow: as soon as they do
+                continue
+        return None
 
     def _time_rate(self, rate: float, qd: np.ndarray, qdd: np.ndarray, h: float) -> float:
         """The next time rate after `h` s: up towards 1 as fast as the acceleration limits

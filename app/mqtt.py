@@ -17,24 +17,32 @@ the link task never waits for the broker and a broker that is down or slow costs
 the samples it cannot send (counted, and reported in the next message's `dropped`), never
 memory or time. One task does everything: connect (with capped exponential backoff), then every
 1/rate s take what each hub has and publish it. The server subscribes to nothing.
+
+The QoS 0 messages of a tick (telemetry and state, two per arm) go straight to paho's
+outgoing queue as bytes, in one synchronous pass, not one aiomqtt coroutine each (a gathered
+coroutine is a Task: two thirds of the bridge's CPU went there). Their bound is the tick: while
+the broker has not taken the previous tick's last message, the next tick sends nothing and the
+samples wait in the hub (bounded, counted); 5 s of that and the bridge reconnects. The QoS 1
+messages (events, online flags: rare) go through aiomqtt, which waits for their PUBACKs.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import functools
 import logging
 import math
+import socket
 import time
 import uuid
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 from urllib.parse import unquote, urlsplit
 
 import aiomqtt
+import paho.mqtt.client as mqtt
 from aiomqtt.exceptions import MqttConnectError
 
 if TYPE_CHECKING:
@@ -125,7 +133,14 @@ class MqttBridge:
         self.published = 0
         self.dropped_samples = 0
         self.dropped_events = 0
+        #: CPU time (this thread's) spent in ticks: collect, build, queue, write (bench figure)
+        self.tick_cpu_s = 0.0
         self.connected_since: float | None = None
+        # the last tick's QoS 0 messages: the last one's info (written to the socket yet?),
+        # since when it has waited, and the samples it carried (lost if the session ends first)
+        self._pending: mqtt.MQTTMessageInfo | None = None
+        self._pending_since = 0.0
+        self._in_flight: list[tuple[_ArmOut, int]] = []
 
     # ------------------------------------------------------------ lifecycle
 
@@ -163,7 +178,8 @@ class MqttBridge:
         return {"state": self.state, "broker": self.broker.public, "prefix": self.prefix,
                 "rate_hz": self.rate_hz, "last_error": self.last_error,
                 "connects": self.connects, "published": self.published,
-                "dropped_samples": self.dropped_samples, "dropped_events": self.dropped_events}
+                "dropped_samples": self.dropped_samples, "dropped_events": self.dropped_events,
+                "tick_cpu_s": round(self.tick_cpu_s, 6)}
 
     # ------------------------------------------------------------ the one task
 
@@ -200,6 +216,9 @@ class MqttBridge:
         if isinstance(gone, asyncio.Future) and gone.done() and not gone.cancelled():
             gone.exception()
         self._client = None
+        if self._pending is not None and not self._pending.is_published():
+            self._lost_in_flight(self._in_flight)
+        self._pending, self._in_flight = None, []
         for a in self._arms:
             a.online = None  # republish every flag and state on the next connect
             a.state_sent = False
@@ -254,8 +273,10 @@ class MqttBridge:
             loop = asyncio.get_running_loop()
             next_tick = loop.time()
             while True:
+                cpu = time.thread_time()
                 async with asyncio.timeout(PUBLISH_TIMEOUT_S):
                     await self._tick(client)
+                self.tick_cpu_s += time.thread_time() - cpu
                 next_tick += self.period
                 now = loop.time()
                 if next_tick < now:  # fell behind (slow broker): do not burst
@@ -263,41 +284,62 @@ class MqttBridge:
                 await asyncio.sleep(next_tick - now)
 
     async def _tick(self, client: aiomqtt.Client) -> None:
-        # The tick as a whole has a deadline (_session): a per-publish timeout would cost a task
-        # per message inside aiomqtt (asyncio.wait_for), a third of the bridge's CPU.
-        publish = functools.partial(client.publish, timeout=math.inf)
-        pubs = []
-        lost: list[tuple[_ArmOut, int]] = []
+        pending = self._pending
+        if pending is not None and not pending.is_published():
+            # the broker has not taken the last tick's messages: leave the samples in the hubs
+            # (bounded there, drops counted) rather than queue more in paho
+            if time.monotonic() - self._pending_since > PUBLISH_TIMEOUT_S:
+                raise TimeoutError(f"the broker took no message for {PUBLISH_TIMEOUT_S:g} s")
+            return
+        paho = client._client  # aiomqtt < 3 keeps paho's client here; QoS 0 needs no await
+        qos1 = []
+        sent: list[tuple[_ArmOut, int]] = []
+        info: mqtt.MQTTMessageInfo | None = None
+        count = 0
         for a in self._arms:
             samples = self._collect(a)
             online = a.svc.link_status().connected
             if online != a.online:
-                pubs.append(publish(f"{a.topic}/online", b"true" if online else b"false",
-                                    qos=1, retain=True))
+                qos1.append(client.publish(f"{a.topic}/online", b"true" if online else b"false",
+                                           qos=1, retain=True, timeout=math.inf))
                 a.online = online
             while a.events:
-                pubs.append(publish(f"{a.topic}/events", a.events.popleft(), qos=1))
+                qos1.append(client.publish(f"{a.topic}/events", a.events.popleft(), qos=1,
+                                           timeout=math.inf))
             if samples or a.dropped:
-                msg = a.sub.telemetry_message(samples, a.dropped)
+                msg = a.sub.telemetry_message(samples, a.dropped).encode()
                 a.dropped = 0
-                pubs.append(publish(f"{a.topic}/telemetry", msg, qos=0))
+                info = paho.publish(f"{a.topic}/telemetry", msg, 0, False)
+                _check(info, client)
+                sent.append((a, len(samples)))
+                count += 1
             if a.latest is not None and (samples or not a.state_sent):
-                pubs.append(publish(f"{a.topic}/state", a.latest, qos=0, retain=True))
+                info = paho.publish(f"{a.topic}/state", a.latest.encode(), 0, True)
+                _check(info, client)
                 a.state_sent = True
-            lost.append((a, len(samples)))
-        if not pubs:
+                count += 1
+        if info is not None:
+            self._pending, self._pending_since, self._in_flight = info, time.monotonic(), sent
+            # write now what the socket takes (the rest when it is writable, as aiomqtt does):
+            # the samples leave in this tick, not a loop iteration later; corked, so that the
+            # tick's packets (paho sends each on its own: two thirds of the bridge's CPU went
+            # into loopback transmits, one a message) leave in as few segments as fit
+            sock = paho.socket()
+            with _corked(sock):
+                rc = paho.loop_write()
+            if rc != mqtt.MQTT_ERR_SUCCESS:
+                raise aiomqtt.MqttCodeError(rc, "Could not publish message")
+        if not qos1:
+            self.published += count
             return
-        try:
-            # every publish ends before the tick does (no orphan fails later, unretrieved)
-            results = await asyncio.gather(*pubs, return_exceptions=True)
-        except BaseException:
-            self._lost_in_flight(lost)  # cancelled: the tick's deadline passed
-            raise
+        # The tick as a whole has a deadline (_session): a per-publish timeout would cost a task
+        # per message inside aiomqtt (asyncio.wait_for). Every publish ends before the tick
+        # does (no orphan fails later, unretrieved).
+        results = await asyncio.gather(*qos1, return_exceptions=True)
         failed = next((r for r in results if isinstance(r, BaseException)), None)
         if failed is not None:
-            self._lost_in_flight(lost)
             raise failed
-        self.published += len(pubs)
+        self.published += count + len(qos1)
 
     def _lost_in_flight(self, lost: list[tuple[_ArmOut, int]]) -> None:
         """What a failed tick carried may not have reached the broker: the next message says
@@ -305,6 +347,31 @@ class MqttBridge:
         for a, n in lost:
             a.dropped += n
             self.dropped_samples += n
+
+
+@contextlib.contextmanager
+def _corked(sock: Any) -> Iterator[None]:
+    """TCP_CORK on `sock` (Linux) for the block: what is written goes out when it ends."""
+    cork = getattr(socket, "TCP_CORK", None)
+    if cork is None or sock is None:
+        yield
+        return
+    try:
+        sock.setsockopt(socket.IPPROTO_TCP, cork, 1)
+    except OSError:
+        yield
+        return
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.IPPROTO_TCP, cork, 0)
+
+
+def _check(info: mqtt.MQTTMessageInfo, client: aiomqtt.Client) -> None:
+    """A publish paho could not queue (no connection): end the session, as aiomqtt would."""
+    if info.rc != mqtt.MQTT_ERR_SUCCESS:
+        raise aiomqtt.MqttCodeError(info.rc, "Could not publish message")
 
 
 def _is_refusal(exc: aiomqtt.MqttCodeError) -> bool:

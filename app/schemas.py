@@ -187,6 +187,8 @@ class MqttStatus(Model):
     published: int = Field(description="messages handed to the broker")
     dropped_samples: int = Field(description="samples not sent (broker away or too slow)")
     dropped_events: int
+    tick_cpu_s: float = Field(0.0, description="CPU time the bridge spent publishing (its "
+                              "ticks: collect, build, queue, write), s")
 
 
 class Health(Model):

@@ -6,6 +6,10 @@
   `shutdown_timeout_s` to finish, then the arms' links close.
 - Second signal: the arms are told to hold where they were last commanded (bounded wait of
   `HOLD_WAIT_S`) and the process stops at once.
+
+`BusyH11Protocol` is uvicorn's h11 protocol whose refusal over `max_connections` (uvicorn's
+`limit_concurrency`) is the API's error body, 503 `{"detail", "code": "busy"}` with a
+Retry-After, instead of uvicorn's plain-text "Service Unavailable".
 """
 
 from __future__ import annotations
@@ -13,17 +17,21 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import json
 import logging
 from types import FrameType
 from typing import Any
 
 import uvicorn
+from uvicorn.protocols.http.h11_impl import H11Protocol
 
 log = logging.getLogger("armserver")
 
 #: How long the second signal waits for the hold to be sent, s.
 HOLD_WAIT_S = 1.0
 SHUTDOWN_REASON = "server shutting down"
+#: Retry-After of the 503 for a request over `max_connections`, s.
+BUSY_RETRY_AFTER_S = 1
 
 
 def stop_arms(app: Any, hold: bool) -> list[concurrent.futures.Future[Any]]:
@@ -72,3 +80,39 @@ class ArmServer(uvicorn.Server):
                 concurrent.futures.wait(futures, HOLD_WAIT_S)
         self._captured_signals.append(sig)
         self.force_exit = True
+
+
+class BusyH11Protocol(H11Protocol):
+    """uvicorn's h11 protocol; a request over `limit_concurrency` (connections open, or requests
+    running, across the server) gets the API's JSON 503 `busy` with a Retry-After.
+
+    uvicorn checks the limit inline and answers with its own plain-text app; here the limit is
+    taken off uvicorn and checked as the request's app starts (its task is then one of
+    `tasks`, hence `>`), before anything of ours runs."""
+
+    def __init__(self, config: uvicorn.Config, server_state: Any, app_state: dict[str, Any],
+                 _loop: asyncio.AbstractEventLoop | None = None) -> None:
+        super().__init__(config, server_state, app_state, _loop)
+        self.max_connections, self.limit_concurrency = self.limit_concurrency, None
+        self._inner_app = self.app
+        self.app = self._admit
+
+    async def _admit(self, scope: Any, receive: Any, send: Any) -> None:
+        limit = self.max_connections
+        if limit is not None and (len(self.connections) >= limit or len(self.tasks) > limit):
+            self.logger.warning("over max_connections (%d): 503 busy", limit)
+            await send_busy(send, limit)
+            return
+        await self._inner_app(scope, receive, send)
+
+
+async def send_busy(send: Any, limit: int) -> None:
+    """The 503 `busy` answer for a request over `max_connections` (ASGI)."""
+    body = json.dumps({"detail": f"the server has {limit} connections open, its limit "
+                                 "(max_connections): retry later", "code": "busy"}).encode()
+    await send({"type": "http.response.start", "status": 503,
+                "headers": [(b"content-type", b"application/json"),
+                            (b"content-length", str(len(body)).encode()),
+                            (b"retry-after", str(BUSY_RETRY_AFTER_S).encode()),
+                            (b"connection", b"close")]})
+    await send({"type": "http.response.body", "body": body, "more_body": False})

@@ -1,8 +1,8 @@
 """Limits on what one client can make the server do (issue 11, item 2), over a real uvicorn
 server on loopback with the same HTTP options as `armserver serve` (`app.cli.http_limits`):
 a request head over `max_header_bytes` is refused without parsing the rest, connections over
-`max_connections` get 503, and telemetry subscribers over the per-arm or total limit are closed
-with 1013 and a JSON reason whose code is `busy`."""
+`max_connections` get the API's JSON 503 `busy` with a Retry-After, and telemetry subscribers
+over the per-arm or total limit are closed with 1013 and a JSON reason whose code is `busy`."""
 
 from __future__ import annotations
 
@@ -58,6 +58,11 @@ def test_connections_over_the_limit_get_503() -> None:
             time.sleep(0.3)
             r = httpx.get(live.url + "/api/v1/health", timeout=10)
             assert r.status_code == 503
+            # the API's error body, not uvicorn's plain text, and when to come back
+            assert r.headers["content-type"] == "application/json"
+            assert r.json()["code"] == "busy" and "max_connections" in r.json()["detail"]
+            assert set(r.json()) == {"detail", "code"}
+            assert r.headers["retry-after"] == "1"
         finally:
             for s in idle:
                 s.close()

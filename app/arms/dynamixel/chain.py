@@ -134,12 +134,13 @@ class DynamixelChainDriver(DynamixelBusDriver):
     # --------------------------------------------------------- owner task
 
     def _profile_velocity(self, joint: JointConfig, velocity_limit: int) -> int:
-        """Profile Velocity (0.229 rpm units) for a joint's velocity limit, with 20 % headroom
-        so the servo follows the planned trajectory but never runs away from it; never above
-        the servo's Velocity Limit (44), the ceiling of Profile Velocity (e-manual)."""
+        """Profile Velocity (0.229 rpm units) for a joint's velocity limit, rounded down: the
+        servo never turns faster than the limit, even catching up on a plan (moves are planned
+        at `tracking_margin` of the limit, which leaves it the headroom to catch up); never
+        above the servo's Velocity Limit (44), the ceiling of Profile Velocity (e-manual)."""
         per_rev = joint.lead_m if joint.lead_m else 2 * math.pi
-        rpm = joint.max_velocity / per_rev * 60.0 * 1.2
-        raw = max(1, math.ceil(rpm / _RPM_PER_UNIT))
+        rpm = joint.max_velocity / per_rev * 60.0
+        raw = max(1, math.floor(rpm / _RPM_PER_UNIT))
         return min(raw, velocity_limit) if velocity_limit > 0 else int(raw)
 
     async def _on_connected(self) -> None:
