@@ -162,8 +162,9 @@ class ArmSafety:
         `keep_out` at the first one with a body point inside a zone or below the floor."""
         if not self.active:
             return
-        t = time_grid(float(traj.duration), dt)  # type: ignore[attr-defined]
-        q = np.asarray(traj.sample(t)[0], dtype=np.float64)  # type: ignore[attr-defined]
+        # traj: a JointTrajectory or a SampledTrajectory (duration, sample), duck-typed
+        t = time_grid(float(traj.duration), dt)  # type: ignore[attr-defined]  # see above
+        q = np.asarray(traj.sample(t)[0], dtype=np.float64)  # type: ignore[attr-defined]  # ditto
         hit = self.first_hit(q, t)
         if hit is not None:
             raise KeepOut(self._describe(hit, q[hit.index], f"{hit.t:.2f} s into the motion"))

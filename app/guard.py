@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
+from app.actuator import Actuator
 from app.arm_model import KinematicsModel
 from app.config import ArmProfile
-from app.devices.base import Actuator
 from app.envelope import ArmSafety
 from app.errors import (
     ArmError,

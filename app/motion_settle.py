@@ -12,7 +12,7 @@ from typing import Literal
 
 import numpy as np
 
-from app.devices.base import Actuator
+from app.actuator import Actuator
 from app.errors import ArmError, LinkDown
 from app.links.base import LinkState
 

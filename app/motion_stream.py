@@ -17,9 +17,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from app.actuator import Actuator
 from app.arm_model import KinematicsModel
 from app.config import CartesianLimits
-from app.devices.base import Actuator
 from app.errors import ArmError, InvalidRequest
 from app.guard import SafetyGuard
 from app.motion_plan import Planner

@@ -16,10 +16,10 @@ import pytest
 
 from app import schemas as s
 from app.arm_hub import ArmHub
+from app.arms.rbe3001.driver import Rbe3001Driver
 from app.config import homed_at_start, load_profile
 from app.devices.base import Driver
 from app.devices.factory import make_sim_device
-from app.arms.rbe3001.driver import Rbe3001Driver
 from app.errors import EstopLatched, InvalidRequest, JointLimit, NotSupported
 from app.guard import SafetyGuard
 from app.links.sim import SimLink

@@ -13,7 +13,7 @@ while the estop is latched, except the safe ones: torque off and the LED. Reads 
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, cast
 
 from fastapi import APIRouter, Body, Path
 
@@ -25,6 +25,9 @@ from app.errors import InUse, OutOfRange, ReadOnly, UnknownId, UnknownRegister
 from app.service import ArmService
 from protocol import mx28
 
+if TYPE_CHECKING:
+    from app.arms.dynamixel.exchange import DynamixelBusDriver
+
 router = APIRouter(prefix="/arms/{arm}/dynamixel", tags=["dynamixel"])
 
 DxlId = Annotated[int, Path(ge=0, le=252, description="Dynamixel id")]
@@ -33,9 +36,9 @@ RegName = Annotated[str, Path(max_length=64, description="control-table item, e.
 _NOT_SUPPORTED = "409 `not_supported` on an arm that does not speak Dynamixel."
 
 
-def _driver(svc: ArmService):  # type: ignore[no-untyped-def]
+def _driver(svc: ArmService) -> DynamixelBusDriver:
     svc.require_protocol("dynamixel")
-    return svc.driver
+    return cast("DynamixelBusDriver", svc.driver)  # a Dynamixel arm's: checked just above
 
 
 def _table(svc: ArmService) -> Any:

@@ -16,10 +16,12 @@ import asyncio
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
+from app.actuator import Actuator as Actuator  # the contract, re-exported
+from app.actuator import SettleState as SettleState
 from app.arm_model import model_for
 from app.config import ArmProfile
 from app.control import on_control
@@ -54,35 +56,6 @@ STALE_AFTER = 3
 #: so one lost or corrupt reply in it should cost a retry, not a reconnect. With 5 % of replies
 #: lost, a 24-exchange chain without retries succeeds 30 % of the time; with 3 tries, 99.7 %.
 SETUP_ATTEMPTS = 3
-
-
-@dataclass(frozen=True)
-class SettleState:
-    """What the actuators say about arriving (joint indices): joints whose actuator holds no
-    torque (such a joint can never be done) and joints whose actuator says it is still on
-    its way. A device that tells neither leaves both empty."""
-
-    torque_off: tuple[int, ...] = ()
-    moving: tuple[int, ...] = ()
-
-
-class Actuator(Protocol):
-    """What the motion executor and the safety guard need from an arm's device: the last
-    reading and its health, and the commands that move it. Every `Driver` is one; a test or a
-    new device type may provide it without the link machinery."""
-
-    link: Link
-    positions: np.ndarray | None
-    stale: bool
-    stale_error: ArmError | None
-    faults: list[dict[str, Any]]
-    homed: list[bool]
-
-    async def command_joints(self, q: np.ndarray) -> None: ...
-
-    async def set_gripper(self, value: float) -> None: ...
-
-    async def settle_state(self) -> SettleState: ...
 
 
 @dataclass

@@ -9,12 +9,14 @@ overflow) is a 422 for the caller, not a failure inside the task that owns the l
 from __future__ import annotations
 
 import struct
+from typing import cast
 
 import numpy as np
 from fastapi import APIRouter
 
 from app import schemas as s
 from app.api.common import DEVICE, errors
+from app.arms.rbe3001.driver import Rbe3001Driver
 from app.deps import ControlArm
 from app.errors import InvalidRequest
 from app.service import ArmService
@@ -25,9 +27,9 @@ router = APIRouter(prefix="/arms/{arm}/rbe3001", tags=["rbe3001"])
 _NOT_SUPPORTED = "409 `not_supported` on an arm that does not speak the RBE3001 protocol."
 
 
-def _driver(svc: ArmService):  # type: ignore[no-untyped-def]
+def _driver(svc: ArmService) -> Rbe3001Driver:
     svc.require_protocol("rbe3001")
-    return svc.driver
+    return cast(Rbe3001Driver, svc.driver)  # an rbe3001 arm's: checked just above
 
 
 def _encodable(cmd: rb.Command) -> None:
@@ -53,7 +55,7 @@ async def set_pid(svc: ControlArm, req: s.SetPid) -> s.SetPidReply:
     drv = _driver(svc)
     setpoints = [(j.position_ticks, j.velocity_ticks_s, j.force) for j in req.joints]
     joints = tuple(rb.JointSetpoint(*sp) for sp in setpoints)
-    _encodable(rb.SetPid(joints))  # type: ignore[arg-type]
+    _encodable(rb.SetPid(joints))  # type: ignore[arg-type]  # 3 joints: the schema's length
     svc.check_passthrough_ticks(np.array([sp[0] for sp in setpoints], dtype=float),
                                 velocities=np.array([sp[1] for sp in setpoints], dtype=float))
     reply = await drv.set_pid(setpoints)

@@ -68,11 +68,14 @@ class Rbe3001Driver(Driver):
     # --------------------------------------------------------- pass-through
 
     async def status(self) -> rb.StatusReply:
-        return await self.submit(rb.Status())  # type: ignore[no-any-return]
+        reply: rb.StatusReply = await self.submit(rb.Status())
+        return reply
 
     async def set_pid(self, setpoints: list[tuple[float, float, float]]) -> rb.SetPidReply:
-        cmd = rb.SetPid(tuple(rb.JointSetpoint(p, v, f) for p, v, f in setpoints))  # type: ignore[arg-type]
-        return await self.submit(cmd)  # type: ignore[no-any-return]
+        sps = tuple(rb.JointSetpoint(p, v, f) for p, v, f in setpoints)
+        cmd = rb.SetPid(sps)  # type: ignore[arg-type]  # three: one per joint, from the caller
+        reply: rb.SetPidReply = await self.submit(cmd)
+        return reply
 
     async def set_gain(self, axis: int, kp: float, ki: float, kd: float) -> None:
         await self.submit(rb.SetGain(axis, kp, ki, kd))

@@ -1,0 +1,42 @@
+"""What motion and the safety guard need from an arm's device (the `Actuator`), apart from the
+link machinery of app/devices/base.py: every `Driver` is one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from app.errors import ArmError
+from app.links.base import Link
+
+
+@dataclass(frozen=True)
+class SettleState:
+    """What the actuators say about arriving (joint indices): joints whose actuator holds no
+    torque (such a joint can never be done) and joints whose actuator says it is still on
+    its way. A device that tells neither leaves both empty."""
+
+    torque_off: tuple[int, ...] = ()
+    moving: tuple[int, ...] = ()
+
+
+class Actuator(Protocol):
+    """What the motion executor and the safety guard need from an arm's device: the last
+    reading and its health, and the commands that move it. Every `Driver` is one; a test or a
+    new device type may provide it without the link machinery."""
+
+    link: Link
+    positions: np.ndarray | None
+    stale: bool
+    stale_error: ArmError | None
+    faults: list[dict[str, Any]]
+    homed: list[bool]
+
+    async def command_joints(self, q: np.ndarray) -> None: ...
+
+    async def set_gripper(self, value: float) -> None: ...
+
+    async def settle_state(self) -> SettleState: ...
