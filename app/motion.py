@@ -162,7 +162,7 @@ class MotionExecutor(MotionStream):
     def _record(self, kind: str, path: str, req: Any, plan: Plan, mid: str) -> MotionRecord:
         return MotionRecord(id=mid, arm=self.name, kind="joints" if kind == "joints" else "pose",
                             path="line" if path == "line" else "joint",
-                            request=req, target=plan.target, target_tip=self.model.fk(plan.target),
+                            request=req, target=plan.target, target_tip=self.model.tip(plan.target),
                             planned_duration=float(plan.traj.duration),
                             planned_path=self._preview_path(plan))
 

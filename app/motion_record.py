@@ -47,7 +47,7 @@ class MotionRecord:
     path: PathKind
     request: Any
     target: np.ndarray
-    target_tip: np.ndarray
+    target_tip: dict[str, float]  # as reported (x, y, z and, with a wrist, pitch)
     planned_duration: float
     planned_path: np.ndarray  # (k, 3) m, kept as one small array: the history holds 256
     status: Status = "queued"
@@ -76,10 +76,10 @@ class MotionRecord:
         return s.Motion(
             id=self.id, arm=self.arm, kind=self.kind, path=self.path, status=self.status,
             progress=round(self.progress, 4), planned_duration=self.planned_duration,
-            target_positions=[float(v) for v in self.target], target_tip=vec(self.target_tip),
+            target_positions=[float(v) for v in self.target], target_tip=s.Tip(**self.target_tip),
             reason=self.reason, code=self.code, created=self.created, started=self.started,
             ended=self.ended, final_positions=self.final_positions,
-            final_tip=None if self.final_tip is None else s.Vec3(**self.final_tip),
+            final_tip=None if self.final_tip is None else s.Tip(**self.final_tip),
             planned_path=[s.Vec3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
                           for p in self.planned_path])
 
@@ -143,7 +143,3 @@ class MotionHistory:
 
 def _utc(t: float) -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t))
-
-
-def vec(v: np.ndarray) -> dict[str, float]:
-    return {"x": float(v[0]), "y": float(v[1]), "z": float(v[2])}

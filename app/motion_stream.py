@@ -23,7 +23,7 @@ from app.config import CartesianLimits
 from app.errors import ArmError, InvalidRequest
 from app.guard import SafetyGuard
 from app.motion_plan import Planner
-from app.motion_record import MotionHistory, MotionRecord, Status, vec
+from app.motion_record import MotionHistory, MotionRecord, Status
 from app.motion_settle import Settle
 from app.tasks import cancel_and_wait
 from kinematics import trajectory
@@ -127,7 +127,7 @@ class MotionStream:
             await self._brake()
             start = self._start_state()
         plan = rec.planner(start, rec.goal, rec.request, at_rest)
-        rec.target, rec.target_tip = plan.target, self.model.fk(plan.target)
+        rec.target, rec.target_tip = plan.target, self.model.tip(plan.target)
         rec.planned_duration = float(plan.traj.duration)
         rec.status, rec.started = "running", time.time()
         self.events.event("motion_started", id=rec.id, duration=rec.planned_duration)
@@ -322,7 +322,7 @@ class MotionStream:
         q = self.device.positions
         if q is not None:
             rec.final_positions = [float(v) for v in q]
-            rec.final_tip = vec(self.model.fk(q))
+            rec.final_tip = self.model.tip(q)
         rec.done.set()
         if rec.started is not None or status != "stopped":
             self.events.event("motion_ended", id=rec.id, status=status, reason=reason, code=code)

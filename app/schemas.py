@@ -286,14 +286,14 @@ class Motion(Model):
     progress: float
     planned_duration: float
     target_positions: list[float]
-    target_tip: Vec3
+    target_tip: Tip
     reason: str | None = None
     code: str | None = None
     created: float
     started: float | None = None
     ended: float | None = None
     final_positions: list[float] | None = None
-    final_tip: Vec3 | None = None
+    final_tip: Tip | None = None
     planned_path: list[Vec3] = Field(default_factory=list, description="tip path preview, "
                                      "up to 50 points")
 

@@ -92,6 +92,9 @@ async def test_line_move_with_pitch_ends_done_within_tolerance(
     assert r.status_code == 200, r.text
     m = Motion.model_validate(r.json())
     assert m.status == "done" and m.path == "line", m
+    # the motion reports its tips with the pitch too (API.md "Wrist pitch")
+    assert m.target_tip.pitch == pytest.approx(-0.7, abs=1e-6)
+    assert m.final_tip is not None and m.final_tip.pitch == pytest.approx(-0.7, abs=0.03)
     s = await _state(c)
     assert [s.tip.x, s.tip.y, s.tip.z] == pytest.approx([0.22, 0.06, 0.12], abs=0.004)
     assert s.tip.pitch == pytest.approx(-0.7, abs=0.03)

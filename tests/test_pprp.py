@@ -12,7 +12,7 @@ from kinematics.errors import Unreachable
 
 G = pprp.PPRP()
 R, H = G.r, G.h
-LO = np.array([-0.075, -0.075, -1.5708, 0.0])  # app/profiles/angler.toml
+LO = np.array([-0.075, -0.075, -1.5708, 0.0])  # app/arms/angler/angler.toml
 HI = np.array([0.075, 0.075, 1.5708, 0.14])
 N = 5000
 seeds = st.integers(0, 2**32 - 1)

@@ -12,7 +12,7 @@ from kinematics.errors import KinematicsError, Singular, Unreachable
 
 G = rrr.RRR()
 L1, L2, L3 = G.l1, G.l2, G.l3
-LO = np.array([-1.5708, -0.35, -1.2])  # app/profiles/rbe3001.toml
+LO = np.array([-1.5708, -0.35, -1.2])  # app/arms/rbe3001/rbe3001.toml
 HI = np.array([1.5708, 1.75, 2.4])
 N = 5000
 seeds = st.integers(0, 2**32 - 1)
