@@ -3,7 +3,7 @@
     armserver serve [--config FILE] [--host 127.0.0.1] [--port 8000] [--log-level info]
     armserver devices                 list USB serial and HID devices that look like arms
     armserver sim ...                 run a simulated device on a pty or TCP port (app.sim.serve)
-    armserver call ... / watch ...    client commands (app.client_cli), where installed
+    armserver call ... / watch ...    client commands (app.client.cli), where installed
 
 Settings come from the environment (ARMSERVER_*); flags override them. The server binds to
 127.0.0.1 unless told otherwise: reaching it from other hosts is a decision, best taken with
@@ -53,10 +53,10 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def register_client_commands(subparsers: Any) -> None:
-    """Hook for the client commands (`call`, `watch`): added from app.client_cli if present."""
-    if importlib.util.find_spec("app.client_cli") is None:
+    """Hook for the client commands (`call`, `watch`): added from app.client.cli if present."""
+    if importlib.util.find_spec("app.client.cli") is None:
         return
-    from app.client_cli import register_client_commands as register
+    from app.client.cli import register_client_commands as register
 
     register(subparsers)
 

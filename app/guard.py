@@ -18,12 +18,12 @@ from app.arm_model import KinematicsModel
 from app.config import ArmProfile
 from app.envelope import ArmSafety
 from app.errors import (
-    ArmError,
     EstopLatched,
     Fault,
     InvalidRequest,
     JointLimit,
     NotHomed,
+    ShuttingDown,
     VelocityLimit,
 )
 
@@ -57,8 +57,7 @@ class SafetyGuard:
 
     def require_motion_allowed(self) -> None:
         if self.closing:
-            raise ArmError(f"{self.name}: the server is shutting down", code="shutting_down",
-                           status_code=503)
+            raise ShuttingDown(f"{self.name}: the server is shutting down")
         if self.estop:
             raise EstopLatched(f"{self.name}: emergency stop is latched; release it with "
                                f"DELETE /api/v1/arms/{self.name}/estop")

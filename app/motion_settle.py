@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 
 from app.actuator import Actuator
-from app.errors import ArmError, LinkDown
+from app.errors import ArmError, Fault, LinkDown, NotSettled, TorqueOff
 from app.links.base import LinkState
 
 #: How long a finished trajectory may take to settle before the motion fails, s.
@@ -66,8 +66,8 @@ class Settle:
         else:
             worst = int(np.argmax(err / tol))
             reason = f"{self.names[worst]} is {err[worst]:.6f} off (tolerance {tol[worst]:.6f})"
-        return "failed", ArmError(f"did not settle at the target within {SETTLE_TIMEOUT_S} s: "
-                                  f"{reason}", code="not_settled")
+        return "failed", NotSettled(f"did not settle at the target within {SETTLE_TIMEOUT_S} s: "
+                                    f"{reason}")
 
     async def _arrived(self) -> tuple[int, ...] | ArmError:
         """The joints whose actuator still says it is moving; or why the motion must fail
@@ -75,19 +75,18 @@ class Settle:
         dev = self.device
         if dev.faults:
             f = dev.faults[0]
-            return ArmError(f"servo {f['servo']} ({f['joint']}) reports a hardware fault: "
-                            f"{', '.join(f['bits']) or 'alert'}; {f['advice']}", code="fault")
+            return Fault(f"servo {f['servo']} ({f['joint']}) reports a hardware fault: "
+                         f"{', '.join(f['bits']) or 'alert'}; {f['advice']}")
         try:
             st = await dev.settle_state()
         except ArmError:
             return tuple(range(len(self.names)))  # not known now: ask again on the next round
         if st.torque_off:
             names = ", ".join(self.names[k] for k in st.torque_off)
-            return ArmError(
+            return TorqueOff(
                 f"{names}: the servo holds no torque (torque off after a reboot or a fault, or "
                 f"switched off), so the joint cannot be at its target; enable torque or reboot "
-                f"it with POST /api/v1/arms/{self.arm}/dynamixel/{{id}}/reboot",
-                code="torque_off")
+                f"it with POST /api/v1/arms/{self.arm}/dynamixel/{{id}}/reboot")
         return st.moving
 
     def device_fault(self) -> ArmError | None:

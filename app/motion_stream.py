@@ -20,7 +20,7 @@ import numpy as np
 from app.actuator import Actuator
 from app.arm_model import KinematicsModel
 from app.config import CartesianLimits
-from app.errors import ArmError, InvalidRequest
+from app.errors import ArmError, InvalidRequest, LinkDown
 from app.guard import SafetyGuard
 from app.motion_plan import Planner
 from app.motion_record import MotionHistory, MotionRecord, Status
@@ -92,8 +92,7 @@ class MotionStream:
             return self._cmd
         q = self.device.positions
         if q is None:
-            raise ArmError(f"{self.name}: no joint positions from the device yet",
-                           code="link_down", status_code=503)
+            raise LinkDown(f"{self.name}: no joint positions from the device yet")
         z = np.zeros_like(q)
         return q.copy(), z, z.copy()
 

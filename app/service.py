@@ -23,7 +23,7 @@ from app.control import on_control
 from app.devices.base import Driver
 from app.devices.factory import make_driver
 from app.envelope import ArmSafety
-from app.errors import Busy, InvalidRequest, LinkDown, NoGripper, NotSupported
+from app.errors import Busy, InvalidRequest, LinkDown, NoForceSensing, NoGripper, NotSupported
 from app.guard import SafetyGuard
 from app.links.base import LinkState
 from app.motion import MotionExecutor
@@ -148,8 +148,7 @@ class ArmService:
 
     def _require_force(self) -> None:
         if not self._force_sensing():
-            raise NotSupported(f"{self.name} senses no joint torques: nothing to tare",
-                               code="no_force_sensing")
+            raise NoForceSensing(f"{self.name} senses no joint torques: nothing to tare")
 
     def state(self) -> dict[str, Any]:
         """The latest sample; 503 link_down if the device has never answered."""

@@ -63,7 +63,7 @@ def test_client_commands_are_registered() -> None:
     for cmd in ("serve", "devices", "sim"):
         assert cmd in helptext
     try:
-        import app.client_cli  # noqa: F401
+        import app.client.cli  # noqa: F401
     except ImportError:
         return
     assert "call" in helptext and "watch" in helptext

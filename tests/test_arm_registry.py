@@ -39,7 +39,7 @@ _ALLOWED_FILES = (
     "app/sim/",
     # the client mirrors the route paths (`/arms/{arm}/rbe3001/...` -> `rbe3001_status`);
     # it is the `client` branch's and calls the server, never switches on a type
-    "app/client", "app/client_cli.py",
+    "app/client",
 )
 _ALLOWED_NAMES = {
     "Rbe3001Status",  # the RBE3001 pass-through's wire schema in app/schemas.py (the client's)

@@ -15,7 +15,7 @@ import pytest
 
 from app import client as cl
 from app.client import ArmClient, AsyncArmClient
-from app.client_cli import main as cli_main
+from app.client.cli import main as cli_main
 from tests.test_client import Server, settings
 
 ALICE, BOB, TEACH = "cc-alice", "cc-bob", "cc-teach"

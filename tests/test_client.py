@@ -20,7 +20,7 @@ import uvicorn
 from app import client as cl
 from app import schemas as s
 from app.client import ArmClient, AsyncArmClient
-from app.client_cli import main as cli_main
+from app.client.cli import main as cli_main
 from app.config import Settings
 from app.main import create_app
 
