@@ -14,6 +14,7 @@ const TOKEN_KEY = "armserver.token";
 const BACKOFF_MIN_S = 0.5;
 const BACKOFF_MAX_S = 8;
 const JOG_THROTTLE_MS = 150;    // live jog while a slider is dragged
+const JOG_REST_TOLERANCE = 0.03; // rad or m: the arm still stands at the last jog's targets
 const COLORS = ["#4cc9f0", "#f472b6", "#a3e635", "#fbbf24", "#a78bfa", "#fb923c"];
 const AXIS_COLORS = ["#f87171", "#4ade80", "#60a5fa"];
 const CODE_WORDS = {
@@ -301,6 +302,7 @@ class Arm {
     this.plan = null;          // {motion, request, ran}
     this.jogTarget = null;     // joint targets the jog controls stand at, while a jog is under way
     this.jogMotion = null;     // id of the last jog motion the server accepted
+    this.restTarget = null;    // targets of the last jog that ended done (the next jog's base)
     this.jogInFlight = 0;
     this.breaks = [];          // the latest line breaks: {seq, prevSeq, dt}
     this.lastJogSent = 0;
@@ -545,9 +547,21 @@ class Arm {
 
   currentPositions() { return this.latest ? this.latest.positions.slice() : null; }
 
+  // Where a new jog starts: the targets the last jog was sent to while the arm still stands
+  // there (a shoulder sags a little below its setpoint under gravity; starting from the
+  // measured positions would hand that sag on to the next setpoint, one sag per jog), else
+  // the measured positions (another client moved the arm, a stop, an estop, a pose move).
+  jogBase() {
+    const q = this.currentPositions();
+    const rest = this.restTarget;
+    if (q && rest && rest.length === q.length &&
+        rest.every((v, i) => Math.abs(v - q[i]) < JOG_REST_TOLERANCE)) return rest.slice();
+    return q;
+  }
+
   onSlider(i, final) {
     const v = Number(this.el.sliders[i].value);
-    if (!this.jogTarget) this.jogTarget = this.currentPositions();
+    if (!this.jogTarget) this.jogTarget = this.jogBase();
     if (!this.jogTarget) return;
     this.jogTarget[i] = v;
     if (final) { this.dragging = -1; this.sendJog(); return; }
@@ -558,7 +572,7 @@ class Arm {
   }
 
   jogStep(i, delta) {
-    if (!this.jogTarget) this.jogTarget = this.currentPositions();
+    if (!this.jogTarget) this.jogTarget = this.jogBase();
     if (!this.jogTarget) return;
     this.lastJogSent = performance.now();
     const j = this.detail.joints[i];
@@ -641,6 +655,7 @@ class Arm {
       this.el.planText.textContent = `running ${motion.id} (${motion.planned_duration.toFixed(2)} s)`;
       this.jogTarget = null;
       this.jogMotion = null;
+      this.restTarget = null;
     } catch (e) {
       showError(this.el.poseError, e);
     }
@@ -672,6 +687,7 @@ class Arm {
       clearError(this.el.stopError);
       this.jogTarget = null;
       this.jogMotion = null;
+      this.restTarget = null;
     } catch (e) {
       showError(this.el.stopError, e);
     }
@@ -714,7 +730,10 @@ class Arm {
     // between a jog's request and its first sample the target must survive, or quick clicks are lost
     const waiting = this.jogInFlight > 0 || this.jogTimer || this.dragging >= 0 ||
       (this.jogMotion && (!m || m.id !== this.jogMotion) && performance.now() - this.lastJogSent < 1000);
-    if (!jogging && !waiting) { this.jogTarget = null; this.jogMotion = null; }
+    if (!jogging && !waiting) {
+      if (this.jogTarget && m && m.id === this.jogMotion && m.status === "done") this.restTarget = this.jogTarget;
+      this.jogTarget = null; this.jogMotion = null;
+    }
     const target = this.jogTarget || q;
     this.detail.joints.forEach((j, i) => {
       if (this.dragging !== i && document.activeElement !== this.el.sliders[i]) this.el.sliders[i].value = target[i];
