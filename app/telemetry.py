@@ -266,7 +266,6 @@ class TelemetryHub:
             subs = list(self._subs)
         for sub in subs:
             sub._push_event(encoded)
-        return msg
 
     # ---------------------------------------------------------------- taking
 
