@@ -59,6 +59,8 @@ class RawSocket:
         conn = getattr(proto, "conn", None)
         if proto is None or conn is None or getattr(proto, "transport", None) is None:
             return None
+        if type(proto).__name__ != "WebSocketsSansIOProtocol":  # wsproto: extensions elsewhere
+            return None
         if getattr(conn, "extensions", None) or not getattr(proto, "handshake_complete", False):
             return None  # compression negotiated (frames need the library), or not accepted
         if not hasattr(proto, "close_sent"):
