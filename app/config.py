@@ -446,11 +446,13 @@ class Settings(BaseSettings):
     #: Largest request head (request line and headers), bytes: more is refused with 400 after
     #: that many bytes, before any parsing of the rest (uvicorn's h11 parser).
     max_header_bytes: int = 32 * 1024
-    #: Open connections (HTTP keep-alive and WebSocket) before new requests get 503.
-    max_connections: int = 1000
+    #: Open connections (HTTP keep-alive and WebSocket) before new requests get 503: room
+    #: for `max_subscribers` dashboards and the REST clients beside them.
+    max_connections: int = 4096
     #: Telemetry WebSocket subscribers per arm and in all; more are closed with 1013 `busy`.
-    max_subscribers_per_arm: int = 100
-    max_subscribers: int = 200
+    #: A lab's 1,000 dashboards on one arm fit (issue 12: 1,000 clients at 30 msg/s).
+    max_subscribers_per_arm: int = 1000
+    max_subscribers: int = 2000
     #: After SIGTERM has stopped the arms: how long open requests may take to finish, s.
     shutdown_timeout_s: float = 5.0
 

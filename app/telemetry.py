@@ -83,6 +83,10 @@ class Subscription:
             loop.call_soon_threadsafe(_resolve, fut)
 
     @property
+    def has_events(self) -> bool:
+        return bool(self._events)
+
+    @property
     def pending(self) -> bool:
         return bool(self._events) or self.cursor < self._hub.published
 
@@ -302,20 +306,29 @@ class TelemetryHub:
 
     def _message(self, sub: Subscription, until: float | None) -> str | None:
         with self._lock:
-            first, end, lost = self._range_locked(sub, until)
-            dropped = sub.dropped + lost
-            sub.dropped = 0
-            if end == first and not dropped:
-                return None
-            sub.delivered += end - first
-            key = (first, end, dropped)
-            msg = self._cache.get(key)
-            if msg is None:
-                msg = self._build(self._slice_locked(first, end), dropped)
-                if len(self._cache) >= MESSAGE_CACHE:
-                    self._cache.clear()
-                self._cache[key] = msg
-            return msg
+            return self._message_locked(sub, until)
+
+    def messages(self, subs: list[Subscription], until: float | None) -> list[str | None]:
+        """`take_message(until)` for each of `subs`, under one acquisition of the lock (the
+        broadcast fan-out: subscribers at the same cursor get the same str object)."""
+        with self._lock:
+            return [self._message_locked(sub, until) for sub in subs]
+
+    def _message_locked(self, sub: Subscription, until: float | None) -> str | None:
+        first, end, lost = self._range_locked(sub, until)
+        dropped = sub.dropped + lost
+        sub.dropped = 0
+        if end == first and not dropped:
+            return None
+        sub.delivered += end - first
+        key = (first, end, dropped)
+        msg = self._cache.get(key)
+        if msg is None:
+            msg = self._build(self._slice_locked(first, end), dropped)
+            if len(self._cache) >= MESSAGE_CACHE:
+                self._cache.clear()
+            self._cache[key] = msg
+        return msg
 
     def _build(self, samples: list[str], dropped: int) -> str:
         return (f'{{"type":"telemetry","arm":{self.arm_json},'

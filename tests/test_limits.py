@@ -104,3 +104,26 @@ def test_subscribers_over_the_per_arm_and_total_limits_are_refused_busy() -> Non
 
     with serve_live(settings) as live:
         asyncio.run(run(live.ws_url))
+
+
+def test_the_default_limits_let_a_lab_of_dashboards_watch_one_arm() -> None:
+    """Issue 12: defaults must let a lab run its dashboards (the old 100 per arm, 200 in all
+    refused the 101st). 300 clients on one arm with the default settings each get telemetry;
+    the per-arm limit stays above what a lab needs and below the connection limit."""
+    settings = make_settings()
+    assert settings.max_subscribers_per_arm >= 1000
+    assert settings.max_connections > settings.max_subscribers >= settings.max_subscribers_per_arm
+    n = 300
+
+    async def run(base: str) -> None:
+        url = base + WS.format(arm="rbe3001") + "?rate=2"
+        clients = await asyncio.gather(*[connect(url, open_timeout=60) for _ in range(n)])
+        try:
+            first = await asyncio.wait_for(asyncio.gather(*[c.recv() for c in clients]), 60)
+            kinds = [json.loads(m)["type"] for m in first]
+            assert kinds == ["telemetry"] * n
+        finally:
+            await asyncio.gather(*[c.close() for c in clients], return_exceptions=True)
+
+    with serve_live(settings) as live:
+        asyncio.run(run(live.ws_url))

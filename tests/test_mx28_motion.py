@@ -12,6 +12,7 @@ import pytest
 from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
 
 from app.sim.dynamixel_bus import DynamixelBus
+from app.sim.mx28_motion import Motion
 from protocol import dynamixel as dxl
 from protocol import mx28
 from protocol.dynamixel import ErrorCode
@@ -185,3 +186,46 @@ def test_sdk_velocity_limit_refusal_and_speed_cap(
     assert all(st & mx28.PROFILE_TYPE_MASK == mx28.PROFILE_RECTANGULAR for st in statuses)
     assert all(st & mx28.PROFILE_ONGOING for st in statuses)
     assert statuses[-1] & mx28.FOLLOWING_ERROR  # the motor falls behind the profile
+
+
+class _Integrating(Motion):
+    """The motion without the at-rest shortcut: every step integrated (the reference)."""
+
+    @property
+    def at_rest(self) -> bool:
+        return False
+
+
+def _table(bus: DynamixelBus, t: float) -> bytes:
+    """Every servo's whole RAM area (64..146) as one SYNC_READ answers it at time `t`."""
+    ids = [s.id for s in bus.servos]
+    return b"".join(d for _, d in bus.receive(dxl.sync_read(64, 83, ids), t))
+
+
+def test_the_at_rest_shortcut_sends_the_same_bytes_as_integrating() -> None:
+    """A servo at rest skips its 1 kHz integration (most of an idle simulator's cost): the
+    bytes it answers (positions, velocities, loads, PWM, Moving Status, trajectories) are the
+    same as integrating every step, at rest, through a move and after torque off."""
+    fast, ref = DynamixelBus(), DynamixelBus()
+    for s in ref.servos:
+        m = _Integrating()
+        m.reset(s.motion.pos)
+        s.motion = m
+    assert all(s.motion.at_rest for s in fast.servos)  # fresh servos rest on their goal
+    rested = 0
+    t = 0.0
+    # Goal PWM 100 caps the motor below the profile: the trajectory ends before the motor
+    # does (on its goal, the motor still lagging), then full duty again.
+    script = {0.1: (64, 1, 1), 0.2: (112, 60, 4), 0.21: (108, 20, 4), 0.3: (116, 2600, 4),
+              1.5: (116, 1900, 4), 1.51: (100, 100, 2), 2.5: (100, 885, 2),
+              2.8: (64, 0, 1), 3.0: (64, 1, 1), 3.1: (116, 2048, 4)}
+    for k in range(2000):
+        t = round(k * 0.002, 6)
+        for when, (address, value, size) in script.items():
+            if abs(t - when) < 1e-9:
+                assert _w(fast, 2, address, value, size, t) == _w(ref, 2, address, value, size, t)
+        assert _table(fast, t) == _table(ref, t), f"t={t}"
+        rested += fast.servo(2).motion.at_rest  # type: ignore[union-attr]
+    assert 0 < rested < 2000  # the shortcut was taken, and servo 2 moved too
+    s = fast.servo(2)
+    assert s is not None and s.get("present_position") == 2048

@@ -21,6 +21,7 @@ import math
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
+from app.api.ws_fanout import Broadcasts, Member, RawSocket
 from app.auth import bearer_token
 from app.service import ArmService
 from app.telemetry import Subscription
@@ -105,6 +106,15 @@ def subscribers_over_limit(state: object, svc: ArmService) -> str | None:
     return None
 
 
+def _broadcasts(state: object) -> Broadcasts:
+    """The app's telemetry broadcasts (app/api/ws_fanout.py), made on first use."""
+    found: Broadcasts | None = getattr(state, "ws_broadcasts", None)
+    if found is None:
+        found = Broadcasts()
+        state.ws_broadcasts = found  # type: ignore[attr-defined]
+    return found
+
+
 class _Stream:
     """One client's sender and receiver."""
 
@@ -114,6 +124,7 @@ class _Stream:
         self.period = 1.0 / rate
         self.max_message = max_message
         self._rate_changed = False
+        self._changed = asyncio.Event()  # set with _rate_changed: a broadcast member leaves
 
     async def run(self) -> None:
         # The subscription carries the latest sample as of subscribing (`initial`); every later
@@ -140,10 +151,15 @@ class _Stream:
         ws = self.ws
         if sub.initial is not None:
             await ws.send_text(sub.telemetry_message([sub.initial], 0))
+        raw = RawSocket.open(ws)
         while True:
             self._rate_changed = False
             if self.period <= PROMPT_PERIOD_S:
                 await self._send_prompt(sub)
+            elif raw is not None:  # one task and one frame per batch for every such client
+                self._changed = asyncio.Event()
+                await _broadcasts(ws.app.state).serve(self.svc.hub, self.period,
+                                                      Member(sub, raw), self._changed)
             else:
                 await self._send_ticked(sub)
 
@@ -210,5 +226,6 @@ class _Stream:
                 if isinstance(body, dict) and "rate" in body:
                     self.period = 1.0 / parse_rate(body["rate"], 1.0 / self.period)
                     self._rate_changed = True
+                    self._changed.set()
             except (ValueError, BadRate):
                 continue  # the contract lets the server ignore what clients send

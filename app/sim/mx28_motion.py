@@ -62,7 +62,16 @@ class Motion:
         self.profile_bits = profile_type(pv_raw, pa_raw, goal - self.traj_pos)
 
     # position modes -----------------------------------------------------------------------
+    @property
+    def at_rest(self) -> bool:
+        """On the goal with no trajectory under way and the motor still: a step changes
+        nothing (every integration step would write back the same values)."""
+        return (self.traj_pos == self.goal == self.pos and self.traj_vel == 0.0
+                and self.vel == 0.0 and self.acc == 0.0 and self.lag == 0.0)
+
     def step_position(self, dt: float, cap: float, pv_raw: float, pa_raw: float) -> None:
+        if self.at_rest:  # the same state out, without 1,000 integration steps a second
+            return
         vmax = pv_raw * mx28.VEL_TICKS_PER_UNIT if pv_raw > 0 else math.inf
         amax = pa_raw * mx28.ACC_TICKS_PER_UNIT if pa_raw > 0 else math.inf
         t_left = dt

@@ -32,6 +32,7 @@ Coulomb friction. Drive Mode (reverse, time-based profile) is not modelled. Dete
 
 from __future__ import annotations
 
+import functools
 import math
 from types import ModuleType
 
@@ -60,6 +61,14 @@ _GAINS = ("velocity_i_gain", "velocity_p_gain", "position_d_gain", "position_i_g
           "position_p_gain", "feedforward_2nd_gain", "feedforward_1st_gain")
 _LIMITS = {"goal_velocity": "velocity_limit", "profile_velocity": "velocity_limit",
            "goal_pwm": "pwm_limit", "profile_acceleration": "acceleration_limit"}
+
+
+@functools.cache
+def _layout(spec: ModuleType) -> dict[str, tuple[int, int, int, bool]]:
+    """(start, end, size, signed) of each control-table item of `spec`, by name: `get` and
+    `set` run a few dozen times per servo per poll."""
+    return {name: (it.address, it.address + it.size, it.size, it.signed)
+            for name, it in spec.TABLE.items()}
 
 
 class Mx28Servo:
@@ -94,12 +103,12 @@ class Mx28Servo:
 
     # raw access ---------------------------------------------------------------------------
     def get(self, name: str) -> int:
-        it = self.spec.TABLE[name]
-        return from_bytes(bytes(self.mem[it.address:it.address + it.size]), it.signed)
+        start, end, _, signed = _layout(self.spec)[name]
+        return int.from_bytes(self.mem[start:end], "little", signed=signed)
 
     def set(self, name: str, value: int) -> None:
-        it = self.spec.TABLE[name]
-        self.mem[it.address:it.address + it.size] = to_bytes(value, it.size)
+        start, end, size, _ = _layout(self.spec)[name]
+        self.mem[start:end] = to_bytes(value, size)
 
     @property
     def id(self) -> int:

@@ -1,0 +1,132 @@
+"""The telemetry broadcast (app/api/ws_fanout.py) over a real uvicorn server on loopback:
+clients of one arm at one rate are served by one task writing pre-built frames, and each
+still gets every sample once, in order, batched, with events; a client that changes its rate
+moves to that rate's broadcast; a client that negotiated compression gets its own sender."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from typing import Any
+
+import httpx
+from conftest import LiveServer, serve_live
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.frames import Frame, Opcode
+from websockets.streams import StreamReader
+
+from app.api.ws_fanout import text_frame
+
+WS = "/api/v1/arms/{arm}/telemetry"
+
+
+def test_text_frame_headers_for_each_length_encoding() -> None:
+    for n in (0, 125, 126, 65535, 65536, 200_000):
+        payload = b"x" * n
+        # the websockets library's own parser reads it back as one final text frame
+        reader = StreamReader()
+        reader.feed_data(text_frame(payload))
+        reader.feed_eof()
+        parser = Frame.parse(reader.read_exact, mask=False)
+        try:
+            next(parser)
+        except StopIteration as done:
+            got = done.value
+        else:
+            raise AssertionError("the frame did not parse")
+        assert got.opcode is Opcode.TEXT and got.fin and got.data == payload
+        assert reader.at_eof() is not False
+
+
+async def _collect(ws: ClientConnection, seconds: float) -> tuple[list[dict[str, Any]],
+                                                                  list[dict[str, Any]]]:
+    tele: list[dict[str, Any]] = []
+    events: list[dict[str, Any]] = []
+    deadline = time.monotonic() + seconds
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            raw = await asyncio.wait_for(ws.recv(), left)
+        except TimeoutError:
+            break
+        msg = json.loads(raw)
+        (tele if msg["type"] == "telemetry" else events).append(msg)
+    return tele, events
+
+
+async def _until_event(ws: ClientConnection, name: str, seconds: float = 20.0) -> bool:
+    """Read until event `name` arrives (True), or `seconds` pass (False)."""
+    deadline = time.monotonic() + seconds
+    while (left := deadline - time.monotonic()) > 0:
+        try:
+            msg = json.loads(await asyncio.wait_for(ws.recv(), left))
+        except TimeoutError:
+            break
+        if msg["type"] == "event" and msg["event"] == name:
+            return True
+    return False
+
+
+def _groups(live: LiveServer) -> dict[float, int]:
+    """Members per broadcast period of the live app."""
+    b = getattr(live.app.state, "ws_broadcasts", None)
+    return {} if b is None else {g.period: len(g.members) for g in b._groups.values()}
+
+
+def test_many_clients_share_one_broadcast_and_each_gets_every_sample() -> None:
+    n = 20
+
+    async def run(live: LiveServer) -> None:
+        url = live.ws_url + WS.format(arm="rbe3001") + "?rate=20"
+        clients = await asyncio.gather(*[connect(url, compression=None, open_timeout=60)
+                                         for _ in range(n)])
+        try:
+            results = await asyncio.gather(*[_collect(c, 1.5) for c in clients])
+            assert _groups(live) == {1 / 20: n}
+            # an estop's event reaches every member
+            async with httpx.AsyncClient(base_url=live.url) as http:
+                r = await http.post("/api/v1/arms/rbe3001/estop")
+                assert r.status_code == 200
+                after = await asyncio.gather(*[_until_event(c, "estop") for c in clients])
+                r = await http.delete("/api/v1/arms/rbe3001/estop")
+                assert r.status_code == 200
+        finally:
+            await asyncio.gather(*[c.close() for c in clients])
+        for tele, _ in results:
+            seqs = [s["seq"] for m in tele for s in m["samples"]]
+            assert len(tele) >= 3 and len(seqs) > len(tele)  # batches of several samples
+            assert all(b == a + 1 for a, b in zip(seqs, seqs[1:], strict=False))
+            assert all(m["dropped"] == 0 for m in tele)
+        assert all(after)  # every member got the estop event
+        for _ in range(100):  # closed clients leave; an empty broadcast ends
+            if not _groups(live):
+                break
+            await asyncio.sleep(0.02)
+        assert _groups(live) == {}
+
+    with serve_live() as live:
+        asyncio.run(run(live))
+
+
+def test_a_client_that_changes_rate_moves_broadcast_and_compression_keeps_its_sender() -> None:
+    async def run(live: LiveServer) -> None:
+        url = live.ws_url + WS.format(arm="angler")
+        async with connect(url + "?rate=10", compression=None) as a, \
+                connect(url + "?rate=10", compression=None) as b, \
+                connect(url + "?rate=10") as deflate:  # offers permessage-deflate
+            for c in (a, b, deflate):
+                await c.recv()
+            await asyncio.sleep(0.3)
+            assert _groups(live) == {0.1: 2}  # the deflate client has its own sender
+            await b.send(json.dumps({"rate": 25}))
+            tele, _ = await _collect(b, 1.0)
+            assert _groups(live) == {0.1: 1, 0.04: 1}
+            assert len(tele) >= 3
+            seqs = [s["seq"] for m in tele for s in m["samples"]]
+            assert all(y == x + 1 for x, y in zip(seqs, seqs[1:], strict=False))
+            slow, _ = await _collect(deflate, 1.0)
+            seqs = [s["seq"] for m in slow for s in m["samples"]]
+            assert len(slow) >= 3 and all(y == x + 1 for x, y in zip(seqs, seqs[1:], strict=False))
+
+    with serve_live() as live:
+        asyncio.run(run(live))
