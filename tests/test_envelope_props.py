@@ -173,5 +173,6 @@ async def test_speed_override_caps_the_measured_joint_speed_in_telemetry() -> No
               f"{cap.tolist()} rad/s ({len(seen)} samples)")
         assert len(seen) > 100
         assert np.all(peak_cmd <= cap * (1 + 1e-6)), (peak_cmd, cap)
-        assert peak_cmd.max() >= 0.95 * cap.max()  # it did run at the scaled limit
+        # it did run at the scaled limit, planned at the profile's tracking margin of it
+        assert peak_cmd.max() >= 0.95 * svc.profile.tracking_margin * cap.max()
         assert np.all(peak <= cap + TRACKING_RAD_S), (peak, cap)

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from kinematics.transmission import RPM_PER_UNIT, Transmission
 
-PROFILES = Path(__file__).resolve().parents[1] / "app" / "profiles"
+PROFILES = Path(__file__).resolve().parents[1] / "app" / "arms" / "angler"
 
 
 def angler() -> Transmission:
