@@ -42,7 +42,8 @@ _ALLOWED_FILES = (
     "app/client",
 )
 _ALLOWED_NAMES = {
-    "Rbe3001Status",  # the RBE3001 pass-through's wire schema in app/schemas.py (the client's)
+    # the RBE3001 pass-through's wire schema in app/schemas/passthrough.py (the client's)
+    "Rbe3001Status",
 }
 
 

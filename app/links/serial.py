@@ -1,7 +1,7 @@
 """A byte-stream link over any pyserial URL, on pyserial-asyncio.
 
 Works with a USB serial adapter (`/dev/ttyUSB0`, the Dynamixel U2D2), a pseudo-terminal
-(`/dev/pts/N` or a symlink to it, as `app/sim/serve.py` makes) and a TCP socket
+(`/dev/pts/N` or a symlink to it, as `app/sim/servers.py` makes) and a TCP socket
 (`socket://127.0.0.1:PORT`). pyserial and pyserial-asyncio are imported only when a link
 is opened, so a server with no serial arm never loads them.
 

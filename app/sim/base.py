@@ -1,7 +1,7 @@
 """The contract of a simulated device: bytes in, bytes out, time explicit (sans-IO).
 
 A simulated device is driven by whoever carries its bytes: the in-process `SimLink`
-(app/links/sim.py), or `app/sim/serve.py` over a pseudo-terminal or a TCP socket. It never
+(app/links/sim.py), or `app/sim/servers.py` over a pseudo-terminal or a TCP socket. It never
 knows which, and the server never knows it is talking to one.
 """
 

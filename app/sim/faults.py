@@ -1,7 +1,7 @@
 """Per-reply faults of a simulated link: drop, corrupt (one byte changed), latency.
 
 One implementation for every way a simulator is reached: the in-process SimLink and the
-pseudo-terminal and TCP servers of app/sim/serve.py. Seeded, so a run can be repeated.
+pseudo-terminal and TCP servers of app/sim/servers.py. Seeded, so a run can be repeated.
 """
 
 from __future__ import annotations

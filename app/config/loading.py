@@ -1,0 +1,144 @@
+"""Loading arm profiles (built-in names or TOML files) and server config files (`[[arms]]`
+entries with overrides and copies), with a `ConfigError` that says what and where."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field, ValidationError
+
+from app.arms import arm_type, builtin_profiles
+from app.config.profiles import ArmProfile, _Strict
+
+#: Most copies one `[[arms]]` entry may ask for (`count`).
+MAX_COPIES = 256
+
+
+class ConfigError(ValueError):
+    """A config file or profile that cannot be used; the message says what is wrong, where,
+    and (for an unknown profile) which profiles are built in. `armserver serve` prints it and
+    exits 2, no traceback."""
+
+
+def _builtins() -> str:
+    return ", ".join(f'"{n}"' for n in builtin_profiles())
+
+
+def _read_toml(path: Path, what: str) -> dict[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{what} {path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{what} {path}: cannot be read: {exc}") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{what} {path}: malformed TOML: {exc}") from None
+
+
+def _invalid(exc: ValidationError, where: str) -> ConfigError:
+    lines = [f"{where}: {exc.error_count()} invalid value(s):"]
+    for e in exc.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        lines.append(f"  {loc}: {e['msg']}")
+    return ConfigError("\n".join(lines))
+
+
+def load_profile(source: str | Path) -> ArmProfile:
+    """Load a profile by built-in name (a `*.toml` shipped in an arm type's package, e.g.
+    `rbe3001`, `angler`) or from a TOML file path.
+    Raises :class:`ConfigError` naming the file and what is wrong with it."""
+    builtins = builtin_profiles()
+    if isinstance(source, str) and source in builtins:
+        text = builtins[source].read_text(encoding="utf-8")
+        data, where = tomllib.loads(text), f"built-in profile {source!r}"
+    else:
+        path = Path(source)
+        if not path.is_file():
+            raise ConfigError(f"profile {str(source)!r}: not a built-in profile (those are "
+                              f"{_builtins()}) and no profile file {path}")
+        data, where = _read_toml(path, "profile file"), f"profile file {path}"
+    try:
+        return ArmProfile.model_validate(data)
+    except ValidationError as exc:
+        raise _invalid(exc, where) from None
+
+
+class ServerConfig(_Strict):
+    """A server config file: which arms to host, each a built-in name or a profile path,
+    with optional overrides of the profile's tables."""
+
+    arms: list[dict[str, object]] = Field(default_factory=list)
+
+
+def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
+    """The arms a server hosts. With no config file: every built-in profile, simulated.
+
+    A config file is TOML with `[[arms]]` tables, each either `profile = "rbe3001"` (or a
+    path) plus overrides such as `name = "left"` and `[arms.link]`, or a whole profile.
+    `count = N` (1..256) in an entry hosts N copies named `{name}-1` .. `{name}-N` (a lab of
+    simulated arms from one entry; a copy's link address, if any, is shared, so use it with
+    `kind = "sim"`).
+    """
+    if config_file is None:  # the built-in simulators start at a known pose: homed
+        builtin = [load_profile(n) for n in builtin_profiles()]
+        return [homed_at_start(p) for p in builtin if arm_type(p.model).default_server]
+    path = Path(config_file)
+    data = _read_toml(path, "config file")
+    arms = data.get("arms", [])
+    if not isinstance(arms, list) or not all(isinstance(a, dict) for a in arms):
+        raise ConfigError(f"config file {path}: `arms` must be [[arms]] tables")
+    profiles: list[ArmProfile] = []
+    for k, entry in enumerate(arms):
+        entry = dict(entry)
+        where = f"config file {path}, [[arms]] #{k + 1}"
+        count = entry.pop("count", 1)
+        if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_COPIES:
+            raise ConfigError(f"{where}: count must be an integer 1..{MAX_COPIES}, got {count!r}")
+        base_name = entry.pop("profile", None)
+        if base_name is not None:
+            if not isinstance(base_name, str) or not base_name:
+                raise ConfigError(f"{where}: `profile` must be a built-in profile name "
+                                  f"({_builtins()}) or a path to a profile file")
+            src = base_name if base_name in builtin_profiles() else path.parent / base_name
+            if isinstance(src, Path) and not src.is_file():
+                raise ConfigError(f"{where}: profile = {base_name!r} is neither a built-in "
+                                  f"profile ({_builtins()}) nor a profile file ({src})")
+            try:
+                base = load_profile(src).model_dump()
+            except ConfigError as exc:
+                raise ConfigError(f"{where}: {exc}") from None
+            base = _merge(base, entry)
+        else:
+            base = entry
+        copies = [base] if count == 1 else [
+            {**base, "name": f"{base.get('name')}-{n}"} for n in range(1, count + 1)]
+        for copy in copies:
+            try:
+                profiles.append(ArmProfile.model_validate(copy))
+            except ValidationError as exc:
+                raise _invalid(exc, where) from None
+    names = [p.name for p in profiles]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"config file {path}: arm names must be unique, got {names} (give "
+                          "each a `name`)")
+    if not profiles:
+        raise ConfigError(f"config file {path} names no [[arms]]")
+    return profiles
+
+
+def homed_at_start(p: ArmProfile) -> ArmProfile:
+    return p.model_copy(update={"link": p.link.model_copy(update={"homed_at_start": True})})
+
+
+def _merge(base: dict[str, object], over: dict[str, object]) -> dict[str, object]:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)  # type: ignore[arg-type]  # both dicts: checked above
+        else:
+            out[k] = v
+    return out

@@ -1,0 +1,260 @@
+"""Arm profiles: the pydantic models of a profile (link, joints, gripper, force, limits,
+safety envelope) and their checks; the arm type named by `model` validates the rest."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_validator,
+)
+
+from app.arms import arm_type
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class FaultConfig(_Strict):
+    """Fault injection on a simulated link (fractions are probabilities per reply)."""
+
+    drop: float = Field(0.0, ge=0.0, le=1.0, description="fraction of replies dropped")
+    corrupt: float = Field(0.0, ge=0.0, le=1.0,
+                           description="fraction of replies with a byte flipped")
+    latency_s: float = Field(0.0, ge=0.0, le=5.0, description="extra delay before each reply, s")
+    disconnect_after_s: float | None = Field(
+        None, ge=0.0, description="drop the link this long after it opens (None: never)"
+    )
+    reconnect_after_s: float = Field(0.5, ge=0.0, description="how long a disconnect lasts, s")
+
+
+class LinkConfig(_Strict):
+    kind: Literal["sim", "hid", "serial"] = "sim"
+    address: str = Field(
+        "", description="serial URL (/dev/ttyUSB0, socket://host:port) or hidraw path")
+    vid: int | None = None
+    pid: int | None = None
+    serial_number: str | None = None
+    baudrate: int = 1_000_000
+    timeout_s: float = Field(0.05, gt=0.0, le=10.0, description="per-request reply timeout, s")
+    poll_hz: float = Field(100.0, gt=0.0, le=2000.0)
+    control_hz: float = Field(100.0, gt=0.0, le=1000.0)
+    queue_size: int = Field(64, ge=1, le=10_000)
+    faults: FaultConfig = Field(default_factory=FaultConfig)
+    homed_at_start: bool = Field(
+        False, description="the joints that need homing start homed: true only for a device "
+        "that starts at a known pose (the built-in simulated config); a real multi-turn joint "
+        "does not know where it is after a power cycle")
+    sim_echo: bool = Field(False, description="rbe3001 simulator only: reply as firmware builds "
+                           "that echo the request's unwritten floats, instead of zeroing them as "
+                           "PidServer.cpp does (the default)")
+
+
+class JointConfig(_Strict):
+    name: str
+    kind: Literal["revolute", "prismatic"]
+    min: float
+    max: float
+    max_velocity: float = Field(gt=0.0, description="rad/s or m/s")
+    max_acceleration: float = Field(gt=0.0, description="rad/s^2 or m/s^2")
+    max_jerk: float = Field(gt=0.0, description="rad/s^3 or m/s^3")
+    motor_id: int | None = Field(None, ge=0, le=252,
+                                 description="Dynamixel id, where the arm has one")
+    ticks_per_rev: int = 4096
+    offset_ticks: float = 0.0
+    sign: Literal[1, -1] = 1
+    lead_m: float | None = Field(None, gt=0.0,
+                                 description="metres per motor revolution (prismatic)")
+    operating_mode: int | None = None
+    stall_torque_nm: float | None = Field(
+        None, gt=0.0, description="motor stall torque, N m (Dynamixel Present Load is 0.1 % of it)"
+    )
+    needs_homing: bool = Field(False, description="the joint's zero is lost at power-up (a "
+                               "multi-turn screw or winch): moves wait for POST /home")
+    settle_tolerance: float | None = Field(
+        None, gt=0.0, description="rad or m: a motion is done when the joint is this close to "
+        "where it was sent (default: 8 encoder ticks)")
+
+    @model_validator(mode="after")
+    def _check(self) -> JointConfig:
+        if self.min >= self.max:
+            raise ValueError(f"joint {self.name}: min must be below max")
+        if self.kind == "prismatic" and self.lead_m is None:
+            raise ValueError(f"joint {self.name}: a prismatic joint needs lead_m")
+        return self
+
+
+class GripperConfig(_Strict):
+    kind: Literal["none", "claw", "magnet"] = "none"
+    # A claw on its own servo (a Dynamixel on the arm's bus); unset for one the arm's
+    # controller drives (the rbe3001's claw).
+    motor_id: int | None = Field(None, ge=0, le=252, description="the gripper's servo id")
+    operating_mode: int | None = Field(None, description="the gripper servo's operating mode")
+    min: float = Field(0.0, description="finger travel when closed (1.0), m")
+    max: float = Field(0.0, description="finger travel when open (0.0), m")
+    rad_per_m: float = Field(1.0, description="servo angle per metre of finger travel")
+    offset_ticks: float = Field(2048.0, description="servo ticks at zero travel")
+
+    @property
+    def actuated(self) -> bool:
+        return self.kind == "claw"
+
+
+class ForceConfig(_Strict):
+    """Strain gauge calibration, per joint: torque = k * adc + y (the published student form;
+    its units are not stated, the server reads the result as N m). Either `k` and `y`, or the
+    equivalent `adc_scale` (= k) and `adc_offset` (= -y / k): tau = scale * (adc - offset).
+    `calibrated` false marks placeholder constants: the arm detail then says the torques and
+    tip force are not a measurement."""
+
+    k: list[float] | None = None
+    y: list[float] | None = None
+    adc_scale: list[float] | None = None
+    adc_offset: list[float] | None = None
+    calibrated: bool = False
+    note: str = ""
+
+    @model_validator(mode="after")
+    def _forms(self) -> ForceConfig:
+        if self.k is not None and self.y is not None:  # k and y win where both forms are given
+            if len(self.k) != len(self.y) or any(v == 0.0 for v in self.k):
+                raise ValueError("force: k and y need one entry per joint, k nonzero")
+            self.adc_scale = list(self.k)
+            self.adc_offset = [-b / a for a, b in zip(self.k, self.y, strict=True)]
+        elif self.adc_scale is not None and self.adc_offset is not None:
+            if len(self.adc_scale) != len(self.adc_offset):
+                raise ValueError("force: adc_scale and adc_offset need one entry per joint")
+            self.k = list(self.adc_scale)
+            self.y = [-a * o for a, o in zip(self.adc_scale, self.adc_offset, strict=True)]
+        else:
+            raise ValueError("force: give k and y (torque = k * adc + y) per joint")
+        for v in (*self.k, *self.y):
+            if not math.isfinite(v):
+                raise ValueError("force: calibration constants must be finite")
+        return self
+
+    @property
+    def scale(self) -> list[float]:
+        return list(self.adc_scale or ())
+
+    @property
+    def offset(self) -> list[float]:
+        return list(self.adc_offset or ())
+
+
+class CartesianLimits(_Strict):
+    """Tip limits for straight-line moves."""
+
+    max_velocity: float = Field(0.1, gt=0.0, description="m/s")
+    max_acceleration: float = Field(0.5, gt=0.0, description="m/s^2")
+    max_jerk: float = Field(5.0, gt=0.0, description="m/s^3")
+    line_tolerance: float = Field(0.005, gt=0.0, description="how far the measured tip may "
+                                  "stray from a line move's segment, m (reported, tested)")
+
+
+class Point3(_Strict):
+    """A point in an arm's base frame, m (within 10 m of the base: no arm here reaches further)."""
+
+    x: float = Field(ge=-10.0, le=10.0, strict=True)
+    y: float = Field(ge=-10.0, le=10.0, strict=True)
+    z: float = Field(ge=-10.0, le=10.0, strict=True)
+
+
+class KeepOutBox(_Strict):
+    """An axis-aligned box no body point of the arm may enter, in the arm's base frame."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9 _.-]{0,63}$")
+    min: Point3
+    max: Point3
+
+    @model_validator(mode="after")
+    def _check(self) -> KeepOutBox:
+        for axis in "xyz":
+            if getattr(self.min, axis) >= getattr(self.max, axis):
+                raise ValueError(f"zone {self.name}: min.{axis} must be below max.{axis}")
+        return self
+
+
+class SafetySettings(_Strict):
+    """What an instructor may change (PUT /arms/{arm}/safety); the profile sets the start."""
+
+    zones: list[KeepOutBox] = Field(default_factory=list, max_length=32)
+    floor_z: float | None = Field(None, ge=-10.0, le=10.0,
+                                  description="no body point below this height, m (None: none)")
+    speed_override: float = Field(1.0, ge=0.05, le=1.0, description="scales every planned "
+                                  "velocity, acceleration and jerk limit")
+
+    @field_validator("zones")
+    @classmethod
+    def _unique(cls, v: list[KeepOutBox]) -> list[KeepOutBox]:
+        names = [z.name for z in v]
+        if len(set(names)) != len(names):
+            raise ValueError(f"zone names must be unique, got {names}")
+        return v
+
+
+class SafetyConfig(SafetySettings):
+    """A profile's `[safety]`: the settings plus the margins, which only the profile sets."""
+
+    tool_margin: float = Field(0.0, ge=0.0, le=0.5, description="the tool's size around the "
+                               "tip: zones and the floor are grown by it for the tip, m")
+    body_margin: float = Field(0.0, ge=0.0, le=0.5, description="the same for every other "
+                               "joint origin, m")
+
+
+class ArmProfile(_Strict):
+    name: str = Field(pattern=r"^[a-z0-9][a-z0-9_-]{0,31}$")
+    model: str = Field(description="the arm type (a name in app/arms ARM_TYPES)")
+    description: str = ""
+    link: LinkConfig = Field(default_factory=LinkConfig)
+    geometry: dict[str, float]
+    joints: list[JointConfig]
+    gripper: GripperConfig = Field(default_factory=GripperConfig)
+    force: ForceConfig | None = None
+    cartesian: CartesianLimits = Field(default_factory=CartesianLimits)
+    home: list[float] | None = Field(None, description="joint positions of the home pose")
+    raw_access: bool = Field(False, description="allow pass-through commands outside the limits")
+    safety: SafetyConfig = Field(default_factory=SafetyConfig)
+    tracking_margin: float = Field(
+        0.9, gt=0.0, le=1.0, description="moves are planned with the joints' velocity and "
+        "acceleration limits times this (a line: its joint velocity bound; the Cartesian "
+        "limits are the tip's own), so that the device's own tracking "
+        "(a PID catching up on a plan at the limit) stays within the limits the guard "
+        "enforces, which stay the joints' own")
+
+    @field_validator("geometry")
+    @classmethod
+    def _finite(cls, v: dict[str, float]) -> dict[str, float]:
+        for k, x in v.items():
+            if not math.isfinite(x):
+                raise ValueError(f"geometry {k} must be finite")
+        return v
+
+    @field_validator("model")
+    @classmethod
+    def _known_type(cls, v: str) -> str:
+        arm_type(v)  # ValueError naming the known arm types
+        return v
+
+    @model_validator(mode="after")
+    def _check(self) -> ArmProfile:
+        arm_type(self.model).validate(self)  # geometry keys, joint count, the type's own
+        return self
+
+    @property
+    def joint_names(self) -> list[str]:
+        return [j.name for j in self.joints]
+
+    @property
+    def lower(self) -> list[float]:
+        return [j.min for j in self.joints]
+
+    @property
+    def upper(self) -> list[float]:
+        return [j.max for j in self.joints]

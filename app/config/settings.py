@@ -1,0 +1,155 @@
+"""Server settings: the environment (prefix ARMSERVER_) or CLI flags, each checked at
+start-up, and the start-up message for invalid ones."""
+
+from __future__ import annotations
+
+import math
+
+from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Process settings from the environment (prefix ARMSERVER_) or CLI flags."""
+
+    model_config = SettingsConfigDict(env_prefix="ARMSERVER_", extra="ignore")
+
+    host: str = "127.0.0.1"
+    port: int = 8000
+    config: str | None = None
+    operator_tokens: str = ""
+    viewer_tokens: str = ""
+    instructor_tokens: str = ""
+    #: A TOML file of named tokens for a class (`[[tokens]] name, role, token`).
+    tokens_file: str | None = None
+    #: Classroom queue: how long an offered lease waits for its first renewal, s.
+    claim_s: float = Field(30.0, gt=0.0, le=3600.0)
+    #: Classroom queue: how long a slot lasts, renewed or not, s.
+    slot_s: float = Field(300.0, gt=0.0, le=86400.0)
+    #: Where the SQLite store keeps settings (safety envelopes) across restarts.
+    data_dir: str = "./data"
+    cors_origins: str = ""
+    max_body_bytes: int = 64 * 1024
+    max_ws_message_bytes: int = 4 * 1024
+    lease_ttl_s: float = 5.0
+    #: permessage-deflate on WebSockets: off by default, because compressing each telemetry
+    #: message once per client was a fifth of the server's CPU at 100 clients (py-spy).
+    ws_compression: bool = False
+    log_level: str = "info"
+    #: Lab-wide telemetry (API.md "Lab-wide telemetry over MQTT"): the broker,
+    #: `mqtt://[user[:password]@]host[:port]`; unset: no bridge.
+    mqtt_url: str | None = None
+    mqtt_prefix: str = Field("armserver", pattern=r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
+    mqtt_rate: float = Field(10.0, gt=0.0, le=100.0, description="state/telemetry messages per s")
+
+    @field_validator("mqtt_url")
+    @classmethod
+    def _mqtt_url(cls, v: str | None) -> str | None:
+        if v is None or not v.strip():
+            return None
+        from app.mqtt import parse_broker_url
+
+        parse_broker_url(v)
+        return v.strip()
+    #: Run the arms (links, polls, motion) on their own thread and loop (app.control).
+    control_thread: bool = True
+    #: Largest request head (request line and headers), bytes: more is refused with 400 after
+    #: that many bytes, before any parsing of the rest (uvicorn's h11 parser).
+    max_header_bytes: int = 32 * 1024
+    #: Open connections (HTTP keep-alive and WebSocket) before new requests get 503: room
+    #: for `max_subscribers` dashboards and the REST clients beside them.
+    max_connections: int = 4096
+    #: Telemetry WebSocket subscribers per arm and in all; more are closed with 1013 `busy`.
+    #: A lab's 1,000 dashboards on one arm fit (issue 12: 1,000 clients at 30 msg/s).
+    max_subscribers_per_arm: int = 1000
+    max_subscribers: int = 2000
+    #: After SIGTERM has stopped the arms: how long open requests may take to finish, s.
+    shutdown_timeout_s: float = 5.0
+
+    @staticmethod
+    def _split(v: str) -> frozenset[str]:
+        return frozenset(t.strip() for t in v.split(",") if t.strip())
+
+    @property
+    def operator_set(self) -> frozenset[str]:
+        return self._split(self.operator_tokens)
+
+    @property
+    def viewer_set(self) -> frozenset[str]:
+        return self._split(self.viewer_tokens)
+
+    @property
+    def instructor_set(self) -> frozenset[str]:
+        return self._split(self.instructor_tokens)
+
+    @property
+    def auth_enabled(self) -> bool:
+        return bool(self.operator_set or self.viewer_set or self.instructor_set
+                    or self.tokens_file)
+
+    #: Host names an open server answers to besides its loopback names and bound host
+    #: (comma separated; `*`: any). See app/hostguard.py and README "Access and safety".
+    allowed_hosts: str = ""
+
+    # ------------------------------------------------ validation (issue 11.5)
+
+    @field_validator("log_level")
+    @classmethod
+    def _lower_level(cls, v: str) -> str:
+        return v.strip().lower()
+
+    @model_validator(mode="after")
+    def _validate_every_setting(self) -> Settings:
+        """Every setting, checked at start-up (a NaN lease TTL locked an arm until restart):
+        explicit ranges where known, and for every other number (settings other modules add
+        included) finite, and not negative where the name says duration, rate or size."""
+        problems: list[str] = []
+        for name, value in self:
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                continue
+            shown = f"{env_name(name)}={value!r}"
+            if not math.isfinite(value):
+                problems.append(f"{shown}: must be a finite number")
+            elif name in SETTING_RANGES:
+                lo, hi, what = SETTING_RANGES[name]
+                if not (lo < value <= hi if what.startswith(">") else lo <= value <= hi):
+                    problems.append(f"{shown}: must be {what}")
+            elif name.endswith(_QUANTITY_SUFFIXES) or name.startswith("max_"):
+                if value < 0:
+                    problems.append(f"{shown}: must not be negative")
+        if self.log_level.lower() not in LOG_LEVELS:
+            problems.append(f"{env_name('log_level')}={self.log_level!r}: must be one of "
+                            f"{', '.join(LOG_LEVELS)}")
+        if not self.host.strip():
+            problems.append(f"{env_name('host')}: must not be empty")
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
+
+
+#: name -> (low, high, "what it must be"); a leading ">" means the low end is excluded.
+SETTING_RANGES: dict[str, tuple[float, float, str]] = {
+    "port": (0, 65535, "a TCP port, 0..65535"),
+    "max_body_bytes": (1, 1 << 30, "1..1073741824 bytes"),
+    "max_ws_message_bytes": (1, 1 << 26, "1..67108864 bytes"),
+    "lease_ttl_s": (0.0, 86400.0, "> 0 and at most 86400 s (a day)"),
+}
+_QUANTITY_SUFFIXES = ("_s", "_hz", "_bytes", "_rate", "_size", "_count", "_limit")
+LOG_LEVELS = ("critical", "error", "warning", "info", "debug", "trace")
+
+
+def env_name(field: str) -> str:
+    return f"ARMSERVER_{field.upper()}"
+
+
+def settings_error(exc: ValidationError) -> str:
+    """A start-up message for invalid settings: which variable, what value, what it must be."""
+    lines = ["invalid settings (environment ARMSERVER_* or command-line flags):"]
+    for e in exc.errors():
+        loc = ".".join(str(p) for p in e["loc"])
+        msg = str(e["msg"]).removeprefix("Value error, ")
+        if loc:
+            lines.append(f"  {env_name(loc)}={e.get('input')!r}: {msg}")
+        else:
+            lines.extend(f"  {m}" for m in msg.split("; "))
+    return "\n".join(lines)
