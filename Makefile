@@ -49,8 +49,11 @@ run-lab: install mosquitto
 run: install
 	$(BIN)/armserver serve --host $(HOST) --port $(PORT)
 
+# Two parts: the tests that may share the machine on two workers (a file per worker at a time),
+# then the browser tests and those that time the server itself, alone (`serial`, tests/conftest.py).
 test: install-test browser mosquitto
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial" --durations=15
+	$(BIN)/python -m pytest -q -m serial --durations=5
 
 bench: install-test
 	$(BIN)/python bench/kinematics.py

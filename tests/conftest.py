@@ -164,3 +164,18 @@ def live_server() -> Iterator[LiveServer]:
     """A real uvicorn server on 127.0.0.1 (a free port) over the default simulated arms."""
     with serve_live() as live:
         yield live
+
+
+#: Files whose tests run alone, after the parallel part of `make test` (pytest-xdist): the
+#: browser tests (Chromium under two busy workers stalls) and the tests that time the server
+#: itself (a bounded shutdown, a held-up executor).
+SERIAL_FILES = frozenset({
+    "test_dashboard_e2e.py", "test_dashboard_classroom_e2e.py", "test_lab_view_e2e.py",
+    "test_omx_dashboard_e2e.py", "test_shutdown.py", "test_control.py",
+})
+
+
+def pytest_collection_modifyitems(config: Any, items: list[Any]) -> None:
+    for item in items:
+        if item.path.name in SERIAL_FILES:
+            item.add_marker(pytest.mark.serial)
