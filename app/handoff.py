@@ -41,7 +41,8 @@ async def handoff(svc: ArmService) -> str | None:
         home = home_pose(svc)
         rec = await svc.motion.move_joints(s.MoveJoints(positions=[float(v) for v in home],
                                                         speed=HANDOFF_SPEED, mode="replace"))
-        await asyncio.wait_for(rec.wait(), rec.planned_duration + HANDOFF_SLACK_S)
+        async with asyncio.timeout(rec.planned_duration + HANDOFF_SLACK_S):
+            await rec.wait()
     except ArmError as exc:
         return f"going home was refused: {exc.detail} ({exc.code})"
     except TimeoutError:

@@ -214,4 +214,5 @@ class LeaseManager:
             deadlines = [lease.deadline for lease in self._leases.values()]
             timeout = None if not deadlines else max(0.0, min(deadlines) - time.monotonic())
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._changed.wait(), timeout)
+                async with asyncio.timeout(timeout):  # not wait_for: on 3.11 it can lose a cancel
+                    await self._changed.wait()

@@ -4,14 +4,25 @@ watcher)."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 from typing import Any
+
+#: How long `cancel_and_wait` waits for a cancelled task before cancelling it again, s.
+CANCEL_AGAIN_S = 0.1
 
 
 async def cancel_and_wait(task: asyncio.Task[Any] | None) -> None:
-    """Cancel `task` and wait until it has finished; None and finished tasks are fine."""
+    """Cancel `task` and wait until it has finished; None and finished tasks are fine. A task
+    that ends with an error other than its cancellation raises it here.
+
+    The task is cancelled again until it ends: on Python 3.11 a cancellation that arrives as an
+    `asyncio.wait_for` inside the task completes is lost (CPython gh-86296, fixed in 3.12), and
+    the task goes on as if nothing happened; awaiting it once then waited for ever (a server
+    shutdown that hung with its arm's motion executor still looping)."""
     if task is None:
         return
-    task.cancel()
-    with contextlib.suppress(asyncio.CancelledError):
-        await task
+    while not task.done():
+        task.cancel()
+        await asyncio.wait({task}, timeout=CANCEL_AGAIN_S)  # never raises the task's outcome
+    exc = None if task.cancelled() else task.exception()
+    if exc is not None:
+        raise exc

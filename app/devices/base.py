@@ -135,7 +135,8 @@ class Driver(OwnerTask, abc.ABC):
         # longer than a full queue of timeouts (each may add one quiet period) plus a second.
         bound = (self._queue.maxsize + 1) * 2 * req.timeout + 1.0
         try:
-            return await asyncio.wait_for(asyncio.shield(fut), bound)
+            async with asyncio.timeout(bound):  # not wait_for: on 3.11 it can lose a cancel
+                return await asyncio.shield(fut)
         except TimeoutError:
             fut.cancel()
             raise DeviceTimeout(f"{self.name}: the link task did not answer within "
