@@ -105,7 +105,9 @@ async def test_slow_client_is_told_what_it_lost(live_server_small_pipe: LiveServ
         # slow does not read: 4 s, so that the socket buffers (which the kernel may grow) fill
         # whatever the machine's timing, and the server's sends really block
         await asyncio.sleep(4.0)
-        slow_tele = await slow.read_messages(1.0)
+        # up to 3 s to read what the kernel and the server's transport hold (~80 KB) and the
+        # batch after it, which says what was lost (1 s was too short on a busy machine once)
+        slow_tele = await slow.read_messages(3.0, until_dropped=True)
         fast_tele, _ = await fast_task
     slow.close()
     assert _gap_free(_seqs(fast_tele)) and all(m["dropped"] == 0 for m in fast_tele)
@@ -132,7 +134,10 @@ class _RawWebSocket:
             head += self.sock.recv(1)
         assert head.startswith(b"HTTP/1.1 101"), head
 
-    async def read_messages(self, seconds: float) -> list[dict[str, Any]]:
+    async def read_messages(self, seconds: float,
+                            until_dropped: bool = False) -> list[dict[str, Any]]:
+        """The telemetry messages read within `seconds` (or up to the first that reports
+        `dropped`, with `until_dropped`)."""
         reader, writer = await asyncio.open_connection(sock=self.sock)
         self._writer = writer
         out: list[dict[str, Any]] = []
@@ -152,6 +157,8 @@ class _RawWebSocket:
             msg = json.loads(payload)
             if msg["type"] == "telemetry":
                 out.append(msg)
+                if until_dropped and msg["dropped"]:
+                    break
         return out
 
     def close(self) -> None:
