@@ -39,6 +39,7 @@ from app.arms import arm_routers
 from app.audit import AuditLog
 from app.auth import Access, install_log_redaction
 from app.classroom import Classroom
+from app.collector import Collector, moving
 from app.config import ArmProfile, Settings, load_arms
 from app.control import ControlThread
 from app.hostguard import HostOriginGuard
@@ -77,6 +78,8 @@ def create_app(settings: Settings | None = None,
             control.start()
         room = Classroom(services, leases, store, settings.claim_s, settings.slot_s)
         app.state.classroom = room
+        collector = Collector(moving(services))  # full GC pauses every thread (app/collector.py)
+        app.state.collector = collector
         try:
             store.open()  # blocking, before anything is served; errors go to health
             for p in profiles:
@@ -91,11 +94,13 @@ def create_app(settings: Settings | None = None,
             app.state.mqtt = start_mqtt_bridge(settings, services)
             room.load()
             room.start()
+            collector.start()  # after start-up: what exists now is frozen
             access: Access = app.state.access
             log.log(logging.INFO if access.enabled else logging.WARNING, "access: %s",
                     access.describe())
             yield
         finally:
+            await collector.close()
             if getattr(app.state, "mqtt", None) is not None:
                 await app.state.mqtt.close()
             await room.close()
