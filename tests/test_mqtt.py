@@ -14,6 +14,7 @@ import contextlib
 import json
 import logging
 import os
+import selectors
 import signal
 import socket
 import subprocess
@@ -365,3 +366,27 @@ async def test_many_arms_publish_without_warnings(tmp_path: Path,
             assert set(seen) == {f"armserver/lab-{k}/state" for k in range(1, 7)}
     noisy = [r for r in caplog.records if r.levelno >= logging.WARNING and r.name == "mqtt"]
     assert not noisy, noisy[0].getMessage()
+
+
+async def test_no_socket_writer_is_left_behind_after_a_tick(tmp_path: Path) -> None:
+    """After each tick the loop watches the broker's socket for writing only while paho has
+    something to write. aiomqtt adds its writer a loop iteration late; the tick had already
+    written everything, and the writer added afterwards stayed, called for ever on a writable
+    socket (100 % CPU in bench/mqtt.py)."""
+    with running_broker(tmp_path) as broker:
+        settings = make_settings(mqtt_url=broker.url, mqtt_rate=50.0)
+        async with running_client(settings) as (app, client):
+            await wait_published(client, 40)
+            paho = app.state.mqtt._client._client
+            fd = paho.socket().fileno()
+            loop = asyncio.get_running_loop()
+            selector = loop._selector  # type: ignore[attr-defined]
+            looks = stale = 0
+            for _ in range(50):  # a second: 50 ticks
+                await asyncio.sleep(0.0193)
+                key = selector.get_map().get(fd)
+                looks += 1
+                if key is not None and key.events & selectors.EVENT_WRITE and not paho.want_write():
+                    stale += 1
+            assert looks == 50 and stale == 0, f"a writer with nothing to write {stale} times"
+            assert app.state.mqtt.status()["published"] > 80
