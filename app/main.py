@@ -42,7 +42,7 @@ from app.classroom import Classroom
 from app.collector import Collector, moving
 from app.config import ArmProfile, Settings, load_arms
 from app.control import ControlThread
-from app.hostguard import HostOriginGuard
+from app.hostguard import HostOriginGuard, HostPolicy
 from app.http_errors import install_error_handlers
 from app.lease import LeaseManager
 from app.middleware import API_PREFIX, BodyLimit, InternalErrors, TokenGate
@@ -137,7 +137,6 @@ def create_app(settings: Settings | None = None,
         app.include_router(r.router, prefix=API_PREFIX)
     for router in arm_routers():  # each arm type's pass-through routes (app/arms)
         app.include_router(router, prefix=API_PREFIX)
-    arms.install_fast_paths(app, API_PREFIX)  # GET state from the encoded sample
     app.include_router(homing.router, prefix=API_PREFIX)  # faults and homing (v1.1)
     _document_websocket_messages(app)
     install_error_handlers(app)
@@ -153,6 +152,8 @@ def create_app(settings: Settings | None = None,
     app.add_middleware(InternalErrors, app_ref=app)
     # Outside it: every changing request's outcome, refusals and bugs included (app/audit.py).
     app.add_middleware(AuditLog, app_ref=app, access=app.state.access)
+    # Outermost: GET state from the bytes encoded at publish time (app/api/arms.py).
+    arms.install_fast_paths(app, API_PREFIX, HostPolicy(settings))
 
     if (STATIC_DIR / "index.html").is_file():
         app.router.routes.append(_Dashboard("/", StaticFiles(directory=STATIC_DIR, html=True),

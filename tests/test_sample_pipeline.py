@@ -248,19 +248,31 @@ def test_state_route_bytes_are_the_hub_encoding(name: str) -> None:
 async def test_state_fast_path_answers_the_published_bytes_and_leaves_errors_alone() -> None:
     from conftest import make_settings, running_client
 
-    from app.api.arms import StateFastPath
 
     settings = make_settings(operator_tokens="op-token", viewer_tokens="view-token")
     async with running_client(settings) as (app, client):
-        assert isinstance(app.router.routes[0], StateFastPath)  # ahead of every other route
         hub = app.state.services["rbe3001"].hub
         ok = {"authorization": "Bearer view-token"}
         r = await client.get("/api/v1/arms/rbe3001/state", headers=ok)
+        layer, ours = app.middleware_stack, []  # built by the first request
+        while layer is not None:
+            if type(layer).__module__.startswith("app."):
+                ours.append(type(layer).__name__)
+            layer = getattr(layer, "app", None)
+        assert ours[0] == "StateFastPath" and ours.count("StateFastPath") == 1, ours
         assert r.status_code == 200 and r.headers["content-type"] == "application/json"
         body = json.loads(r.content)
         assert body["seq"] <= hub.latest["seq"] and set(body) == set(hub.latest)
+        # the same request down the full stack (an Origin sends it there) answers the same
+        full = await client.get("/api/v1/arms/rbe3001/state",
+                                headers={**ok, "origin": "http://testserver"})
+        assert full.status_code == 200 and full.headers["content-type"] == "application/json"
+        assert set(json.loads(full.content)) == set(body)
         # errors still come from the regular route, with their codes
         r = await client.get("/api/v1/arms/rbe3001/state")
+        assert r.status_code == 401 and r.json()["code"] == "unauthorized"
+        r = await client.get("/api/v1/arms/rbe3001/state",
+                             headers={"authorization": "Bearer wrong"})
         assert r.status_code == 401 and r.json()["code"] == "unauthorized"
         r = await client.get("/api/v1/arms/nope/state", headers=ok)
         assert r.status_code == 404 and r.json()["code"] == "unknown_arm"
@@ -272,6 +284,16 @@ async def test_state_fast_path_answers_the_published_bytes_and_leaves_errors_alo
         doc = (await client.get("/openapi.json")).json()
         ok200 = doc["paths"]["/api/v1/arms/{arm}/state"]["get"]["responses"]["200"]
         assert ok200["content"]["application/json"]["schema"]["$ref"].endswith("/Sample")
+
+
+async def test_state_fast_path_keeps_an_open_servers_host_check() -> None:
+    from conftest import make_settings, running_client
+
+    async with running_client(make_settings()) as (_, client):
+        r = await client.get("/api/v1/arms/rbe3001/state", headers={"host": "127.0.0.1:8000"})
+        assert r.status_code == 200 and "positions" in r.json()
+        r = await client.get("/api/v1/arms/rbe3001/state", headers={"host": "evil.example"})
+        assert r.status_code == 400 and r.json()["code"] == "bad_host"
 
 
 async def test_poll_soon_takes_a_poll_ahead_of_a_slow_schedule() -> None:
