@@ -95,12 +95,15 @@ def _serve(args: argparse.Namespace) -> int:
 
 def http_limits(settings: Any) -> dict[str, Any]:
     """uvicorn options that bound what one client can make the server do before any route
-    runs: the h11 parser (httptools has no header limit: a 64 MiB header took 3.8 s to parse)
-    refusing a request head over `max_header_bytes`, and `max_connections` open at once."""
-    from app.serving import BusyH11Protocol  # over max_connections: 503 `busy`, JSON
+    runs: httptools' C parser with a bound on the request head (`max_header_bytes`: httptools
+    has none of its own, a 64 MiB header took 3.8 s to parse) and `max_connections` open at
+    once (503 `busy`, JSON). See app/serving.py."""
+    import functools
 
-    return {"http": BusyH11Protocol, "h11_max_incomplete_event_size": settings.max_header_bytes,
-            "limit_concurrency": settings.max_connections}
+    from app.serving import ArmHttpToolsProtocol
+
+    http = functools.partial(ArmHttpToolsProtocol, max_head=settings.max_header_bytes)
+    return {"http": http, "limit_concurrency": settings.max_connections}
 
 
 def _devices(args: argparse.Namespace) -> int:

@@ -50,6 +50,25 @@ def test_a_huge_header_is_refused_after_max_header_bytes() -> None:
         assert ok.startswith(b"HTTP/1.1 200"), ok[:200]
 
 
+def test_the_head_limit_counts_heads_not_bodies_nor_earlier_requests() -> None:
+    """The bound is on each request head: a body sent in the same write as its head, and many
+    keep-alive requests on one connection, are not counted against it."""
+    with serve_live(make_settings(max_header_bytes=4 * 1024)) as live:
+        port = int(live.url.rsplit(":", 1)[1])
+        body = b'{"positions": [0.0, 0.0, 0.0]' + b" " * 20000 + b"}"  # 20 KB, valid JSON
+        post = (b"POST /api/v1/arms/rbe3001/kinematics/forward HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                b"Content-Type: application/json\r\nContent-Length: "
+                + str(len(body)).encode() + b"\r\nConnection: close\r\n\r\n" + body)
+        answer = _raw_request(port, post)
+        assert answer.startswith(b"HTTP/1.1 200"), answer[:300]
+        assert b'"tip"' in answer
+        get = (b"GET /api/v1/health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Pad: " + b"a" * 1000
+               + b"\r\n\r\n")
+        answers = _raw_request(port, get * 20 + b"GET /api/v1/health HTTP/1.1\r\n"
+                               b"Host: 127.0.0.1\r\nConnection: close\r\n\r\n")
+        assert answers.count(b"HTTP/1.1 200") == 21 and b"HTTP/1.1 400" not in answers
+
+
 def test_connections_over_the_limit_get_503() -> None:
     with serve_live(make_settings(max_connections=8)) as live:
         port = int(live.url.rsplit(":", 1)[1])
