@@ -312,6 +312,30 @@ async def test_poll_soon_takes_a_poll_ahead_of_a_slow_schedule() -> None:
         await driver.close()
 
 
+async def test_a_pass_through_write_is_followed_by_a_poll() -> None:
+    """A register written through the Dynamixel pass-through (a goal, the LED) shows in a
+    sample one bus round trip later, not at the next scheduled poll (issue 12: goal to the
+    first sample that moved)."""
+    from app.devices.factory import make_driver
+    from protocol import mx28
+
+    base = load_profile("angler")  # polled every 10 s
+    profile = base.model_copy(update={"link": base.link.model_copy(update={"poll_hz": 0.1})})
+    hub = TelemetryHub("angler")
+    driver = make_driver(profile, hub, SimLink(make_sim_device(profile)))
+    await driver.start()
+    try:
+        assert await driver.wait_connected(10.0)
+        await asyncio.sleep(0.2)  # the first sample is out
+        sub = hub.subscribe()
+        published = hub.published
+        await driver.write_register(1, mx28.TABLE["led"], 1)  # type: ignore[attr-defined]
+        assert await sub.wait(5.0)  # half the poll period: only the write's poll explains it
+        assert hub.published == published + 1
+    finally:
+        await driver.close()
+
+
 def test_a_batch_cut_before_the_newest_samples_never_reaches_past_the_log() -> None:
     hub = TelemetryHub("arm", backlog=5)
     sub = hub.subscribe()

@@ -235,6 +235,8 @@ class OwnerTask:
                 req.future.set_exception(err)
             return
         self.stats["replies"] += 1
+        if getattr(req.message, "poll_after", False):
+            self._poll_now = True  # taken next, ahead of the schedule and of queued requests
         if not req.future.done():
             req.future.set_result(reply)
 

@@ -26,6 +26,9 @@ class DxlRequest:
     expect: tuple[int, ...]  # ids expected to answer, in order; () for none
     broadcast_ping: bool = False
     what: str = ""
+    #: Poll right after this request is answered (a write whose effect the samples should
+    #: show without waiting for the schedule: up to one poll period, 5 ms at 200 Hz).
+    poll_after: bool = False
 
 
 class DynamixelBusDriver(Driver):
@@ -70,7 +73,7 @@ class DynamixelBusDriver(Driver):
         data = dxl.to_bytes(raw, item.size)
         expect = () if dxl_id == dxl.BROADCAST_ID else (dxl_id,)
         await self.submit(DxlRequest(dxl.write(dxl_id, item.address, data), expect,
-                                     what=f"WRITE {item.name} to {dxl_id}"))
+                                     what=f"WRITE {item.name} to {dxl_id}", poll_after=True))
         self._note_written(item, {dxl_id: raw})
 
     async def sync_read(self, item: ControlItem, ids: list[int]) -> dict[int, int]:
