@@ -141,6 +141,25 @@ async def test_profile_velocity_never_above_the_velocity_limit():
         await drv.close()
 
 
+async def test_return_delay_time_is_set_where_torque_is_off_and_left_where_it_is_on():
+    """The profile's `return_delay_us` (0 for the angler) is written at set-up to servos whose
+    torque is off (after power-on), and not to a servo holding torque (an EEPROM write needs
+    torque off, and the driver never drops a load for it)."""
+    bus = make_sim_device(load_profile("angler"))
+    assert isinstance(bus, DynamixelBus)
+    assert {s.get("return_delay_time") for s in bus.servos} == {250}  # the e-manual default
+    bus.servo(4).set("torque_enable", 1)  # the winch holds its load: a server restart
+    drv, _ = await _driver(bus)
+    try:
+        delays = {i: bus.servo(i).get("return_delay_time") for i in (1, 2, 3, 4)}
+        assert delays == {1: 0, 2: 0, 3: 0, 4: 250}
+        assert bus.servo(4).get("torque_enable") == 1  # never switched off for it
+        # and the servos answer at once: a READ's status comes without the 500 us delay
+        assert await drv.read_register(3, mx28.TABLE["return_delay_time"]) == 0
+    finally:
+        await drv.close()
+
+
 async def test_a_silent_servo_of_the_arm_is_a_timeout_not_absent():
     """Silence from one of the arm's own servos (a lost reply) must not be reported as "no
     servo there": that answer would be wrong. Only ids the arm does not have are absent."""

@@ -186,8 +186,9 @@ async def test_drop_and_corrupt_fail_clearly_never_wrongly(name, fault):
 
 
 #: One-byte registers of servo 1 whose values all differ: a late reply to one read that
-#: answered a later read of another would show as a wrong value.
-_DISTINCT = {"id": 1, "baud_rate": 3, "return_delay_time": 250, "status_return_level": 2,
+#: answered a later read of another would show as a wrong value. (Return Delay Time is 0:
+#: the angler profile's `return_delay_us`, written at set-up.)
+_DISTINCT = {"id": 1, "baud_rate": 3, "return_delay_time": 0, "status_return_level": 2,
              "operating_mode": 4, "secondary_id": 255, "temperature_limit": 80, "shutdown": 52}
 
 

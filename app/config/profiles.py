@@ -51,6 +51,11 @@ class LinkConfig(_Strict):
         False, description="the joints that need homing start homed: true only for a device "
         "that starts at a known pose (the built-in simulated config); a real multi-turn joint "
         "does not know where it is after a power cycle")
+    return_delay_us: float | None = Field(
+        None, ge=0.0, le=508.0, description="Dynamixel only: the servos' Return Delay Time (9), "
+        "us (e-manual: units of 2 us, default 250 = 500 us), written at set-up where it differs "
+        "and the servo's torque is off (after power-on; an EEPROM write needs torque off, and "
+        "the driver never switches it off just for this); None leaves the servos' own value")
     sim_echo: bool = Field(False, description="rbe3001 simulator only: reply as firmware builds "
                            "that echo the request's unwritten floats, instead of zeroing them as "
                            "PidServer.cpp does (the default)")

@@ -169,6 +169,7 @@ class DynamixelChainDriver(DynamixelBusDriver):
                 if k is not None and joint is not None and joint.needs_homing \
                         and i in self.profile_velocity:
                     self.homed[k] = False
+            await self._set_return_delay(i)
             # after the mode: changing Operating Mode resets Profile Velocity (e-manual)
             limit = await self._read(i, t["velocity_limit"])
             pv = (self._profile_velocity(joint, limit) if joint is not None
@@ -187,6 +188,26 @@ class DynamixelChainDriver(DynamixelBusDriver):
         if i in self._alerts:
             await self._read_fault(i)
             self._publish_faults()
+
+    async def _set_return_delay(self, i: int) -> None:
+        """The profile's `return_delay_us` as Return Delay Time (9), where it differs and the
+        torque is off. Every status packet waits that long (e-manual: "Return Delay Time");
+        at the default 500 us a SYNC_READ of four servos kept the bus busy about 3 ms of each
+        5 ms poll period, and a request waited for the poll in progress. EEPROM: written only
+        with torque off, which a servo has after power-on; a servo holding torque (a server
+        restart under a hanging winch load) keeps its value until the next power cycle."""
+        us = self.profile.link.return_delay_us
+        if us is None:
+            return
+        t = mx28.TABLE
+        want = round(us / 2.0)
+        if await self._read(i, t["return_delay_time"]) == want:
+            return
+        if await self._read(i, t["torque_enable"]):
+            log.info("%s: servo %d keeps its Return Delay Time: its torque is on (an EEPROM "
+                     "write needs it off)", self.name, i)
+            return
+        await self._write(i, t["return_delay_time"], want)
 
     async def _read(self, i: int, item: ControlItem) -> int:
         [p] = await self._setup_exchange(
