@@ -11,6 +11,11 @@ A route names what it needs and the access that implies:
 
 Access is checked before the arm is looked up, so an unauthenticated client learns nothing
 about which arms exist.
+
+Every dependency is `async def`, though none awaits anything: FastAPI runs a plain `def`
+dependency in its thread pool, a hand-over to a worker thread and back for each, six or more
+a request (a pass-through register read spent about 2 ms in them on top of its 1.9 ms on the
+bus).
 """
 
 from __future__ import annotations
@@ -33,11 +38,11 @@ Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 ArmName = Annotated[str, Path(description="arm name, as in GET /api/v1/arms", max_length=64)]
 
 
-def get_settings(request: Request) -> Settings:
+async def get_settings(request: Request) -> Settings:
     return cast(Settings, request.app.state.settings)  # app.state is untyped: set in main
 
 
-def get_services(request: Request) -> dict[str, ArmService]:
+async def get_services(request: Request) -> dict[str, ArmService]:
     return cast("dict[str, ArmService]", request.app.state.services)
 
 
@@ -45,7 +50,7 @@ def get_access(request: Request) -> Access:
     return cast(Access, request.app.state.access)
 
 
-def get_leases(request: Request) -> LeaseManager:
+async def get_leases(request: Request) -> LeaseManager:
     return cast(LeaseManager, request.app.state.leases)
 
 
@@ -65,27 +70,27 @@ def _token(cred: HTTPAuthorizationCredentials | None) -> str | None:
     return cred.credentials if cred is not None else None
 
 
-def require_viewer(request: Request, cred: Credentials) -> Role:
+async def require_viewer(request: Request, cred: Credentials) -> Role:
     return get_access(request).require(_token(cred), Role.VIEWER)
 
 
-def require_operator(request: Request, cred: Credentials) -> Role:
+async def require_operator(request: Request, cred: Credentials) -> Role:
     return get_access(request).require(_token(cred), Role.OPERATOR)
 
 
-def require_instructor(request: Request, cred: Credentials) -> Role:
+async def require_instructor(request: Request, cred: Credentials) -> Role:
     return get_access(request).require(_token(cred), Role.INSTRUCTOR)
 
 
-def caller_viewer(request: Request, cred: Credentials) -> Identity:
+async def caller_viewer(request: Request, cred: Credentials) -> Identity:
     return get_access(request).require_identity(_token(cred), Role.VIEWER)
 
 
-def caller_operator(request: Request, cred: Credentials) -> Identity:
+async def caller_operator(request: Request, cred: Credentials) -> Identity:
     return get_access(request).require_identity(_token(cred), Role.OPERATOR)
 
 
-def caller_instructor(request: Request, cred: Credentials) -> Identity:
+async def caller_instructor(request: Request, cred: Credentials) -> Identity:
     return get_access(request).require_identity(_token(cred), Role.INSTRUCTOR)
 
 
@@ -99,18 +104,18 @@ OperatorRole = Annotated[Role, Depends(require_operator)]
 InstructorRole = Annotated[Role, Depends(require_instructor)]
 
 
-def viewer_arm(_: ViewerRole, services: ServicesDep, arm: ArmName) -> ArmService:
+async def viewer_arm(_: ViewerRole, services: ServicesDep, arm: ArmName) -> ArmService:
     return lookup_arm(services, arm)
 
 
-def operator_arm(_: OperatorRole, services: ServicesDep, arm: ArmName) -> ArmService:
+async def operator_arm(_: OperatorRole, services: ServicesDep, arm: ArmName) -> ArmService:
     return lookup_arm(services, arm)
 
 
 OperatorArm = Annotated[ArmService, Depends(operator_arm)]
 
 
-def instructor_arm(_: InstructorRole, services: ServicesDep, arm: ArmName) -> ArmService:
+async def instructor_arm(_: InstructorRole, services: ServicesDep, arm: ArmName) -> ArmService:
     return lookup_arm(services, arm)
 
 
@@ -134,7 +139,7 @@ ViewerArm = Annotated[ArmService, Depends(viewer_arm)]
 ControlArm = Annotated[ArmService, Depends(control_arm)]
 
 
-def caller(request: Request, cred: Credentials) -> str:
+async def caller(request: Request, cred: Credentials) -> str:
     """Who is asking, for the records of what they stopped: role, the token's name (the first
     8 hex digits of its SHA-256, never the token) and the client's address."""
     access = get_access(request)

@@ -24,7 +24,7 @@ EntryId = Annotated[str, Path(max_length=64, description="the queue entry's id")
 ArmName = Annotated[str, Path(max_length=64, description="arm name")]
 
 
-def get_classroom(request: Request) -> Classroom:
+async def get_classroom(request: Request) -> Classroom:
     return cast(Classroom, request.app.state.classroom)  # app.state is untyped: set in main
 
 
