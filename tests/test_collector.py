@@ -8,6 +8,8 @@ import asyncio
 import gc
 from typing import Any
 
+import pytest
+
 from app import collector as c
 from app import schemas as s
 from app.collector import Collector, moving
@@ -16,18 +18,25 @@ from app.service import ArmService
 
 
 async def test_frozen_rare_and_restored() -> None:
-    before = gc.get_threshold()
+    # (an app another test left running in this worker would hold the settings: then they
+    # stay as that app set them)
+    others = c._active
+    before, frozen = gc.get_threshold(), gc.get_freeze_count()
     col = Collector(lambda: False, every_s=3600.0)
     col.start()
     try:
-        assert gc.get_threshold() == (before[0], before[1], c.GEN2_THRESHOLD)
+        assert gc.get_threshold()[2] == c.GEN2_THRESHOLD
+        assert gc.get_threshold()[:2] == before[:2]
         assert gc.get_freeze_count() > 1000  # the modules and classes loaded so far
     finally:
         await col.close()
-    assert gc.get_threshold() == before and gc.get_freeze_count() == 0
+    assert gc.get_threshold() == before
+    assert gc.get_freeze_count() == (0 if others == 0 else frozen)
 
 
 async def test_two_servers_in_one_process_restore_once_the_last_ends() -> None:
+    if c._active:
+        pytest.skip("an app another test left running holds the settings")
     before = gc.get_threshold()
     a, b = Collector(lambda: False, 3600.0), Collector(lambda: False, 3600.0)
     a.start()
