@@ -63,6 +63,19 @@ def _events(sub: Any) -> list[dict[str, Any]]:
     return [json.loads(e) for e in events]
 
 
+async def _events_with(sub: Any, names: set[str], timeout: float = 3.0) -> list[dict[str, Any]]:
+    """The events so far, waiting (bounded) until every one of `names` is among them: events
+    cross from the control thread to the subscribers' loop with `call_soon_threadsafe`, so
+    the motion's end can be read over HTTP before its events have arrived."""
+    out: list[dict[str, Any]] = []
+    deadline = time.monotonic() + timeout
+    while True:
+        out += _events(sub)
+        if names <= {e["event"] for e in out} or time.monotonic() > deadline:
+            return out
+        await asyncio.sleep(0.02)
+
+
 async def _steady(svc: Any, window_s: float = 0.5, timeout: float = 5.0) -> np.ndarray:
     """Positions once the device answers again and the arm has stopped moving."""
     deadline = time.monotonic() + timeout
@@ -101,7 +114,7 @@ async def test_device_silent_mid_move_fails_with_device_timeout_and_holds(arm: s
             assert m["status"] == "failed" and m["code"] == "device_timeout", m
             assert m["reason"]
             assert detected_s < MOVE_S - FAULT_AT_S, f"noticed only after {detected_s:.2f} s"
-            events = _events(sub)
+            events = await _events_with(sub, {"watchdog", "motion_ended"})
             dog = [e for e in events if e["event"] == "watchdog"]
             assert dog and dog[0]["data"]["id"] == mid, [e["event"] for e in events]
             assert dog[0]["data"]["code"] == "device_timeout"
@@ -141,7 +154,7 @@ async def test_link_lost_mid_move_fails_with_link_down(arm: str) -> None:
             link.disconnect()
             m = await _wait_ended(client, arm, mid)
             assert m["status"] == "failed" and m["code"] == "link_down", m
-            names = [e["event"] for e in _events(sub)]
+            names = [e["event"] for e in await _events_with(sub, {"watchdog", "link_lost"})]
             assert "watchdog" in names and "link_lost" in names, names
             assert await svc.driver.wait_connected(5.0)
             await _steady(svc)
