@@ -112,9 +112,9 @@ class HostPolicy:
 class HostOriginGuard:
     """ASGI middleware applying :class:`HostPolicy` to HTTP requests and WebSocket upgrades."""
 
-    def __init__(self, app: ASGIApp, settings: Settings) -> None:
+    def __init__(self, app: ASGIApp, policy: HostPolicy) -> None:
         self.app = app
-        self.policy = HostPolicy(settings)
+        self.policy = policy
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] not in ("http", "websocket") or not self.policy.enabled:

@@ -143,7 +143,8 @@ def create_app(settings: Settings | None = None,
 
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(TokenGate, access=app.state.access)
-    app.add_middleware(HostOriginGuard, settings=settings)  # open servers: own Host, own Origin
+    hosts = HostPolicy(settings)  # one policy for the guard and the state fast path
+    app.add_middleware(HostOriginGuard, policy=hosts)  # open servers: own Host, own Origin
     origins = [o.strip() for o in settings.cors_origins.split(",") if o.strip()]
     if origins:
         app.add_middleware(CORSMiddleware, allow_origins=origins, allow_methods=["*"],
@@ -153,7 +154,7 @@ def create_app(settings: Settings | None = None,
     # Outside it: every changing request's outcome, refusals and bugs included (app/audit.py).
     app.add_middleware(AuditLog, app_ref=app, access=app.state.access)
     # Outermost: GET state from the bytes encoded at publish time (app/api/arms.py).
-    arms.install_fast_paths(app, API_PREFIX, HostPolicy(settings))
+    arms.install_fast_paths(app, API_PREFIX, hosts)
 
     if (STATIC_DIR / "index.html").is_file():
         app.router.routes.append(_Dashboard("/", StaticFiles(directory=STATIC_DIR, html=True),

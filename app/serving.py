@@ -7,10 +7,10 @@
 - Second signal: the arms are told to hold where they were last commanded (bounded wait of
   `HOLD_WAIT_S`) and the process stops at once.
 
-`ArmHttpToolsProtocol` (served) and `BusyH11Protocol` are uvicorn's httptools and h11 protocols
-whose refusal over `max_connections` (uvicorn's `limit_concurrency`) is the API's error body,
-503 `{"detail", "code": "busy"}` with a Retry-After, instead of uvicorn's plain-text "Service
-Unavailable"; the httptools one also bounds the request head (`max_header_bytes`).
+`ArmHttpToolsProtocol` is uvicorn's httptools protocol whose refusal over `max_connections`
+(uvicorn's `limit_concurrency`) is the API's error body, 503 `{"detail", "code": "busy"}` with
+a Retry-After, instead of uvicorn's plain-text "Service Unavailable", and which bounds the
+request head (`max_header_bytes`).
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from types import FrameType
 from typing import Any
 
 import uvicorn
-from uvicorn.protocols.http.h11_impl import H11Protocol
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 log = logging.getLogger("armserver")
@@ -84,24 +83,33 @@ class ArmServer(uvicorn.Server):
         self.force_exit = True
 
 
-class _Admission:
-    """A request over `limit_concurrency` (connections open, or requests running, across the
-    server) gets the API's JSON 503 `busy` with a Retry-After.
+class ArmHttpToolsProtocol(HttpToolsProtocol):
+    """uvicorn's httptools protocol (a C parser: the `GET /state` of 50 keep-alive clients
+    cost the server about half as much per request as through h11's pure-Python one) with two
+    changes.
 
-    uvicorn checks the limit inline and answers with its own plain-text app; here the limit is
-    taken off uvicorn and checked as the request's app starts (its task is then one of
-    `tasks`, hence `>`), before anything of ours runs. Mixed into uvicorn's protocols."""
+    A request over `limit_concurrency` (connections open, or requests running, across the
+    server) gets the API's JSON 503 `busy` with a Retry-After: uvicorn checks the limit inline
+    and answers with its own plain-text app; here the limit is taken off uvicorn and checked
+    as the request's app starts (its task is then one of `tasks`, hence `>`), before anything
+    of ours runs.
 
-    connections: set[Any]
-    tasks: set[Any]
-    logger: logging.Logger
-    limit_concurrency: int | None
-    app: Any
+    A request whose head (request line and headers) exceeds `max_head` bytes is refused with
+    400 and the connection closed, after at most one more read: httptools has no such bound
+    (a 64 MiB header would otherwise be gathered whole, 3.8 s of parsing before any check).
+    Bytes are counted from the end of one request's head to the end of the next; the read
+    that completes a head may carry body bytes too, and is not refused for them."""
 
-    def _take_admission(self) -> None:
+    def __init__(self, config: uvicorn.Config, server_state: Any, app_state: dict[str, Any],
+                 _loop: asyncio.AbstractEventLoop | None = None, *,
+                 max_head: int = 32 * 1024) -> None:
+        super().__init__(config, server_state, app_state, _loop)
         self.max_connections, self.limit_concurrency = self.limit_concurrency, None
         self._inner_app = self.app
         self.app = self._admit
+        self.max_head = max_head
+        self._head_bytes = 0
+        self._in_body = False
 
     async def _admit(self, scope: Any, receive: Any, send: Any) -> None:
         limit = self.max_connections
@@ -110,36 +118,6 @@ class _Admission:
             await send_busy(send, limit)
             return
         await self._inner_app(scope, receive, send)
-
-
-class BusyH11Protocol(_Admission, H11Protocol):
-    """uvicorn's h11 protocol with the JSON 503 `busy` (`_Admission`); h11 refuses a request
-    head over `h11_max_incomplete_event_size` itself."""
-
-    def __init__(self, config: uvicorn.Config, server_state: Any, app_state: dict[str, Any],
-                 _loop: asyncio.AbstractEventLoop | None = None) -> None:
-        super().__init__(config, server_state, app_state, _loop)
-        self._take_admission()
-
-
-class ArmHttpToolsProtocol(_Admission, HttpToolsProtocol):
-    """uvicorn's httptools protocol (a C parser: the `GET /state` of 50 keep-alive clients
-    cost the server about half as much per request as through h11's pure-Python one) with the
-    JSON 503 `busy` (`_Admission`) and a bound on the request head, which httptools does not
-    have: a request whose head (request line and headers) exceeds `max_head` bytes is refused
-    with 400 and the connection closed, after at most one more read (a 64 MiB header would
-    otherwise be gathered whole, 3.8 s of parsing before any check). Bytes are counted from
-    the end of one request's head to the end of the next; the read that completes a head may
-    carry body bytes too, and is not refused for them."""
-
-    def __init__(self, config: uvicorn.Config, server_state: Any, app_state: dict[str, Any],
-                 _loop: asyncio.AbstractEventLoop | None = None, *,
-                 max_head: int = 32 * 1024) -> None:
-        super().__init__(config, server_state, app_state, _loop)
-        self._take_admission()
-        self.max_head = max_head
-        self._head_bytes = 0
-        self._in_body = False
 
     def data_received(self, data: bytes) -> None:
         if not self._in_body:

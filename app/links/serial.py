@@ -209,7 +209,7 @@ def _write_now(transport: Any, data: bytes) -> bytes:
     `epoll_ctl` calls and one loop iteration, and left one iteration later (at 700 polls a
     second, a visible part of an idle server's CPU). With nothing buffered ahead of it, the
     bytes go out here the same way (`Serial.write` on the non-blocking port)."""
-    if transport.get_write_buffer_size() or transport.is_closing():
+    if transport.get_write_buffer_size():  # (the caller refuses a closing transport)
         return data
     try:
         n = transport.serial.write(data)
