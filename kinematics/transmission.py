@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -33,6 +34,11 @@ def _vec(v: npt.ArrayLike, n: int | None = None) -> FloatArray:
     a = np.atleast_1d(np.asarray(v, dtype=np.float64))
     if a.ndim != 1 or (n is not None and a.size != n):
         raise ValueError(f"expected a vector of {n} joint values, got shape {a.shape}")
+    return a
+
+
+def _frozen(a: FloatArray) -> FloatArray:
+    a.setflags(write=False)
     return a
 
 
@@ -62,6 +68,8 @@ class Transmission:
         lead = self.lead_m[~np.isnan(self.lead_m)]
         if not np.all(lead > 0):
             raise ValueError("lead_m must be positive (or NaN for a revolute joint)")
+        for name in ("ticks_per_rev", "sign", "lead_m"):  # offset_ticks moves when homing
+            getattr(self, name).setflags(write=False)  # what the cached values below rest on
 
     @classmethod
     def from_joints(
@@ -90,15 +98,17 @@ class Transmission:
              for j in joints],
         )
 
-    @property
+    # The two below are computed once (the fields are read-only): every sample converts
+    # through them, hundreds of times a second.
+    @cached_property
     def per_rev(self) -> FloatArray:
         """Joint travel per motor revolution (n,): 2 pi rad or the lead in m."""
-        return np.where(np.isnan(self.lead_m), 2.0 * np.pi, self.lead_m)
+        return _frozen(np.where(np.isnan(self.lead_m), 2.0 * np.pi, self.lead_m))
 
-    @property
+    @cached_property
     def ticks_per_unit(self) -> FloatArray:
         """Signed ticks per rad or per m (n,)."""
-        return np.asarray(self.sign * self.ticks_per_rev / self.per_rev)
+        return _frozen(np.asarray(self.sign * self.ticks_per_rev / self.per_rev))
 
     def to_ticks(self, q: npt.ArrayLike) -> FloatArray:
         """Encoder ticks (..., n), float, for joint positions ``q`` (..., n) rad or m."""

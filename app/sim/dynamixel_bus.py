@@ -23,6 +23,7 @@ the replies before it; wire time is 10 bits a byte at `baudrate`.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Mapping
 
 from app.sim.mx28_servo import BAUD_CODES, Mx28Servo
@@ -30,6 +31,11 @@ from protocol import dynamixel as dxl
 from protocol.dynamixel import BROADCAST_ID, ErrorCode, Instruction, Packet, ParseError
 
 _READS = (Instruction.READ, Instruction.SYNC_READ, Instruction.BULK_READ)
+
+
+#: A servo at rest answers a poll with the same status packet each time: framed (stuffing,
+#: CRC) once.
+_encode_status = functools.lru_cache(maxsize=256)(dxl.encode_status)
 
 
 class DynamixelBus:
@@ -105,7 +111,7 @@ class DynamixelBus:
     def _status(servo: Mx28Servo, error: int, params: bytes = b"") -> tuple[Mx28Servo, bytes]:
         if servo.alert:
             error |= dxl.ALERT_BIT
-        return servo, dxl.encode_status(servo.id, error, params)
+        return servo, _encode_status(servo.id, error, bytes(params))
 
     def _on_corrupt(self, event: ParseError) -> list[tuple[Mx28Servo, bytes]]:
         s = self.servo(event.id) if event.kind == "crc" and event.id is not None else None

@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import struct
 import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -42,6 +43,9 @@ log = logging.getLogger(__name__)
 #: Moving (1) + Moving Status (1) + Present PWM (2) + Load/Current (2) + Velocity (4) + Position.
 _POLL_ADDR = mx28.TABLE["moving"].address
 _POLL_LEN = 14
+#: The poll's 14 bytes, little-endian: Moving, Moving Status (1 each), Present PWM, Present
+#: Load (2 each, signed), Present Velocity, Present Position (4 each, signed).
+_POLL_STRUCT = struct.Struct("<BBhhii")
 #: Torque Enable (64) .. Hardware Error Status (70): one READ when the Alert bit appears.
 _FAULT_ADDR = mx28.TABLE["torque_enable"].address
 _FAULT_LEN = mx28.TABLE["hardware_error_status"].address - _FAULT_ADDR + 1
@@ -93,6 +97,7 @@ class DynamixelChainDriver(DynamixelBusDriver):
         #: Profile Velocity written at set-up, per servo (raw), after the Velocity Limit cap.
         self.profile_velocity: dict[int, int] = {}
         self._power_checked = 0.0
+        self._poll_request: DxlRequest | None = None
 
     @property
     def servo_ids(self) -> tuple[int, ...]:
@@ -248,28 +253,32 @@ class DynamixelChainDriver(DynamixelBusDriver):
 
     async def _poll(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         ids = self.servo_ids
-        packets = await self._exchange(
-            DxlRequest(dxl.sync_read(_POLL_ADDR, _POLL_LEN, list(ids)), ids,
-                       what="SYNC_READ present state"), self.timeout)
+        req = self._poll_request
+        if req is None or req.expect != ids:  # the same bytes at every poll: built once
+            req = self._poll_request = DxlRequest(
+                dxl.sync_read(_POLL_ADDR, _POLL_LEN, list(ids)), ids,
+                what="SYNC_READ present state")
+        packets = await self._exchange(req, self.timeout)
         n = len(self.ids)
-        load, vel, pos = np.empty(n), np.empty(n), np.empty(n)
+        load, vel, pos = [0] * n, [0] * n, [0] * n
         for k, p in enumerate(packets):
             check_len(p, _POLL_LEN)
+            # Moving, Moving Status, Present PWM, Load, Velocity, Position (122..135)
+            moving, status, _pwm, ld, v, x = _POLL_STRUCT.unpack(p.params)
             if k >= n:
-                self.aux_ticks[p.id] = dxl.from_bytes(p.params[10:14], True)
+                self.aux_ticks[p.id] = x
                 continue
             # Moving (122) or Moving Status bit 1, "profile ongoing" (123)
-            self._moving[k] = bool(p.params[0]) or bool(p.params[1] & 0x02)
-            load[k] = dxl.from_bytes(p.params[4:6], True)
-            vel[k] = dxl.from_bytes(p.params[6:10], True)
-            pos[k] = dxl.from_bytes(p.params[10:14], True)
+            self._moving[k] = bool(moving) or bool(status & 0x02)
+            load[k], vel[k], pos[k] = ld, v, x
         self._on_aux_polled()
         await self._check_faults()
         await self._check_power()
         tr = self.model.transmission
         q = tr.from_ticks(pos)
-        qd = tr.velocity_from_ticks(vel * _RPM_PER_UNIT / 60.0 * self._ticks_per_rev)
-        tau = load * self._effort_per_load if self._sensed else None
+        rpm = np.array(vel, dtype=float) * _RPM_PER_UNIT
+        qd = tr.velocity_from_ticks(rpm / 60.0 * self._ticks_per_rev)
+        tau = np.array(load, dtype=float) * self._effort_per_load if self._sensed else None
         return q, qd, tau
 
     def _on_aux_polled(self) -> None:  # noqa: B027 - an optional hook

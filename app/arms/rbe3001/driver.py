@@ -62,7 +62,7 @@ class Rbe3001Driver(Driver):
         self._adc_offset = np.array(f.offset if f else [0.0] * 3)
         tpr = np.array([j.ticks_per_rev for j in self.profile.joints], dtype=float)
         #: Plausibility bounds for decoded values: 64 turns and 64 turns/s.
-        self._max_ticks = 64 * tpr
+        self._max_ticks: list[float] = (64 * tpr).tolist()
         self.gripper = None
 
     # --------------------------------------------------------- pass-through
@@ -176,7 +176,7 @@ class Rbe3001Driver(Driver):
         as corrupt. The bound grows with the time since, so a real fast move is accepted late,
         never refused for ever."""
         now = time.monotonic()
-        if self._last_q is not None:
+        if self._last_q is not None and q.tolist() != self._last_q.tolist():  # (at rest: equal)
             bound = JUMP_SPEEDS * self.model.vmax * (now - self._last_q_t) + JUMP_SLACK_RAD
             jump = np.abs(q - self._last_q)
             if np.any(jump > bound):
@@ -191,10 +191,11 @@ class Rbe3001Driver(Driver):
         pos = getattr(reply, "position_ticks", None)
         if pos is None:
             return
-        vel = np.abs(np.array(reply.velocity_ticks_s, dtype=float))
-        adc = np.array(reply.strain_adc, dtype=float)
-        if (np.any(np.abs(np.array(pos)) > self._max_ticks) or np.any(vel > self._max_ticks)
-                or np.any(adc < -1.0) or np.any(adc > 2.0)):
+        vel, adc = reply.velocity_ticks_s, reply.strain_adc
+        # Three values each, at every poll: plain floats, not numpy (the decoder already
+        # refused NaN and infinity).
+        if (any(abs(p) > m or abs(v) > m for p, v, m in zip(pos, vel, self._max_ticks, strict=True))
+                or min(adc) < -1.0 or max(adc) > 2.0):
             self.stats["corrupt"] += 1
             raise CorruptReply(f"{self.name}: implausible values in reply "
                                f"(positions {list(pos)}, velocities {list(vel)}, adc {list(adc)})")
