@@ -13,8 +13,10 @@ the loop keeps (no task per read, as `asyncio.wait_for` would make).
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import os
+from collections.abc import Callable
 from typing import Any
 
 from app.links.base import Link, LinkError, LinkState
@@ -110,19 +112,18 @@ class SerialLink(Link):
         self.state = LinkState.CONNECTING
         try:
             import serial
-            import serial_asyncio
+            import serial_asyncio  # noqa: F401  (its transport: see _transport_class)
         except ImportError as exc:
             raise self._down(f"pyserial-asyncio not available: {exc}") from exc
         self._errors = (OSError, serial.SerialException)
         try:
             # Exclusive (flock): a second server on the same port would break this one's link
             # mid-move; it is refused instead, told who holds the port.
-            transport, proto = await serial_asyncio.create_serial_connection(
-                asyncio.get_running_loop(), _Buffered, url=self.address, baudrate=self.baudrate,
-                exclusive=True,
-            )
-            proto.transport = transport  # connection_made comes later, from call_soon
-            self._proto = proto
+            port = serial.serial_for_url(self.address, baudrate=self.baudrate, exclusive=True)
+            proto = _Buffered()
+            # what serial_asyncio.create_serial_connection does, with our reader (below)
+            proto.transport = _transport_class()(asyncio.get_running_loop(), proto, port)
+            self._proto = proto  # (connection_made comes later, from call_soon)
         except (*self._errors, ValueError) as exc:
             holder = lock_holder(self.address) if "lock" in str(exc) else None
             if holder is not None:
@@ -198,6 +199,39 @@ class SerialLink(Link):
             proto.transport.close()
         log.warning("serial link %s lost: %s", self.address, reason)
         return self._down(f"serial link {self.address} lost: {reason}")
+
+
+@functools.cache
+def _transport_class() -> Callable[[asyncio.AbstractEventLoop, asyncio.Protocol, Any],
+                                    asyncio.Transport]:
+    """pyserial-asyncio's transport with a leaner reader (built on first use: pyserial is
+    imported only when a serial link opens).
+
+    Its own `_read_ready` calls pyserial's `read`, which asks `select` whether the port is
+    readable (the loop has just said so) and loops on a timeout object: a system call and a
+    few dozen lines of Python for each reply, hundreds of times a second on an idle arm. The
+    port is non-blocking, so one `os.read` does it: what is there, or end of file (a socket
+    whose peer closed, a pseudo-terminal without its master) or an error, both of which end
+    the connection as pyserial's `SerialException` would."""
+    import serial
+    import serial_asyncio
+
+    class Transport(serial_asyncio.SerialTransport):  # type: ignore[misc]
+        def _read_ready(self) -> None:
+            try:
+                data = os.read(self._serial.fileno(), READ_CHUNK)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:
+                self._close(exc=serial.SerialException(f"read failed: {exc}"))
+                return
+            if data:
+                self._protocol.data_received(data)
+            else:
+                self._close(exc=serial.SerialException("the port reports end of file "
+                                                       "(device disconnected)"))
+
+    return Transport
 
 
 def _write_now(transport: Any, data: bytes) -> bytes:

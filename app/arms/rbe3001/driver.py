@@ -63,6 +63,7 @@ class Rbe3001Driver(Driver):
         tpr = np.array([j.ticks_per_rev for j in self.profile.joints], dtype=float)
         #: Plausibility bounds for decoded values: 64 turns and 64 turns/s.
         self._max_ticks: list[float] = (64 * tpr).tolist()
+        self._plausible: Any = None  # the last reply found plausible
         self.gripper = None
 
     # --------------------------------------------------------- pass-through
@@ -189,7 +190,7 @@ class Rbe3001Driver(Driver):
 
     def _check_plausible(self, reply: Any) -> None:
         pos = getattr(reply, "position_ticks", None)
-        if pos is None:
+        if pos is None or reply is self._plausible:  # (the matcher's reply for the same bytes)
             return
         vel, adc = reply.velocity_ticks_s, reply.strain_adc
         # Three values each, at every poll: plain floats, not numpy (the decoder already
@@ -199,6 +200,7 @@ class Rbe3001Driver(Driver):
             self.stats["corrupt"] += 1
             raise CorruptReply(f"{self.name}: implausible values in reply "
                                f"(positions {list(pos)}, velocities {list(vel)}, adc {list(adc)})")
+        self._plausible = reply
 
 
 def _command_name(message: Any) -> str:
