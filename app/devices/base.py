@@ -86,6 +86,9 @@ class Driver(OwnerTask, abc.ABC):
         self.faults: list[dict[str, Any]] = []
         #: One flag per joint: False for a joint that needs homing until POST /home.
         self.homed = [not j.needs_homing or profile.link.homed_at_start for j in profile.joints]
+        #: Counts changes of the ticks <-> joint units conversion (homing moves an offset):
+        #: a driver that reuses converted readings for a repeated reply checks it.
+        self.units_version = 0
         #: The latest joint torques as sensed, before the tare; the tare (POST .../force/tare)
         #: is subtracted from every reading before it is published.
         self.torques_raw: np.ndarray | None = None
@@ -185,6 +188,7 @@ class Driver(OwnerTask, abc.ABC):
             now = float(self.positions[k])
             # the arrays of the (frozen) Transmission are shared by every user of the model
             tr.offset_ticks[k] += (now - q) * float(tr.ticks_per_unit[k])
+            self.units_version += 1
             self.positions = self.positions.copy()
             self.positions[k] = q
         self.homed[k] = True
