@@ -152,3 +152,18 @@ def on_control(method: Callable[P, Awaitable[T]]) -> Callable[P, Coroutine[Any, 
         return await call_in(home, call)
 
     return crossing
+
+
+def start_now(loop: asyncio.AbstractEventLoop | None, coro: Coroutine[Any, Any, Any]) -> None:
+    """Start `coro` on `loop` from any thread, at once (a task of the running loop when `loop`
+    is it or None). Its outcome is not awaited: an error is retrieved and logged at debug."""
+    running = running_loop()
+    if loop is None or loop is running or loop.is_closed():
+        asyncio.ensure_future(coro).add_done_callback(_retrieve)
+    else:
+        asyncio.run_coroutine_threadsafe(coro, loop).add_done_callback(_retrieve)
+
+
+def _retrieve(fut: asyncio.Future[Any] | concurrent.futures.Future[Any]) -> None:
+    if not fut.cancelled() and fut.exception() is not None:
+        log.debug("a call started with start_now failed: %r", fut.exception())

@@ -9,7 +9,9 @@ sample with the estop latch and the motion in progress (app/arm_hub.py).
 
 from __future__ import annotations
 
+import asyncio
 import logging
+import threading
 import time
 from typing import Any
 
@@ -19,7 +21,7 @@ from app import schemas as s
 from app.arm_hub import ArmHub
 from app.arms import arm_type
 from app.config import ArmProfile
-from app.control import on_control
+from app.control import on_control, running_loop, start_now
 from app.devices.base import Driver
 from app.devices.factory import make_driver
 from app.envelope import ArmSafety
@@ -31,6 +33,15 @@ from app.telemetry import TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
 
 log = logging.getLogger(__name__)
+
+#: Longest the estop fast path holds the HTTP thread for the latch, s (see press_estop).
+PRESS_WAIT_S = 0.005
+
+
+def _seen(task: asyncio.Future[Any]) -> None:
+    """Retrieve a finished hold's error (the presses that waited were told it)."""
+    if not task.cancelled():
+        task.exception()
 
 
 class ArmService:
@@ -47,6 +58,10 @@ class ArmService:
         self.motion = MotionExecutor(profile.name, self.model, self.guard, self.driver, self.hub,
                                      control_hz=profile.link.control_hz,
                                      cartesian=profile.cartesian)
+        #: The hold of the current estop latch (commanded once per latch, app loop), and
+        #: whether a press has been told how it went.
+        self._hold: asyncio.Future[None] | None = None
+        self._hold_told = True
 
     async def start(self) -> None:
         await self.driver.start()
@@ -250,13 +265,44 @@ class ArmService:
     @on_control
     async def latch_estop(self) -> s.EstopState:
         """Latch, and command the hold once per latch: a press on a latched estop changes
-        nothing (each hold re-commanded at the measured position walked a sagging arm down)."""
-        if not self.guard.latch():
-            return s.EstopState(estop=True)
-        self.driver.poll_soon()  # a fresh sample that shows the latch, ahead of the schedule
-        log.warning("%s: emergency stop latched", self.name)
-        self.hub.event("estop", latched=True)
-        await self.motion.emergency_stop()
+        nothing (each hold re-commanded at the measured position walked a sagging arm down).
+        Answers when the latch's hold is commanded; its error, if it failed, goes to the
+        presses that waited for it (the estop fast path's press and the route's that follows
+        it are two presses of one request)."""
+        return await self._latch()
+
+    def press_estop(self) -> None:
+        """Latch from the HTTP thread without waiting for its loop: the estop fast path
+        (app/api/arms.py) presses as soon as a request's head is read; the route's press
+        follows and reports. With the arm on the control thread, this thread then waits (up
+        to PRESS_WAIT_S) until the latch is set there: both threads share one core and one
+        GIL, and the control thread, woken, would otherwise wait for the rest of this
+        request (about half a millisecond) before latching and polling."""
+        latched = threading.Event()
+        home = self.home_loop
+        start_now(home, self._latch(latched))
+        if home is not None and home is not running_loop():
+            latched.wait(PRESS_WAIT_S)
+
+    async def _latch(self, latched: threading.Event | None = None) -> s.EstopState:
+        fresh = self.guard.latch()
+        if fresh:
+            self.driver.poll_soon()  # a fresh sample that shows the latch, ahead of the schedule
+        if latched is not None:
+            latched.set()
+        if fresh:
+            log.warning("%s: emergency stop latched", self.name)
+            self.hub.event("estop", latched=True)
+            started = asyncio.ensure_future(self.motion.emergency_stop())
+            started.add_done_callback(_seen)
+            self._hold, self._hold_told = started, False
+        hold = self._hold
+        if hold is not None and not hold.done():
+            self._hold_told = True
+            await asyncio.shield(hold)  # (a client that gives up does not cancel the hold)
+        elif hold is not None and not self._hold_told:  # it ended before this press got here
+            self._hold_told = True
+            hold.result()  # its error, if it failed
         return s.EstopState(estop=True)
 
     def release_estop(self) -> s.EstopState:

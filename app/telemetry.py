@@ -235,6 +235,31 @@ class TelemetryHub:
         self._listeners.append(fn)
         return lambda: self._listeners.remove(fn) if fn in self._listeners else None
 
+    async def sample_where(self, pred: Callable[[dict[str, Any]], bool], timeout: float,
+                           then: Callable[[], None] | None = None) -> bool:
+        """Call `then()` (if given), and wait on this loop until a sample satisfying `pred` is
+        published (True) or `timeout` seconds pass (False). `pred` runs in the publisher's
+        thread; it sees every sample published after `then` is called."""
+        loop = asyncio.get_running_loop()
+        seen = loop.create_future()
+
+        def check(sample: dict[str, Any]) -> None:
+            if pred(sample):
+                loop.call_soon_threadsafe(_settle, seen)
+
+        remove = self.add_listener(check)
+        try:
+            if then is not None:
+                then()
+            async with asyncio.timeout(timeout):
+                await seen
+        except TimeoutError:
+            return False
+        else:
+            return True
+        finally:
+            remove()
+
     # ---------------------------------------------------------------- publishing
 
     def publish(self, sample: dict[str, Any]) -> None:
@@ -336,5 +361,10 @@ class TelemetryHub:
 
 
 def _resolve(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)
+
+
+def _settle(fut: asyncio.Future[None]) -> None:
     if not fut.done():
         fut.set_result(None)

@@ -286,6 +286,54 @@ async def test_state_fast_path_answers_the_published_bytes_and_leaves_errors_alo
         assert ok200["content"]["application/json"]["schema"]["$ref"].endswith("/Sample")
 
 
+async def test_estop_fast_path_latches_on_the_head_of_a_request_the_route_accepts() -> None:
+    from conftest import make_settings, running_client
+
+    settings = make_settings(operator_tokens="op-token", viewer_tokens="view-token")
+    async with running_client(settings) as (app, client):
+        svc = app.state.services["rbe3001"]
+        await client.get("/api/v1/health")  # builds the middleware stack
+        layer = app.middleware_stack
+        while type(layer).__name__ != "StateFastPath":  # (below Starlette's error layer)
+            layer = layer.app
+
+        def scope(path: str, *headers: tuple[bytes, bytes]) -> dict[str, object]:
+            return {"type": "http", "method": "POST", "path": path,
+                    "headers": [(b"host", b"armserver.test"), *headers]}
+
+        async def latched_by(sc: dict[str, object]) -> bool:
+            await layer._press_estop(sc)  # the head alone: nothing below it runs
+            for _ in range(50):  # the press crosses into the control loop
+                if svc.guard.estop:
+                    return True
+                await asyncio.sleep(0.01)
+            return False
+
+        ok = (b"authorization", b"Bearer view-token")
+        path = "/api/v1/arms/rbe3001/estop"
+        # requests the route would not take as they are: left to the full stack
+        assert not await latched_by(scope(path))  # no token
+        assert not await latched_by(scope(path, (b"authorization", b"Bearer wrong")))
+        assert not await latched_by(scope(path, ok, (b"origin", b"http://evil.example")))
+        assert not await latched_by(scope(path, ok, (b"content-length", b"5")))
+        assert not await latched_by(scope("/api/v1/arms/nope/estop", ok))
+        assert not await latched_by(scope("/api/v1/arms/rbe3001/stop", ok))
+        # a viewer's press with an empty body latches before any layer below has run
+        assert await latched_by(scope(path, ok, (b"content-length", b"0")))
+        # the route's press of the same request finds the latch set and answers as before;
+        # the hold was commanded once for the latch
+        r = await client.post(path, headers={"authorization": "Bearer view-token"})
+        assert r.status_code == 200 and r.json() == {"estop": True}
+        r = await client.post("/api/v1/arms/rbe3001/move/joints", json={"positions": [0.1, 0.1, 0.1]},
+                              headers={"authorization": "Bearer op-token"})
+        assert r.status_code == 409 and r.json()["code"] == "estop_latched"
+        r = await client.delete(path, headers={"authorization": "Bearer op-token"})
+        assert r.status_code == 200 and r.json() == {"estop": False}
+        # through the whole stack, the fast path and the route press once each
+        r = await client.post(path, headers={"authorization": "Bearer view-token"})
+        assert r.status_code == 200 and svc.guard.estop
+
+
 async def test_state_fast_path_keeps_an_open_servers_host_check() -> None:
     from conftest import make_settings, running_client
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import logging
+from typing import Any
+
 from fastapi import APIRouter, FastAPI, Request, Response
 from starlette.types import ASGIApp, Receive, Scope, Send
 
@@ -10,6 +13,16 @@ from app.api.common import READ, errors
 from app.auth import bearer_token
 from app.deps import ServicesDep, SettingsDep, ViewerArm, ViewerRole
 from app.hostguard import HostPolicy
+
+log = logging.getLogger(__name__)
+
+#: Longest the estop fast path waits for the sample that shows its latch, s (a device round
+#: trip or two; the route waits longer for the hold).
+ESTOP_SAMPLE_WAIT_S = 0.02
+
+
+def _shows_estop(sample: dict[str, Any]) -> bool:
+    return bool(sample.get("estop"))
 
 router = APIRouter(tags=["arms"])
 
@@ -87,7 +100,11 @@ class StateFastPath:
     OpenAPI. A request this layer answers is one the regular route would answer the same way
     (`tests/test_sample_pipeline.py` compares them), without crossing the six middleware
     layers, the router and FastAPI's dependency solving (profiled: about half of what a
-    request cost the server before)."""
+    request cost the server before).
+
+    It also presses the emergency stop early: a `POST .../estop` that passes the same checks
+    latches here, on the request's head, then goes down the stack as any request (see
+    `_press_estop`)."""
 
     def __init__(self, app: ASGIApp, app_ref: FastAPI, prefix: str, hosts: HostPolicy) -> None:
         self.app = app
@@ -98,6 +115,8 @@ class StateFastPath:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         body = self._answer(scope) if scope["type"] == "http" else None
         if body is None:
+            if scope["type"] == "http" and scope.get("method") == "POST":
+                await self._press_estop(scope)
             await self.app(scope, receive, send)
             return
         await send({"type": "http.response.start", "status": 200,
@@ -109,8 +128,35 @@ class StateFastPath:
         """The bytes to answer `scope` with, or None: the full stack answers it."""
         if scope.get("method") != "GET":
             return None
+        svc = self._arm(scope, "/state", b"")
+        return svc.hub.latest_bytes if svc is not None else None
+
+    async def _press_estop(self, scope: Scope) -> None:
+        """`POST {prefix}/arms/{arm}/estop`, a request the estop route will accept (the same
+        conditions as a state read, an empty body): latch now, on the head alone. The request
+        then goes down the stack as any other (audited, answered by the route, whose own
+        press finds the latch set and waits for the same hold): the stop does not wait for
+        the six middleware layers, the router and FastAPI's dependency solving (about 0.5 ms
+        of a request on the test machine). An estop is the one write worth it: latching
+        early is always the safe side."""
+        svc = self._arm(scope, "/estop", b"0")
+        if svc is None or svc.estop:  # (a press on a latched estop changes nothing)
+            return
+        try:
+            # This loop sends the telemetry: it waits (idle) for the sample that shows the
+            # latch and sends it before it spends itself on the rest of this request (the
+            # route answers after the hold anyway, later than that sample).
+            await svc.hub.sample_where(_shows_estop, ESTOP_SAMPLE_WAIT_S, svc.press_estop)
+        except Exception:  # outside the error layers: the route's press still follows
+            log.exception("estop fast path: the early press failed")
+
+    def _arm(self, scope: Scope, tail: str, length: bytes) -> Any:
+        """The arm of `{prefix}/arms/{arm}{tail}` if the full stack would let `scope` through
+        to its route: no Origin (CORS and the cross-origin checks are the full stack's), a
+        body of `length` bytes or none (b"": none), a Host the server answers to (open
+        servers, `app.hostguard`), a valid token where tokens are on, a known arm; else None."""
         path: str = scope["path"]
-        if not (path.startswith(self.head) and path.endswith("/state")):
+        if not (path.startswith(self.head) and path.endswith(tail)):
             return None
         host = auth = None
         for key, value in scope.get("headers", ()):
@@ -118,6 +164,8 @@ class StateFastPath:
                 host = value
             elif key == b"authorization":
                 auth = value
+            elif key == b"content-length" and value == length:
+                continue
             elif key in _FULL_STACK_HEADERS:
                 return None
         if self.hosts.enabled and not self.hosts.host_ok(
@@ -127,9 +175,8 @@ class StateFastPath:
         if access.enabled and access.role_of(
                 bearer_token(auth.decode("latin-1") if auth is not None else None)) is None:
             return None
-        name = path[len(self.head):-len("/state")]
-        svc = self.state.services.get(name) if 0 < len(name) <= 64 else None
-        return svc.hub.latest_bytes if svc is not None else None
+        name = path[len(self.head):-len(tail)]
+        return self.state.services.get(name) if 0 < len(name) <= 64 else None
 
 
 #: Request headers that send a state read down the full stack: a body (the body limit), an

@@ -192,16 +192,21 @@ class _Stream:
         """For a rate near the device's own (period up to PROMPT_PERIOD_S): a sample that
         arrives when the last message is a period old goes out at once, not at the next tick,
         so a command's effect (an estop) reaches the client one device round trip after it.
-        Still one message a period on average. Returns when the rate changes."""
+        Still one message a period on average. A rate at or above the arm's poll rate asks for
+        no fewer messages than samples: each sample goes out as it is published, the extra
+        one a command asks for (an estop's, a pass-through write's) included, instead of
+        waiting out the period of the scheduled one before it. Returns when the rate
+        changes."""
         ws = self.ws
         loop = asyncio.get_running_loop()
         next_send = loop.time()
         while not self._rate_changed:
+            every = self.period * self.svc.profile.link.poll_hz <= 1.0 + 1e-9
             await sub.wait(EVENT_SLICE_S)
             for event in sub.take_events():
                 await ws.send_text(event)
             now = loop.time()
-            if now < next_send:
+            if now < next_send and not every:
                 await asyncio.sleep(next_send - now)
                 now = loop.time()
             msg = sub.take_message()
