@@ -238,14 +238,15 @@ class TelemetryHub:
     async def sample_where(self, pred: Callable[[dict[str, Any]], bool], timeout: float,
                            then: Callable[[], None] | None = None) -> bool:
         """Call `then()` (if given), and wait on this loop until a sample satisfying `pred` is
-        published (True) or `timeout` seconds pass (False). `pred` runs in the publisher's
-        thread; it sees every sample published after `then` is called."""
+        published (True) or `timeout` seconds pass (False); the subscribers that sample wakes
+        on this loop run first. `pred` runs in the publisher's thread; it sees every sample
+        published after `then` is called."""
         loop = asyncio.get_running_loop()
         seen = loop.create_future()
 
         def check(sample: dict[str, Any]) -> None:
-            if pred(sample):
-                loop.call_soon_threadsafe(_settle, seen)
+            if pred(sample):  # resumed after the subscribers this sample wakes have run
+                loop.call_soon_threadsafe(loop.call_soon, _settle, seen)
 
         remove = self.add_listener(check)
         try:
