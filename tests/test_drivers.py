@@ -376,3 +376,27 @@ async def test_an_rbe3001_reading_that_jumps_impossibly_is_refused_as_corrupt():
         np.testing.assert_allclose(driver.positions, q_good, atol=0.01)
     finally:
         await driver.close()
+
+
+@pytest.mark.parametrize("name", ["rbe3001", "angler"])
+async def test_a_repeated_reading_is_converted_again_after_homing(name):
+    """At rest a poll reuses the last reading's conversion (the same reply bytes); homing
+    moves the offset, and the next sample of the same bytes shows the new position."""
+    driver = await started(name, sim_link(name))
+    try:
+        await asyncio.sleep(0.6)  # at rest: the readings repeat
+        before = driver.positions
+        assert before is not None and not before.flags.writeable  # shared, so read-only
+        raw = driver._converted_key
+        await asyncio.sleep(0.05)
+        assert driver.positions is before and driver._converted_key == raw  # reused
+        driver.set_home(0, float(before[0]) + 0.01)
+        seq = driver._seq
+        while driver._seq < seq + 3:
+            await asyncio.sleep(0.01)
+        assert driver.positions[0] == pytest.approx(before[0] + 0.01, abs=1e-9)
+        assert np.allclose(driver.positions[1:], before[1:], atol=1e-9)
+        latest = json.loads(driver.hub.latest_json)
+        assert latest["positions"][0] == pytest.approx(before[0] + 0.01, abs=1e-9)
+    finally:
+        await driver.close()

@@ -247,6 +247,24 @@ def test_matcher_refuses_a_reading_with_spare_floats_changed() -> None:
         m.match(packet(37, math.nan, *([1.0] * 8)))
 
 
+def test_matcher_remembers_a_checked_reading_and_refuses_the_same_with_a_byte_changed() -> None:
+    m = ReplyMatcher()
+    good = packet(38, *([1.0] * 9))
+    assert m.request(Status()) == encode_command(Status())
+    first = m.match(good)
+    m.request(Status())
+    again = m.match(good)
+    assert isinstance(first, StatusReply) and again is first  # the same bytes: decoded once
+    m.request(Status())
+    with pytest.raises(DecodeError, match="floats 9-14"):
+        m.match(packet(38, *([1.0] * 9), 0.0, 0.0, 0.0, 0.0, 0.0, 3.0))
+    m.request(Status())
+    with pytest.raises(DecodeError, match="nan"):
+        m.match(packet(38, math.nan, *([1.0] * 8)))
+    m.request(Status())
+    assert m.match(good) is first
+
+
 def test_matcher_reports_the_simplepacketcoms_error_packet() -> None:
     m = ReplyMatcher()
     m.request(SetGain(0, 0.1, 0.0, 0.0))
