@@ -301,9 +301,8 @@ class TelemetryHub:
         with self._lock:
             return self._take_locked(sub, until)
 
-    def _range_locked(self, sub: Subscription, until: float | None) -> tuple[int, int, int]:
-        """(first, end, lost): `sub`'s next samples are numbers first..end-1 (those published
-        before `until`); `lost` were skipped by its backlog bound. Advances its cursor."""
+    def _end_locked(self, until: float | None) -> int:
+        """One past the number of the last sample published before `until` (all if None)."""
         end = self.published
         if until is not None:
             stamps = self._stamps
@@ -311,6 +310,15 @@ class TelemetryHub:
             while k > 0 and stamps[k - 1] >= until:
                 k -= 1
             end -= len(stamps) - k
+        return end
+
+    def _range_locked(self, sub: Subscription, until: float | None,
+                      end: int | None = None) -> tuple[int, int, int]:
+        """(first, end, lost): `sub`'s next samples are numbers first..end-1 (those published
+        before `until`; `end` if the caller has it); `lost` were skipped by its backlog bound.
+        Advances its cursor."""
+        if end is None:
+            end = self._end_locked(until)
         oldest = max(self.published - len(self._log), end - sub.backlog)
         lost = 0
         if sub.cursor < oldest:
@@ -338,10 +346,12 @@ class TelemetryHub:
         """`take_message(until)` for each of `subs`, under one acquisition of the lock (the
         broadcast fan-out: subscribers at the same cursor get the same str object)."""
         with self._lock:
-            return [self._message_locked(sub, until) for sub in subs]
+            end = self._end_locked(until)  # the same for every one of them
+            return [self._message_locked(sub, until, end) for sub in subs]
 
-    def _message_locked(self, sub: Subscription, until: float | None) -> str | None:
-        first, end, lost = self._range_locked(sub, until)
+    def _message_locked(self, sub: Subscription, until: float | None,
+                        end_until: int | None = None) -> str | None:
+        first, end, lost = self._range_locked(sub, until, end_until)
         dropped = sub.dropped + lost
         sub.dropped = 0
         if end == first and not dropped:

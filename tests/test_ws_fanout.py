@@ -11,6 +11,7 @@ import time
 from typing import Any
 
 import httpx
+import pytest
 from conftest import LiveServer, serve_live
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.frames import Frame, Opcode
@@ -73,8 +74,8 @@ def _groups(live: LiveServer) -> dict[float, int]:
     return {} if b is None else {g.period: len(g.members) for g in b._groups.values()}
 
 
-def test_many_clients_share_one_broadcast_and_each_gets_every_sample() -> None:
-    n = 20
+@pytest.mark.parametrize("n", [20, 250])  # 250: written in three slices (ws_fanout.SLICE)
+def test_many_clients_share_one_broadcast_and_each_gets_every_sample(n: int) -> None:
 
     async def run(live: LiveServer) -> None:
         url = live.ws_url + WS.format(arm="rbe3001") + "?rate=20"

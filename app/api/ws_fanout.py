@@ -28,6 +28,11 @@ from app.telemetry import Subscription, TelemetryHub
 
 #: Longest an event waits for the broadcast to notice it, s.
 EVENT_SLICE_S = 0.05
+#: A broadcast writes its members in slices of this many, SLICE_GAP_S apart, over SPREAD of
+#: the period at most (see _run).
+SLICE = 100
+SLICE_GAP_S = 0.003
+SPREAD = 0.8
 #: A member whose transport holds more than this is skipped (it reads too slowly); its
 #: samples wait in the hub's bounded log, and it is told what it lost when it catches up.
 SLOW_CLIENT_BYTES = 64 * 1024
@@ -152,19 +157,48 @@ class Broadcast:
                         m.raw.write(text_frame(event.encode()))
             if loop.time() < next_batch:
                 continue
-            ready = [m for m in members if not m.raw.slow and not m.raw.closed]
+            # The members go out in slices of SLICE members, a slice every SLICE_GAP_S from
+            # the tick (at most half the period in all): one burst of 1,000 frames reached
+            # a reader holding many of these sockets (a lab machine with many dashboards, the
+            # benchmark's client) faster than it could take them, and where each client fell
+            # in its reads moved from tick to tick (gaps of 41 ms where the period is 33). A
+            # member keeps its place, so its messages stay a period apart.
+            gap = min(SLICE_GAP_S, SPREAD * period / max(1, math.ceil(len(members) / SLICE)))
             frames: dict[int, tuple[str, bytes]] = {}
-            for m, msg in zip(ready, self.hub.messages([m.sub for m in ready], next_batch),
-                              strict=True):
-                if msg is None:
-                    continue
-                built = frames.get(id(msg))
-                if built is None:
-                    built = frames[id(msg)] = (msg, text_frame(msg.encode()))
-                m.raw.write(built[1])
+            for k in range(0, len(members), SLICE):
+                if k:
+                    wait = next_batch + gap * (k // SLICE) - loop.time()
+                    if wait > 0:
+                        await asyncio.sleep(wait)
+                self._write_slice(members[k:k + SLICE], next_batch, frames)
             tick += 1
             if tick * period < loop.time():  # fell behind (a stalled loop): do not burst
                 tick = math.floor(loop.time() / period) + 1
+
+
+    def _write_slice(self, members: list[Member], until: float,
+                     frames: dict[int, tuple[str, bytes]]) -> None:
+        """Each live member's batch of the samples published before `until`, one built
+        frame per distinct message (`frames`, by message id, holding the message so that the
+        id stays its own; shared by a tick's slices); the least Python per member (30,000
+        writes a second at 1,000 clients)."""
+        subs, transports = [], []
+        for m in members:
+            raw = m.raw
+            if not raw.slow and not raw.closed:
+                subs.append(m.sub)
+                transports.append(raw.transport)
+        last: str | None = None
+        frame = b""
+        for transport, msg in zip(transports, self.hub.messages(subs, until), strict=True):
+            if msg is None:
+                continue
+            if msg is not last:  # (members at one cursor share one message object)
+                found = frames.get(id(msg))
+                if found is None:
+                    found = frames[id(msg)] = (msg, text_frame(msg.encode()))
+                last, frame = msg, found[1]
+            transport.write(frame)
 
 
 class Broadcasts:
