@@ -324,7 +324,8 @@ async def test_estop_fast_path_latches_on_the_head_of_a_request_the_route_accept
         # the hold was commanded once for the latch
         r = await client.post(path, headers={"authorization": "Bearer view-token"})
         assert r.status_code == 200 and r.json() == {"estop": True}
-        r = await client.post("/api/v1/arms/rbe3001/move/joints", json={"positions": [0.1, 0.1, 0.1]},
+        r = await client.post("/api/v1/arms/rbe3001/move/joints",
+                              json={"positions": [0.1, 0.1, 0.1]},
                               headers={"authorization": "Bearer op-token"})
         assert r.status_code == 409 and r.json()["code"] == "estop_latched"
         r = await client.delete(path, headers={"authorization": "Bearer op-token"})
