@@ -291,6 +291,7 @@ class ArmService:
         if latched is not None:
             latched.set()
         if fresh:
+            await asyncio.sleep(0)  # the poll goes out first: the log line and the event wait
             log.warning("%s: emergency stop latched", self.name)
             self.hub.event("estop", latched=True)
             started = asyncio.ensure_future(self.motion.emergency_stop())
