@@ -277,7 +277,13 @@ async def test_a_locked_database_is_an_error_in_health_not_a_lost_change(tmp_pat
         app.state.store._retry_s = 0.05  # retry soon rather than in RETRY_S
         r = await client.put(f"{AN}/safety", json={"speed_override": 0.9})  # flushes both
         assert r.status_code == 200 and r.json()["persisted"] is True, r.text
-        h = (await client.get(f"{API}/health")).json()
+        # the audit records (this PUT's among them) go through the store's writer thread,
+        # after the response: wait for it (bounded) rather than race it
+        for _ in range(250):
+            h = (await client.get(f"{API}/health")).json()
+            if h["store"]["pending"] == 0:
+                break
+            await asyncio.sleep(0.02)
         assert h["store"]["ok"] is True and h["store"]["pending"] == 0
     rows = dict(sqlite3.connect(tmp_path / DB_NAME).execute(
         "SELECT scope, value FROM settings").fetchall())
