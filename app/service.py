@@ -291,12 +291,14 @@ class ArmService:
         if latched is not None:
             latched.set()
         if fresh:
-            await asyncio.sleep(0)  # the poll goes out first: the log line and the event wait
-            log.warning("%s: emergency stop latched", self.name)
-            self.hub.event("estop", latched=True)
+            # The hold's task is there before this yields (a press that comes meanwhile waits
+            # for it); the owner task, woken first, sends the poll before it starts.
             started = asyncio.ensure_future(self.motion.emergency_stop())
             started.add_done_callback(_seen)
             self._hold, self._hold_told = started, False
+            await asyncio.sleep(0)  # the poll goes out first: the log line and the event wait
+            log.warning("%s: emergency stop latched", self.name)
+            self.hub.event("estop", latched=True)
         hold = self._hold
         if hold is not None and not hold.done():
             self._hold_told = True

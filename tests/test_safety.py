@@ -398,3 +398,29 @@ async def test_a_malformed_body_without_a_token_is_401_not_422() -> None:
                                            "content-type": "application/json"})
             assert r.status_code == 422 and r.json()["code"] == "invalid_json"
             assert (await client.get("/api/v1/health")).status_code == 200
+
+
+async def test_presses_that_meet_while_the_estop_latches_all_wait_for_its_one_hold() -> None:
+    """The estop fast path and the route press the estop for one request, and other clients
+    may press at the same moment: every press answers after the latch's hold is commanded,
+    and the hold is commanded once."""
+    from app.service import ArmService
+
+    svc = ArmService(load_profile("rbe3001"))  # on this loop: the presses interleave here
+    await svc.start()
+    try:
+        assert await svc.driver.wait_connected(5.0)
+        sent = svc.driver.stats["requests"]
+        told: list[bool] = []
+
+        async def press() -> None:
+            assert (await svc.latch_estop()).estop is True
+            told.append(svc._hold is not None and svc._hold.done())
+
+        await asyncio.gather(press(), press(), press())
+        assert told == [True, True, True] and svc.estop
+        assert svc.driver.stats["requests"] == sent + 1  # one hold (SET_PID) for the latch
+        await press()  # a press on the latched estop: nothing more commanded
+        assert svc.driver.stats["requests"] == sent + 1
+    finally:
+        await svc.close()
