@@ -56,7 +56,10 @@ def test_round_trips(seed: int) -> None:
     np.testing.assert_allclose(t.velocity_from_ticks(t.velocity_to_ticks(q)), q, atol=1e-12)
     np.testing.assert_allclose(t.velocity_from_rpm_units(t.velocity_to_rpm_units(q)), q, atol=1e-12)
     # a velocity in ticks/s is the tick change over one second at that rate
-    np.testing.assert_allclose(t.velocity_to_ticks(q), t.to_ticks(q) - t.to_ticks(0 * q), rtol=1e-9)
+    # (atol: the difference of two tick counts near the offset, up to ~4,000, keeps about
+    # 1e-12 ticks of absolute precision, not 1e-9 of relative for a tiny q)
+    np.testing.assert_allclose(t.velocity_to_ticks(q), t.to_ticks(q) - t.to_ticks(0 * q),
+                               rtol=1e-9, atol=1e-9)
 
 
 def test_dynamixel_velocity_units() -> None:
