@@ -246,7 +246,7 @@ class TelemetryHub:
 
         def check(sample: dict[str, Any]) -> None:
             if pred(sample):  # resumed after the subscribers this sample wakes have run
-                loop.call_soon_threadsafe(loop.call_soon, _settle, seen)
+                loop.call_soon_threadsafe(loop.call_soon, _resolve, seen)
 
         remove = self.add_listener(check)
         try:
@@ -312,13 +312,9 @@ class TelemetryHub:
             end -= len(stamps) - k
         return end
 
-    def _range_locked(self, sub: Subscription, until: float | None,
-                      end: int | None = None) -> tuple[int, int, int]:
-        """(first, end, lost): `sub`'s next samples are numbers first..end-1 (those published
-        before `until`; `end` if the caller has it); `lost` were skipped by its backlog bound.
-        Advances its cursor."""
-        if end is None:
-            end = self._end_locked(until)
+    def _range_locked(self, sub: Subscription, end: int) -> tuple[int, int, int]:
+        """(first, end, lost): `sub`'s next samples are numbers first..end-1 (`end` from
+        `_end_locked`); `lost` were skipped by its backlog bound. Advances its cursor."""
         oldest = max(self.published - len(self._log), end - sub.backlog)
         lost = 0
         if sub.cursor < oldest:
@@ -335,23 +331,22 @@ class TelemetryHub:
         return [log[i] for i in range(start, start + end - first)]
 
     def _take_locked(self, sub: Subscription, until: float | None) -> tuple[list[str], int]:
-        first, end, lost = self._range_locked(sub, until)
+        first, end, lost = self._range_locked(sub, self._end_locked(until))
         return self._slice_locked(first, end), lost
 
     def _message(self, sub: Subscription, until: float | None) -> str | None:
         with self._lock:
-            return self._message_locked(sub, until)
+            return self._message_locked(sub, self._end_locked(until))
 
     def messages(self, subs: list[Subscription], until: float | None) -> list[str | None]:
         """`take_message(until)` for each of `subs`, under one acquisition of the lock (the
         broadcast fan-out: subscribers at the same cursor get the same str object)."""
         with self._lock:
             end = self._end_locked(until)  # the same for every one of them
-            return [self._message_locked(sub, until, end) for sub in subs]
+            return [self._message_locked(sub, end) for sub in subs]
 
-    def _message_locked(self, sub: Subscription, until: float | None,
-                        end_until: int | None = None) -> str | None:
-        first, end, lost = self._range_locked(sub, until, end_until)
+    def _message_locked(self, sub: Subscription, end_until: int) -> str | None:
+        first, end, lost = self._range_locked(sub, end_until)
         dropped = sub.dropped + lost
         sub.dropped = 0
         if end == first and not dropped:
@@ -372,10 +367,5 @@ class TelemetryHub:
 
 
 def _resolve(fut: asyncio.Future[None]) -> None:
-    if not fut.done():
-        fut.set_result(None)
-
-
-def _settle(fut: asyncio.Future[None]) -> None:
     if not fut.done():
         fut.set_result(None)

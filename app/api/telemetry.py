@@ -200,8 +200,8 @@ class _Stream:
         ws = self.ws
         loop = asyncio.get_running_loop()
         next_send = loop.time()
+        every = self.period * self.svc.profile.link.poll_hz <= 1.0 + 1e-9  # (set per rate)
         while not self._rate_changed:
-            every = self.period * self.svc.profile.link.poll_hz <= 1.0 + 1e-9
             await sub.wait(EVENT_SLICE_S)
             for event in sub.take_events():
                 await ws.send_text(event)

@@ -158,7 +158,7 @@ class Broadcast:
             if loop.time() < next_batch:
                 continue
             # The members go out in slices of SLICE members, a slice every SLICE_GAP_S from
-            # the tick (at most half the period in all): one burst of 1,000 frames reached
+            # the tick (over SPREAD of the period at most): one burst of 1,000 frames reached
             # a reader holding many of these sockets (a lab machine with many dashboards, the
             # benchmark's client) faster than it could take them, and where each client fell
             # in its reads moved from tick to tick (gaps of 41 ms where the period is 33). A

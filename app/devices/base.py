@@ -46,6 +46,9 @@ from app.links.base import Link, LinkState
 from app.tasks import cancel_and_wait
 from app.telemetry import TelemetryHub
 
+#: A poll's readings in joint units: positions, velocities, torques (None: not sensed).
+Readings = tuple[np.ndarray, np.ndarray, np.ndarray | None]
+
 #: Tries of each set-up exchange (`_setup_exchange`): set-up is a chain of idempotent commands,
 #: so one lost or corrupt reply in it should cost a retry, not a reconnect. With 5 % of replies
 #: lost, a 24-exchange chain without retries succeeds 30 % of the time; with 3 tries, 99.7 %.
@@ -89,6 +92,8 @@ class Driver(OwnerTask, abc.ABC):
         #: Counts changes of the ticks <-> joint units conversion (homing moves an offset):
         #: a driver that reuses converted readings for a repeated reply checks it.
         self.units_version = 0
+        self._converted_key: tuple[Any, int] | None = None
+        self._converted: Readings | None = None
         #: The latest joint torques as sensed, before the tare; the tare (POST .../force/tare)
         #: is subtracted from every reading before it is published.
         self.torques_raw: np.ndarray | None = None
@@ -178,6 +183,22 @@ class Driver(OwnerTask, abc.ABC):
     async def reboot(self, dxl_id: int) -> None:
         """Reboot one actuator of the arm, where the device can (base: it cannot)."""
         raise NotSupported(f"{self.name} cannot reboot servo {dxl_id}: its device has no reboot")
+
+    def converted(self, raw: Any) -> Readings | None:
+        """The readings `remember_converted` kept for an equal `raw` reading (an arm at rest
+        reads the same, poll after poll), while homing has not changed the units; else None."""
+        if (raw, self.units_version) == self._converted_key:
+            return self._converted
+        return None
+
+    def remember_converted(self, raw: Any, readings: Readings) -> Readings:
+        """Keep `readings` (positions, velocities, torques in joint units) for `raw`; they are
+        made read-only, as the polls that read the same share them."""
+        for a in readings:
+            if a is not None:
+                a.setflags(write=False)
+        self._converted_key, self._converted = (raw, self.units_version), readings
+        return readings
 
     def set_home(self, k: int, q: float) -> None:
         """Declare joint `k`'s current physical position to be `q` (rad or m): shift the

@@ -98,10 +98,6 @@ class DynamixelChainDriver(DynamixelBusDriver):
         self.profile_velocity: dict[int, int] = {}
         self._power_checked = 0.0
         self._poll_request: DxlRequest | None = None
-        #: The last poll's raw (positions, velocities, loads, units_version) and its readings
-        #: in joint units.
-        self._converted_key: tuple[list[int], list[int], list[int], int] | None = None
-        self._converted: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
 
     @property
     def servo_ids(self) -> tuple[int, ...]:
@@ -278,19 +274,16 @@ class DynamixelChainDriver(DynamixelBusDriver):
         self._on_aux_polled()
         await self._check_faults()
         await self._check_power()
-        key = (pos, vel, load, self.units_version)
-        if key == self._converted_key and self._converted is not None:
-            return self._converted  # the same readings (at rest): converted already
+        raw = (pos, vel, load)
+        known = self.converted(raw)
+        if known is not None:
+            return known  # the same readings (at rest): converted already
         tr = self.model.transmission
         q = tr.from_ticks(pos)
         rpm = np.array(vel, dtype=float) * _RPM_PER_UNIT
         qd = tr.velocity_from_ticks(rpm / 60.0 * self._ticks_per_rev)
         tau = np.array(load, dtype=float) * self._effort_per_load if self._sensed else None
-        for a in (q, qd, tau):
-            if a is not None:
-                a.setflags(write=False)  # shared by the polls that read the same
-        self._converted_key, self._converted = key, (q, qd, tau)
-        return q, qd, tau
+        return self.remember_converted(raw, (q, qd, tau))
 
     def _on_aux_polled(self) -> None:  # noqa: B027 - an optional hook
         """The aux servos' `aux_ticks` were just read (a gripper publishes its opening)."""

@@ -64,9 +64,6 @@ class Rbe3001Driver(Driver):
         #: Plausibility bounds for decoded values: 64 turns and 64 turns/s.
         self._max_ticks: list[float] = (64 * tpr).tolist()
         self._plausible: Any = None  # the last reply found plausible
-        #: The last poll's (reply, units_version) and its readings in joint units.
-        self._converted_key: tuple[Any, int] | None = None
-        self._converted: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
         self.gripper = None
 
     # --------------------------------------------------------- pass-through
@@ -119,12 +116,12 @@ class Rbe3001Driver(Driver):
 
     async def _poll(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         reply: rb.StatusReply = await self._exchange(_STATUS, self.timeout)
-        key = (reply, self.units_version)
-        if key == self._converted_key and self._converted is not None:
+        known = self.converted(reply)
+        if known is not None:
             # The matcher's reply for the same bytes (an arm at rest): the same readings,
             # converted already (read-only arrays); the jump check's clock moves on.
             self._last_q_t = time.monotonic()
-            return self._converted
+            return known
         tr = self.model.transmission
         q = tr.from_ticks(np.array(reply.position_ticks, dtype=float))
         self._check_jump(q)
@@ -132,11 +129,7 @@ class Rbe3001Driver(Driver):
         tau = None
         if self.profile.force is not None:
             tau = self._adc_scale * (np.array(reply.strain_adc, dtype=float) - self._adc_offset)
-        for a in (q, qd, tau):
-            if a is not None:
-                a.setflags(write=False)
-        self._converted_key, self._converted = key, (q, qd, tau)
-        return q, qd, tau
+        return self.remember_converted(reply, (q, qd, tau))
 
     async def _exchange(self, message: Any, timeout: float) -> Any:
         if self._dirty:
