@@ -287,16 +287,18 @@ class ArmService:
     async def _latch(self, latched: threading.Event | None = None) -> s.EstopState:
         fresh = self.guard.latch()
         if fresh:
-            self.driver.poll_soon()  # a fresh sample that shows the latch, ahead of the schedule
+            # The latch shows at once, in a sample of the latest reading: clients do not wait
+            # a device round trip for it, and the hold goes to the device before any poll.
+            self.driver.publish_state()
         if latched is not None:
             latched.set()
         if fresh:
             # The hold's task is there before this yields (a press that comes meanwhile waits
-            # for it); the owner task, woken first, sends the poll before it starts.
+            # for it), and it starts before the log line and the event.
             started = asyncio.ensure_future(self.motion.emergency_stop())
             started.add_done_callback(_seen)
             self._hold, self._hold_told = started, False
-            await asyncio.sleep(0)  # the poll goes out first: the log line and the event wait
+            await asyncio.sleep(0)
             log.warning("%s: emergency stop latched", self.name)
             self.hub.event("estop", latched=True)
         hold = self._hold

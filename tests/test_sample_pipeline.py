@@ -361,6 +361,42 @@ async def test_poll_soon_takes_a_poll_ahead_of_a_slow_schedule() -> None:
         await driver.close()
 
 
+async def test_an_estop_latch_shows_at_once_in_a_sample_of_the_latest_reading() -> None:
+    """Issue 12 (estop to a sample showing it): the latch publishes the latest reading again
+    with `estop: true` before any new reading (the poll it asks for follows), so a client
+    sees it without waiting a device round trip; the sample's numbers are the reading's."""
+    from app.service import ArmService
+
+    base = load_profile("rbe3001")  # polled every 10 s: no scheduled poll gets in between
+    profile = base.model_copy(update={"link": base.link.model_copy(update={"poll_hz": 0.1})})
+    svc = ArmService(profile)
+    await svc.start()
+    try:
+        assert await svc.driver.wait_connected(10.0)
+        await asyncio.sleep(0.2)  # the first reading is out
+        seen: list[tuple[dict[str, object], int]] = []
+        svc.hub.add_listener(lambda s: seen.append((dict(s), svc.driver.stats["polls"])))
+        last = json.loads(svc.hub.latest_bytes)
+        polls, requests = svc.driver.stats["polls"], svc.driver.stats["requests"]
+        assert last["estop"] is False
+        assert (await svc.latch_estop()).estop is True
+        first, polls_then = seen[0]
+        assert first["estop"] is True and polls_then == polls  # before any new reading
+        assert first["seq"] == last["seq"] + 1  # gap-free
+        for key in ("positions", "velocities", "torques", "tip", "stale"):
+            assert first[key] == last[key], key
+        # the hold (one SET_PID) went to the device, no poll ahead of it
+        assert svc.driver.stats["requests"] == requests + 1
+        assert svc.driver.stats["polls"] == polls
+        assert all(s["estop"] is True for s, _ in seen)
+        await svc.latch_estop()  # a press on a latched estop publishes nothing more
+        n = len(seen)
+        await asyncio.sleep(0.05)
+        assert len(seen) == n
+    finally:
+        await svc.close()
+
+
 async def test_a_pass_through_write_is_followed_by_a_poll() -> None:
     """A register written through the Dynamixel pass-through (a goal, the LED) shows in a
     sample one bus round trip later, not at the next scheduled poll (issue 12: goal to the

@@ -270,9 +270,7 @@ class OwnerTask:
         self.stale_error = None
         self.positions, self.velocities = q, qd
         self.torques_raw = tau
-        if tau is not None and self.torque_tare is not None:
-            tau = tau - self.torque_tare
-        self._publish(q, qd, tau, stale=False)
+        self._publish(q, qd, self._tared(tau), stale=False)
 
     # ------------------------------------------------------------ samples
 
@@ -314,6 +312,23 @@ class OwnerTask:
             "homed": list(self.homed),
         }
         self.hub.publish(sample)  # the arm's hub adds the estop, motion, fault and homing fields
+
+    def publish_state(self) -> None:
+        """Publish the latest reading again, at once, with the arm's state as it is now: for a
+        change of state a client must see without waiting for the next reading (an estop's
+        latch; like `stale` when the link is lost). The next poll's reading follows as it comes.
+        Nothing before the first reading; a stale arm's sample stays stale."""
+        if self.stale:
+            self._publish_stale()
+        elif self.positions is not None and self.velocities is not None:
+            self._publish(self.positions, self.velocities, self._tared(self.torques_raw),
+                          stale=False)
+
+    def _tared(self, tau: np.ndarray | None) -> np.ndarray | None:
+        """Raw torques less the tare (None: no torques)."""
+        if tau is not None and self.torque_tare is not None:
+            return tau - self.torque_tare
+        return tau
 
     def _publish_stale(self) -> None:
         if self.positions is not None and self.velocities is not None:
