@@ -217,6 +217,28 @@ async def test_late_replies_never_answer_a_later_request(name):
 
 
 @pytest.mark.parametrize("name", ["angler", "rbe3001"])
+async def test_a_request_goes_between_two_polls_while_they_catch_up(name):
+    """Polls slower than the poll period (every reply 4 periods late) keep the owner task
+    behind its schedule, catching up back to back; a request queued meanwhile waits for the
+    poll on the wire and no more (it waited for the whole catch-up: the OpenManipulator-X's
+    setpoints were held up for hundreds of milliseconds behind its own polls)."""
+    link = sim_link(name)
+    driver = await started(name, link)
+    try:
+        period = 1.0 / driver.profile.link.poll_hz
+        link.set_faults(FaultConfig(latency_s=4 * period))
+        await asyncio.sleep(10 * period)  # behind the schedule by now
+        calls = _distinct_calls(driver) if name == "angler" else _rbe_calls(driver)
+        for call, ok in calls[:4]:
+            polls = driver.stats["polls"]
+            assert ok(await call())
+            # the poll under way when it was queued, at most (a catch-up is up to 10)
+            assert driver.stats["polls"] - polls <= 1, driver.stats["polls"] - polls
+    finally:
+        await driver.close()
+
+
+@pytest.mark.parametrize("name", ["angler", "rbe3001"])
 async def test_disconnect_fails_fast_reports_and_recovers(name):
     link = sim_link(name)
     driver = await started(name, link)

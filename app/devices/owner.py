@@ -162,12 +162,18 @@ class OwnerTask:
         period = 1.0 / self.profile.link.poll_hz
         loop = asyncio.get_running_loop()
         next_poll = loop.time()
+        polled = False  # the last thing done was a poll
         while True:
             now = loop.time()
             due = now >= next_poll - POLL_EARLY_S
-            if due or self._poll_now:
+            # A queued request goes between two polls even when the next one is already due:
+            # polls that fall behind (a slow bus, a loaded machine) catch up back to back,
+            # and a setpoint stream must not wait for the whole catch-up (it did: an executor
+            # held up for hundreds of milliseconds behind its own arm's polls).
+            if self._poll_now or (due and not (polled and not self._queue.empty())):
                 self._poll_now = False
                 await self._do_poll()
+                polled = True
                 if due:  # a poll asked for by poll_soon() leaves the schedule as it was
                     next_poll += period
                     if next_poll < loop.time() - POLL_CATCH_UP * period:  # far behind: skip
@@ -178,6 +184,7 @@ class OwnerTask:
             except asyncio.QueueEmpty:
                 await self._idle_until(loop, next_poll - POLL_EARLY_S)
                 continue
+            polled = False
             await self._serve(req)
 
     async def _idle_until(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
