@@ -338,6 +338,10 @@ def decode_bulk_write(params: bytes) -> list[tuple[int, int, bytes]]:
     return out
 
 
+#: Decoded frames a `Parser` remembers (a few polls' worth of status packets).
+FRAME_CACHE = 64
+
+
 class Parser:
     """Incremental Protocol 2.0 deframer, h11-style: `feed(bytes)`, then `next_event()`
     until None. Works for both directions (instructions and status packets).
@@ -358,6 +362,10 @@ class Parser:
         self._buf = bytearray()
         self._limit = limit
         self._overflow = 0
+        #: Frames already checked and decoded, by their raw bytes: a poll reads the same
+        #: status packets again and again while the arm rests, and the same bytes make the
+        #: same packet (no CRC, unstuffing or decoding again). Bounded by FRAME_CACHE.
+        self._known: dict[bytes, Packet] = {}
 
     @property
     def buffered(self) -> int:
@@ -404,6 +412,10 @@ class Parser:
         if len(buf) < end:
             return None
         raw = bytes(buf[:end])
+        known = self._known.get(raw)
+        if known is not None:
+            del buf[:end]
+            return known
         if crc16(raw[:-2]) != from_bytes(raw[-2:], False):
             del buf[:1]
             return ParseError("crc", f"CRC mismatch in a {end}-byte frame", 1, raw[4])
@@ -412,5 +424,10 @@ class Parser:
         if body[0] == Instruction.STATUS:
             if len(body) < 2:
                 return ParseError("length", "status packet without an error byte", end)
-            return Packet(raw[4], body[0], body[2:], body[1])
-        return Packet(raw[4], body[0], body[1:])
+            packet = Packet(raw[4], body[0], body[2:], body[1])
+        else:
+            packet = Packet(raw[4], body[0], body[1:])
+        if len(self._known) >= FRAME_CACHE:
+            self._known.clear()
+        self._known[raw] = packet
+        return packet

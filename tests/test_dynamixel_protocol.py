@@ -321,6 +321,23 @@ def test_parser_bad_crc_then_good_packet() -> None:
     assert _packets(events) == [PACKETS[1]]
 
 
+def test_parser_remembers_checked_frames_and_still_refuses_a_changed_byte() -> None:
+    p = dxl.Parser()
+    p.feed(STREAM[1] + STREAM[1])
+    first, again = list(p)
+    assert first == PACKETS[1] and again is first  # the same bytes: decoded once
+    changed = bytearray(STREAM[1])
+    changed[9] ^= 0x01  # a parameter byte, the CRC left as it was
+    p.feed(bytes(changed) + STREAM[1])
+    events = list(p)
+    assert isinstance(events[0], ParseError) and events[0].kind == "crc"
+    assert _packets(events) == [PACKETS[1]]
+    for k in range(dxl.FRAME_CACHE + 10):  # distinct frames: the memory stays bounded
+        p.feed(dxl.encode_status(1, 0, k.to_bytes(2, "little")))
+        assert list(p) == [dxl.Packet(1, dxl.Instruction.STATUS, k.to_bytes(2, "little"), 0)]
+    assert len(p._known) <= dxl.FRAME_CACHE
+
+
 def test_parser_truncated_frame_does_not_hide_the_next() -> None:
     """A frame cut short: its LEN swallows the next packet's start; the CRC fails, the search
     resumes inside it and the next packet is still found."""

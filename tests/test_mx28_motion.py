@@ -227,5 +227,9 @@ def test_the_at_rest_shortcut_sends_the_same_bytes_as_integrating() -> None:
         assert _table(fast, t) == _table(ref, t), f"t={t}"
         rested += fast.servo(2).motion.at_rest  # type: ignore[union-attr]
     assert 0 < rested < 2000  # the shortcut was taken, and servo 2 moved too
+    # the servos that never moved skipped their whole step (nothing they read had changed)
+    # and still answered the same bytes as the reference above
+    assert all(s._rest is not None for s in fast.servos if s.id != 2)
+    assert all(s._rest is None for s in ref.servos)
     s = fast.servo(2)
     assert s is not None and s.get("present_position") == 2048

@@ -63,6 +63,10 @@ _LIMITS = {"goal_velocity": "velocity_limit", "profile_velocity": "velocity_limi
            "goal_pwm": "pwm_limit", "profile_acceleration": "acceleration_limit"}
 
 
+#: What a servo's step reads (see `Mx28Servo._rest_key`).
+_RestKey = tuple[bytearray, bytearray, float, float, float, float, int]
+
+
 @functools.cache
 def _layout(spec: ModuleType) -> dict[str, tuple[int, int, int, bool]]:
     """(start, end, size, signed) of each control-table item of `spec`, by name: `get` and
@@ -92,6 +96,8 @@ class Mx28Servo:
         self.supply_v = SUPPLY_V  # volts at the servo's power input
         self.temperature_c = float(TEMPERATURE_C)
         self.shut_down = False  # a shutdown happened: torque stays off until REBOOT
+        #: `_rest_key()` after a step that left the motor at rest (None: moving, or not yet).
+        self._rest: _RestKey | None = None
         self.torque_refusal = TORQUE_REFUSAL
         self._eeprom_defaults(keep_id=False, keep_baud=False)
         self.set("id", id)
@@ -324,6 +330,9 @@ class Mx28Servo:
     def advance(self, dt: float, now: float) -> None:
         """Integrate `dt` seconds of motion and refresh the Present* items."""
         self.set("realtime_tick", int(now * 1000) % 32768)
+        if (dt > 0.0 and self._rest is not None and self.motion.at_rest
+                and self._rest == self._rest_key()):
+            return  # at rest, and nothing the model reads has changed: the same items again
         self._check_conditions()
         if dt <= 0.0:
             self._publish()
@@ -342,6 +351,17 @@ class Mx28Servo:
                 target = self._drive() * full / mx28.VEL_TICKS_PER_UNIT
                 self.motion.step_velocity(dt, target, self.get("acceleration_limit"), full)
         self._publish()
+        self._rest = self._rest_key() if self.motion.at_rest else None
+
+    def _rest_key(self) -> _RestKey:
+        """Everything `advance` reads, but the time: the control table (without the
+        Realtime Tick it has just written), the supply, the temperature and the motion's
+        position, goal and profile. Equal at two steps of a servo at rest, `advance` would
+        write the same values."""
+        mem, (start, end, _, _) = self.mem, _layout(self.spec)["realtime_tick"]
+        m = self.motion
+        return (mem[:start], mem[end:], self.supply_v, self.temperature_c, m.pos, m.goal,
+                m.profile_bits)
 
     def _drive(self) -> float:
         """The duty (-1..1) the motor runs at in the modes without a goal position or
