@@ -334,7 +334,8 @@ class OwnerTask:
     def _tared(self, tau: np.ndarray | None) -> np.ndarray | None:
         """Raw torques less the tare (None: no torques)."""
         if tau is not None and self.torque_tare is not None:
-            return tau - self.torque_tare
+            tared: np.ndarray = tau - self.torque_tare
+            return tared
         return tau
 
     def _publish_stale(self) -> None:
