@@ -123,14 +123,20 @@ InstructorArm = Annotated[ArmService, Depends(instructor_arm)]
 
 
 async def control_arm(
-    svc: OperatorArm,
-    leases: LeasesDep,
-    who: OperatorCaller,
+    request: Request,
+    cred: Credentials,
+    arm: ArmName,
     x_arm_lease: Annotated[str | None, Header(description="the lease id, while a lease is "
                                               "held on the arm", max_length=128)] = None,
 ) -> ArmService:
+    """An operator's (or instructor's) arm, with its lease checked: the same checks, in the
+    same order, as `OperatorArm` then `OperatorCaller` then the lease, in one dependency
+    (each dependency FastAPI solves costs a little on every command: this is the hot one)."""
+    who = get_access(request).require_identity(_token(cred), Role.OPERATOR)
+    svc = lookup_arm(request.app.state.services, arm)
     # an instructor may act on an arm that is nobody's (after a failed hand-off: release the
     # estop, bring the arm back); everyone else waits for the queue
+    leases: LeaseManager = request.app.state.leases
     await leases.check(svc.name, x_arm_lease, gated=who.role < Role.INSTRUCTOR)
     return svc
 
