@@ -112,7 +112,10 @@ class ArmService:
                            poll_hz=self.profile.link.poll_hz,
                            faults=[s.Fault(**f) for f in self.driver.faults],
                            homed=list(self.driver.homed), force=self.force_info(),
-                           chain=s.ArmChain.model_validate(self.model.describe()))
+                           chain=s.ArmChain.model_validate(self.model.describe()),
+                           telemetry=s.TelemetryStats(subscribers=self.hub.subscriber_count,
+                                                      published=self.hub.published,
+                                                      dropped=self.hub.dropped_total))
 
     # --------------------------------------------------------- force (API.md "Force")
 

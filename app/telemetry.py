@@ -158,6 +158,9 @@ class TelemetryHub:
         #: (sample dict, encoded str, encoded bytes) of the latest sample, replaced as a whole.
         self._latest: tuple[dict[str, Any], str, bytes] | None = None
         self.published = 0
+        #: Samples subscribers have lost to their backlog bound, all of them together (what
+        #: their `dropped` fields told them): 0 means every subscriber got every sample.
+        self.dropped_total = 0
         #: The fan-out's loop and thread (the HTTP loop), when the publisher runs elsewhere.
         self._fanout_loop: asyncio.AbstractEventLoop | None = None
         self._fanout_thread: int | None = None
@@ -320,6 +323,7 @@ class TelemetryHub:
         if sub.cursor < oldest:
             lost = oldest - sub.cursor
             sub.cursor = oldest
+            self.dropped_total += lost
         first = sub.cursor
         if end > first:
             sub.cursor = end

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
+
 import httpx
 import pytest
 from conftest import make_settings
+from fastapi import FastAPI
 
 from app.main import create_app
 from app.schemas import ArmDetail, Health, Sample
@@ -37,6 +40,31 @@ async def test_arms_list_and_detail(app_client: httpx.AsyncClient) -> None:
     assert d.link.kind == "sim" and d.link.connected
     a = ArmDetail.model_validate((await app_client.get(f"{API}/arms/angler")).json())
     assert [j.kind for j in a.joints] == ["prismatic", "prismatic", "revolute", "prismatic"]
+
+
+async def test_the_detail_counts_telemetry_subscribers_and_what_they_lost(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """`telemetry`: subscribers now, samples published, and samples lost by subscribers to
+    their backlog bound, together (what the benchmark reads to say every client got every
+    sample)."""
+    app, app_client = app_and_client
+    hub = app.state.services["rbe3001"].hub
+    before = ArmDetail.model_validate((await app_client.get(f"{API}/arms/rbe3001")).json())
+    assert before.telemetry is not None and before.telemetry.published >= 1
+    slow = hub.subscribe(backlog=3)
+    try:
+        published = hub.published
+        while hub.published < published + 10:  # the arm publishes at 500 Hz
+            await asyncio.sleep(0.01)
+        _, _, dropped = slow.take()
+        assert dropped >= 7
+        d = ArmDetail.model_validate((await app_client.get(f"{API}/arms/rbe3001")).json())
+        assert d.telemetry is not None
+        assert d.telemetry.subscribers == before.telemetry.subscribers + 1
+        assert d.telemetry.dropped == before.telemetry.dropped + dropped
+        assert d.telemetry.published >= published + 10
+    finally:
+        slow.close()
 
 
 async def test_state_is_a_fresh_sample(app_client: httpx.AsyncClient) -> None:

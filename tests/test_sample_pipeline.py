@@ -69,12 +69,15 @@ def test_backlog_bound_counts_drops_per_subscriber() -> None:
         hub.publish(_sample(k))
     samples, _, dropped = slow.take()
     assert [json.loads(s)["seq"] for s in samples] == [8, 9, 10, 11, 12] and dropped == 7
+    assert hub.dropped_total == 7  # what the subscribers were told, all together
     msg = json.loads(fast.take_message() or "{}")
     assert len(msg["samples"]) == 12 and msg["dropped"] == 0
     for k in range(13, 20):
         hub.publish(_sample(k))
     msg = json.loads(slow.take_message() or "{}")
     assert [s["seq"] for s in msg["samples"]] == [15, 16, 17, 18, 19] and msg["dropped"] == 2
+    assert hub.dropped_total == 9
+    assert fast.take_message() is not None and hub.dropped_total == 9  # fast lost nothing
 
 
 def test_a_larger_backlog_grows_the_shared_log() -> None:

@@ -22,6 +22,7 @@ from app.schemas.arms import (
     HomeRequest,
     JointInfo,
     LinkStatus,
+    TelemetryStats,
     Tip,
     Vec3,
 )
@@ -158,6 +159,7 @@ __all__ = [
     "SyncReadResult",
     "SyncWriteRequest",
     "TelemetryMessage",
+    "TelemetryStats",
     "Tip",
     "Unit",
     "Vec3",

@@ -117,6 +117,16 @@ class ForceTare(Model):
                                         "per joint), null once cleared")
 
 
+class TelemetryStats(Model):
+    """The arm's telemetry since the server started (API.md "Telemetry")."""
+
+    subscribers: int = Field(description="WebSocket clients and other subscribers now")
+    published: int = Field(description="samples published")
+    dropped: int = Field(description="samples subscribers lost to their backlog bound, all "
+                         "together (each was told in its `dropped`): 0, every subscriber got "
+                         "every sample")
+
+
 class ArmDetail(ArmSummary):
     joints: list[JointInfo]
     geometry: dict[str, float]
@@ -126,6 +136,7 @@ class ArmDetail(ArmSummary):
     homed: list[bool] = Field(default_factory=list, description="one flag per joint")
     force: ForceInfo | None = None
     chain: ArmChain | None = Field(None, description="the joint chain, to draw the arm")
+    telemetry: TelemetryStats | None = None
 
 
 class HomeRequest(Model):
