@@ -348,22 +348,6 @@ async def test_state_fast_path_keeps_an_open_servers_host_check() -> None:
         assert r.status_code == 400 and r.json()["code"] == "bad_host"
 
 
-async def test_poll_soon_takes_a_poll_ahead_of_a_slow_schedule() -> None:
-    base = load_profile("rbe3001")  # polled every 10 s
-    profile = base.model_copy(update={"link": base.link.model_copy(update={"poll_hz": 0.1})})
-    driver = Rbe3001Driver(profile, SimLink(make_sim_device(profile)), TelemetryHub("rbe3001"))
-    await driver.start()
-    try:
-        assert await driver.wait_connected(10.0)
-        sub = driver.hub.subscribe()
-        published = driver.hub.published
-        driver.poll_soon()
-        assert await sub.wait(5.0)  # half the poll period: only poll_soon can explain it
-        assert driver.hub.published == published + 1
-    finally:
-        await driver.close()
-
-
 async def test_an_estop_latch_shows_at_once_in_a_sample_of_the_latest_reading() -> None:
     """Issue 12 (estop to a sample showing it): the latch publishes the latest reading again
     with `estop: true` before any new reading (the poll it asks for follows), so a client

@@ -67,7 +67,7 @@ class Driver(OwnerTask, abc.ABC):
         self._queue: asyncio.Queue[_Request] = asyncio.Queue(maxsize=profile.link.queue_size)
         self._task: asyncio.Task[None] | None = None
         self._idle: asyncio.Future[None] | None = None  # the owner task's idle wait
-        self._poll_now = False  # poll_soon() was called
+        self._poll_now = False  # a request asked for a poll next (`poll_after`)
         #: (positions, velocities, torques) of the last sample and its derived (tip, tip
         #: velocity, tip force): reused while the readings do not change.
         self._derived_key: tuple[list[float], list[float], list[float] | None] | None = None
@@ -149,12 +149,6 @@ class Driver(OwnerTask, abc.ABC):
             fut.cancel()
             raise DeviceTimeout(f"{self.name}: the link task did not answer within "
                                 f"{bound:.1f} s") from None
-
-    def poll_soon(self) -> None:
-        """Poll now, ahead of the schedule: a state change the samples must show at once
-        (an emergency stop) gets a fresh sample within one device round trip."""
-        self._poll_now = True
-        self._wake_owner()
 
     def wait_connected(self, timeout: float) -> asyncio.Future[bool]:
         async def _wait() -> bool:

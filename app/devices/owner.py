@@ -174,7 +174,7 @@ class OwnerTask:
                 self._poll_now = False
                 await self._do_poll()
                 polled = True
-                if due:  # a poll asked for by poll_soon() leaves the schedule as it was
+                if due:  # a poll a request asked for (`poll_after`) leaves the schedule as it was
                     next_poll += period
                     if next_poll < loop.time() - POLL_CATCH_UP * period:  # far behind: skip
                         next_poll = loop.time() + period
