@@ -29,6 +29,7 @@ from app.errors import Busy, InvalidRequest, LinkDown, NoForceSensing, NoGripper
 from app.guard import SafetyGuard
 from app.links.base import LinkState
 from app.motion import MotionExecutor
+from app.tasks import retrieve
 from app.telemetry import TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
 
@@ -36,12 +37,6 @@ log = logging.getLogger(__name__)
 
 #: Longest the estop fast path holds the HTTP thread for the latch, s (see press_estop).
 PRESS_WAIT_S = 0.005
-
-
-def _seen(task: asyncio.Future[Any]) -> None:
-    """Retrieve a finished hold's error (the presses that waited were told it)."""
-    if not task.cancelled():
-        task.exception()
 
 
 class ArmService:
@@ -280,7 +275,8 @@ class ArmService:
         follows and reports. With the arm on the control thread, this thread then waits (up
         to PRESS_WAIT_S) until the latch is set there: both threads share one core and one
         GIL, and the control thread, woken, would otherwise wait for the rest of this
-        request (about half a millisecond) before latching and polling."""
+        request (about half a millisecond) before latching and publishing the sample that
+        shows it."""
         latched = threading.Event()
         home = self.home_loop
         start_now(home, self._latch(latched))
@@ -299,7 +295,7 @@ class ArmService:
             # The hold's task is there before this yields (a press that comes meanwhile waits
             # for it), and it starts before the log line and the event.
             started = asyncio.ensure_future(self.motion.emergency_stop())
-            started.add_done_callback(_seen)
+            started.add_done_callback(retrieve)  # (the presses that waited were told)
             self._hold, self._hold_told = started, False
             await asyncio.sleep(0)
             log.warning("%s: emergency stop latched", self.name)

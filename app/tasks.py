@@ -26,3 +26,11 @@ async def cancel_and_wait(task: asyncio.Task[Any] | None) -> None:
     exc = None if task.cancelled() else task.exception()
     if exc is not None:
         raise exc
+
+
+def retrieve(fut: asyncio.Future[Any]) -> None:
+    """A done callback for a future whose outcome nobody may read (a caller that gave up, a
+    hold whose presses were told): mark its error read, or asyncio logs "exception never
+    retrieved"."""
+    if not fut.cancelled():
+        fut.exception()

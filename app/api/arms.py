@@ -16,8 +16,8 @@ from app.hostguard import HostPolicy
 
 log = logging.getLogger(__name__)
 
-#: Longest the estop fast path waits for the sample that shows its latch, s (a device round
-#: trip or two; the route waits longer for the hold).
+#: Longest the estop fast path waits for the sample that shows its latch, s (the latch
+#: publishes it at once; a bound all the same, the route waits longer for the hold).
 ESTOP_SAMPLE_WAIT_S = 0.02
 
 

@@ -191,12 +191,12 @@ class _Stream:
     async def _send_prompt(self, sub: Subscription) -> None:
         """For a rate near the device's own (period up to PROMPT_PERIOD_S): a sample that
         arrives when the last message is a period old goes out at once, not at the next tick,
-        so a command's effect (an estop) reaches the client one device round trip after it.
-        Still one message a period on average. A rate at or above the arm's poll rate asks for
-        no fewer messages than samples: each sample goes out as it is published, the extra
-        one a command asks for (an estop's, a pass-through write's) included, instead of
-        waiting out the period of the scheduled one before it. Returns when the rate
-        changes."""
+        so a command's effect (a pass-through write's) reaches the client one device round
+        trip after it, an estop's at once. Still one message a period on average. A rate at
+        or above the arm's poll rate asks for no fewer messages than samples: each sample goes
+        out as it is published, the extra one a command asks for (an estop's, a pass-through
+        write's) included, instead of waiting out the period of the scheduled one before it.
+        Returns when the rate changes."""
         ws = self.ws
         loop = asyncio.get_running_loop()
         next_send = loop.time()

@@ -43,7 +43,7 @@ from app.errors import (
     NotSupported,
 )
 from app.links.base import Link, LinkState
-from app.tasks import cancel_and_wait
+from app.tasks import cancel_and_wait, retrieve
 from app.telemetry import TelemetryHub
 
 #: A poll's readings in joint units: positions, velocities, torques (None: not sensed).
@@ -132,7 +132,7 @@ class Driver(OwnerTask, abc.ABC):
         fut: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
         # A caller that gave up (cancelled, timed out) no longer reads the error the owner task
         # or close() sets later: mark it read, or asyncio logs "exception never retrieved".
-        fut.add_done_callback(_retrieve)
+        fut.add_done_callback(retrieve)
         req = _Request(message, fut, timeout if timeout is not None else self.timeout)
         try:
             self._queue.put_nowait(req)
@@ -237,8 +237,3 @@ class Driver(OwnerTask, abc.ABC):
 
     def _reset_reader(self) -> None:  # noqa: B027 - an optional hook
         """Forget partial input (after a timeout or reconnect)."""
-
-
-def _retrieve(fut: asyncio.Future[Any]) -> None:
-    if not fut.cancelled():
-        fut.exception()
