@@ -1,24 +1,21 @@
 """A real Mosquitto broker for the MQTT tests and the bench: Debian's `mosquitto` binary on a
 free loopback port, its config (and password file, if any) in a temp dir. It can be killed
-(SIGKILL, like a crash) and started again on the same port. Tests skip when it is missing;
-`make test` installs it (`make mosquitto`).
+(SIGKILL, like a crash) and started again on the same port. Found as tests/_deps.py finds it;
+tests skip when it is missing (a failure under ARMSERVER_STRICT_SKIPS=1, as in CI), and `make test`
+installs it or fails.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import shutil
 import socket
 import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
-MOSQUITTO = shutil.which("mosquitto") or (
-    "/usr/sbin/mosquitto" if Path("/usr/sbin/mosquitto").exists() else None)
-MOSQUITTO_PASSWD = shutil.which("mosquitto_passwd") or (
-    "/usr/bin/mosquitto_passwd" if Path("/usr/bin/mosquitto_passwd").exists() else None)
+from _deps import MOSQUITTO, MOSQUITTO_PASSWD
 
 
 def free_port() -> int:

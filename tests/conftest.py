@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import socket
 import tempfile
 import threading
@@ -182,3 +183,46 @@ def pytest_collection_modifyitems(config: Any, items: list[Any]) -> None:
     for item in items:
         if item.path.name in SERIAL_FILES:
             item.add_marker(pytest.mark.serial)
+
+
+# ---------------------------------------------------------------- strict skips
+
+
+def strict_skips() -> bool:
+    """ARMSERVER_STRICT_SKIPS=1 (`.ci/run` sets it; CI=true implies it unless it is set to 0):
+    a skip is a failure. A test skips when what it needs is missing (chromium, mosquitto, node:
+    tests/_deps.py), and a skipped test proves nothing; `make test` installs them or fails, so in
+    CI a skip can only mean a broken set-up, which must not pass as green."""
+    flag = os.environ.get("ARMSERVER_STRICT_SKIPS", "").strip().lower()
+    if flag:
+        return flag not in ("0", "false", "no", "off")
+    return os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")
+
+
+def _reason(longrepr: Any) -> str:
+    if isinstance(longrepr, tuple) and len(longrepr) == 3:  # (file, line, "Skipped: why")
+        return f"{longrepr[2]} ({longrepr[0]}:{longrepr[1]})"
+    return str(longrepr)
+
+
+def _fail_skip(report: Any) -> None:
+    report.outcome = "failed"
+    report.longrepr = ("skipped under ARMSERVER_STRICT_SKIPS (CI), which makes a skip a "
+                       f"failure: {_reason(report.longrepr)}")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: Any, call: Any) -> Iterator[None]:
+    outcome = yield
+    report = outcome.get_result()  # type: ignore[attr-defined]
+    # an xfail is reported as a skip with `wasxfail`: that one is expected, not a skip
+    if report.skipped and not hasattr(report, "wasxfail") and strict_skips():
+        _fail_skip(report)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector: Any) -> Iterator[None]:
+    outcome = yield
+    report = outcome.get_result()  # type: ignore[attr-defined]
+    if report.skipped and strict_skips():  # a module-level pytest.skip / importorskip
+        _fail_skip(report)

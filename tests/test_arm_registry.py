@@ -12,7 +12,6 @@ from __future__ import annotations
 import io
 import json
 import re
-import shutil
 import subprocess
 import tokenize
 from pathlib import Path
@@ -20,6 +19,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from _deps import NODE, missing_message
 from fastapi import FastAPI
 
 from app import arms
@@ -173,7 +173,7 @@ def test_the_chain_draws_the_joint_origins(name: str) -> None:
                            model.joint_origins(q), atol=1e-12)  # type: ignore[attr-defined]
 
 
-@pytest.mark.skipif(shutil.which("node") is None, reason="node is not installed")
+@pytest.mark.skipif(NODE is None, reason=missing_message("node"))
 @pytest.mark.parametrize("name", sorted(ARM_TYPES))
 def test_the_dashboard_draws_the_joint_origins(name: str) -> None:
     """app/static/app.js's own chainPoints, run by node on the described chain."""
@@ -184,7 +184,8 @@ def test_the_dashboard_draws_the_joint_origins(name: str) -> None:
     script = src[start:end] + (f"\nconst ch = {json.dumps(chain)};\n"
                                f"const qs = {json.dumps(qs.tolist())};\n"
                                "console.log(JSON.stringify(qs.map((q) => chainPoints(ch, q))));\n")
-    out = subprocess.run(["node", "-e", script], capture_output=True, text=True, timeout=60,
+    assert NODE is not None
+    out = subprocess.run([NODE, "-e", script], capture_output=True, text=True, timeout=60,
                          check=True)
     got = np.array(json.loads(out.stdout))
     want = model.joint_origins(qs)  # type: ignore[attr-defined]

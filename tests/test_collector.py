@@ -34,17 +34,25 @@ async def test_frozen_rare_and_restored() -> None:
     assert gc.get_freeze_count() == (0 if others == 0 else frozen)
 
 
-async def test_two_servers_in_one_process_restore_once_the_last_ends() -> None:
-    if c._active:
-        pytest.skip("an app another test left running holds the settings")
-    before = gc.get_threshold()
-    a, b = Collector(lambda: False, 3600.0), Collector(lambda: False, 3600.0)
-    a.start()
-    b.start()
-    await a.close()
-    assert gc.get_threshold()[2] == c.GEN2_THRESHOLD  # b still runs
-    await b.close()
-    assert gc.get_threshold() == before
+async def test_two_servers_in_one_process_restore_once_the_last_ends(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # The process's count of collectors and gc settings are this test's own for its length (an
+    # app another test left running in this worker would hold them: it neither skips nor
+    # passes vacuously then), and both are put back after.
+    monkeypatch.setattr(c, "_active", 0)
+    monkeypatch.setattr(c, "_saved", None)
+    outer = gc.get_threshold()
+    gc.set_threshold(700, 10, 10)
+    try:
+        a, b = Collector(lambda: False, 3600.0), Collector(lambda: False, 3600.0)
+        a.start()
+        b.start()
+        await a.close()
+        assert gc.get_threshold() == (700, 10, c.GEN2_THRESHOLD)  # b still runs
+        await b.close()
+        assert gc.get_threshold() == (700, 10, 10)
+    finally:
+        gc.set_threshold(*outer)
 
 
 async def test_a_due_collection_waits_for_the_arms_to_stop_and_frees_cycles() -> None:

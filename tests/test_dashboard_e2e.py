@@ -7,8 +7,9 @@ positions against the telemetry, the emergency stop against GET /arms/{arm}, and
 words next to the control that caused them. The page's test hook is `window.armDashboard`.
 
 Screenshots go to test-output/ (git-ignored); with ARMSERVER_UPDATE_DOCS=1 one of
-them is copied to docs/dashboard.png for the README. Never runs `playwright install`: it
-uses /usr/bin/chromium or skips.
+them is copied to docs/dashboard.png for the README. Never runs `playwright install`: it uses
+Debian's chromium, found as tests/_deps.py finds it (the Makefile too), or skips (a failure under
+ARMSERVER_STRICT_SKIPS=1, as in CI).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import _deps
 import httpx
 import pytest
 import uvicorn
@@ -33,7 +35,7 @@ from app.main import create_app
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM = "/usr/bin/chromium"
+CHROMIUM = _deps.CHROMIUM  # the one way the tests and the Makefile find it
 CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic",
                  "--no-first-run", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync"]
@@ -52,9 +54,8 @@ POS_TOL_RAD = 1e-3
 TARGET_MM = (120.0, -180.0, 280.0)
 FAR_MM = (1000.0, 0.0, 200.0)
 
-if not Path(CHROMIUM).exists():
-    pytest.skip(f"{CHROMIUM} is missing: install Debian's chromium (`make test` does, as root, "
-                "via apt-get install chromium); the dashboard test needs it",
+if CHROMIUM is None:
+    pytest.skip(_deps.missing_message("chromium") + "; the dashboard test needs it",
                 allow_module_level=True)
 sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing")
 

@@ -13,6 +13,7 @@ from typing import Any
 
 import httpx
 import pytest
+from _deps import missing_message
 from _mosquitto import MOSQUITTO, Broker
 from conftest import make_settings, serve_live
 from test_dashboard_e2e import CHROMIUM, CHROMIUM_ARGS, OUT, sync_api, wait_for
@@ -20,8 +21,7 @@ from test_dashboard_e2e import CHROMIUM, CHROMIUM_ARGS, OUT, sync_api, wait_for
 pytestmark = pytest.mark.browser
 
 if MOSQUITTO is None:
-    pytest.skip("mosquitto is missing: `make test` installs Debian's mosquitto (as root)",
-                allow_module_level=True)
+    pytest.skip(missing_message("mosquitto"), allow_module_level=True)
 
 
 def tiles(pg: Any) -> dict[str, Any]:

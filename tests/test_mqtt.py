@@ -27,14 +27,15 @@ from typing import Any
 import httpx
 import pytest
 import websockets
+from _deps import missing_message
 from _mosquitto import MOSQUITTO, Broker, free_port, running_broker
 from conftest import make_settings, running_client, serve_live
 
 aiomqtt = pytest.importorskip("aiomqtt")
 
 if MOSQUITTO is None:
-    pytest.skip("mosquitto is missing: `make test` installs Debian's mosquitto (as root); the "
-                "MQTT tests need a real broker", allow_module_level=True)
+    pytest.skip(missing_message("mosquitto") + "; the MQTT tests need a real broker",
+                allow_module_level=True)
 
 ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 15.0

@@ -13,13 +13,14 @@ from pathlib import Path
 
 import pytest
 import yaml
+from _deps import missing_message
 from _mosquitto import MOSQUITTO, MOSQUITTO_PASSWD, Broker, free_port
 from conftest import make_settings, running_client
 
 aiomqtt = pytest.importorskip("aiomqtt")
 
 if MOSQUITTO is None or MOSQUITTO_PASSWD is None:
-    pytest.skip("mosquitto is missing: `make test` installs Debian's mosquitto (as root)",
+    pytest.skip(missing_message("mosquitto" if MOSQUITTO is None else "mosquitto_passwd"),
                 allow_module_level=True)
 
 ROOT = Path(__file__).resolve().parents[1]
