@@ -94,7 +94,7 @@ def test_sdk_pings_model_1020(sdk_omx: SdkBus) -> None:
     port, ph, _ = sdk_omx
     assert patient(ph.ping, port, 11) == (1020, COMM_SUCCESS, 0)
     assert patient(ph.ping, port, 1) == (30, COMM_SUCCESS, 0)
-    found, result = ph.broadcastPing(port)
+    found, result = patient(ph.broadcastPing, port)
     assert result == COMM_SUCCESS
     assert found == {1: [30, 45], **{i: [1020, 46] for i in OMX_IDS}}
     assert patient(ph.read2ByteTxRx, port, 13, 0) == (1020, COMM_SUCCESS, 0)
