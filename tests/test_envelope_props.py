@@ -13,12 +13,12 @@ most 0.25 of the joint's limit plus the controller's tracking error (stated belo
 
 from __future__ import annotations
 
-import asyncio
 import re
 from typing import Any
 
 import numpy as np
 import pytest
+from _wait import new_samples
 from conftest import running_client
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
@@ -142,6 +142,9 @@ def test_accepted_motions_stay_out_and_refusals_name_a_zone_the_path_enters(arm:
 TRACKING_RAD_S = 0.3
 
 
+# Serial (tests/conftest.py), as its twin in test_tracking.py: a measured speed; two busy
+# workers hold control ticks up and the PID catching up after one overshoots.
+@pytest.mark.serial
 async def test_speed_override_caps_the_measured_joint_speed_in_telemetry() -> None:
     async with running_client() as (app, client):
         svc = app.state.services["rbe3001"]
@@ -162,7 +165,7 @@ async def test_speed_override_caps_the_measured_joint_speed_in_telemetry() -> No
             r = await client.post("/api/v1/arms/rbe3001/move/joints",
                                   json={"positions": q1, "wait": True})
             assert r.status_code == 200 and r.json()["status"] == "done", r.text
-            await asyncio.sleep(0.1)
+            await new_samples(svc.hub, 50)  # 0.1 s at 500 Hz: any overshoot after the plan
         finally:
             off()
         peak = np.abs(np.array(seen)).max(axis=0)

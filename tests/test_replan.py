@@ -38,7 +38,7 @@ async def _held_up_move(duration_over_fastest: float, hold_s: float, at_s: float
         sub = svc.hub.subscribe()
         rec = await svc.motion.move_joints(s.MoveJoints(positions=TARGET, duration=asked))
         assert rec.planned_duration == pytest.approx(asked)
-        await asyncio.sleep(at_s)
+        await asyncio.sleep(at_s)  # the scenario: the hold-up comes at_s into the move
         assert rec.status == "running", rec.status
         time.sleep(hold_s)  # noqa: ASYNC251 - hold the loop the executor runs on
         await rec.wait()
@@ -110,7 +110,7 @@ async def test_a_held_up_move_without_a_duration_goes_on_along_its_plan() -> Non
         sub = svc.hub.subscribe()
         rec = await svc.motion.move_joints(s.MoveJoints(positions=TARGET))
         planned = rec.planned_duration
-        await asyncio.sleep(0.3)
+        await asyncio.sleep(0.3)  # the scenario: the hold-up comes 0.3 s into the move
         time.sleep(0.3)  # noqa: ASYNC251 - hold the loop the executor runs on
         await rec.wait()
         names = [json.loads(e)["event"] for e in sub.take_events()]
