@@ -3,11 +3,10 @@
 
 from __future__ import annotations
 
-import asyncio
-
 import httpx
 import numpy as np
 import pytest
+from _wait import wait_for
 from fastapi import FastAPI
 
 from app.config import load_profile
@@ -58,9 +57,14 @@ async def test_the_documented_point_is_reached_in_case_two(
     # no case named: the server chooses the design's (|px| > r: case two)
     r = await c.post(f"{API}/move/pose", json={**p, "wait": True})
     assert r.status_code == 200 and r.json()["status"] == "done", r.text
-    await asyncio.sleep(0.05)
-    tip = app.state.services["angler"].hub.latest["tip"]
-    assert [tip["x"], tip["y"], tip["z"]] == pytest.approx([0.12, 0.04, -0.02], abs=2e-4)
+    hub = app.state.services["angler"].hub
+
+    def at_the_point() -> bool:
+        tip = hub.latest["tip"]
+        assert [tip["x"], tip["y"], tip["z"]] == pytest.approx([0.12, 0.04, -0.02], abs=2e-4)
+        return True
+
+    await wait_for(at_the_point, what="the measured tip at the documented point")
 
 
 async def test_the_ik_route_lists_every_solution_without_a_case(

@@ -12,6 +12,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+from _wait import new_samples, wait_for
 from fastapi import FastAPI
 
 from app.arms.dynamixel.driver import DynamixelDriver
@@ -82,8 +83,8 @@ async def test_a_faulted_servo_is_reported_and_the_others_keep_being_served():
         assert (f["joint"], f["servo"], f["bits"], f["raw"]) == ("x", 2, ["overload"], 0x20)
         assert "reboot" in f["advice"] and "/dynamixel/2/reboot" in f["advice"]
         seq = drv.hub.latest["seq"]
-        await asyncio.sleep(0.3)
-        assert drv.hub.latest["seq"] > seq + 10 and not drv.stale  # polls go on
+        await wait_for(lambda: drv.hub.latest["seq"] > seq + 10, what="polls going on")
+        assert not drv.stale  # polls go on
         # reads keep working, on the faulted servo too (its status has the Alert bit)
         assert await drv.read_register(2, mx28.TABLE["hardware_error_status"]) == 0x20
         assert await drv.read_register(2, mx28.TABLE["torque_enable"]) == 0  # shutdown
@@ -258,7 +259,7 @@ async def test_api_fault_refuses_moves_until_reboot_then_homing(sim_app):
     # home: the current pose is the profile's home pose
     r = await c.post(f"{API}/home")
     assert r.status_code == 200 and r.json()["homed"] == [True] * 4
-    await asyncio.sleep(0.1)
+    await new_samples(svc.hub, 2)  # a reading converted with the new home
     assert svc.driver.positions[X] == pytest.approx(0.0, abs=1e-5)
     r = await c.post(f"{API}/move/joints", json={"positions": [0.002, 0, 0, 0.05], "wait": True})
     assert r.status_code == 200 and r.json()["status"] == "done", r.text

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import csv
 import io
 import json
@@ -12,6 +11,7 @@ import time
 from collections.abc import Iterator
 
 import pytest
+from _wait import wait_for
 
 from app import client as cl
 from app.client import ArmClient, AsyncArmClient
@@ -40,7 +40,7 @@ def test_sync_queue_turns_one_after_the_other(room: Server) -> None:
                 order.append((name, "in", time.monotonic()))
                 assert c.move_joints("angler", [0.0, 0.0, 0.0, 0.05], wait=True).status == "done"
                 assert keeper.error is None
-                time.sleep(0.3)
+                time.sleep(0.3)  # the scenario: the turn is held a while after the move
                 order.append((name, "out", time.monotonic()))
         except BaseException as exc:  # noqa: BLE001 - reported below
             errors.append(exc)
@@ -77,8 +77,9 @@ async def test_async_queue_turn_and_slot_end(room: Server) -> None:
             q = (await c.state("rbe3001")).positions
             m = await c.move_joints("rbe3001", [q[0] + 0.05, q[1], q[2]], wait=True)
             assert m.status == "done", m
-            await asyncio.sleep(3.0)  # past the 2.5 s slot: renewals stop, moves are refused
-            assert isinstance(keeper.error, cl.NotFound)
+            # past the 2.5 s slot: renewals stop, moves are refused
+            await wait_for(lambda: keeper.error is not None, timeout=20.0, what="the slot end")
+            assert isinstance(keeper.error, cl.NotFound), keeper.error
             with pytest.raises(cl.Leased):
                 await c.move_joints("rbe3001", [0.0, 0.6, 0.3])
         assert "rbe3001" not in c.leases

@@ -16,6 +16,7 @@ from typing import Any
 import httpx
 import pytest
 import uvicorn
+from _wait import wait_for, wait_until
 
 from app import client as cl
 from app import schemas as s
@@ -226,7 +227,8 @@ def test_hold_lease_heartbeats_and_gates_others(auth_server: Server) -> None:
             ArmClient(auth_server.url, token=OPERATOR) as b:
         with a.hold_lease("angler", every=0.2) as keeper:
             assert a.leases["angler"] == keeper.id
-            time.sleep(1.5)  # longer than the 1 s ttl: only the heartbeat keeps it
+            time.sleep(1.5)  # under test: longer than the 1 s ttl, only the heartbeat keeps it
+            wait_until(lambda: keeper.renewals >= 3 or keeper.error, what="three renewals")
             assert keeper.renewals >= 3 and keeper.error is None
             assert a.move_joints("angler", [0.0, 0.0, 0.0, 0.05], wait=True).status == "done"
             with pytest.raises(cl.Leased) as info:
@@ -244,7 +246,8 @@ def test_hold_lease_heartbeats_and_gates_others(auth_server: Server) -> None:
 async def test_async_hold_lease(auth_server: Server) -> None:
     async with AsyncArmClient(auth_server.url, token=OPERATOR) as c:
         async with c.hold_lease("rbe3001", every=0.2) as keeper:
-            await asyncio.sleep(1.3)
+            await asyncio.sleep(1.3)  # under test: longer than the 1 s ttl
+            await wait_for(lambda: keeper.renewals >= 3 or keeper.error, what="three renewals")
             assert keeper.renewals >= 3 and keeper.error is None
             m = await c.plan_joints("rbe3001", [0.0, 0.6, 0.3])
             assert m.status == "queued"
@@ -282,7 +285,8 @@ async def test_telemetry_yields_increasing_seq_and_events(server: Server) -> Non
                     return
 
         task = asyncio.create_task(consume())
-        await asyncio.sleep(0.3)
+        # samples flowing: the socket is subscribed, and will see the events
+        await wait_for(lambda: seqs or task.done(), what="the first telemetry")
         await c.estop("rbe3001")
         await c.release_estop("rbe3001")
         await asyncio.wait_for(task, 10.0)

@@ -9,6 +9,7 @@ import gc
 from typing import Any
 
 import pytest
+from _wait import wait_for
 
 from app import collector as c
 from app import schemas as s
@@ -60,7 +61,7 @@ async def test_a_due_collection_waits_for_the_arms_to_stop_and_frees_cycles() ->
     col = Collector(lambda: moving_now[0], every_s=0.05, defer_max_s=60.0)
     col.start()
     try:
-        await asyncio.sleep(0.6)
+        await asyncio.sleep(0.6)  # under test: for 0.6 s, nothing (due, but an arm is moving)
         assert col.full_collections == 0  # due since 0.05 s, deferred: an arm is moving
 
         class Node:
@@ -69,10 +70,7 @@ async def test_a_due_collection_waits_for_the_arms_to_stop_and_frees_cycles() ->
         x.other, y.other = y, x  # a cycle only the cyclic collector frees
         del x, y
         moving_now[0] = False
-        for _ in range(40):
-            await asyncio.sleep(0.05)
-            if col.full_collections:
-                break
+        await wait_for(lambda: col.full_collections, what="a full collection")
         assert col.full_collections >= 1 and col.longest_s > 0.0
         assert not [o for o in gc.get_objects() if type(o).__name__ == "Node"]
     finally:
@@ -83,8 +81,7 @@ async def test_a_collection_deferred_too_long_runs_anyway() -> None:
     col = Collector(lambda: True, every_s=0.05, defer_max_s=0.5)
     col.start()
     try:
-        await asyncio.sleep(1.5)
-        assert col.full_collections >= 1
+        await wait_for(lambda: col.full_collections >= 1, what="the collection deferred too long")
     finally:
         await col.close()
 

@@ -5,11 +5,13 @@ socket:// and the in-process sim link), and under every injected fault: no reque
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 
 import numpy as np
 import pytest
+from _wait import held_still, new_samples, wait_for
 
 from app.arms.dynamixel.driver import DynamixelDriver
 from app.arms.rbe3001.driver import Rbe3001Driver
@@ -53,8 +55,7 @@ async def test_angler_over_a_real_pty(tmp_path):
         assert {p[1] for p in pings} == {mx28.MODEL_NUMBER}
         assert await driver.read_register(3, mx28.TABLE["id"]) == 3
         seq0 = driver.hub.latest["seq"]
-        await asyncio.sleep(0.3)
-        assert driver.hub.latest["seq"] > seq0 + 10  # polling at the profile's rate
+        await wait_for(lambda: driver.hub.latest["seq"] > seq0 + 10, what="polls going on")
         assert driver.hub.latest["link"] == "up"
     finally:
         await driver.close()
@@ -68,9 +69,8 @@ async def test_angler_moves_over_socket_url():
     try:
         target = np.array([0.01, -0.02, 0.3, 0.05])
         await driver.command_joints(target)
-        deadline = time.monotonic() + 5
-        while time.monotonic() < deadline and not np.allclose(driver.positions, target, atol=2e-3):
-            await asyncio.sleep(0.05)
+        with contextlib.suppress(AssertionError):  # judged below, with the numbers
+            await wait_for(lambda: np.allclose(driver.positions, target, atol=2e-3))
         np.testing.assert_allclose(driver.positions, target, atol=2e-3)
         tip = driver.hub.latest["tip"]
         np.testing.assert_allclose([tip["x"], tip["y"], tip["z"]],
@@ -88,11 +88,11 @@ async def test_rbe3001_over_socket_url_with_stream_framing():
         status = await driver.status()
         assert isinstance(status, rb.StatusReply) and len(status.position_ticks) == 3
         await driver.set_pid([(300.0, 0, 0), (500.0, 0, 0), (200.0, 0, 0)])
-        deadline = time.monotonic() + 5
-        while time.monotonic() < deadline:
-            if np.allclose((await driver.status()).position_ticks, [300, 500, 200], atol=15):
-                break
-            await asyncio.sleep(0.05)
+        async def there() -> bool:
+            return np.allclose((await driver.status()).position_ticks, [300, 500, 200], atol=15)
+
+        with contextlib.suppress(AssertionError):  # judged below, with the numbers
+            await wait_for(there, every=0.05)
         np.testing.assert_allclose((await driver.status()).position_ticks, [300, 500, 200], atol=15)
     finally:
         await driver.close()
@@ -102,10 +102,11 @@ async def test_rbe3001_over_socket_url_with_stream_framing():
 async def test_samples_are_numbered_and_converted_to_si():
     driver = await started("rbe3001", sim_link("rbe3001"))
     hub = driver.hub
-    await asyncio.sleep(0.5)  # let the arm settle under gravity so positions are steady
+    # the arm settled under gravity, so that positions are steady
+    await held_still(lambda: driver.positions, 2e-3, window=0.1)
     sub = hub.subscribe()
     try:
-        await asyncio.sleep(0.3)
+        await new_samples(hub, 40)
         samples, _, dropped = sub.take()
         seqs = [json.loads(x)["seq"] for x in samples]
         assert dropped == 0 and len(seqs) > 30
@@ -121,6 +122,19 @@ async def test_samples_are_numbered_and_converted_to_si():
 
 
 # ------------------------------------------------------------------ faults
+
+
+def _clean_polls(driver, n: int = 3):
+    """A condition: `n` polls in a row without a failure (so the replies scheduled under the
+    faults, which the link delivers in order before any later one, are gone)."""
+    base = {"polls": driver.stats["polls"], "failures": driver.stats["poll_failures"]}
+
+    def done() -> bool:
+        if driver.stats["poll_failures"] != base["failures"]:  # start counting again
+            base.update(polls=driver.stats["polls"], failures=driver.stats["poll_failures"])
+        return driver.stats["polls"] - base["polls"] >= n
+
+    return done
 
 
 async def _hammer(calls, n_tasks: int = 4, per_task: int = 40, bound_s: float = 30.0):
@@ -178,7 +192,7 @@ async def test_drop_and_corrupt_fail_clearly_never_wrongly(name, fault):
         expected = {"device_timeout"} if fault == "drop" else {"corrupt_reply", "device_timeout"}
         assert errors and set(errors) <= expected, errors
         link.set_faults(FaultConfig())
-        await asyncio.sleep(0.2)  # replies already scheduled under the faults arrive first
+        await wait_for(_clean_polls(driver), what="clean polls")  # replies faulted before, gone
         outcomes, errors = await _hammer(calls, n_tasks=2, per_task=10)
         assert outcomes == {"ok": 20, "wrong": 0} and not errors  # recovered
     finally:
@@ -227,7 +241,7 @@ async def test_a_request_goes_between_two_polls_while_they_catch_up(name):
     try:
         period = 1.0 / driver.profile.link.poll_hz
         link.set_faults(FaultConfig(latency_s=4 * period))
-        await asyncio.sleep(10 * period)  # behind the schedule by now
+        await asyncio.sleep(10 * period)  # the scenario: behind the schedule by now
         calls = _distinct_calls(driver) if name == "angler" else _rbe_calls(driver)
         for call, ok in calls[:4]:
             polls = driver.stats["polls"]
@@ -246,8 +260,8 @@ async def test_disconnect_fails_fast_reports_and_recovers(name):
     try:
         link.set_faults(FaultConfig(reconnect_after_s=0.5))
         link.disconnect()
-        await asyncio.sleep(0.05)
-        assert driver.state.value in ("down", "connecting")
+        await wait_for(lambda: driver.state.value in ("down", "connecting")
+                       and driver.hub.latest["stale"], what="the link down, and said so")
         t0 = time.monotonic()
         with pytest.raises(LinkDown):
             await (driver.status() if name == "rbe3001" else driver.ping(1))
@@ -302,7 +316,8 @@ async def test_angler_servos_cap_their_own_speed_at_the_joint_limits():
         assert pv[1] == pv[2] == 196
         # a goal far away: the servo moves no faster than the profile velocity allows
         await driver.command_joints(np.array([0.05, 0.0, 0.0, 0.05]))
-        await asyncio.sleep(0.5)
+        await wait_for(lambda: driver.velocities[0] > 0.005, what="x at speed")
+        await new_samples(driver.hub, 10)  # and some time at it (the goal is 8 s away)
         assert abs(driver.velocities[0]) <= 0.006  # 44.9 rpm * 8 mm = 5.99 mm/s
         assert driver.velocities[0] > 0.005
     finally:
@@ -341,11 +356,11 @@ async def test_faults_over_a_real_socket_fail_clearly_and_recover(name):
         assert server.faults.dropped > 0 and server.faults.corrupted > 0
         server.set_faults(FaultConfig(reconnect_after_s=0.4))
         server.disconnect()  # the cable is pulled
-        await asyncio.sleep(0.1)
+        await wait_for(lambda: driver.state.value in ("down", "connecting"), what="link down")
         with pytest.raises(LinkDown):
             await calls[0][0]()
         assert await driver.wait_connected(5.0)  # reopened by the driver's backoff
-        await asyncio.sleep(0.2)
+        await wait_for(_clean_polls(driver), what="clean polls after the reconnect")
         outcomes, errors = await _hammer(calls, n_tasks=2, per_task=5)
         assert outcomes == {"ok": 10, "wrong": 0} and not errors
         _, events, _ = sub.take()
@@ -368,7 +383,7 @@ async def test_a_bug_in_a_session_restarts_the_link_instead_of_ending_the_task()
 
     driver.hub.add_listener(broken)  # runs in the owner task's publish
     try:
-        await asyncio.sleep(0.3)
+        await wait_for(lambda: calls["n"] >= 3, what="samples published after the failure")
         assert not driver._task.done()
         assert await driver.wait_connected(5.0)
         assert isinstance(await driver.status(), rb.StatusReply)
@@ -385,8 +400,7 @@ async def test_an_rbe3001_reading_that_jumps_impossibly_is_refused_as_corrupt():
     link = sim_link("rbe3001")
     driver = await started("rbe3001", link)
     try:
-        await asyncio.sleep(0.2)
-        q_good = driver.positions.copy()
+        q_good = (await held_still(lambda: driver.positions, 1e-3, window=0.1)).copy()
         corrupt_before = driver.stats["corrupt"]
         fake = q_good.copy()
         fake[2] += 0.33  # 0.33 rad in ~2 ms: 165 rad/s, the limit is 1.5
@@ -394,7 +408,7 @@ async def test_an_rbe3001_reading_that_jumps_impossibly_is_refused_as_corrupt():
             driver._check_jump(fake)
         assert driver.stats["corrupt"] == corrupt_before + 1
         driver._check_jump(q_good)  # the true reading is still accepted
-        await asyncio.sleep(0.1)
+        await new_samples(driver.hub, 10)
         np.testing.assert_allclose(driver.positions, q_good, atol=0.01)
     finally:
         await driver.close()
@@ -406,16 +420,16 @@ async def test_a_repeated_reading_is_converted_again_after_homing(name):
     moves the offset, and the next sample of the same bytes shows the new position."""
     driver = await started(name, sim_link(name))
     try:
-        await asyncio.sleep(0.6)  # at rest: the readings repeat
+        # at rest (settled under gravity): the readings repeat
+        await held_still(lambda: driver.positions, 0.0, window=0.3)
         before = driver.positions
         assert before is not None and not before.flags.writeable  # shared, so read-only
         raw = driver._converted_key
-        await asyncio.sleep(0.05)
+        await new_samples(driver.hub, 3)
         assert driver.positions is before and driver._converted_key == raw  # reused
         driver.set_home(0, float(before[0]) + 0.01)
         seq = driver._seq
-        while driver._seq < seq + 3:
-            await asyncio.sleep(0.01)
+        await wait_for(lambda: driver._seq >= seq + 3, what="three polls after homing")
         assert driver.positions[0] == pytest.approx(before[0] + 0.01, abs=1e-9)
         assert np.allclose(driver.positions[1:], before[1:], atol=1e-9)
         latest = json.loads(driver.hub.latest_json)
