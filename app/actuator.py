@@ -30,12 +30,23 @@ class Actuator(Protocol):
 
     link: Link
     positions: np.ndarray | None
+    velocities: np.ndarray | None
     stale: bool
     stale_error: ArmError | None
     faults: list[dict[str, Any]]
     homed: list[bool]
+    #: Counts the commands noted as sent (any source): the executor's own last setpoint is
+    #: still the arm's commanded state while this has not moved on.
+    command_seq: int
 
-    async def command_joints(self, q: np.ndarray) -> None: ...
+    @property
+    def commanded(self) -> np.ndarray | None: ...
+
+    def told(self) -> np.ndarray | None: ...
+
+    def pace(self) -> np.ndarray | None: ...
+
+    async def command_joints(self, q: np.ndarray, *, hold: bool = False) -> None: ...
 
     async def set_gripper(self, value: float) -> None: ...
 

@@ -170,24 +170,29 @@ class ArmSafety:
             raise KeepOut(self._describe(hit, q[hit.index], f"{hit.t:.2f} s into the motion"))
 
     def check_joint_path(self, q0: np.ndarray | None, q1: np.ndarray) -> None:
-        """A pass-through target q1 and the straight joint-space path to it from q0 (the
-        measured position; None: the target alone)."""
-        if not self.active:
-            return
+        """A target q1 and the straight joint-space path to it from q0 (None: the target
+        alone), sampled at PATH_STEP."""
         q1 = np.asarray(q1, dtype=float)
         if q0 is None:
-            s = np.array([1.0])
-        else:
-            step = np.array([PATH_STEP[k] for k in self.model.kinds])
-            n = int(np.clip(np.ceil(np.max(np.abs(q1 - q0) / step)), 1, MAX_PATH_POINTS - 1))
-            s = np.linspace(0.0, 1.0, n + 1)
-        q = (q1 if q0 is None else q0 + s[:, None] * (q1 - np.asarray(q0, dtype=float)))
+            self.check_path(q1[None, :], "to the commanded position")
+            return
+        q0 = np.asarray(q0, dtype=float)
+        step = np.array([PATH_STEP[k] for k in self.model.kinds])
+        n = int(np.clip(np.ceil(np.max(np.abs(q1 - q0) / step)), 1, MAX_PATH_POINTS - 1))
+        s = np.linspace(0.0, 1.0, n + 1)[:, None]
+        self.check_path(q0 + s * (q1 - q0), "along the straight joint-space path to the "
+                        "commanded position")
+
+    def check_path(self, q: np.ndarray, what: str) -> None:
+        """A joint path (N, n) sampled finely enough (PATH_STEP): 422 `keep_out` at its first
+        pose with a body point inside a zone or below the floor."""
+        if not self.active:
+            return
         q = np.asarray(q, dtype=float).reshape(-1, self.model.n)
+        s = np.linspace(0.0, 1.0, len(q))
         hit = self.first_hit(q, s)
         if hit is not None:
-            raise KeepOut(self._describe(hit, q[hit.index],
-                                         f"{hit.t:.0%} of the way along the straight "
-                                         "joint-space path to the commanded position"))
+            raise KeepOut(self._describe(hit, q[hit.index], f"{hit.t:.0%} of the way {what}"))
 
     def check_pose(self, q: np.ndarray, what: str) -> None:
         hit = self.first_hit(np.asarray(q, dtype=float)[None, :], np.zeros(1))

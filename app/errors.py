@@ -66,6 +66,8 @@ _ROWS: tuple[tuple[str, int | None, str, str, str], ...] = (
     ("no_force_sensing", 409, "NoForceSensing", "NotSupported", "the arm senses no joint torques"),
     ("fault", 409, "Fault", "Fault", "a servo reports a hardware fault: reboot it"),
     ("not_homed", 409, "NotHomed", "NotHomed", "a joint lost its zero: home the arm first"),
+    ("already_homed", 409, "AlreadyHomed", "Conflict",
+     "the arm knows where it is: an instructor re-homes it, or un-home it first (DELETE /home)"),
     ("torque_off", 409, "TorqueOff", "TorqueOff", "a joint's servo holds no torque"),
     ("in_use", 409, "InUse", "Conflict",
      "the driver relies on this register: pass-through may not write it"),
@@ -262,6 +264,12 @@ class NotHomed(Conflict):
     """A joint that loses its zero at power-up has not been homed (POST /home)."""
 
     code = "not_homed"
+
+
+class AlreadyHomed(Conflict):
+    """A home declaration on an arm whose joints are all homed (it would move its limits)."""
+
+    code = "already_homed"
 
 
 class TorqueOff(Conflict):

@@ -9,6 +9,7 @@ commands it. Checks raise the typed errors of app/errors.py (4xx with a stable c
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -16,12 +17,13 @@ import numpy as np
 from app.actuator import Actuator
 from app.arm_model import KinematicsModel
 from app.config import ArmProfile
-from app.envelope import ArmSafety
+from app.envelope import MAX_PATH_POINTS, PATH_STEP, ArmSafety
 from app.errors import (
     EstopLatched,
     Fault,
     InvalidRequest,
     JointLimit,
+    LinkDown,
     NotHomed,
     ShuttingDown,
     VelocityLimit,
@@ -113,28 +115,63 @@ class SafetyGuard:
 
     # --------------------------------------------------------- pass-through commands
 
-    def check_passthrough_ticks(self, ticks: np.ndarray,
-                                velocities: np.ndarray | None = None) -> None:
-        """A raw position command (rbe3001 SET_PID ticks, Dynamixel goal positions) obeys the
-        joint limits unless the profile allows raw access, and the estop always. With
-        `velocities` (ticks/s, e.g. SET_PID's velocity_ticks_s), those obey the velocity limits
-        too (`check_passthrough_velocity_ticks`)."""
+    def check_passthrough(self, target: np.ndarray, pace: np.ndarray | None = None) -> None:
+        """A pass-through position command (rbe3001 SET_PID, Dynamixel goal positions, one or
+        several, raw access included) checked like a planned move, as the path the arm will
+        take from where it is (measured) to `target` (rad or m, every joint: the caller fills
+        the joints it does not command with where they are told to go):
+
+        - the estop, shutdown and faults; NaN; homing;
+        - the joint limits, unless the profile allows raw access;
+        - the envelope (raw access too), along that path: every joint together, each paced
+          joint ramping at its own pace (a servo's profile, independent of the others), the
+          unpaced ones along the straight line;
+        - speed: a joint that goes to a new position as fast as it can (a PID step; `pace`
+          NaN or None) may be sent at most `PASSTHROUGH_STEP_S` times its velocity limit
+          (times the speed override) from where it is, the longest step the motion executor
+          itself sends (app/motion_stream.MAX_STEP_S); 422 `velocity_limit` beyond. A joint
+          whose device paces itself at or under its limit (`pace`, a Dynamixel servo's
+          Profile Velocity) may be sent anywhere.
+        """
         self.require_motion_allowed()
         self.require_no_fault()
-        require_finite(ticks, "pass-through positions")
-        if velocities is not None:
-            self.check_passthrough_velocity_ticks(velocities)
-        q = self.model.transmission.from_ticks(np.asarray(ticks, dtype=float))
-        self.check_homed(self.device.positions, q)
-        v = [] if self.profile.raw_access else self.model.violations(q)
+        target = np.asarray(target, dtype=float)
+        require_finite(target, "pass-through positions")
+        here = self.device.positions
+        if here is None or self.device.stale:
+            raise LinkDown(f"{self.name}: no fresh joint positions from the device to check a "
+                           "pass-through command against")
+        self.check_homed(here, target)
+        m = self.model
+        v = [] if self.profile.raw_access else m.violations(target)
         if v:
             raise JointLimit("pass-through position outside the joint limits (the profile does "
                              "not allow raw access): " + "; ".join(v))
-        # the envelope holds with raw access too: the target and the straight joint-space path
-        self.safety.check_joint_path(self.device.positions, q)
+        paced = np.zeros(m.n, dtype=bool)
+        speed = np.asarray(self.scaled(m.vmax)[0], dtype=float)
+        if pace is not None:
+            p = np.asarray(pace, dtype=float)
+            paced = np.isfinite(p) & (p > 0) & (p <= m.vmax * (1 + 1e-6))
+            speed = np.where(paced, p, speed)
+        self.safety.check_path(passthrough_path(here, target, speed, paced, m.kinds),
+                               "along the path from where the arm is to the commanded "
+                               "position")
+        step = np.abs(target - here)
+        cap = speed * PASSTHROUGH_STEP_S + self._tolerance
+        over = [f"{name} {step[k]:.4g} {_unit(kind)} from where it is (at most {cap[k]:.4g}: "
+                f"{PASSTHROUGH_STEP_S:g} s at its velocity limit {speed[k]:g} {_unit(kind)}/s)"
+                for k, (name, kind) in enumerate(zip(m.names, m.kinds, strict=True))
+                if not paced[k] and step[k] > cap[k]]
+        if over:
+            raise VelocityLimit(
+                "pass-through step the device would take faster than the joint's velocity "
+                "limit: " + "; ".join(over) + f". Send a planned move (POST /api/v1/arms/"
+                f"{self.name}/move/joints) or smaller steps, each within {PASSTHROUGH_STEP_S:g}"
+                " s of motion at the limit from where the joint is")
 
     def check_passthrough_velocity_ticks(self, velocities: np.ndarray) -> None:
-        """Raw joint velocities (ticks/s, one per joint) within the profile's joint velocity
+        """Raw joint velocities (ticks/s, one per joint: SET_PID's velocity_ticks_s, which the
+        firmware carries but does not use) are finite and within the profile's joint velocity
         limits converted to ticks/s, unless the profile allows raw access; 422
         `velocity_limit` naming the joint, the limit and the excess otherwise."""
         require_finite(velocities, "pass-through velocities")
@@ -144,29 +181,51 @@ class SafetyGuard:
         v = np.abs(np.asarray(velocities, dtype=float))
         cap = np.abs(m.transmission.velocity_to_ticks(m.vmax))
         over = [f"{name} {v[k]:.0f} ticks/s is above its limit {cap[k]:.0f} ticks/s "
-                f"({m.vmax[k]:g} {'rad' if kind == 'revolute' else 'm'}/s) by "
-                f"{v[k] - cap[k]:.0f} ticks/s"
+                f"({m.vmax[k]:g} {_unit(kind)}/s) by {v[k] - cap[k]:.0f} ticks/s"
                 for k, (name, kind) in enumerate(zip(m.names, m.kinds, strict=True))
                 if v[k] > cap[k] * (1 + 1e-9)]
         if over:
             raise VelocityLimit("pass-through velocity over the joint velocity limits (the "
                                 "profile does not allow raw access): " + "; ".join(over))
 
-    def check_passthrough_joint_ticks(self, joint: int, ticks: float) -> None:
-        """As `check_passthrough_ticks` for one joint's goal (the others unchanged)."""
-        self.require_motion_allowed()
-        self.require_no_fault()
-        if not self.device.homed[joint]:
-            cur = self.device.positions
-            start = None if cur is None else cur[joint:joint + 1]
-            self.check_homed_joint(joint, start, ticks)
-        if self.profile.raw_access:
-            return
-        current = self.device.positions
-        base = current.copy() if current is not None else (self.model.lower + self.model.upper) / 2
-        all_ticks = self.model.transmission.to_ticks(base)
-        all_ticks[joint] = ticks
-        self.check_passthrough_ticks(all_ticks)
+    def require_not_latched(self) -> None:
+        """The owner task's gate (app/devices/owner.py): while the estop is latched no command
+        that moves the arm is written, whenever it was queued; the hold is not gated."""
+        if self.estop:
+            raise EstopLatched(f"{self.name}: emergency stop latched before the command was "
+                               f"sent; release it with DELETE /api/v1/arms/{self.name}/estop")
+
+
+#: The longest pass-through step a joint that is not paced by its device may be sent, in
+#: seconds of motion at its velocity limit: the executor's own longest setpoint step
+#: (app/motion_stream.MAX_STEP_S, tested equal). The rbe3001's PID takes a step at the speed
+#: its error gives (a 3 rad step peaks near 2.9 rad/s, twice the limit); 0.03 s at 1.5 rad/s
+#: is 45 mrad, which it takes well under the limit.
+PASSTHROUGH_STEP_S = 0.03
+
+
+def passthrough_path(here: np.ndarray, target: np.ndarray, speed: np.ndarray,
+                     paced: np.ndarray, kinds: Sequence[str]) -> np.ndarray:
+    """The joint path (N, n) a pass-through command takes from `here` to `target`: joints the
+    device paces ramp at their own `speed` (each arrives on its own), the others move along
+    the straight line over the slowest paced joint's time (over none: the straight line).
+    Sampled at PATH_STEP per joint, at most MAX_PATH_POINTS points."""
+    delta = target - here
+    step = np.array([PATH_STEP[k] for k in kinds])
+    n = int(np.clip(np.ceil(np.max(np.abs(delta) / step)), 1, MAX_PATH_POINTS - 1))
+    s = np.linspace(0.0, 1.0, n + 1)[:, None]
+    if not np.any(paced):
+        return np.asarray(here + s * delta, dtype=float)
+    t_each = np.where(paced, np.abs(delta) / np.maximum(speed, 1e-12), 0.0)
+    total = float(np.max(t_each))
+    if total <= 0.0:
+        return np.asarray(here + s * delta, dtype=float)
+    frac = np.where(paced, np.minimum(1.0, s * total / np.where(t_each > 0, t_each, 1.0)), s)
+    return np.asarray(here + frac * delta, dtype=float)
+
+
+def _unit(kind: str) -> str:
+    return "rad" if kind == "revolute" else "m"
 
 
 def _settle_tolerance(profile: ArmProfile, model: KinematicsModel) -> np.ndarray:

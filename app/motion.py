@@ -116,16 +116,16 @@ class MotionExecutor(MotionStream):
 
     @on_control
     async def emergency_stop(self) -> None:
-        """Stop streaming now, clear the queue and command a hold at the last commanded
-        setpoint (the measured position sags under gravity: holding there again and again
-        would walk the arm down). The caller commands it once per latch, not per press."""
+        """Stop streaming now, clear the queue and command a hold where the arm is
+        (`hold_point`: its measured position, or its last command if it rests there), never
+        where an older plan left it. The caller commands it once per latch, not per press."""
         self._halt = True
         while self._queue:
             self._finish(self._queue.popleft(), "stopped", "emergency stop")
         cur = self.current
         if cur is not None and not cur.done.is_set():
             self._finish(cur, "stopped", "emergency stop")
-        await self._hold(commanded=True)
+        await self._hold()
         self._halt = False
 
     # --------------------------------------------------------- planning

@@ -42,6 +42,11 @@ MAX_SETPOINT_FAILURES = 3
 MAX_STEP_S = 0.03
 #: A tick later than this, s, is reported (log and a `motion_held_up` event).
 HELD_UP_S = 0.1
+#: A hold keeps a joint's last command when the joint is at rest (its speed under AT_REST of
+#: its velocity limit) within HOLD_NEAR_S of motion at its limit of it; else the hold is where
+#: the joint is measured (`hold_point`).
+HOLD_NEAR_S = 0.03
+AT_REST = 0.05
 
 
 class Events(Protocol):
@@ -71,8 +76,11 @@ class MotionStream:
         self._task: asyncio.Task[None] | None = None
         self.current: MotionRecord | None = None
         self.last: MotionRecord | None = None
-        #: Commanded state (q, qd, qdd) of the last setpoint sent, for blending and holding.
+        #: Commanded state (q, qd, qdd) of the last setpoint this executor sent, for blending;
+        #: it is the arm's commanded state only while the device's `command_seq` is still
+        #: `_cmd_seq` (no pass-through command, homing or set-up came after it).
         self._cmd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._cmd_seq = -1
         self._halt = False
         self._ids = itertools.count(1)
         self.home_loop: asyncio.AbstractEventLoop | None = None
@@ -89,7 +97,9 @@ class MotionStream:
             self._finish(rec, "stopped", "server shutting down")
 
     def _start_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if self._cmd is not None:
+        """Where a motion starts: the executor's last setpoint while it is still the arm's
+        commanded state, else where the arm is (at rest): never a stale setpoint."""
+        if self._cmd is not None and self._cmd_seq == self.device.command_seq:
             return self._cmd
         q = self.device.positions
         if q is None:
@@ -202,7 +212,7 @@ class MotionStream:
                 return "halt"
             if self._halt:
                 return "halt"
-            self._cmd = (q, qd * rate, qdd * rate * rate)
+            self._cmd, self._cmd_seq = (q, qd * rate, qdd * rate * rate), self.device.command_seq
             rec.progress = done_before + (1.0 - done_before) * (t / duration if duration > 0
                                                                  else 1.0)
             if t >= duration:
@@ -245,7 +255,8 @@ class MotionStream:
     async def _brake(self) -> None:
         """Decelerate from the commanded state to rest under the acceleration and jerk limits
         (time stretched after a late tick, as in `_stream`)."""
-        if self._cmd is None or not np.any(self._cmd[1]):
+        if (self._cmd is None or self._cmd_seq != self.device.command_seq
+                or not np.any(self._cmd[1])):
             return
         q, qd, qdd = self._cmd
         m = self.model
@@ -264,6 +275,7 @@ class MotionStream:
             except ArmError:
                 break
             self._cmd = (qs, np.zeros_like(qs), np.zeros_like(qs))
+            self._cmd_seq = self.device.command_seq
             if t >= traj.duration:
                 break
             await asyncio.sleep(max(0.0, last + dt - loop.time()))
@@ -289,20 +301,42 @@ class MotionStream:
         self.events.event("watchdog", id=rec.id, code=exc.code, reason=exc.detail)
         await self._hold()
 
-    async def _hold(self, commanded: bool = False) -> None:
-        """Command the arm to hold, where the link still allows: at the last commanded setpoint
-        if `commanded` and there is one, else at its measured position; within the limits."""
-        q = self._cmd[0] if commanded and self._cmd is not None else self.device.positions
+    async def _hold(self) -> None:
+        """Command the arm to hold where it is (`hold_point`), where the link still allows: the
+        estop's hold (not gated by the latch) and the watchdog's."""
+        q = self.hold_point()
         if q is None:
             self._cmd = None
             return
-        q = self._within_limits(q)
         try:
-            await self.device.command_joints(q)
+            await self.device.command_joints(q, hold=True)
             self._cmd = (q.copy(), np.zeros_like(q), np.zeros_like(q))
+            self._cmd_seq = self.device.command_seq
         except ArmError as exc:
             log.warning("%s: could not command a hold: %s", self.name, exc.detail)
             self._cmd = None
+
+    def hold_point(self) -> np.ndarray | None:
+        """Where the arm is: its measured position, except a joint at rest within one step
+        (HOLD_NEAR_S of motion at its velocity limit, or the settle tolerance) of its last
+        command, which holds at that command (a joint sagging under gravity is not walked
+        down a little further at each hold). Never an older setpoint: the arm does not move
+        to hold. Not clipped to the joint limits (an arm outside them, with raw access, holds
+        where it is). None before any reading."""
+        q = self.device.positions
+        if q is None:
+            return None
+        q = np.array(q, dtype=float)
+        cmd = self.device.commanded
+        if cmd is None:
+            return q
+        qd = self.device.velocities
+        m = self.model
+        near = np.abs(cmd - q) <= np.maximum(m.vmax * HOLD_NEAR_S, self.tolerance())
+        still = (np.ones(m.n, dtype=bool) if qd is None
+                 else np.abs(np.asarray(qd, dtype=float)) <= m.vmax * AT_REST)
+        use = np.isfinite(cmd) & near & still
+        return np.where(use, cmd, q)
 
     def _within_limits(self, q: np.ndarray) -> np.ndarray:
         """Every position the executor commands (setpoint, brake, hold) is clipped to the joint

@@ -13,22 +13,32 @@ import asyncio
 import logging
 import threading
 import time
-from typing import Any
+from collections.abc import Awaitable, Callable
+from typing import Any, TypeVar
 
 import numpy as np
 
 from app import schemas as s
 from app.arm_hub import ArmHub
 from app.arms import arm_type
-from app.config import ArmProfile
+from app.config import ArmProfile, SafetySettings
 from app.control import on_control, running_loop, start_now
 from app.devices.base import Driver
 from app.devices.factory import make_driver
 from app.envelope import ArmSafety
-from app.errors import Busy, InvalidRequest, LinkDown, NoForceSensing, NoGripper, NotSupported
-from app.guard import SafetyGuard
+from app.errors import (
+    AlreadyHomed,
+    Busy,
+    InvalidRequest,
+    LinkDown,
+    NoForceSensing,
+    NoGripper,
+    NotSupported,
+)
+from app.guard import SafetyGuard, require_finite
 from app.links.base import LinkState
 from app.motion import MotionExecutor
+from app.motion_stream import AT_REST
 from app.tasks import retrieve
 from app.telemetry import TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
@@ -37,6 +47,8 @@ log = logging.getLogger(__name__)
 
 #: Longest the estop fast path holds the HTTP thread for the latch, s (see press_estop).
 PRESS_WAIT_S = 0.005
+
+T = TypeVar("T")
 
 
 class ArmService:
@@ -53,6 +65,8 @@ class ArmService:
         self.motion = MotionExecutor(profile.name, self.model, self.guard, self.driver, self.hub,
                                      control_hz=profile.link.control_hz,
                                      cartesian=profile.cartesian)
+        # nothing that moves the arm is written while the estop is latched, whenever queued
+        self.driver.motion_gate = self.guard.require_not_latched
         #: The hold of the current estop latch (commanded once per latch, app loop), and
         #: whether a press has been told how it went.
         self._hold: asyncio.Future[None] | None = None
@@ -194,34 +208,87 @@ class ArmService:
     def safety(self) -> ArmSafety:
         return self.guard.safety
 
-    # The pass-through routes ask these (one line each: the checks live in app/guard.py).
+    # --------------------------------------------------------- pass-through commands
+
     def require_motion_allowed(self) -> None:
         self.guard.require_motion_allowed()
 
-    def require_no_fault(self) -> None:
-        self.guard.require_no_fault()
+    @on_control
+    async def command_passthrough(self, goals: dict[int, float],
+                                  send: Callable[[], Awaitable[T]]) -> T:
+        """A pass-through position command (joint index -> encoder ticks), checked and sent
+        on the control thread in one step: nothing (an estop, a motion, another command)
+        comes between the check and the queue, and the owner task still refuses it if the
+        estop latches before it is written. Checked like a planned move (the guard's
+        `check_passthrough`): from where the arm is, to the joints' last commands with these
+        goals in place. 409 `busy` while a planned motion runs or is queued: the arm has one
+        commanded state, and the executor is streaming it."""
+        if self.motion.current is not None or self.motion.queued():
+            raise Busy(f"{self.name}: a planned motion is running or queued: stop it "
+                       f"(POST /api/v1/arms/{self.name}/stop) before a pass-through command")
+        for k, ticks in goals.items():
+            require_finite([ticks], f"the goal of joint {self.model.names[k]}")
+        told = self.driver.told()
+        if told is None or self.driver.stale:
+            raise LinkDown(f"{self.name}: no fresh joint positions from the device to check a "
+                           "pass-through command against")
+        tr = self.model.transmission
+        ticks_all = np.array(tr.to_ticks(told), dtype=float)
+        for k, ticks in goals.items():
+            ticks_all[k] = ticks
+        self.guard.check_passthrough(np.asarray(tr.from_ticks(ticks_all), dtype=float),
+                                     self.driver.pace())
+        return await send()
 
-    def check_joint_target(self, q: np.ndarray) -> None:
-        self.guard.check_joint_target(q)
-
-    def check_passthrough_ticks(self, ticks: np.ndarray,
-                                velocities: np.ndarray | None = None) -> None:
-        self.guard.check_passthrough_ticks(ticks, velocities)
-
-    def check_passthrough_velocity_ticks(self, velocities: np.ndarray) -> None:
-        self.guard.check_passthrough_velocity_ticks(velocities)
-
-    def check_passthrough_joint_ticks(self, joint: int, ticks: float) -> None:
-        self.guard.check_passthrough_joint_ticks(joint, ticks)
+    # --------------------------------------------------------- the envelope, at once
 
     @on_control
-    async def home(self, positions: list[float] | None) -> s.ArmDetail:
+    async def apply_safety(self, new: SafetySettings) -> None:
+        """Change the envelope on the control thread, where motion is planned and checked.
+        It applies at once: a change that adds or moves a zone or raises the floor is
+        refused with 409 `busy` while a motion runs or is queued or the arm moves (the
+        running plan was checked against the old envelope; stop it, change, move again);
+        422 `keep_out` if the arm, or the path to where it was last told to go, is inside
+        the new envelope. A change that only loosens it (a zone removed, the floor lowered or
+        removed, the speed override) applies whatever the arm does."""
+        cur = self.safety.settings
+        tighter = (any(z not in cur.zones for z in new.zones)
+                   or (new.floor_z is not None
+                       and (cur.floor_z is None or new.floor_z > cur.floor_z)))
+        if tighter:
+            drv = self.driver
+            moving = drv.velocities is not None and bool(np.any(
+                np.abs(drv.velocities) > self.model.vmax * AT_REST))
+            if self.motion.current is not None or self.motion.queued() or moving:
+                raise Busy(f"{self.name}: the arm is moving: a new keep-out zone or floor "
+                           "applies at once, and the running motion was checked against the "
+                           f"old envelope. Stop it (POST /api/v1/arms/{self.name}/stop) and "
+                           "change the envelope, then move again")
+            here, told = drv.positions, drv.told()
+            if here is not None:
+                check = self.safety.preview(new)
+                check.check_pose(here, "where the arm is now (move it out first)")
+                if told is not None:
+                    check.check_joint_path(here, told)
+        self.safety.apply(new, "stored")
+
+    @on_control
+    async def home(self, positions: list[float] | None, rehome: bool = False) -> s.ArmDetail:
         """Declare the arm's current physical pose (the profile's home pose by default): the
         joints that need homing take these positions; the others read absolute positions and
         keep them. The commanded state is forgotten, so the next motion starts from the
-        measured pose."""
+        measured pose. On an arm whose joints that need homing are all homed, a declaration
+        would move the joint limits and the zones with it: 409 `already_homed` unless
+        `rehome` (an instructor's) or the arm was un-homed first (`unhome`)."""
         if self.motion.current is not None or self.motion.queued():
             raise Busy(f"{self.name}: a motion is running or queued; stop it before homing")
+        needs = [k for k, j in enumerate(self.profile.joints) if j.needs_homing]
+        if needs and all(self.driver.homed[k] for k in needs) and not rehome:
+            raise AlreadyHomed(
+                f"{self.name} is homed: it knows where its joints are, and a new declaration "
+                "would move its joint limits and keep-out zones with it. An instructor may "
+                f"re-home it; or un-home it first on purpose (DELETE /api/v1/arms/{self.name}"
+                "/home), then home it")
         if positions is None:
             if self.profile.home is None:
                 raise InvalidRequest(f"{self.name}'s profile has no home pose: give positions")
@@ -239,6 +306,19 @@ class ArmService:
         self.motion.forget_command()
         log.info("%s: homed at %s", self.name, [round(float(v), 5) for v in q])
         self.hub.event("homed", positions=[float(v) for v in q])
+        return self.detail()
+
+    @on_control
+    async def unhome(self) -> s.ArmDetail:
+        """Forget the zero of every joint that needs homing, on purpose: moves that would move
+        them are refused (409 `not_homed`) until the arm is homed again."""
+        if self.motion.current is not None or self.motion.queued():
+            raise Busy(f"{self.name}: a motion is running or queued; stop it before un-homing")
+        for k, j in enumerate(self.profile.joints):
+            if j.needs_homing:
+                self.driver.homed[k] = False
+        log.info("%s: un-homed", self.name)
+        self.hub.event("unhomed", homed=list(self.driver.homed))
         return self.detail()
 
     @on_control

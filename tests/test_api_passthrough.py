@@ -8,6 +8,7 @@ import asyncio
 import httpx
 import numpy as np
 import pytest
+from _walk import pid_walk
 from fastapi import FastAPI
 
 API = "/api/v1"
@@ -26,18 +27,31 @@ async def test_rbe3001_status(app_client: httpx.AsyncClient) -> None:
 async def test_rbe3001_set_pid_moves_within_limits(
         app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
     app, client = app_and_client
-    tr = app.state.services["rbe3001"].model.transmission
-    ticks = tr.to_ticks(np.array([0.2, 0.6, 0.3]))
+    svc = app.state.services["rbe3001"]
+    tr = svc.model.transmission
+    # one step within 0.03 s of motion at the limit: answered with the positions
+    q0 = np.asarray(svc.driver.positions, dtype=float)
+    ticks = tr.to_ticks(q0 + np.array([0.02, 0.02, -0.02]))
     r = await client.post(f"{RB}/set-pid", json={"joints": [{"position_ticks": float(t)}
                                                             for t in ticks]})
     assert r.status_code == 200, r.text
     assert len(r.json()["position_ticks"]) == 3
+    # in such steps, anywhere within the limits
+    await pid_walk(client, svc, [0.2, 0.6, 0.3])
     for _ in range(100):
-        await asyncio.sleep(0.02)
         st = (await client.get(f"{API}/arms/rbe3001/state")).json()
         if np.allclose(st["positions"], [0.2, 0.6, 0.3], atol=0.02):
             break
+        await asyncio.sleep(0.02)
     assert np.allclose(st["positions"], [0.2, 0.6, 0.3], atol=0.02)
+    # a step the PID would take faster than the limit: refused, nothing sent
+    before = list(svc.driver.link.device.setpoint)
+    jump = tr.to_ticks(np.array([0.2, 0.6, 0.3]) + np.array([0.5, 0.0, 0.0]))
+    r = await client.post(f"{RB}/set-pid", json={"joints": [{"position_ticks": float(t)}
+                                                            for t in jump]})
+    assert r.status_code == 422 and r.json()["code"] == "velocity_limit", r.text
+    assert "base" in r.json()["detail"] and "move/joints" in r.json()["detail"]
+    assert list(svc.driver.link.device.setpoint) == before
     # outside the shoulder limit: refused before anything is sent
     far = tr.to_ticks(np.array([0.0, 3.0, 0.0]))
     r = await client.post(f"{RB}/set-pid", json={"joints": [{"position_ticks": float(t)}

@@ -23,6 +23,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+from _walk import pid_walk
 from conftest import make_settings, serve_live, wait_ready
 from fastapi import FastAPI
 from websockets.asyncio.client import connect
@@ -117,10 +118,8 @@ async def test_rbe3001_set_pid_outside_the_limits_never_reaches_the_device() -> 
             assert name in r.json()["detail"] and "below" in r.json()["detail"]
         await asyncio.sleep(0.05)
         assert _rb_setpoint(app) == before  # the firmware never saw them
-        # within the limits it goes through, to the firmware
-        r = await client.post(f"{RB}/rbe3001/set-pid",
-                              json=_set_pid_body(_ticks(app, "rbe3001", q)))
-        assert r.status_code == 200, r.text
+        # within the limits it goes through, to the firmware (in steps the guard accepts)
+        await pid_walk(client, svc, q)
         np.testing.assert_allclose(_rb_setpoint(app), _ticks(app, "rbe3001", q), atol=0.01)
 
 
@@ -145,8 +144,7 @@ async def test_raw_access_profile_accepts_the_same_pass_through() -> None:
         q = [float((lo + hi) / 2) for lo, hi in zip(svc.model.lower, svc.model.upper, strict=True)]
         q[0] = float(svc.model.lower[0]) - 0.2
         ticks = _ticks(app, "rbe3001", q)
-        r = await client.post(f"{RB}/rbe3001/set-pid", json=_set_pid_body(ticks))
-        assert r.status_code == 200, r.text
+        await pid_walk(client, svc, q)  # past the base's limit, in steps within the speed
         np.testing.assert_allclose(_rb_setpoint(app), ticks, atol=0.01)
         too_far = _angler_goal_ticks(app, 3, 0.05)
         r = await client.put(f"{AN}/dynamixel/3/registers/goal_position", json={"raw": too_far})
@@ -165,22 +163,23 @@ async def test_raw_access_profile_accepts_the_same_pass_through() -> None:
 
 
 async def test_pass_through_velocity_over_the_limit_is_refused_by_the_service() -> None:
-    """The check itself (ArmService, one place for every path)."""
+    """The checks themselves (the guard: one place for every path)."""
     async with served() as (app, _client):
-        svc = app.state.services["rbe3001"]
-        cap = svc.model.transmission.velocity_to_ticks(svc.model.vmax)
-        ticks = svc.model.transmission.to_ticks((svc.model.lower + svc.model.upper) / 2)
-        svc.check_passthrough_ticks(ticks, velocities=0.9 * cap)  # within: no error
+        guard = app.state.services["rbe3001"].guard
+        m = guard.model
+        cap = m.transmission.velocity_to_ticks(m.vmax)
+        guard.check_passthrough_velocity_ticks(0.9 * cap)  # within: no error
         with pytest.raises(Exception) as info:
-            svc.check_passthrough_ticks(ticks, velocities=np.array([0.0, 1.5 * cap[1], 0.0]))
+            guard.check_passthrough_velocity_ticks(np.array([0.0, 1.5 * cap[1], 0.0]))
         assert info.value.code == "velocity_limit" and "shoulder" in info.value.detail
+        # a position step the PID would take faster than the limit, from where the arm is
+        here = np.asarray(guard.device.positions, dtype=float)
+        guard.check_passthrough(here + m.vmax * 0.02)  # 0.02 s at the limit: accepted
         with pytest.raises(Exception) as info:
-            svc.check_passthrough_velocity_ticks(np.array([-2 * cap[0], 0.0, 0.0]))
-        assert info.value.code == "velocity_limit" and "base" in info.value.detail
-        raw = create_app(make_settings(), profiles=raw_profiles())
-        del raw  # raw access lifts the velocity cap too:
-        from app.service import ArmService
-        ArmService(raw_profiles()[0]).check_passthrough_velocity_ticks(10 * cap)
+            guard.check_passthrough(here + np.array([0.0, 0.0, 0.5]))
+        assert info.value.code == "velocity_limit" and "elbow" in info.value.detail
+        from app.service import ArmService  # raw access lifts the velocity field's cap
+        ArmService(raw_profiles()[0]).guard.check_passthrough_velocity_ticks(10 * cap)
 
 
 async def test_set_pid_velocity_over_the_limit_is_422_velocity_limit() -> None:
@@ -237,7 +236,9 @@ async def test_estop_refuses_everything_that_moves() -> None:
         # released: the same commands go through again
         for url in (RB, AN):
             assert (await client.delete(f"{url}/estop")).json() == {"estop": False}
-        r = await client.post(f"{RB}/rbe3001/set-pid", json=_set_pid_body(rb_q))
+        svc = app.state.services["rbe3001"]
+        step = _ticks(app, "rbe3001", list(np.asarray(svc.driver.positions) + 0.02))
+        r = await client.post(f"{RB}/rbe3001/set-pid", json=_set_pid_body(step))
         assert r.status_code == 200, r.text
 
 
@@ -285,9 +286,10 @@ async def test_nan_and_infinity_anywhere_are_422_and_nothing_is_sent() -> None:
         # the service refuses them too, whatever calls it
         svc = app.state.services["rbe3001"]
         for bad in (np.nan, np.inf):
-            for call in (lambda b: svc.check_joint_target(np.array([b, 0.5, 0.3])),
-                         lambda b: svc.check_passthrough_ticks(np.array([b, 0.0, 0.0])),
-                         lambda b: svc.check_passthrough_velocity_ticks(np.array([0, b, 0]))):
+            for call in (lambda b: svc.guard.check_joint_target(np.array([b, 0.5, 0.3])),
+                         lambda b: svc.guard.check_passthrough(np.array([b, 0.0, 0.0])),
+                         lambda b: svc.guard.check_passthrough_velocity_ticks(
+                             np.array([0, b, 0]))):
                 with pytest.raises(Exception) as info:
                     call(bad)
                 assert info.value.status_code == 422

@@ -5,14 +5,16 @@ router for every Dynamixel arm type: it names none.
 
 Every check happens before anything is sent: the name must be in the table (422
 `unknown_register`), a write must be to a writable item (422 `read_only`) and within the item's
-raw range (422 `out_of_range`), and a `goal_position` must be for one of the arm's motors and
-obey its joint limits (unless the profile allows raw access). Writes and reboots are refused
-while the estop is latched, except the safe ones: torque off and the LED. Reads may name any id
+raw range (422 `out_of_range`), and a `goal_position` must be for one of the arm's motors; goal
+positions, one or several, are then checked like a planned move from where the arm is, on the
+control thread (`ArmService.command_passthrough`). Writes and reboots are refused while the
+estop is latched, except the safe ones: torque off and the LED. Reads may name any id
 (the bus may carry other servos).
 """
 
 from __future__ import annotations
 
+from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Annotated, Any, cast
 
 from fastapi import APIRouter, Body, Path
@@ -118,9 +120,26 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
                     f"change it with {route.format(arm=svc.name, id=dxl_id)}. Pass-through "
                     "may not write it: the profile does not allow raw access")
     if item.name == "goal_position":
-        svc.check_passthrough_joint_ticks(_joint_of(svc, dxl_id), float(raw))
-    elif not (item.name == "led" or (item.name == "torque_enable" and raw == 0)):
+        _joint_of(svc, dxl_id)  # checked with the others' goals: `_send`
+    elif not _safe(item, raw):
         svc.require_motion_allowed()
+
+
+def _safe(item: mx28.ControlItem, raw: int) -> bool:
+    """Writes that cannot move the arm, allowed while the estop is latched: torque off, LED."""
+    return item.name == "led" or (item.name == "torque_enable" and raw == 0)
+
+
+async def _send(svc: ArmService, item: mx28.ControlItem, values: dict[int, int],
+                send: Callable[[bool], Awaitable[None]]) -> None:
+    """Send checked writes; goal positions of the arm's joints, one or several, go through
+    the arm's pass-through gate together (checked like a planned move from where the arm is,
+    on the control thread). `send(gated)`: gated unless every write is a safe one."""
+    if item.name == "goal_position":
+        goals = {_joint_of(svc, i): float(raw) for i, raw in values.items()}
+        await svc.command_passthrough(goals, lambda: send(True))
+        return
+    await send(not all(_safe(item, raw) for raw in values.values()))
 
 
 def _value(svc: ArmService, dxl_id: int, item: mx28.ControlItem, raw: int) -> s.RegisterValue:
@@ -176,7 +195,8 @@ async def write_register(svc: ControlArm, dxl_id: DxlId, name: RegName,
     drv = _driver(svc)
     item = _item(svc, name)
     _check_write(svc, item, dxl_id, req.raw)
-    await drv.write_register(dxl_id, item, req.raw)
+    await _send(svc, item, {dxl_id: req.raw},
+                lambda gated: drv.write_register(dxl_id, item, req.raw, gated=gated))
     return _value(svc, dxl_id, item, req.raw)
 
 
@@ -200,15 +220,18 @@ async def sync_read(svc: ControlArm, req: s.SyncReadRequest) -> s.SyncReadResult
     response_model=s.Ack,
     summary="SYNC_WRITE one item to several ids",
     description="Every value is checked as for a single write before the one instruction is "
-    "sent (all or nothing). " + _NOT_SUPPORTED,
+    "sent (all or nothing); goal positions of the arm's joints are checked together, as one "
+    "command from where the arm is (joint limits, keep-out zones and floor along the path "
+    "each servo takes at its Profile Velocity, raw access too). " + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
 async def sync_write(svc: ControlArm, req: s.SyncWriteRequest) -> s.Ack:
     drv = _driver(svc)
     item = _item(svc, req.name)
-    for dxl_id, raw in req.values.items():
+    values = dict(req.values)
+    for dxl_id, raw in values.items():
         _check_write(svc, item, dxl_id, raw)
-    await drv.sync_write(item, dict(req.values))
+    await _send(svc, item, values, lambda gated: drv.sync_write(item, values, gated=gated))
     return s.Ack(command=f"SYNC_WRITE {item.name}")
 
 

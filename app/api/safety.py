@@ -1,8 +1,9 @@
 """The safety envelope of an arm: keep-out zones, floor and speed override (app/envelope.py).
 
-Any viewer reads it; an instructor changes it. A change is applied at once (to motions planned
-after it) and kept in the store (app/store.py) across restarts; a store that cannot take it
-right now keeps it in memory and retries, and the answer says `persisted: false`.
+Any viewer reads it; an instructor changes it. A change is applied at once, on the control
+thread (one that tightens it is refused while the arm moves), and kept in the store
+(app/store.py) across restarts; a store that cannot take it right now keeps it in memory and
+retries, and the answer says `persisted: false`.
 """
 
 from __future__ import annotations
@@ -77,9 +78,14 @@ async def get_safety(svc: ViewerArm, role: ViewerRole, request: Request) -> s.Sa
     response_model=s.Safety,
     summary="Change the arm's safety envelope (instructor)",
     description="Each field given replaces the current one; omitted fields are kept; "
-    "`floor_z: null` removes the floor. Applies to motions planned after the change and is "
-    "kept across restarts. 422 `keep_out` if the arm is now inside a new zone or below the new "
-    "floor (move it out first: no motion could leave). 403 for an operator or viewer token. "
+    "`floor_z: null` removes the floor. Applies at once and is kept across restarts. A change "
+    "that adds or moves a zone or raises the floor is refused with 409 `busy` while a motion "
+    "runs or is queued or the arm moves (stop it first: the running plan was checked against "
+    "the old envelope); removing a zone, lowering the floor and the speed override apply "
+    "whatever the arm does (the override to motions planned after it). 422 `keep_out` if the "
+    "arm is now inside a new zone or below the new floor, or its pending pass-through path "
+    "enters it (move it out first: no motion could leave). 403 for an operator or viewer "
+    "token. "
     "`persisted: false` when the database cannot take it right now (kept and retried; the "
     "reason is in /api/v1/health).",
     responses=errors(*READ, 403),
@@ -95,10 +101,7 @@ async def put_safety(svc: InstructorArm, req: s.SafetyUpdate, request: Request) 
             else req.speed_override)
     except ValidationError as exc:
         raise InvalidRequest("; ".join(str(e["msg"]) for e in exc.errors())) from None
-    q = svc.driver.positions
-    if q is not None:
-        svc.safety.preview(new).check_pose(q, "where the arm is now (move it out first)")
-    svc.safety.apply(new, "stored")
+    await svc.apply_safety(new)
     store = _store(request)
     if store is not None:
         await store.put_setting(SCOPE.format(svc.name), KEY, new.model_dump(mode="json"))

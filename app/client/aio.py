@@ -245,6 +245,10 @@ class AsyncArmClient:
         """Declare the arm's current pose (the profile's home pose without positions)."""
         return await self.send(Requests.home(arm, positions))
 
+    async def unhome(self, arm: str) -> s.ArmDetail:
+        """Un-home the arm on purpose (before declaring a new home pose)."""
+        return await self.send(Requests.unhome(arm))
+
     # --------------------------------------------------------- lease
 
     async def safety(self, arm: str) -> s.Safety:

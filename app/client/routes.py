@@ -223,6 +223,10 @@ class Requests:
         return Call("POST", url_path("arms", arm, "home"), _model(s.ArmDetail), body, arm=arm)
 
     @staticmethod
+    def unhome(arm: str) -> Call[s.ArmDetail]:
+        return Call("DELETE", url_path("arms", arm, "home"), _model(s.ArmDetail), arm=arm)
+
+    @staticmethod
     def take_lease(arm: str) -> Call[s.Lease]:
         return Call("POST", url_path("arms", arm, "lease"), _model(s.Lease), arm=arm)
 

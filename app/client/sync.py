@@ -190,6 +190,7 @@ class ArmClient:
     dxl_sync_write = blocking(AsyncArmClient.dxl_sync_write)
     dxl_reboot = blocking(AsyncArmClient.dxl_reboot)
     home = blocking(AsyncArmClient.home)
+    unhome = blocking(AsyncArmClient.unhome)
     safety = blocking(AsyncArmClient.safety)
     set_safety = blocking(AsyncArmClient.set_safety)
     take_lease = blocking(AsyncArmClient.take_lease)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import abc
 import asyncio
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -100,6 +101,17 @@ class Driver(OwnerTask, abc.ABC):
         self.torque_tare: np.ndarray | None = None
         #: The loop the owner task runs on (the control thread's); requests cross into it.
         self.home_loop: asyncio.AbstractEventLoop | None = None
+        #: What the device was last told to go to, in encoder ticks per joint (NaN: nothing
+        #: told since the link came up): the one record of the arm's commanded state. Every
+        #: command that moves the arm notes it as it is written (`note_commanded`): planned
+        #: setpoints, the estop's hold and pass-through commands alike. `command_seq` counts
+        #: the notes, so the motion executor can tell whether its own setpoint is still the
+        #: last one the arm was told.
+        self._commanded_ticks: np.ndarray | None = None
+        self.command_seq = 0
+        #: Asked in the owner task just before a gated command (one that moves the arm) is
+        #: written; raises to refuse it (the service sets the estop latch's check here).
+        self.motion_gate: Callable[[], None] | None = None
 
     # ------------------------------------------------------------ public
 
@@ -123,9 +135,12 @@ class Driver(OwnerTask, abc.ABC):
         await self.link.close()
 
     @on_control
-    async def submit(self, message: Any, timeout: float | None = None) -> Any:
+    async def submit(self, message: Any, timeout: float | None = None, *, gated: bool = False,
+                     on_send: Callable[[], None] | None = None) -> Any:
         """Queue `message` for the owner task and await its reply (or its typed error); from
-        any loop (it runs on the owner task's loop)."""
+        any loop (it runs on the owner task's loop). A `gated` message moves the arm: the
+        owner task asks `motion_gate` just before writing it, and calls `on_send` as it is
+        written."""
         if self.link.state is not LinkState.UP:
             raise LinkDown(f"{self.name} link is {self.link.state.value}: "
                            f"{self.link.last_error or 'not connected yet'}")
@@ -133,7 +148,8 @@ class Driver(OwnerTask, abc.ABC):
         # A caller that gave up (cancelled, timed out) no longer reads the error the owner task
         # or close() sets later: mark it read, or asyncio logs "exception never retrieved".
         fut.add_done_callback(retrieve)
-        req = _Request(message, fut, timeout if timeout is not None else self.timeout)
+        req = _Request(message, fut, timeout if timeout is not None else self.timeout,
+                       gated=gated, on_send=on_send)
         try:
             self._queue.put_nowait(req)
         except asyncio.QueueFull:
@@ -160,11 +176,65 @@ class Driver(OwnerTask, abc.ABC):
             return False
         return asyncio.ensure_future(_wait())
 
+    # ------------------------------------------------------------ the commanded state
+
+    def note_commanded(self, ticks: Any, joints: Any = None) -> None:
+        """The device was just told to go to `ticks` (all joints, or those in `joints`)."""
+        cur = self._commanded_ticks
+        if cur is None:
+            cur = np.full(self.model.n, np.nan)
+        else:
+            cur = cur.copy()
+        if joints is None:
+            cur[:] = np.asarray(ticks, dtype=float)
+        else:
+            cur[list(joints)] = np.asarray(ticks, dtype=float)
+        self._commanded_ticks = cur
+        self.command_seq += 1
+
+    def forget_commanded(self, joints: Any = None) -> None:
+        """What the device holds is no longer known from here (a servo set up again holds
+        its present position): those joints count as commanded where they are."""
+        if joints is None or self._commanded_ticks is None:
+            self._commanded_ticks = None
+        else:
+            cur = self._commanded_ticks.copy()
+            cur[list(joints)] = np.nan
+            self._commanded_ticks = cur
+        self.command_seq += 1
+
+    @property
+    def commanded(self) -> np.ndarray | None:
+        """Per joint, where the device was last told to go (rad or m), NaN where nothing was
+        told since the link came up; None before any command."""
+        ticks = self._commanded_ticks
+        if ticks is None:
+            return None
+        return np.asarray(self.model.transmission.from_ticks(ticks), dtype=float)
+
+    def told(self) -> np.ndarray | None:
+        """Where each joint is headed: the last command where there is one, else where the
+        joint is measured; None before any reading."""
+        q = self.positions
+        if q is None:
+            return None
+        cmd = self.commanded
+        if cmd is None:
+            return np.array(q, dtype=float)
+        return np.where(np.isnan(cmd), q, cmd)
+
+    def pace(self) -> np.ndarray | None:
+        """Per joint, the speed (rad/s or m/s) at which the device itself moves to a new
+        position command, where it paces itself (a Dynamixel servo's Profile Velocity); NaN
+        for a joint that goes as fast as it can (a PID step). None: no joint is paced."""
+        return None
+
     # ------------------------------------------------------------ the motion contract
 
     @abc.abstractmethod
-    async def command_joints(self, q: np.ndarray) -> None:
-        """Send one joint setpoint (rad or m, within the limits: the caller checked them)."""
+    async def command_joints(self, q: np.ndarray, *, hold: bool = False) -> None:
+        """Send one joint setpoint (rad or m, within the limits: the caller checked them). A
+        `hold` (the estop's) is not gated by the latch; every other setpoint is."""
 
     @abc.abstractmethod
     async def set_gripper(self, value: float) -> None:
@@ -204,6 +274,7 @@ class Driver(OwnerTask, abc.ABC):
             # the arrays of the (frozen) Transmission are shared by every user of the model
             tr.offset_ticks[k] += (now - q) * float(tr.ticks_per_unit[k])
             self.units_version += 1
+            self.command_seq += 1  # a setpoint in the old units no longer means the same
             self.positions = self.positions.copy()
             self.positions[k] = q
         self.homed[k] = True

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -47,6 +48,10 @@ class _Request:
     future: asyncio.Future[Any]
     timeout: float
     queued_at: float = field(default_factory=time.monotonic)
+    #: A command that moves the arm: `motion_gate` is asked just before it is written (the
+    #: estop latch wins over a command queued before it), and `on_send` notes it as sent.
+    gated: bool = False
+    on_send: Callable[[], None] | None = None
 
 
 class OwnerTask:
@@ -58,6 +63,7 @@ class OwnerTask:
     link: Link
     hub: TelemetryHub
     model: KinematicsModel
+    motion_gate: Callable[[], None] | None
     _queue: asyncio.Queue[_Request]
     _idle: asyncio.Future[None] | None
     _poll_now: bool
@@ -89,6 +95,8 @@ class OwnerTask:
 
         def _reset_reader(self) -> None: ...
 
+        def forget_commanded(self, joints: Any = None) -> None: ...
+
     # ------------------------------------------------------------ owner task
 
     async def _run(self) -> None:
@@ -99,6 +107,7 @@ class OwnerTask:
             try:
                 await self.link.open()
                 self._reset_reader()
+                self.forget_commanded()  # what the device holds now is its own
                 await self._on_connected()
             except LinkError as exc:
                 self._lost(str(exc), was_up)
@@ -220,6 +229,10 @@ class OwnerTask:
             return
         self.stats["requests"] += 1
         try:
+            if req.gated and self.motion_gate is not None:
+                self.motion_gate()  # raises (EstopLatched): nothing is written
+            if req.on_send is not None:
+                req.on_send()
             reply = await self._exchange(req.message, req.timeout)
         except LinkError:
             if not req.future.done():

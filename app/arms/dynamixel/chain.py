@@ -116,6 +116,26 @@ class DynamixelChainDriver(DynamixelBusDriver):
                 if i in self.servo_ids:
                     self.profile_velocity[i] = raw
 
+    def _note_sent(self, item: ControlItem, values: dict[int, int]) -> None:
+        """Goal Position of the arm's joints is the arm's commanded state."""
+        if item.name != "goal_position":
+            return
+        joints = [self.ids.index(i) for i in values if i in self.ids]
+        if joints:
+            self.note_commanded([values[self.ids[k]] for k in joints], joints)
+
+    def pace(self) -> np.ndarray | None:
+        """Each joint's Profile Velocity as set (0.229 rpm units) in joint units: the servo
+        moves to a new goal at that speed at most (e-manual, Profile Velocity (112)). NaN
+        where none is set (0: the servo goes as fast as it can)."""
+        out = np.full(len(self.ids), np.nan)
+        for k, (i, j) in enumerate(zip(self.ids, self.profile.joints, strict=True)):
+            raw = self.profile_velocity.get(i, 0)
+            if raw > 0:
+                per_rev = j.lead_m if j.lead_m else 2 * math.pi
+                out[k] = raw * _RPM_PER_UNIT / 60.0 * per_rev
+        return out
+
     async def reboot(self, dxl_id: int) -> None:
         """One REBOOT (never a factory reset); one of the arm's servos is then set up again as
         at connect and, if its joint needs homing, is no longer homed."""
@@ -123,10 +143,11 @@ class DynamixelChainDriver(DynamixelBusDriver):
 
     # --------------------------------------------------------- motion interface
 
-    async def command_joints(self, q: np.ndarray) -> None:
+    async def command_joints(self, q: np.ndarray, *, hold: bool = False) -> None:
         ticks = self.model.transmission.to_ticks(np.asarray(q, dtype=float))
         await self.sync_write(mx28.TABLE["goal_position"],
-                              {i: int(round(t)) for i, t in zip(self.ids, ticks, strict=True)})
+                              {i: int(round(t)) for i, t in zip(self.ids, ticks, strict=True)},
+                              gated=not hold)
 
     async def settle_state(self) -> SettleState:
         """Torque Enable read now from every servo; Moving / Moving Status from the last poll
@@ -183,6 +204,8 @@ class DynamixelChainDriver(DynamixelBusDriver):
                 self.profile_velocity[i] = pv
                 await self._write(i, t["profile_velocity"], pv)
             await self._write(i, t["goal_position"], await self._read(i, t["present_position"]))
+            if k is not None:
+                self.forget_commanded([k])  # it holds where it is
             await self._write(i, t["torque_enable"], 1)
         except DeviceError as exc:
             if isinstance(exc, CorruptReply):

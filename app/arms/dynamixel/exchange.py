@@ -69,12 +69,17 @@ class DynamixelBusDriver(Driver):
         check_len(p, item.size)
         return dxl.from_bytes(p.params, item.signed)
 
-    async def write_register(self, dxl_id: int, item: ControlItem, raw: int) -> None:
+    async def write_register(self, dxl_id: int, item: ControlItem, raw: int, *,
+                             gated: bool = True) -> None:
+        """WRITE one item; `gated` (all but the safe writes: torque off, the LED) is refused
+        in the owner task while the estop is latched."""
         data = dxl.to_bytes(raw, item.size)
         expect = () if dxl_id == dxl.BROADCAST_ID else (dxl_id,)
+        values = {dxl_id: raw}
         await self.submit(DxlRequest(dxl.write(dxl_id, item.address, data), expect,
-                                     what=f"WRITE {item.name} to {dxl_id}", poll_after=True))
-        self._note_written(item, {dxl_id: raw})
+                                     what=f"WRITE {item.name} to {dxl_id}", poll_after=True),
+                          gated=gated, on_send=lambda: self._note_sent(item, values))
+        self._note_written(item, values)
 
     async def sync_read(self, item: ControlItem, ids: list[int]) -> dict[int, int]:
         packets = await self.submit(DxlRequest(dxl.sync_read(item.address, item.size, ids),
@@ -85,14 +90,21 @@ class DynamixelBusDriver(Driver):
             out[p.id] = dxl.from_bytes(p.params, item.signed)
         return out
 
-    async def sync_write(self, item: ControlItem, values: dict[int, int]) -> None:
+    async def sync_write(self, item: ControlItem, values: dict[int, int], *,
+                         gated: bool = True) -> None:
+        """SYNC_WRITE one item; `gated` as for `write_register` (the estop's hold is not)."""
         data = {i: dxl.to_bytes(v, item.size) for i, v in values.items()}
         await self.submit(DxlRequest(dxl.sync_write(item.address, item.size, data), (),
-                                     what=f"SYNC_WRITE {item.name}"))
+                                     what=f"SYNC_WRITE {item.name}"),
+                          gated=gated, on_send=lambda: self._note_sent(item, values))
         self._note_written(item, values)
 
     def _note_written(self, item: ControlItem, values: dict[int, int]) -> None:  # noqa: B027
         """A pass-through write went out (a hook: the chain driver tracks Profile Velocity)."""
+
+    def _note_sent(self, item: ControlItem, values: dict[int, int]) -> None:  # noqa: B027
+        """A write is being sent, in the owner task (a hook: the chain driver notes the goal
+        positions of its joints as the arm's commanded state)."""
 
     # --------------------------------------------------------- exchanges
 

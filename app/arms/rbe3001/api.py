@@ -44,11 +44,14 @@ def _encodable(cmd: rb.Command) -> None:
     response_model=s.SetPidReply,
     summary="SET_PID (37): joint position setpoints in encoder ticks",
     description="Three setpoints (position ticks; velocity and force are carried but unused by "
-    "the firmware). Refused with 422 `joint_limit` outside the joint limits and 422 "
-    "`velocity_limit` with "
-    "a velocity_ticks_s above the joint velocity limits, unless the profile allows raw access, "
-    "and 409 `estop_latched` while the estop is latched. Answers the "
-    "positions the firmware reported. " + _NOT_SUPPORTED,
+    "the firmware). Checked like a planned move, from where the arm is: 422 `joint_limit` "
+    "outside the joint limits (unless the profile allows raw access), 422 `velocity_limit` for "
+    "a step the firmware's PID would take faster than the joint's velocity limit (more than "
+    "0.03 s of motion at the limit from the measured position; send a planned move or "
+    "smaller steps), 422 `keep_out` for a path into a keep-out zone or below the floor (raw "
+    "access too), 409 `busy` while a planned motion runs or is queued, 409 `estop_latched` "
+    "while the estop is latched. Answers the positions the firmware reported. "
+    + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
 async def set_pid(svc: ControlArm, req: s.SetPid) -> s.SetPidReply:
@@ -56,9 +59,9 @@ async def set_pid(svc: ControlArm, req: s.SetPid) -> s.SetPidReply:
     setpoints = [(j.position_ticks, j.velocity_ticks_s, j.force) for j in req.joints]
     joints = tuple(rb.JointSetpoint(*sp) for sp in setpoints)
     _encodable(rb.SetPid(joints))  # type: ignore[arg-type]  # 3 joints: the schema's length
-    svc.check_passthrough_ticks(np.array([sp[0] for sp in setpoints], dtype=float),
-                                velocities=np.array([sp[1] for sp in setpoints], dtype=float))
-    reply = await drv.set_pid(setpoints)
+    svc.guard.check_passthrough_velocity_ticks(np.array([sp[1] for sp in setpoints]))
+    goals = {k: float(sp[0]) for k, sp in enumerate(setpoints)}
+    reply = await svc.command_passthrough(goals, lambda: drv.set_pid(setpoints))
     return s.SetPidReply(position_ticks=[float(x) for x in reply.position_ticks])
 
 

@@ -72,24 +72,29 @@ class Rbe3001Driver(Driver):
         reply: rb.StatusReply = await self.submit(rb.Status())
         return reply
 
-    async def set_pid(self, setpoints: list[tuple[float, float, float]]) -> rb.SetPidReply:
+    async def set_pid(self, setpoints: list[tuple[float, float, float]], *,
+                      hold: bool = False) -> rb.SetPidReply:
+        """SET_PID: the positions are the arm's commanded state from the moment it is written
+        (`note_commanded`); refused there while the estop is latched, unless it is the hold."""
         sps = tuple(rb.JointSetpoint(p, v, f) for p, v, f in setpoints)
         cmd = rb.SetPid(sps)  # type: ignore[arg-type]  # three: one per joint, from the caller
-        reply: rb.SetPidReply = await self.submit(cmd)
+        ticks = [p for p, _v, _f in setpoints]
+        reply: rb.SetPidReply = await self.submit(
+            cmd, gated=not hold, on_send=lambda: self.note_commanded(ticks))
         return reply
 
     async def set_gain(self, axis: int, kp: float, ki: float, kd: float) -> None:
-        await self.submit(rb.SetGain(axis, kp, ki, kd))
+        await self.submit(rb.SetGain(axis, kp, ki, kd), gated=True)
 
     async def set_claw(self, value: float) -> None:
-        await self.submit(rb.SetClaw(value))
+        await self.submit(rb.SetClaw(value), gated=True)
         self.gripper = float(value)
 
     # --------------------------------------------------------- motion interface
 
-    async def command_joints(self, q: np.ndarray) -> None:
+    async def command_joints(self, q: np.ndarray, *, hold: bool = False) -> None:
         ticks = self.model.transmission.to_ticks(np.asarray(q, dtype=float))
-        await self.set_pid([(float(t), 0.0, 0.0) for t in ticks])
+        await self.set_pid([(float(t), 0.0, 0.0) for t in ticks], hold=hold)
 
     async def set_gripper(self, value: float) -> None:
         await self.set_claw(value)
