@@ -101,3 +101,20 @@ async def held_still(positions: Callable[[], Any], tol: float, window: float = 0
             if np.all(np.abs(last - q0) <= tol):
                 return last
     raise AssertionError(f"never held still within {tol} over {window} s: {last}")
+
+
+async def fresh_state(client: Any, arm: str, n: int = 3, api: str = "/api/v1") -> dict[str, Any]:
+    """GET .../arms/{arm}/state (over an httpx AsyncClient) until its sample is `n` polls newer
+    than the latest at the call: a sample taken after whatever the caller did before."""
+    async def get() -> dict[str, Any]:
+        r = await client.get(f"{api}/arms/{arm}/state")
+        assert r.status_code == 200, r.text
+        return dict(r.json())
+
+    seq0 = (await get())["seq"]
+
+    async def newer() -> dict[str, Any] | None:
+        sample = await get()
+        return sample if sample["seq"] >= seq0 + n else None
+
+    return dict(await wait_for(newer, what=f"a new sample of {arm}"))

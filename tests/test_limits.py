@@ -10,10 +10,10 @@ import asyncio
 import contextlib
 import json
 import socket
-import time
 
 import httpx
 import pytest
+from _wait import wait_until
 from conftest import make_settings, serve_live
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
@@ -74,7 +74,8 @@ def test_connections_over_the_limit_get_503() -> None:
         port = int(live.url.rsplit(":", 1)[1])
         idle = [socket.create_connection(("127.0.0.1", port)) for _ in range(8)]
         try:
-            time.sleep(0.3)
+            wait_until(lambda: len(live.server.server_state.connections) >= 8,
+                       what="the server holding the 8 idle connections")
             r = httpx.get(live.url + "/api/v1/health", timeout=10)
             assert r.status_code == 503
             # the API's error body, not uvicorn's plain text, and when to come back
@@ -85,11 +86,9 @@ def test_connections_over_the_limit_get_503() -> None:
         finally:
             for s in idle:
                 s.close()
-        deadline = time.monotonic() + 5
-        while time.monotonic() < deadline:  # the server notices the closed sockets
-            if httpx.get(live.url + "/api/v1/health", timeout=10).status_code == 200:
-                break
-            time.sleep(0.05)
+        # the server notices the closed sockets
+        wait_until(lambda: httpx.get(live.url + "/api/v1/health", timeout=10).status_code == 200,
+                   what="the server taking requests again", every=0.05)
         assert httpx.get(live.url + "/api/v1/health", timeout=10).status_code == 200
 
 

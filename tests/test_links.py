@@ -212,6 +212,8 @@ async def test_sim_disconnect_after_and_reconnect() -> None:
         await link.write(b"x" * 64)
     with pytest.raises(LinkError, match="simulated disconnect"):
         await link.open()  # the cable is still out
+    # under test: the 0.3 s the cable stays out (on the loop's clock: a busy machine can only
+    # make the wait longer)
     await asyncio.sleep(0.35)
     link.set_faults(FaultConfig())
     await link.open()
@@ -228,7 +230,7 @@ async def test_sim_forced_disconnect() -> None:
         await link.write(encode_command(Status()))
     with pytest.raises(LinkError):
         await link.open()
-    await asyncio.sleep(0.25)
+    await asyncio.sleep(0.25)  # under test: past the 0.2 s the cable stays out (loop clock)
     await link.open()
     await link.write(encode_command(Status()))
     assert len(await link.read(1.0)) == 64

@@ -13,6 +13,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from _wait import fresh_state
 from fastapi import FastAPI
 
 from app.schemas import Motion, Sample
@@ -34,10 +35,8 @@ async def three() -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
 
 
 async def _state(client: httpx.AsyncClient, arm: str = "omx") -> Sample:
-    await asyncio.sleep(0.05)  # a sample taken after the motion ended
-    r = await client.get(f"{API}/arms/{arm}/state")
-    assert r.status_code == 200, r.text
-    return Sample.model_validate(r.json())
+    """A sample taken after the call (after the motion the caller waited for ended)."""
+    return Sample.model_validate(await fresh_state(client, arm))
 
 
 async def test_three_arm_types_serve_side_by_side(
