@@ -42,10 +42,11 @@ MAX_SETPOINT_FAILURES = 3
 MAX_STEP_S = 0.03
 #: A tick later than this, s, is reported (log and a `motion_held_up` event).
 HELD_UP_S = 0.1
-#: A hold keeps a joint's last command when the joint is at rest (its speed under AT_REST of
-#: its velocity limit) within HOLD_NEAR_S of motion at its limit of it; else the hold is where
-#: the joint is measured (`hold_point`).
+#: A hold keeps a joint's last command when the joint is within HOLD_NEAR_S of motion at its
+#: velocity limit of it; else the hold is where the joint is measured (`hold_point`).
 HOLD_NEAR_S = 0.03
+#: A joint whose measured speed is over AT_REST of its velocity limit is moving (a tightened
+#: envelope waits for the arm to stop: app/service.py `apply_safety`).
 AT_REST = 0.05
 
 
@@ -317,12 +318,14 @@ class MotionStream:
             self._cmd = None
 
     def hold_point(self) -> np.ndarray | None:
-        """Where the arm is: its measured position, except a joint at rest within one step
+        """Where the arm is: its measured position, except a joint within one step
         (HOLD_NEAR_S of motion at its velocity limit, or the settle tolerance) of its last
         command, which holds at that command (a joint sagging under gravity is not walked
-        down a little further at each hold). Never an older setpoint: the arm does not move
-        to hold. Not clipped to the joint limits (an arm outside them, with raw access, holds
-        where it is). None before any reading."""
+        down a little further at each hold; one step is what the executor and the guard let
+        a setpoint move anyway). Never an older setpoint: the arm does not move to hold. Not
+        clipped to the joint limits (an arm outside them, with raw access, holds where it
+        is). None before any reading. (Not the velocity reading: the rbe3001 firmware's is
+        a windowed difference that lags the position by up to a window.)"""
         q = self.device.positions
         if q is None:
             return None
@@ -330,13 +333,9 @@ class MotionStream:
         cmd = self.device.commanded
         if cmd is None:
             return q
-        qd = self.device.velocities
         m = self.model
         near = np.abs(cmd - q) <= np.maximum(m.vmax * HOLD_NEAR_S, self.tolerance())
-        still = (np.ones(m.n, dtype=bool) if qd is None
-                 else np.abs(np.asarray(qd, dtype=float)) <= m.vmax * AT_REST)
-        use = np.isfinite(cmd) & near & still
-        return np.where(use, cmd, q)
+        return np.where(np.isfinite(cmd) & near, cmd, q)
 
     def _within_limits(self, q: np.ndarray) -> np.ndarray:
         """Every position the executor commands (setpoint, brake, hold) is clipped to the joint
