@@ -84,7 +84,7 @@ async def test_client_may_change_its_rate(live_server: LiveServer) -> None:
     async with connect(url) as ws:
         await ws.recv()
         await ws.send(json.dumps({"rate": 50}))
-        await ws.send("ignored: not JSON")
+        await ws.send(json.dumps({"hello": "ignored: an object without a rate"}))
         tele, _ = await _collect(ws, 1.0)
     assert len(tele) >= 25  # 2 Hz would give at most 2
 

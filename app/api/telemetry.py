@@ -6,9 +6,13 @@ message batching every sample since the last, and events as they come (checked e
 link task never waits for a socket; only this client's sender awaits its own socket. A client
 too slow to keep up loses the oldest samples and is told how many in `dropped`.
 
-Close codes: 4401 bad or missing token, 4404 unknown arm, 1008 a `rate` that is not a number,
-1009 a client message over `max_ws_message_bytes`. A client may send `{"rate": HZ}` to change
-its rate; anything else it sends is ignored.
+Close codes: 4401 bad or missing token, 4404 unknown arm, 1008 a `rate` that is not a finite
+number (in the query or a message) or a malformed message, 1003 a binary message, 1009 a client
+message over `max_ws_message_bytes`. A client may send `{"rate": HZ}` (a JSON object) to change
+its rate; a well-formed JSON object without `rate` is ignored. Everything a client sends is
+parsed within bounds (`parse_message`): the message's size, its JSON nesting, and numbers a
+float can hold, so that nothing it sends raises out of the socket; a close reason is cut to the
+protocol's 123 bytes.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import contextlib
 import json
 import logging
 import math
+import sys
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
@@ -38,6 +43,7 @@ EVENT_SLICE_S = 0.05
 #: a sample is there; slower ones batch on a shared clock and share messages.
 PROMPT_PERIOD_S = 0.01
 
+CLOSE_UNSUPPORTED = 1003
 CLOSE_UNAUTHORIZED = 4401
 CLOSE_UNKNOWN_ARM = 4404
 CLOSE_POLICY = 1008
@@ -46,22 +52,125 @@ CLOSE_TOO_BIG = 1009
 CLOSE_BUSY = 1013
 
 
-class BadRate(ValueError):
+#: Deepest JSON nesting a client message may have (`{"rate": HZ}` has 1). Deeper ones are
+#: refused before they are parsed (the parser recurses: a 4 KiB `[[[...]]]` hits Python's limit).
+MAX_MESSAGE_DEPTH = 8
+#: Longest close reason, bytes (RFC 6455 5.5: a control frame's 125, less the 2-byte code);
+#: a longer one makes the server's protocol library raise and drop the socket with no code.
+MAX_REASON_BYTES = 123
+#: Most digits of an integer a float can hold (1.8e308).
+FLOAT_DIGITS = 309
+#: Longest shown excerpt of a client's value in a close reason, characters.
+SHOWN_CHARS = 24
+
+
+class BadMessage(ValueError):
+    """A client's message (or query) the socket refuses; the text is the close reason."""
+
+
+class BadRate(BadMessage):
     pass
 
 
+def _shown(value: object) -> str:
+    """A short excerpt of a client's value for a close reason (never a 400-digit number)."""
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 64:
+        return f"an integer of about {int(value.bit_length() * 0.30103) + 1} digits"
+    text = repr(value) if isinstance(value, (str, int, float)) else type(value).__name__
+    return text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS - 3] + "..."
+
+
+def close_reason(text: str) -> str:
+    """`text` cut to the MAX_REASON_BYTES a close frame may carry (whole UTF-8 characters)."""
+    return text.encode()[:MAX_REASON_BYTES].decode(errors="ignore")
+
+
 def parse_rate(value: object, default: float) -> float:
-    """A rate in Hz clamped to MIN..MAX; `default` for None; BadRate for a non-number."""
+    """A rate in Hz clamped to MIN..MAX; `default` for None; BadRate for anything that is not a
+    finite number (a bool, a number a float cannot hold, NaN, infinity)."""
     if value is None or value == "":
-        rate = default
-    else:
-        try:
-            rate = float(value)  # type: ignore[arg-type]  # any object: float() refuses below
-        except (TypeError, ValueError):
-            raise BadRate(f"rate must be a number of Hz, got {value!r}") from None
-        if not math.isfinite(rate):
-            raise BadRate(f"rate must be finite, got {value!r}")
+        return min(MAX_RATE_HZ, max(MIN_RATE_HZ, default))
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise BadRate(f"rate must be a number of Hz, got {_shown(value)}")
+    try:
+        rate = float(value)
+    except OverflowError:  # an int beyond a float's range (float() of a str gives inf instead)
+        raise BadRate(f"rate out of range: {_shown(value)}") from None
+    except ValueError:
+        raise BadRate(f"rate must be a number of Hz, got {_shown(value)}") from None
+    if not math.isfinite(rate):
+        raise BadRate(f"rate must be finite, got {_shown(value)}")
     return min(MAX_RATE_HZ, max(MIN_RATE_HZ, rate))
+
+
+def _too_deep(text: str) -> bool:
+    """Whether `text`'s brackets (outside strings) nest deeper than MAX_MESSAGE_DEPTH."""
+    if text.count("[") + text.count("{") <= MAX_MESSAGE_DEPTH:
+        return False
+    depth = 0
+    in_string = escaped = False
+    for ch in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == '"':
+                in_string = False
+        elif ch == '"':
+            in_string = True
+        elif ch in "[{":
+            depth += 1
+            if depth > MAX_MESSAGE_DEPTH:
+                return True
+        elif ch in "]}":
+            depth -= 1
+    return False
+
+
+def _no_constant(name: str) -> float:
+    raise BadMessage(f"{name} is not a number (JSON has no NaN or Infinity)")
+
+
+def _json_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):  # 1e400: beyond a float
+        raise BadMessage(f"number out of range: {_shown(text)}")
+    return value
+
+
+def _json_int(text: str) -> int:
+    digits = len(text.lstrip("-"))
+    if digits > FLOAT_DIGITS:  # 1 followed by 400 zeros: no float holds it (not even parsed)
+        raise BadMessage(f"number out of range: an integer of {digits} digits")
+    value = int(text)
+    if abs(value) > sys.float_info.max:
+        raise BadMessage(f"number out of range: an integer of {digits} digits")
+    return value
+
+
+def parse_message(text: str, current: float) -> float | None:
+    """The rate a client's text message asks for (clamped as in the query), or None for a
+    well-formed JSON object that asks for nothing this server knows. BadMessage (the close
+    reason) for anything else: not JSON, not an object, nested deeper than MAX_MESSAGE_DEPTH,
+    NaN or Infinity, a number (anywhere in it) that no float holds, or a `rate` that is not a
+    finite number."""
+    if _too_deep(text):
+        raise BadMessage(f"message nested deeper than {MAX_MESSAGE_DEPTH} levels")
+    try:
+        body = json.loads(text, parse_constant=_no_constant, parse_float=_json_float,
+                          parse_int=_json_int)
+    except BadMessage:
+        raise
+    except RecursionError:  # not reached after _too_deep; kept so no parse can escape
+        raise BadMessage(f"message nested deeper than {MAX_MESSAGE_DEPTH} levels") from None
+    except ValueError:
+        raise BadMessage('message is not JSON: send {"rate": HZ}') from None
+    if not isinstance(body, dict):
+        raise BadMessage('message must be a JSON object: send {"rate": HZ}')
+    if "rate" not in body:
+        return None
+    return parse_rate(body["rate"], current)
 
 
 @router.websocket("/arms/{arm}/telemetry", name="telemetry")
@@ -76,12 +185,12 @@ async def telemetry(ws: WebSocket, arm: str) -> None:
         return
     svc: ArmService | None = state.services.get(arm)
     if svc is None:
-        await ws.close(CLOSE_UNKNOWN_ARM, f"unknown arm {arm[:64]!r}")
+        await ws.close(CLOSE_UNKNOWN_ARM, close_reason(f"unknown arm {arm[:64]!r}"))
         return
     try:
         rate = parse_rate(ws.query_params.get("rate"), svc.profile.link.poll_hz)
     except BadRate as exc:
-        await ws.close(CLOSE_POLICY, str(exc))
+        await ws.close(CLOSE_POLICY, close_reason(str(exc)))
         return
     busy = subscribers_over_limit(state, svc)
     if busy is not None:
@@ -225,12 +334,18 @@ class _Stream:
                 await self.ws.close(CLOSE_TOO_BIG, f"message over {self.max_message} bytes")
                 return
             if data is None:
-                continue
+                await self.ws.close(CLOSE_UNSUPPORTED, close_reason(json.dumps(
+                    {"code": "invalid_request",
+                     "detail": 'binary message: send JSON text, {"rate": HZ}'},
+                    separators=(",", ":"))))
+                return
             try:
-                body = json.loads(data)
-                if isinstance(body, dict) and "rate" in body:
-                    self.period = 1.0 / parse_rate(body["rate"], 1.0 / self.period)
-                    self._rate_changed = True
-                    self._changed.set()
-            except (ValueError, BadRate):
-                continue  # the contract lets the server ignore what clients send
+                rate = parse_message(data, 1.0 / self.period)
+            except BadMessage as exc:
+                log.debug("%s: telemetry client refused: %s", self.svc.name, exc)
+                await self.ws.close(CLOSE_POLICY, close_reason(str(exc)))
+                return
+            if rate is not None:
+                self.period = 1.0 / rate
+                self._rate_changed = True
+                self._changed.set()
