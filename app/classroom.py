@@ -13,9 +13,21 @@ The control lease (app/lease.py) stays the mechanism; the queue drives it:
   an instructor's DELETE /lease tries the hand-off again.
 
 While people wait, or a hand-off runs, a plain POST /lease answers 409 `leased`: the queue is
-the way in. The waiting entries of every arm are kept in the store and come back after a
-restart (an entry offered or holding at the time comes back at the head, waiting: its lease
-died with the process).
+the way in.
+
+A plain lease (taken while nobody waited) has no slot while nobody waits. Once someone waits, it
+ends at most one slot after the moment the queue went from nobody waiting to someone waiting,
+renewed or not (`LeaseManager.contest`); then the arm is handed off to the head of the queue as
+between two queue slots. If nobody waits any more before then (they left, or an instructor
+cleared the queue), the slot is lifted; a later join starts a new one. Why this rule: nobody
+waits longer for a plain holder than for a queue holder whose slot has just begun (one slot);
+the time the holder had while nobody waited cost nobody, so it is not charged; and a holder is
+never cut off the moment someone joins, with no notice (counting the slot from when the lease
+was taken would end a lease held longer than a slot at once).
+
+The waiting entries of every arm are kept in the store and come back after a restart (an entry
+offered or holding at the time comes back at the head, waiting: its lease died with the
+process).
 """
 
 from __future__ import annotations
@@ -370,7 +382,18 @@ class Classroom:
                             started=e.started, slot_end=e.slot_end, ended=e.ended,
                             reason=e.reason)
 
+    def _slot_for_plain_lease(self, q: ArmQueue) -> None:
+        """A lease outside the queue gets a slot once someone waits, and loses it when nobody
+        does (the rule is in the module's docstring)."""
+        if q.current() is not None:
+            return  # the arm's lease is the queue's own: its slot is its claim's
+        if q.waiting():
+            self._leases.contest(q.arm, self.slot_s)
+        else:
+            self._leases.uncontest(q.arm)
+
     def _changed(self, q: ArmQueue, persist: bool = True) -> None:
+        self._slot_for_plain_lease(q)
         svc = self._services.get(q.arm)
         if svc is not None:
             svc.hub.event("queue", entries=[{"id": e.id, "who": e.name, "status": e.status}

@@ -6,6 +6,11 @@ is held on an arm, requests that move it or send protocol commands without that 
 within its ttl lapses: the arm is brought to a controlled stop (`ArmService.stop`), a
 `lease_expired` event goes to telemetry subscribers, and the lease is gone.
 
+A lease taken while nobody queued for the arm (a plain lease) has no slot until someone waits:
+then the classroom queue gives it one (`contest`), ending `slot_s` after that moment, renewed or
+not, and lifts it (`uncontest`) if nobody waits any more before it ends (app/classroom.py has
+the rule and why).
+
 A lapsed lease is expired by whichever comes first: the watcher task (which wakes at the
 earliest expiry) or the next request that looks at it, so a request can never slip a motion in
 between the expiry and its stop.
@@ -42,6 +47,8 @@ class _Lease:
     offered: bool = False
     #: The slot's length: it starts when the lease is taken, or claimed if it was offered.
     slot_s: float | None = None
+    #: A plain lease (taken outside the queue) whose `slot_end` was set because people wait.
+    contested: bool = False
 
     def expired(self, now: float) -> bool:
         return now >= self.deadline
@@ -147,6 +154,32 @@ class LeaseManager:
             return None
         return max(0.0, lease.slot_end - time.monotonic())
 
+    def contest(self, arm: str, slot_s: float) -> bool:
+        """People wait for `arm`: its plain lease (taken outside the queue, with no slot) ends
+        `slot_s` from now, renewed or not. A lease that has a slot already (the queue's, or a
+        plain one contested before) keeps it. True if a slot was set now."""
+        lease = self._leases.get(arm)
+        if lease is None or lease.offered or lease.slot_s is not None or lease.contested:
+            return False
+        lease.slot_end = time.monotonic() + slot_s
+        lease.deadline = min(lease.deadline, lease.slot_end)
+        lease.contested = True
+        self._changed.set()
+        log.info("%s: people wait: the lease outside the queue ends in %.1f s", arm, slot_s)
+        return True
+
+    def uncontest(self, arm: str) -> bool:
+        """Nobody waits for `arm` any more: a plain lease's slot from `contest` is lifted (its
+        next renewal gives it the full ttl again). True if a slot was lifted."""
+        lease = self._leases.get(arm)
+        if lease is None or not lease.contested:
+            return False
+        lease.slot_end = None
+        lease.contested = False
+        self._changed.set()
+        log.info("%s: nobody waits: the lease outside the queue has no slot again", arm)
+        return True
+
     def offered(self, arm: str) -> bool:
         lease = self._leases.get(arm)
         return lease is not None and lease.offered
@@ -188,17 +221,20 @@ class LeaseManager:
             why = "slot_over" if at_end else "lapsed"
         del self._leases[lease.arm]
         svc = self._services.get(lease.arm)
-        log.warning("%s: lease lapsed (not renewed within %.1f s): stopping the arm",
-                    lease.arm, lease.ttl)
+        if why == "slot_over":
+            what = f"the lease on {lease.arm} reached the end of its slot"
+        elif why == "revoked":
+            what = f"the lease on {lease.arm} was revoked"
+        else:
+            what = f"the lease on {lease.arm} lapsed (not renewed within {lease.ttl:g} s)"
+        log.warning("%s: stopping the arm", what)
         stopped: list[str] = []
         if svc is not None:
             try:
-                stopped = (await svc.stop(
-                    f"stopped: the lease on {lease.arm} lapsed (not renewed within "
-                    f"{lease.ttl:g} s)")).stopped
+                stopped = (await svc.stop(f"stopped: {what}")).stopped
             except ArmError as exc:  # stop failed on the device: still report the lapse
                 log.warning("%s: stop after lease lapse failed: %s", lease.arm, exc.detail)
-            svc.hub.event("lease_expired", lease=lease.id, stopped=stopped)
+            svc.hub.event("lease_expired", lease=lease.id, stopped=stopped, reason=why)
         self._notify(why, lease.arm, lease.id)
 
     async def _watch(self) -> None:
