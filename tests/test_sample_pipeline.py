@@ -11,6 +11,7 @@ from collections import deque
 
 import numpy as np
 import pytest
+from _wait import wait_for
 
 from app.arms.rbe3001.driver import Rbe3001Driver
 from app.config import load_profile
@@ -144,8 +145,8 @@ async def _polls_without_tasks(driver: Rbe3001Driver) -> None:
     counter = _TaskCounter()
     published0 = driver.hub.published
     loop.set_task_factory(counter)
-    try:
-        await asyncio.sleep(0.3)
+    try:  # (wait_for creates no task: it polls with asyncio.sleep)
+        await wait_for(lambda: driver.hub.published - published0 >= 10, what="10 polls")
     finally:
         loop.set_task_factory(None)
     assert driver.hub.published - published0 >= 10  # answered polls, each a sample
@@ -180,7 +181,7 @@ async def test_a_request_wakes_the_idle_owner_loop_before_its_next_poll() -> Non
     await driver.start()
     try:
         assert await driver.wait_connected(10.0)
-        await asyncio.sleep(0.05)
+        await wait_for(lambda: driver.hub.published >= 1, what="the first poll done")  # idle now
         polls = driver.stats["polls"]
         reply = await driver.status()  # served at once, not after the next poll
         assert isinstance(reply, rb.StatusReply) and driver.stats["polls"] == polls
@@ -360,7 +361,7 @@ async def test_an_estop_latch_shows_at_once_in_a_sample_of_the_latest_reading() 
     await svc.start()
     try:
         assert await svc.driver.wait_connected(10.0)
-        await asyncio.sleep(0.2)  # the first reading is out
+        await wait_for(lambda: svc.hub.published >= 1, what="the first reading out")
         seen: list[tuple[dict[str, object], int]] = []
         svc.hub.add_listener(lambda s: seen.append((dict(s), svc.driver.stats["polls"])))
         last = json.loads(svc.hub.latest_bytes)
@@ -378,7 +379,7 @@ async def test_an_estop_latch_shows_at_once_in_a_sample_of_the_latest_reading() 
         assert all(s["estop"] is True for s, _ in seen)
         await svc.latch_estop()  # a press on a latched estop publishes nothing more
         n = len(seen)
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(0.05)  # under test: nothing is published for 50 ms
         assert len(seen) == n
     finally:
         await svc.close()
@@ -398,7 +399,7 @@ async def test_a_pass_through_write_is_followed_by_a_poll() -> None:
     await driver.start()
     try:
         assert await driver.wait_connected(10.0)
-        await asyncio.sleep(0.2)  # the first sample is out
+        await wait_for(lambda: hub.published >= 1, what="the first sample out")
         sub = hub.subscribe()
         published = hub.published
         await driver.write_register(1, mx28.TABLE["led"], 1)  # type: ignore[attr-defined]

@@ -11,6 +11,7 @@ import json
 
 import numpy as np
 import pytest
+from _wait import held_still, new_samples
 
 from app import schemas as s
 from app.config import homed_at_start, load_profile
@@ -29,7 +30,7 @@ async def _measured_peak(svc: ArmService, start: list[float], target: list[float
     rec = await svc.motion.move_joints(s.MoveJoints(positions=start))
     await rec.wait()
     assert rec.status == "done", rec.reason
-    await asyncio.sleep(0.3)
+    await held_still(lambda: svc.driver.positions, 2e-4, window=0.1)  # at rest at the start
     sub = svc.hub.subscribe()
     rec = await svc.motion.move_joints(s.MoveJoints(positions=target))
     samples: list[str] = []
@@ -39,7 +40,8 @@ async def _measured_peak(svc: ArmService, start: list[float], target: list[float
         more, _, lost = sub.take()
         samples += more
         dropped += lost
-    await asyncio.sleep(0.2)  # any overshoot after the plan ends is measured too
+    # any overshoot after the plan ends is measured too: 0.2 s of samples
+    await new_samples(svc.hub, max(20, int(0.2 * svc.profile.link.poll_hz)))
     more, _, lost = sub.take()
     sub.close()
     samples += more

@@ -13,6 +13,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+from _wait import wait_for
 from conftest import running_client
 from fastapi import FastAPI
 
@@ -22,7 +23,11 @@ from app.links.sim import SimLink
 API = "/api/v1"
 #: Shortest move to cut in the middle, s (the far targets take longer at full speed).
 MOVE_S = 1.2
-#: When the fault is injected after the move starts, s.
+#: How far into the move the fault is injected (its progress, 0..1): under way, well short of
+#: the end. Waited for, not timed: a busy machine starts a move late.
+FAULT_AT = 0.1
+#: The fault must be noticed within MOVE_S - FAULT_AT_S, s: well before the shortest move,
+#: faulted at FAULT_AT of its way, would have ended.
 FAULT_AT_S = 0.4
 
 
@@ -38,6 +43,14 @@ async def _motion(client: httpx.AsyncClient, arm: str, mid: str) -> dict[str, An
     r = await client.get(f"{API}/arms/{arm}/motions/{mid}")
     assert r.status_code == 200, r.text
     return r.json()  # type: ignore[no-any-return]
+
+
+async def _under_way(client: httpx.AsyncClient, arm: str, mid: str) -> None:
+    async def moving() -> bool:
+        m = await _motion(client, arm, mid)
+        return m["status"] == "running" and m["progress"] >= FAULT_AT
+
+    await wait_for(moving, what=f"motion {mid} under way")
 
 
 async def _wait_ended(client: httpx.AsyncClient, arm: str, mid: str,
@@ -105,7 +118,7 @@ async def test_device_silent_mid_move_fails_with_device_timeout_and_holds(arm: s
             target = _far_target(svc)
             start = svc.driver.positions.copy()
             mid = await _start_move(client, arm, target)
-            await asyncio.sleep(FAULT_AT_S)
+            await _under_way(client, arm, mid)
             assert (await _motion(client, arm, mid))["status"] == "running"
             link.set_faults(FaultConfig(drop=1.0))  # the device hears us, never answers
             t_fault = time.monotonic()
@@ -124,7 +137,7 @@ async def test_device_silent_mid_move_fails_with_device_timeout_and_holds(arm: s
 
             link.set_faults(FaultConfig())  # the device answers again
             held = await _steady(svc)
-            await asyncio.sleep(0.5)
+            await asyncio.sleep(0.5)  # under test: it holds there for 0.5 s
             assert np.all(np.abs(svc.driver.positions - held) < _tol(svc)), "arm moved on"
             # it held near where it was, not at the target it was heading for
             assert np.max(np.abs(held - np.array(target)) / (svc.model.upper - svc.model.lower)
@@ -149,7 +162,7 @@ async def test_link_lost_mid_move_fails_with_link_down(arm: str) -> None:
         sub = svc.hub.subscribe()
         try:
             mid = await _start_move(client, arm, _far_target(svc))
-            await asyncio.sleep(FAULT_AT_S)
+            await _under_way(client, arm, mid)
             link.set_faults(FaultConfig(reconnect_after_s=0.5))
             link.disconnect()
             m = await _wait_ended(client, arm, mid)
@@ -172,7 +185,7 @@ async def test_corrupt_replies_mid_move_fail_with_the_devices_code() -> None:
         svc = app.state.services["rbe3001"]
         link: SimLink = svc.driver.link
         mid = await _start_move(client, "rbe3001", _far_target(svc))
-        await asyncio.sleep(FAULT_AT_S)
+        await _under_way(client, "rbe3001", mid)
         link.set_faults(FaultConfig(corrupt=1.0))
         m = await _wait_ended(client, "rbe3001", mid)
         link.set_faults(FaultConfig())
