@@ -54,7 +54,7 @@ def test_join_take_turn_renew_and_instructor_revoke(browser: Any) -> None:  # no
             wait_for(lambda: pg.is_visible("#angler-queue-claim"), 10, "the offer shown")
             pg.click("#angler-queue-claim")
             wait_for(lambda: classroom(pg, "angler").get("lease"), 10, "the lease claimed")
-            time.sleep(5.0)  # more than three ttls: only the page's renewals keep it
+            time.sleep(5.0)  # under test: more than three ttls, only the page's renewals keep it
             q = queue()
             assert q["holder"] == "alice" and q["entries"][0]["status"] == "holding"
             wait_for(lambda: "held by alice" in pg.inner_text("#angler-holder"), 5, "holder")
