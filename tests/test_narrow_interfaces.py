@@ -6,13 +6,13 @@ motion fields from the arm's hub, in the wire order of the Sample schema."""
 from __future__ import annotations
 
 import ast
-import asyncio
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _wait import new_samples, wait_for
 
 from app import schemas as s
 from app.arm_hub import ArmHub
@@ -124,22 +124,15 @@ async def test_the_arm_hub_stamps_estop_and_motion_in_wire_order() -> None:
     try:
         assert await svc.driver.wait_connected(5.0)
         await svc.latch_estop()
-        seq = svc.hub.published
-        for _ in range(200):
-            if svc.hub.published > seq + 1:
-                break
-            await asyncio.sleep(0.01)
+        await new_samples(svc.hub, 2)
         latest = svc.hub.latest
         assert latest is not None and latest["estop"] is True
         assert list(latest) == SAMPLE_KEYS
         assert s.Sample.model_validate(latest).estop is True
         svc.release_estop()
         rec = await svc.motion.move_joints(s.MoveJoints(positions=[0.05, 0.3, 0.2]))
-        for _ in range(500):
-            latest = svc.hub.latest
-            if latest is not None and latest["motion"] is not None:
-                break
-            await asyncio.sleep(0.01)
+        latest = await wait_for(lambda: (x := svc.hub.latest) is not None
+                                and x["motion"] is not None and x, what="a sample with the motion")
         assert latest is not None and latest["estop"] is False
         assert latest["motion"]["id"] == rec.id
         assert svc.hub.latest_bytes is not None and b'"estop":false' in svc.hub.latest_bytes
