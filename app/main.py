@@ -69,7 +69,7 @@ def create_app(settings: Settings | None = None,
         leases = LeaseManager(services, settings.lease_ttl_s)
         app.state.services = services
         app.state.leases = leases
-        store = Store(settings.data_dir)
+        store = Store(settings.data_dir, audit_max_rows=settings.audit_max_rows)
         app.state.store = store
         # The arms run on the control thread's loop (app.control); HTTP stays on this one.
         control = ControlThread() if settings.control_thread else None

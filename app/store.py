@@ -1,16 +1,26 @@
-"""A small embedded SQLite store under ARMSERVER_DATA_DIR: settings that survive a restart.
+"""A small embedded SQLite store under ARMSERVER_DATA_DIR: settings and the audit log, across
+restarts.
 
 One connection, owned by one writer thread; the event loop hands it jobs and awaits their
 futures, so a slow disk or a locked database never blocks the loop (ARCHITECTURE rule 10).
 
-- `settings(scope, key) -> JSON`: e.g. ("arm:rbe3001", "safety"). Later tables (audit log,
-  queues: issue 14) are added as new entries of `MIGRATIONS`; `PRAGMA user_version` says how
-  many have run.
+- `settings(scope, key) -> JSON`: e.g. ("arm:rbe3001", "safety"). Later tables are added as
+  new entries of `MIGRATIONS`; `PRAGMA user_version` says how many have run.
 - A write that fails (disk full, database locked by another process past the busy timeout, a
   read-only directory) is not lost: the newest value of each (scope, key) is kept in memory,
   answered by reads, and retried every RETRY_S and before every later write, until it lands.
   Meanwhile `health()` says what is wrong (`/api/v1/health`), and `put` answers False so the
   route can say "applied, not yet persisted".
+- The audit log (app/audit.py decides what is recorded): an `AuditEntry` is appended without
+  waiting and may change after (a request's start record gets its status when the request
+  ends; a refusal summary counts on). The writer thread writes what is new or changed at most
+  AUDIT_FLUSH_S after it happened, in one transaction: a start record is in the database file
+  that soon, so a kill -9 keeps the attempt. Records the disk refuses wait in memory, at most
+  `max_pending` of them: beyond that the oldest are dropped and counted, the count shows in
+  `health().error` and, once the disk takes writes again, as a `dropped` record. The table
+  keeps at most `audit_max_rows` rows: the oldest beyond are deleted.
+- The data folder is made 0700 and the database files (with their -wal and -shm) 0600: the
+  log names people and what they did.
 """
 
 from __future__ import annotations
@@ -19,12 +29,14 @@ import asyncio
 import concurrent.futures
 import json
 import logging
+import os
 import queue
 import sqlite3
+import stat
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -33,6 +45,8 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 DB_NAME = "armserver.sqlite3"
+#: The files SQLite keeps beside the database (all made 0600 like it).
+DB_FILES = (DB_NAME, f"{DB_NAME}-wal", f"{DB_NAME}-shm", f"{DB_NAME}-journal")
 #: How long a write waits for another process's lock before it counts as failed, s. Short:
 #: the failed write is kept and retried, and a stuck writer would delay the next request.
 BUSY_TIMEOUT_S = 1.0
@@ -40,6 +54,36 @@ BUSY_TIMEOUT_S = 1.0
 RETRY_S = 5.0
 #: Jobs waiting for the writer thread at most (bounded, rule 9).
 MAX_JOBS = 1024
+#: How long a new or changed audit record waits for others to share its transaction, s: the
+#: bound on how late a request's start record reaches the database file (a kill -9 after that
+#: keeps it), and one transaction per 0.1 s rather than one per request under a burst.
+AUDIT_FLUSH_S = 0.1
+#: Audit records kept in memory while the disk refuses them, at most (then the oldest go).
+AUDIT_MAX_PENDING = 10_000
+#: Audit rows kept in the database, at most (the settings' default; then the oldest go).
+AUDIT_MAX_ROWS = 100_000
+#: Audit records written in one transaction at most.
+AUDIT_BATCH = 1000
+#: The code of a start record whose request never ended: the server died under it.
+INTERRUPTED = "interrupted"
+
+_AUDIT_V2 = """CREATE TABLE audit_v2 (
+           seq INTEGER PRIMARY KEY AUTOINCREMENT,
+           time REAL NOT NULL,
+           name TEXT NOT NULL,
+           role TEXT NOT NULL,
+           arm TEXT,
+           method TEXT NOT NULL,
+           route TEXT NOT NULL,
+           summary TEXT NOT NULL,
+           status INTEGER,
+           code TEXT,
+           kind TEXT NOT NULL DEFAULT 'request',
+           count INTEGER NOT NULL DEFAULT 1,
+           ended REAL,
+           address TEXT
+       )"""
+_V1_COLUMNS = "seq, time, name, role, arm, method, route, summary, status, code"
 
 MIGRATIONS: list[str] = [
     """CREATE TABLE settings (
@@ -63,10 +107,21 @@ MIGRATIONS: list[str] = [
            code TEXT
        )""",
     "CREATE INDEX audit_time ON audit (time)",
+    # issue 22: a start record has no status yet; refusal summaries (kind, count, ended); the
+    # caller's address. SQLite cannot drop a NOT NULL: the table is copied (one step each)
+    _AUDIT_V2,
+    f"INSERT INTO audit_v2 ({_V1_COLUMNS}) SELECT {_V1_COLUMNS} FROM audit",
+    "DROP TABLE audit",
+    "ALTER TABLE audit_v2 RENAME TO audit",
+    "CREATE INDEX audit_time ON audit (time)",
 ]
 
 #: The columns of an audit record, in order.
-AUDIT_COLUMNS = ("time", "name", "role", "arm", "method", "route", "summary", "status", "code")
+AUDIT_COLUMNS = ("time", "name", "role", "arm", "method", "route", "summary", "status", "code",
+                 "kind", "count", "ended", "address")
+_INSERT = (f"INSERT INTO audit ({', '.join(AUDIT_COLUMNS)}) "
+           f"VALUES ({', '.join('?' * len(AUDIT_COLUMNS))})")
+_UPDATE = f"UPDATE audit SET {', '.join(f'{c} = ?' for c in AUDIT_COLUMNS)} WHERE seq = ?"
 
 
 class StoreError(Exception):
@@ -81,26 +136,73 @@ class StoreHealth:
     error: str | None
 
 
+@dataclass(eq=False, slots=True)
+class AuditEntry:
+    """One audit record (AUDIT_COLUMNS) and where it stands. Made and changed on the event loop
+    only through `Store.audit` / `audit_update` / `audit_cancel` (which hold the store's audit
+    lock while the writer thread reads it)."""
+
+    time: float
+    name: str
+    role: str
+    arm: str | None
+    method: str
+    route: str
+    summary: str
+    status: int | None
+    code: str | None
+    #: "request": one request (status None while it runs); "refusals": refused requests of one
+    #: address and reason counted over an interval (`time` the first, `ended` the last);
+    #: "dropped": records lost to the memory bound while the disk refused them.
+    kind: str = "request"
+    count: int = 1
+    ended: float | None = None
+    address: str | None = None
+    seq: int | None = field(default=None, repr=False)  # its row, once written
+    version: int = field(default=0, repr=False)  # +1 on every change
+    cancelled: bool = field(default=False, repr=False)  # to be deleted (or never written)
+    dropped: bool = field(default=False, repr=False)  # lost to the memory bound
+
+    def row(self) -> tuple[Any, ...]:
+        return (self.time, self.name, self.role, self.arm, self.method, self.route,
+                self.summary, self.status, self.code, self.kind, self.count, self.ended,
+                self.address)
+
+
 class Store:
     """The server's database; `open()` at start-up, `close()` at shutdown."""
 
     def __init__(self, directory: str | Path, *, max_pages: int | None = None,
-                 busy_timeout_s: float = BUSY_TIMEOUT_S, retry_s: float = RETRY_S) -> None:
+                 busy_timeout_s: float = BUSY_TIMEOUT_S, retry_s: float = RETRY_S,
+                 audit_max_rows: int = AUDIT_MAX_ROWS, max_pending: int = AUDIT_MAX_PENDING,
+                 flush_s: float = AUDIT_FLUSH_S) -> None:
         self.path = Path(directory) / DB_NAME
         self._max_pages = max_pages
         self._busy_timeout_s = busy_timeout_s
         self._retry_s = retry_s
+        self._max_rows = audit_max_rows
+        self._max_pending = max(1, max_pending)
+        self._flush_s = flush_s
         self._jobs: queue.Queue[tuple[Callable[[], Any], concurrent.futures.Future[Any]] | None]
         self._jobs = queue.Queue(MAX_JOBS)
         self._thread: threading.Thread | None = None
         self._db: sqlite3.Connection | None = None  # the writer thread's only
         self._pending: dict[tuple[str, str], str] = {}  # writer thread's; newest unsaved values
+        self._retry_at = 0.0  # writer thread's: monotonic time of the next settings retry
         self._error: str | None = None
-        # audit records not yet on disk: appended by the loop, drained by the writer thread
-        self._audit: list[tuple[Any, ...]] = []
+        # audit entries, by id(): new ones (insertion order: oldest first), the batch being
+        # written, written ones changed since, written ones to delete. Under _audit_lock.
+        self._audit: dict[int, AuditEntry] = {}
+        self._inflight: dict[int, AuditEntry] = {}
+        self._changed: dict[int, AuditEntry] = {}
+        self._deletes: dict[int, AuditEntry] = {}
+        self._lost: AuditEntry | None = None  # the `dropped` record not yet written
+        self._audit_due: float | None = None  # monotonic time the next audit write is due
         self._audit_lock = threading.Lock()
-        self._audit_queued = False
+        self._rows = 0  # writer thread's: rows in the audit table
         self.audit_written = 0
+        self.audit_dropped = 0
+        self.audit_trimmed = 0
 
     # ------------------------------------------------------------ life
 
@@ -119,7 +221,7 @@ class Store:
             return
         try:
             self._call(self._flush).result(timeout=5.0)
-            self._call(self._flush_audit).result(timeout=5.0)
+            self._call(self._drain_audit).result(timeout=5.0)
         except (concurrent.futures.TimeoutError, StoreError):
             pass
         self._jobs.put(None)
@@ -127,8 +229,16 @@ class Store:
         self._thread = None
 
     def health(self) -> StoreHealth:
-        return StoreHealth(ok=self._error is None, path=str(self.path),
-                           pending=len(self._pending) + len(self._audit), error=self._error)
+        with self._audit_lock:
+            audit = (len(self._audit) + len(self._inflight) + len(self._changed)
+                     + len(self._deletes))
+            lost = self._lost.count if self._lost is not None else 0
+        error = self._error
+        if lost:
+            error = (f"{error or 'the audit log waits for the disk'}; {lost} audit record(s) "
+                     f"dropped (more than {self._max_pending} waited in memory)")
+        return StoreHealth(ok=error is None, path=str(self.path),
+                           pending=len(self._pending) + audit, error=error)
 
     # ------------------------------------------------------------ settings
 
@@ -151,91 +261,193 @@ class Store:
         text = json.dumps(value, allow_nan=False, separators=(",", ":"))
         self._call(lambda: self._put(scope, key, text)).add_done_callback(_ignore)
 
-    # ------------------------------------------------------------ audit log
+    # ------------------------------------------------------------ audit log (event loop side)
 
-    def audit(self, record: tuple[Any, ...]) -> None:
-        """Append an audit record (AUDIT_COLUMNS, in order) without waiting: it is kept in
-        memory until the writer thread has it on disk, retried like a setting when a write
-        fails, and never dropped."""
+    def audit(self, record: AuditEntry | tuple[Any, ...]) -> AuditEntry:
+        """Append an audit record without waiting (an `AuditEntry`, or a tuple of its first
+        columns in AUDIT_COLUMNS' order); it is written within AUDIT_FLUSH_S. Keep the entry to
+        change it later (`audit_update`, `audit_cancel`)."""
+        entry = record if isinstance(record, AuditEntry) else AuditEntry(*record)
         with self._audit_lock:
-            self._audit.append(record)
-            if self._audit_queued:
+            self._audit[id(entry)] = entry
+            while len(self._audit) > self._max_pending:
+                self._drop_oldest()
+            self._schedule()
+        return entry
+
+    def audit_update(self, entry: AuditEntry, **values: Any) -> None:
+        """Change fields of an entry (e.g. `status`, `code`, `ended` when its request ends):
+        in memory at once, in the database within AUDIT_FLUSH_S."""
+        with self._audit_lock:
+            for name, value in values.items():
+                setattr(entry, name, value)
+            entry.version += 1
+            if entry.dropped or entry.cancelled:
                 return
-            self._audit_queued = True
-        fut = self._call(self._flush_audit)
-        if fut.done() and fut.exception() is not None:  # not open, or the job queue full:
-            with self._audit_lock:                       # the next record or retry takes it
-                self._audit_queued = False
-        fut.add_done_callback(_ignore)
+            if entry.seq is not None:
+                self._changed[id(entry)] = entry
+                self._schedule()
+
+    def audit_cancel(self, entry: AuditEntry) -> None:
+        """Take an entry back: never written if it is not yet, deleted if it is."""
+        with self._audit_lock:
+            entry.cancelled = True
+            entry.version += 1
+            if self._audit.pop(id(entry), None) is not None:
+                return
+            if entry.seq is not None:
+                self._changed.pop(id(entry), None)
+                self._deletes[id(entry)] = entry
+                self._schedule()
 
     async def query_audit(self, *, arm: str | None = None, who: str | None = None,
                           since: float | None = None, until: float | None = None,
                           limit: int = 100) -> list[dict[str, Any]]:
-        """Audit records newest first, those not yet on disk included."""
+        """Audit records newest first, as they stand now (those not yet on disk included)."""
         return await asyncio.wrap_future(
             self._call(lambda: self._query_audit(arm, who, since, until, limit)))
 
+    def _schedule(self) -> None:
+        """(Lock held.) Have the writer write the audit changes within AUDIT_FLUSH_S."""
+        if self._audit_due is None:
+            self._audit_due = time.monotonic() + self._flush_s
+            self._wake()
+
+    def _drop_oldest(self) -> None:
+        """(Lock held.) Drop the oldest unsaved entry (never the `dropped` record itself)."""
+        key = next((k for k, e in self._audit.items() if e is not self._lost), None)
+        if key is None:
+            return
+        entry = self._audit.pop(key)
+        entry.dropped = True
+        self.audit_dropped += 1
+        now = time.time()
+        if self._lost is None:
+            self._lost = AuditEntry(now, "(server)", "none", None, "-", "-", "", None, None,
+                                    kind="dropped", count=0)
+            self._audit = {id(self._lost): self._lost, **self._audit}
+        self._lost.count += 1
+        self._lost.ended = now
+        self._lost.version += 1
+        self._lost.summary = (f"{self._lost.count} audit record(s) lost: the database refused "
+                              f"writes while more than {self._max_pending} waited in memory")
+
+    # ------------------------------------------------------------ audit log (writer side)
+
     def _flush_audit(self) -> bool:
+        """Write what is new, changed or cancelled in one transaction; True when it landed."""
         with self._audit_lock:
-            self._audit_queued = False
-            rows = list(self._audit)
-        if not rows:
+            self._audit_due = None
+            batch: list[tuple[AuditEntry, int, tuple[Any, ...]]] = []
+            for key in list(self._audit)[:AUDIT_BATCH]:
+                entry = self._audit.pop(key)
+                if not entry.cancelled:  # (cancelled while a failed write had it)
+                    self._inflight[key] = entry
+                    batch.append((entry, entry.version, entry.row()))
+            changed = [(e, e.version, e.row()) for e in self._changed.values()]
+            deletes = [(e, e.seq) for e in self._deletes.values()]
+        if not (batch or changed or deletes):
             return True
         if self._db is None:
             self._open()
-            if self._db is None:
-                return False
+        rows = self._rows
+        seqs: list[int] = []
         try:
+            if self._db is None:
+                raise sqlite3.OperationalError(self._error or "the database is not open")
             self._db.execute("BEGIN")
-            self._db.executemany(
-                f"INSERT INTO audit ({', '.join(AUDIT_COLUMNS)}) VALUES "
-                f"({', '.join('?' * len(AUDIT_COLUMNS))})", rows)
+            for _, _, row in batch:
+                seqs.append(int(self._db.execute(_INSERT, row).lastrowid or 0))
+            rows += len(batch)
+            self._db.executemany(_UPDATE, [(*row, e.seq) for e, _, row in changed])
+            for _, seq in deletes:
+                rows -= self._db.execute("DELETE FROM audit WHERE seq = ?", (seq,)).rowcount
+            trimmed = 0
+            if rows > self._max_rows:
+                trimmed = self._db.execute(
+                    "DELETE FROM audit WHERE seq IN (SELECT seq FROM audit ORDER BY seq "
+                    "LIMIT ?)", (rows - self._max_rows,)).rowcount
             self._db.execute("COMMIT")
         except sqlite3.Error as exc:
-            if self._db.in_transaction:
+            if self._db is not None and self._db.in_transaction:
                 self._db.execute("ROLLBACK")
-            self._fail(f"writing {len(rows)} audit record(s) to {self.path}: {exc} (kept in "
-                       f"memory, retried every {self._retry_s:g} s)")
+            with self._audit_lock:  # back in front of the newer ones, under the same bound
+                self._audit = {**self._inflight, **self._audit}
+                self._inflight.clear()
+                while len(self._audit) > self._max_pending:
+                    self._drop_oldest()
+                self._audit_due = time.monotonic() + self._retry_s
+            self._fail(f"writing {len(batch) + len(changed) + len(deletes)} audit record "
+                       f"change(s) to {self.path}: {exc} (kept in memory, retried every "
+                       f"{self._retry_s:g} s)")
             return False
+        self._rows = rows - trimmed
+        self.audit_trimmed += trimmed
         with self._audit_lock:
-            del self._audit[:len(rows)]
-        self.audit_written += len(rows)
+            self._inflight.clear()
+            for (entry, version, _), seq in zip(batch, seqs, strict=True):
+                entry.seq = seq
+                if entry is self._lost:
+                    self._lost = None
+                if entry.cancelled:
+                    self._deletes[id(entry)] = entry
+                elif entry.version != version and not entry.dropped:
+                    self._changed[id(entry)] = entry
+            for entry, version, _ in changed:
+                if entry.version == version:
+                    self._changed.pop(id(entry), None)
+            for entry, _ in deletes:
+                self._deletes.pop(id(entry), None)
+            if self._audit or self._changed or self._deletes:
+                self._audit_due = time.monotonic()
+        self.audit_written += len(batch)
         if not self._pending:
             self._ok()
         return True
 
+    def _drain_audit(self) -> None:
+        """Write every audit change (at shutdown), batch after batch, until one fails."""
+        while self._flush_audit():
+            with self._audit_lock:
+                if not (self._audit or self._changed or self._deletes):
+                    return
+
     def _query_audit(self, arm: str | None, who: str | None, since: float | None,
                      until: float | None, limit: int) -> list[dict[str, Any]]:
-        def keep(r: tuple[Any, ...]) -> bool:
-            return ((arm is None or r[3] == arm) and (who is None or r[1] == who)
-                    and (since is None or r[0] >= since) and (until is None or r[0] <= until))
+        def keep(e: AuditEntry) -> bool:
+            return ((arm is None or e.arm == arm) and (who is None or e.name == who)
+                    and (since is None or e.time >= since) and (until is None or e.time <= until))
 
         with self._audit_lock:
-            unsaved = [r for r in self._audit if keep(r)]
-        rows = list(reversed(unsaved))[:limit]
-        if self._db is not None and len(rows) < limit:
+            unsaved = [e.row() for e in self._audit.values() if keep(e) and not e.cancelled]
+            newer = {e.seq: e.row() for e in self._changed.values()}
+            gone = {e.seq for e in self._deletes.values()}
+        rows = sorted(unsaved, key=lambda r: -r[0])[:limit]
+        if self._db is not None:
             where, args = [], []
             for col, op, val in (("arm", "=", arm), ("name", "=", who), ("time", ">=", since),
                                  ("time", "<=", until)):
                 if val is not None:
                     where.append(f"{col} {op} ?")
                     args.append(val)
-            sql = (f"SELECT {', '.join(AUDIT_COLUMNS)} FROM audit"
+            sql = (f"SELECT seq, {', '.join(AUDIT_COLUMNS)} FROM audit"
                    f"{' WHERE ' + ' AND '.join(where) if where else ''} "
                    f"ORDER BY time DESC, seq DESC LIMIT ?")
             try:
-                rows += self._db.execute(sql, (*args, limit - len(rows))).fetchall()
+                saved = self._db.execute(sql, (*args, limit + len(gone))).fetchall()
             except sqlite3.Error as exc:
                 self._fail(f"reading the audit log: {exc}")
                 raise StoreError(self._error or "read failed") from exc
-        return [dict(zip(AUDIT_COLUMNS, r, strict=True)) for r in rows]
+            rows += [newer.get(r[0], r[1:]) for r in saved if r[0] not in gone]
+            rows.sort(key=lambda r: -r[0])  # stable: the unsaved first among equal times
+        return [dict(zip(AUDIT_COLUMNS, r, strict=True)) for r in rows[:limit]]
 
     # ------------------------------------------------------------ other tables (issue 14)
 
     async def run(self, fn: Callable[[sqlite3.Connection], T]) -> T:
         """Run `fn(connection)` on the writer thread (the one place the connection is used):
-        for tables added by later MIGRATIONS, e.g. an audit log. StoreError if the database is
-        not open; sqlite3 errors propagate (and are the caller's to report)."""
+        for tables added by later MIGRATIONS. StoreError if the database is not open; sqlite3
+        errors propagate (and are the caller's to report)."""
 
         def job() -> T:
             if self._db is None:
@@ -257,31 +469,40 @@ class Store:
             fut.set_exception(StoreError(f"the store has {MAX_JOBS} jobs waiting"))
         return fut
 
+    def _wake(self) -> None:
+        """Have the writer thread look at its deadlines now (a full queue wakes it anyway)."""
+        self._call(_nothing).add_done_callback(_ignore)
+
     def _worker(self) -> None:
         while True:
+            due = [t for t in (self._audit_due, self._retry_at if self._pending else None)
+                   if t is not None]
             try:
-                job = self._jobs.get(timeout=self._retry_s if self._pending or self._audit
-                                     else None)
+                job = self._jobs.get(timeout=max(0.0, min(due) - time.monotonic())
+                                     if due else None)
             except queue.Empty:
+                pass
+            else:
+                if job is None:
+                    break
+                fn, fut = job
+                if fut.set_running_or_notify_cancel():
+                    try:
+                        fut.set_result(fn())
+                    except Exception as exc:  # the caller gets it, the thread lives on  # noqa: BLE001
+                        fut.set_exception(exc)
+            now = time.monotonic()
+            if self._pending and now >= self._retry_at:
                 self._flush()
+            if self._audit_due is not None and now >= self._audit_due:
                 self._flush_audit()
-                continue
-            if job is None:
-                break
-            fn, fut = job
-            if not fut.set_running_or_notify_cancel():
-                continue
-            try:
-                fut.set_result(fn())
-            except Exception as exc:  # the caller gets it, the thread lives on  # noqa: BLE001
-                fut.set_exception(exc)
         if self._db is not None:
             self._db.close()
             self._db = None
 
     def _open(self) -> None:
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._secure()
             db = sqlite3.connect(self.path, timeout=self._busy_timeout_s,
                                  isolation_level=None, check_same_thread=False)
             db.execute("PRAGMA journal_mode=WAL")
@@ -294,10 +515,39 @@ class Store:
                 db.execute(sql)
                 db.execute(f"PRAGMA user_version={i}")
                 db.execute("COMMIT")
+            # start records an earlier process left open: it died before their requests ended
+            db.execute("UPDATE audit SET code = ? WHERE kind = 'request' AND status IS NULL "
+                       "AND code IS NULL", (INTERRUPTED,))
+            self._rows = db.execute("SELECT count(*) FROM audit").fetchone()[0]
             self._db = db
             self._ok()
         except (sqlite3.Error, OSError) as exc:
             self._fail(f"cannot open {self.path}: {exc}")
+
+    def _secure(self) -> None:
+        """The data folder 0700 (when this user owns it and it is no shared sticky folder like
+        /tmp), the database files 0600. A new database is made 0600, and SQLite gives its -wal
+        and -shm the database's mode. A mode that cannot be changed (a read-only file system)
+        is logged, not fatal."""
+        folder = self.path.parent
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        try:
+            os.close(os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        except FileExistsError:
+            pass
+        st = folder.stat()
+        own = st.st_uid == os.geteuid() and not st.st_mode & stat.S_ISVTX
+        for path, mode in ((folder, 0o700), *((folder / n, 0o600) for n in DB_FILES)):
+            try:
+                now = stat.S_IMODE(path.stat().st_mode)
+                if now & 0o077 and (path != folder or own):
+                    path.chmod(mode)
+                    log.warning("store: %s was open to others (mode %o): made %o", path, now,
+                                mode)
+            except FileNotFoundError:
+                continue
+            except OSError as exc:
+                log.warning("store: cannot make %s %o: %s", path, mode, exc)
 
     def _get(self, scope: str, key: str) -> Any:
         text = self._pending.get((scope, key))
@@ -317,6 +567,7 @@ class Store:
 
     def _flush(self) -> bool:
         """Write every pending value; True when none is left."""
+        self._retry_at = time.monotonic() + self._retry_s
         if self._db is None:
             self._open()
             if self._db is None:
@@ -336,6 +587,10 @@ class Store:
                 return False
             if self._pending.get((scope, key)) == text:
                 del self._pending[(scope, key)]
+        with self._audit_lock:
+            if self._audit_due is not None:  # a write landed: audit records waiting go too
+                self._audit_due = min(self._audit_due, time.monotonic())
+                return True
         self._ok()
         return True
 
@@ -348,6 +603,10 @@ class Store:
         if self._error is not None:
             log.info("store: writes land again (%s)", self.path)
         self._error = None
+
+
+def _nothing() -> None:
+    """A job that only wakes the writer thread (to look at its deadlines)."""
 
 
 def _ignore(fut: concurrent.futures.Future[Any]) -> None:

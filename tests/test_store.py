@@ -1,17 +1,21 @@
 """app.store: settings survive a reopen; a locked database, a full disk or a directory that
 cannot be created is an error in health() and never a lost write (kept, answered by reads,
-retried until it lands); the event loop keeps running while the writer waits on a lock."""
+retried until it lands); the event loop keeps running while the writer waits on a lock. The
+data folder is private (0700, files 0600); an older audit table is migrated, and a start record
+a dead process left open is marked interrupted."""
 
 from __future__ import annotations
 
 import asyncio
+import os
 import sqlite3
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from app.store import DB_NAME, MIGRATIONS, Store
+from app.store import DB_NAME, INTERRUPTED, MIGRATIONS, Store
 
 
 @pytest.fixture
@@ -116,3 +120,130 @@ async def test_run_uses_the_writer_connection(store: Store) -> None:
     with pytest.raises(sqlite3.OperationalError):
         await store.run(lambda db: db.execute("SELECT * FROM no_such_table").fetchall())
     assert store.health().ok  # a caller's bad statement is the caller's error
+
+
+def _mode(path: Path) -> int:
+    return stat.S_IMODE(path.stat().st_mode)
+
+
+async def test_the_data_folder_is_0700_and_its_files_0600(tmp_path: Path) -> None:
+    """Issue 22.12: the log names people and what they did. A new folder and database, and an
+    old folder and database left open to others, are made private; -wal and -shm too."""
+    old_umask = os.umask(0o022)  # a usual umask: files 0644, folders 0755 unless made private
+    try:
+        for folder in (tmp_path / "new" / "data", tmp_path / "old"):
+            if folder.name == "old":
+                folder.mkdir(mode=0o755)
+                os.chmod(folder, 0o755)
+                sqlite3.connect(folder / DB_NAME).close()  # 0644, as an earlier version made it
+                assert _mode(folder / DB_NAME) == 0o644
+            st = Store(folder, flush_s=0.01)
+            st.open()
+            try:
+                assert await st.put_setting("s", "k", 1) is True
+                st.audit((1.0, "alice", "operator", None, "POST", "/x", "", 200, None))
+                for _ in range(500):
+                    if st.health().pending == 0:
+                        break
+                    await asyncio.sleep(0.01)
+                assert st.health().pending == 0
+                names = sorted(p.name for p in folder.iterdir())
+                assert names == sorted([DB_NAME, f"{DB_NAME}-wal", f"{DB_NAME}-shm"])
+                assert {n: _mode(folder / n) for n in names} == dict.fromkeys(names, 0o600)
+                assert _mode(folder) == 0o700
+            finally:
+                st.close()
+    finally:
+        os.umask(old_umask)
+
+
+async def test_a_shared_sticky_folder_is_left_as_it_is(tmp_path: Path) -> None:
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    os.chmod(shared, 0o1777)
+    st = Store(shared)
+    st.open()
+    try:
+        assert st.health().ok
+        assert _mode(shared) == 0o1777 and _mode(shared / DB_NAME) == 0o600
+    finally:
+        st.close()
+
+
+async def test_an_audit_log_of_the_first_schema_is_kept_and_an_open_start_is_interrupted(
+        tmp_path: Path) -> None:
+    db = sqlite3.connect(tmp_path / DB_NAME, isolation_level=None)
+    for i, sql in enumerate(MIGRATIONS[:3], start=1):  # the issue-14 schema
+        db.execute(sql)
+        db.execute(f"PRAGMA user_version={i}")
+    db.execute("INSERT INTO audit (time, name, role, arm, method, route, summary, status, code)"
+               " VALUES (5.0, 'alice', 'operator', 'angler', 'POST', '/s', '', 409, 'leased')")
+    db.close()
+    st = Store(tmp_path, flush_s=0.01)
+    st.open()
+    try:
+        got = await st.query_audit()
+        assert got == [{"time": 5.0, "name": "alice", "role": "operator", "arm": "angler",
+                        "method": "POST", "route": "/s", "summary": "", "status": 409,
+                        "code": "leased", "kind": "request", "count": 1, "ended": None,
+                        "address": None}]
+        st.audit((6.0, "bob", "operator", "angler", "POST", "/m", "", None, None))  # a start
+        for _ in range(500):
+            if st.health().pending == 0:
+                break
+            await asyncio.sleep(0.01)
+        assert st.health().pending == 0
+    finally:
+        st._jobs.put(None)  # as a kill: no shutdown flush, the start is left open
+        assert st._thread is not None
+        st._thread.join(5.0)
+    again = Store(tmp_path)
+    again.open()
+    try:
+        got = await again.query_audit()
+        assert [(r["time"], r["status"], r["code"]) for r in got] == [
+            (6.0, None, INTERRUPTED), (5.0, 409, "leased")]
+    finally:
+        again.close()
+    assert (sqlite3.connect(tmp_path / DB_NAME).execute("PRAGMA user_version").fetchone()[0]
+            == len(MIGRATIONS))
+
+
+async def test_audit_changes_made_while_the_database_is_locked_land_once_it_is_not(
+        tmp_path: Path, store: Store) -> None:
+    """A start record completed, another taken back, a written one completed and a written one
+    taken back, all while writes fail: once the lock goes, the table says each last word."""
+    written = store.audit((1.0, "alice", "operator", None, "POST", "/a", "", None, None))
+    gone = store.audit((2.0, "alice", "operator", None, "POST", "/b", "", None, None))
+    for _ in range(500):
+        if store.health().pending == 0:
+            break
+        await asyncio.sleep(0.01)
+    assert written.seq is not None and gone.seq is not None
+    other = sqlite3.connect(tmp_path / DB_NAME, isolation_level=None)
+    other.execute("BEGIN EXCLUSIVE")
+    try:
+        start = store.audit((3.0, "bob", "operator", None, "POST", "/c", "", None, None))
+        never = store.audit((4.0, "bob", "operator", None, "POST", "/d", "", None, None))
+        for _ in range(500):
+            if not store.health().ok:
+                break
+            await asyncio.sleep(0.01)
+        assert not store.health().ok  # the lock held a write back
+        store.audit_update(start, status=200, ended=3.5)
+        store.audit_cancel(never)
+        store.audit_update(written, status=409, code="leased", ended=1.5)
+        store.audit_cancel(gone)
+        assert [(r["route"], r["status"]) for r in await store.query_audit()] == [
+            ("/c", 200), ("/a", 409)]
+    finally:
+        other.execute("ROLLBACK")
+        other.close()
+    for _ in range(500):
+        if store.health().ok and store.health().pending == 0:
+            break
+        await asyncio.sleep(0.01)
+    assert store.health().pending == 0
+    rows = sqlite3.connect(tmp_path / DB_NAME).execute(
+        "SELECT route, status, code, ended FROM audit ORDER BY seq").fetchall()
+    assert rows == [("/a", 409, "leased", 1.5), ("/c", 200, None, 3.5)]

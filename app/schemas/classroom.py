@@ -64,15 +64,30 @@ class QueueOrder(Model):
 
 
 class AuditRecord(Model):
-    time: float
+    """One record of the audit log (README "Reading the log")."""
+
+    time: float = Field(description="Unix time the request started (for `refusals`: the "
+                        "first refused one; for `dropped`: the first lost record)")
     name: str
     role: str
-    arm: str | None
+    arm: str | None = Field(description="the arm named in the route, when it is one of the "
+                            "server's arms")
     method: str
-    route: str
+    route: str = Field(description="the route (for `refusals`: the first refused one's)")
     summary: str
-    status: int
+    status: int | None = Field(description="the answer's status; null while the request runs "
+                               "(and for good if the server died under it: code "
+                               "`interrupted`)")
     code: str | None
+    kind: Literal["request", "refusals", "dropped"] = Field(
+        "request", description="`request`: one request; `refusals`: requests refused by the "
+        "gates (400 bad_host, 401, 403, 404 not_found or unknown_arm, 405, 413) from one "
+        "address for one reason, counted over an interval; `dropped`: records lost while the "
+        "database refused writes")
+    count: int = Field(1, description="requests (or lost records) this record stands for")
+    ended: float | None = Field(None, description="Unix time the request ended (for "
+                                "`refusals` and `dropped`: the last one); null while it runs")
+    address: str | None = Field(None, description="the client's IP address")
 
 
 # ---------------------------------------------------------------- safety envelope
