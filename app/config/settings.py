@@ -1,9 +1,18 @@
 """Server settings: the environment (prefix ARMSERVER_) or CLI flags, each checked at
-start-up, and the start-up message for invalid ones."""
+start-up, and the start-up message for invalid ones.
+
+Secrets never show in a message that prints a setting: a setting whose name says token, secret
+or password is `***` (a `*_file` setting is a path, shown), and a URL's password is `***`
+(`mqtt://user:***@broker`), in the start-up error, in a validator's message, and in the
+settings' repr; pydantic's own error text carries no input at all.
+"""
 
 from __future__ import annotations
 
 import math
+import re
+from collections.abc import Iterator
+from typing import Any
 
 from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -12,7 +21,8 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 class Settings(BaseSettings):
     """Process settings from the environment (prefix ARMSERVER_) or CLI flags."""
 
-    model_config = SettingsConfigDict(env_prefix="ARMSERVER_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="ARMSERVER_", extra="ignore",
+                                      hide_input_in_errors=True)
 
     host: str = "127.0.0.1"
     port: int = 8000
@@ -54,7 +64,10 @@ class Settings(BaseSettings):
             return None
         from app.mqtt import parse_broker_url
 
-        parse_broker_url(v)
+        try:
+            parse_broker_url(v)
+        except ValueError as exc:  # its message quotes the URL: password included
+            raise ValueError(mask_url(str(exc))) from None
         return v.strip()
     #: Run the arms (links, polls, motion) on their own thread and loop (app.control).
     control_thread: bool = True
@@ -97,6 +110,10 @@ class Settings(BaseSettings):
     allowed_hosts: str = ""
 
     # ------------------------------------------------ validation (issue 11.5)
+
+    def __repr_args__(self) -> Iterator[tuple[str | None, Any]]:
+        for name, value in super().__repr_args__():
+            yield name, shown(name or "", value)
 
     @field_validator("log_level")
     @classmethod
@@ -145,18 +162,48 @@ _QUANTITY_SUFFIXES = ("_s", "_hz", "_bytes", "_rate", "_size", "_count", "_limit
 LOG_LEVELS = ("critical", "error", "warning", "info", "debug", "trace")
 
 
+_SECRET_NAME = re.compile(r"(?i)token|secret|password")
+#: `scheme://user:password@`: the password part (to the last `@` before the host: a password
+#: may hold an `@`).
+_URL_PASSWORD = re.compile(r"(?i)([a-z][a-z0-9+.-]*://[^/@:\s'\"]*):[^/\s'\"]*@")
+MASK = "***"
+
+
 def env_name(field: str) -> str:
     return f"ARMSERVER_{field.upper()}"
 
 
+def is_secret(name: str) -> bool:
+    """Whether a setting's value is a secret (its name says token, secret or password; a
+    `*_file` setting is the path of one, not one)."""
+    return bool(_SECRET_NAME.search(name)) and not name.lower().endswith("_file")
+
+
+def mask_url(text: str) -> str:
+    """`text` with the password of every `scheme://user:password@` in it as `***`."""
+    return _URL_PASSWORD.sub(rf"\1:{MASK}@", text)
+
+
+def shown(name: str, value: Any) -> Any:
+    """A setting's value as a message may show it: a secret's as `***`, URLs' passwords
+    masked."""
+    if is_secret(name) and value not in (None, ""):
+        return MASK
+    return mask_url(value) if isinstance(value, str) else value
+
+
 def settings_error(exc: ValidationError) -> str:
-    """A start-up message for invalid settings: which variable, what value, what it must be."""
+    """A start-up message for invalid settings: which variable, what value, what it must be;
+    no secret (see `shown`)."""
     lines = ["invalid settings (environment ARMSERVER_* or command-line flags):"]
     for e in exc.errors():
         loc = ".".join(str(p) for p in e["loc"])
-        msg = str(e["msg"]).removeprefix("Value error, ")
+        msg = mask_url(str(e["msg"]).removeprefix("Value error, "))
+        value = e.get("input")
+        if loc and is_secret(loc) and isinstance(value, str) and value:
+            msg = msg.replace(value, MASK)
         if loc:
-            lines.append(f"  {env_name(loc)}={e.get('input')!r}: {msg}")
+            lines.append(f"  {env_name(loc)}={shown(loc, value)!r}: {msg}")
         else:
             lines.extend(f"  {m}" for m in msg.split("; "))
     return "\n".join(lines)
