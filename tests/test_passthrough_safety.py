@@ -347,8 +347,9 @@ async def test_rehoming_a_homed_angler_is_refused_unless_an_instructor_or_unhome
         homed = (await client.get(AN, headers=op)).json()["homed"]
         needs = [j.needs_homing for j in svc.profile.joints]
         assert homed == [not n for n in needs], homed
-        r = await client.post(f"{AN}/move/joints", json={"positions": q0.tolist()}, headers=op)
-        assert r.status_code in (202, 409), r.text  # nothing to move on x, y, z: may go
+        nudge = (q0 + np.array([0.01, 0.0, 0.0, 0.0])).tolist()
+        r = await client.post(f"{AN}/move/joints", json={"positions": nudge}, headers=op)
+        assert r.status_code == 409 and r.json()["code"] == "not_homed", r.text
         home = [0.01, -0.01, float(q0[2]), 0.06]
         r = await client.post(f"{AN}/home", json={"positions": home}, headers=op)
         assert r.status_code == 200 and r.json()["homed"] == [True] * 4, r.text
@@ -500,18 +501,46 @@ async def test_a_zone_put_while_a_motion_runs_is_busy_and_the_motion_goes_on() -
 
 
 async def test_a_zone_put_while_the_arm_moves_after_a_goal_is_busy() -> None:
-    """'While the arm is still moving' too: a pass-through goal, no motion record."""
+    """'While the arm is still moving' too: a pass-through goal, no motion record. Measured
+    moving: any new zone is 409 busy. Just sent (maybe not moving yet): a zone on the goal's
+    way is refused (409 busy, or 422 keep_out for the pending path) and never entered."""
     async with served(profiles()) as (app, client):
         svc = svc_of(app, "angler")
-        q0 = measured(app, "angler")
-        qb = q0.copy()
-        qb[2] = q0[2] + 1.2  # 0.6 s at 2 rad/s
-        r = await client.put(f"{AN}/dynamixel/{motor_of(svc, 2)}/registers/goal_position",
-                             json={"raw": goal_raw(svc, 2, qb)})
-        assert r.status_code == 200, r.text
-        far = box("far", [0.5, 0.5, 0.5], 0.05)
-        r = await client.put(f"{AN}/safety", json={"zones": [far]})
-        moving = np.abs(svc.driver.velocities).max() if svc.driver.velocities is not None else 0
-        assert r.status_code == 409 and r.json()["code"] == "busy", (
-            f"a zone PUT while theta3 moved ({moving:.2f}) answered {r.status_code} {r.text}")
-        assert (await client.get(f"{AN}/safety")).json()["zones"] == []
+        rec = Recorder(svc)
+        try:
+            q0 = measured(app, "angler")
+            m3 = motor_of(svc, 2)
+            qb = q0.copy()
+            qb[2] = q0[2] + 1.2  # 0.6 s at 2 rad/s
+            r = await client.put(f"{AN}/dynamixel/{m3}/registers/goal_position",
+                                 json={"raw": goal_raw(svc, 2, qb)})
+            assert r.status_code == 200, r.text
+            got = await wait_samples(rec, lambda g: bool(g) and g[-1].qd is not None
+                                     and abs(g[-1].qd[2]) > 0.5, 5.0, len(rec) - 1)
+            far = box("far", [0.5, 0.5, 0.5], 0.05)
+            r = await client.put(f"{AN}/safety", json={"zones": [far]})
+            assert r.status_code == 409 and r.json()["code"] == "busy", (
+                f"a zone PUT while theta3 moved at {got[-1].qd[2]:.2f} rad/s answered "
+                f"{r.status_code} {r.text}")
+            assert (await client.get(f"{AN}/safety")).json()["zones"] == []
+            await at_rest(rec)
+            # a goal back, and at once a zone on its way (the arm end half way back)
+            here = measured(app, "angler")
+            back = here.copy()
+            back[2] = q0[2]
+            mid = here.copy()
+            mid[2] = (here[2] + q0[2]) / 2
+            zone = box("on_the_way", svc.safety.points(mid)[3], 0.01)
+            n0 = len(rec)
+            r = await client.put(f"{AN}/dynamixel/{m3}/registers/goal_position",
+                                 json={"raw": goal_raw(svc, 2, back)})
+            assert r.status_code == 200, r.text
+            r = await client.put(f"{AN}/safety", json={"zones": [zone]})
+            assert r.status_code in (409, 422) and r.json()["code"] in ("busy", "keep_out"), (
+                f"a zone on the way of a goal just sent answered {r.status_code} {r.text}")
+            assert (await client.get(f"{AN}/safety")).json()["zones"] == []
+            await at_rest(rec)  # and the goal goes on, to where it was sent
+            assert abs(measured(app, "angler")[2] - q0[2]) < 0.01
+            assert len(rec.since(n0)) > 0
+        finally:
+            rec.close()
