@@ -11,6 +11,7 @@ back from the simulators, the arm's motion from every telemetry sample):
 6. raw access does not lift the envelope from Dynamixel goals;
 7. the envelope applies at once: a PUT /safety while the arm moves is refused (409 busy) and
    the motion goes on;
+and the bound of 5 itself (a step over 0.03 s at the limit, 50 mrad on the rbe3001, is refused),
 and a storm of SET_PID steps, each one allowed, keeps under the speed limit.
 
 Serial (tests/conftest.py SERIAL_FILES's reason): these measure joint speeds and positions in
@@ -385,6 +386,32 @@ async def test_a_set_pid_step_from_minus_to_plus_1_5_rad_is_velocity_limit() -> 
             r = await client.post(f"{RB}/rbe3001/set-pid", json=set_pid_body(svc, near))
             assert r.status_code == 200, r.text
             np.testing.assert_allclose(device_setpoint(svc)[0], near[0], atol=1e-3)
+        finally:
+            rec.close()
+
+
+async def test_a_set_pid_step_over_30_ms_at_the_limit_is_velocity_limit() -> None:
+    """The bound itself: a joint at rest may be sent at most its velocity limit x 0.03 s
+    (45 mrad on the rbe3001) from where it is measured; 50 mrad is refused, 40 goes."""
+    async with served(profiles()) as (app, client):
+        svc = svc_of(app, "rbe3001")
+        rec = Recorder(svc)
+        try:
+            await move(client, "rbe3001", [0.0, 0.6, 0.3])
+            await at_rest(rec)
+            here = measured(app, "rbe3001")
+            before = list(svc.driver.link.device.setpoint)
+            over = here.copy()
+            over[0] += 0.05
+            r = await client.post(f"{RB}/rbe3001/set-pid", json=set_pid_body(svc, over))
+            assert r.status_code == 422 and r.json()["code"] == "velocity_limit", (
+                f"a SET_PID step of 0.050 rad (limit x 0.03 s = "
+                f"{svc.model.vmax[0] * 0.03:.3f}) answered {r.status_code} {r.text}")
+            assert list(svc.driver.link.device.setpoint) == before
+            near = here.copy()
+            near[0] += SMALL_STEP
+            r = await client.post(f"{RB}/rbe3001/set-pid", json=set_pid_body(svc, near))
+            assert r.status_code == 200, r.text
         finally:
             rec.close()
 
