@@ -9,24 +9,24 @@ profile's `raw_access`) that interleaves, on one arm:
   reported position as the route takes);
   angler `goal_position` by a single PUT and by a multi-id `sync-write`;
 - keep-out zones (an instructor adds a box around a body point near the arm's path, or
-  removes them), homing (operator, instructor, un-home then home), estop press (its hold
-  watched for 0.3 s) and release.
+  removes them) and a floor (just below the arm's lowest point, or none), homing (operator,
+  instructor, un-home then home), estop press (its hold watched for 0.3 s) and release.
 
 After every step, from every telemetry sample (a hub listener on the control thread, with
 the simulated device's own setpoint read in the same call; tests/_safety_support.py):
 
 (a) while the estop is latched the device's setpoint stays within max(8 ticks, 30 ms at the
     joint's limit) of where the arm was at the latch;
-(b) no sample puts a body point inside a zone accepted before it (the envelope's own point
-    model and margins, less a tracking slack);
+(b) no sample puts a body point inside a zone, or below a floor, accepted before it (the
+    envelope's own point model and margins, less a tracking slack);
 (c) no joint's measured speed exceeds 1.1 x its limit (GET /api/v1/arms/{arm} `max_velocity`).
 
 Every answer is a success or one of the refusals the contract names for that route (never a
 500), and these hold on each: a SET_PID step of 0.2 rad or more from where the arm is answers
 422 `velocity_limit`; an operator's POST /home on an arm whose joints are all homed answers
 409 `already_homed` (where some joints need homing: a declaration moves nothing on an arm with
-none); a PUT /safety that adds a zone accepted while one motion ran throughout, or while the arm
-moved, is a failure (409 `busy` is the contract).
+none); a PUT /safety that adds a zone or raises the floor, accepted while one motion ran
+throughout or while the arm moved, is a failure (409 `busy` is the contract).
 
 ARMSERVER_SAFETY_SKIP=home,set_pid_chase leaves those rules out, and =busy,already_homed,
 velocity_limit those contract checks (to look past one failure at the rest, a diagnosis).
@@ -166,6 +166,7 @@ class SafetyMachine(RuleBasedStateMachine):
         self.latch = LatchTracker(self.svc)
         self.checked = 0
         self.zones: list[dict[str, Any]] = []
+        self.floor: float | None = None
         self.latched = False
         self.last_target: np.ndarray | None = None
         self.anchor: np.ndarray | None = None
@@ -233,14 +234,15 @@ class SafetyMachine(RuleBasedStateMachine):
             return
         new = self.rec.since(self.checked)
         self.checked += len(new)
-        self._judge(new, self.zones)
+        self._judge(new, self.zones, self.floor)
 
-    def _judge(self, recs: list[Any], zones: list[dict[str, Any]]) -> None:
+    def _judge(self, recs: list[Any], zones: list[dict[str, Any]],
+               floor: float | None) -> None:
         bad = speed_violations(self.svc, recs)
         assert bad == [], f"(c) a joint over its speed limit: {bad}"
         bad = self.latch.feed(recs)
         assert bad == [], f"(a) the setpoint moved away after the latch: {bad}"
-        hit = zone_hits(self.svc, recs, zones)
+        hit = zone_hits(self.svc, recs, zones, floor)
         assert hit is None, f"(b) a body point inside a zone: {hit}"
 
     # ------------------------------------------------------------ planned moves
@@ -424,32 +426,53 @@ class SafetyMachine(RuleBasedStateMachine):
         self.n_zone += 1
         zone = box(f"z{self.n_zone}", pts[b], lo + half * (hi - lo))
         zones = [*self.zones[-2:], zone]
-        self._put_zones(zones, anchor, "busy" not in SKIP)
+        self._put_safety({"zones": zones}, zones, self.floor, anchor, "busy" not in SKIP)
 
     @allowed("clear_zones")
     @rule()
     @live
-    def clear_zones(self) -> None:
-        self._put_zones([], None, False)  # fewer zones: harmless while moving, may go
+    def clear_zones(self) -> None:  # fewer zones: harmless while moving, may go
+        self._put_safety({"zones": []}, [], self.floor, None, False)
 
-    def _put_zones(self, zones: list[dict[str, Any]], anchor: np.ndarray | None,
-                   busy: bool) -> None:
-        self.check()  # every sample so far judged against the zones before
+    @allowed("set_floor")
+    @rule(u=st.floats(0.0, 1.0))
+    @live
+    def set_floor(self, u: float) -> None:
+        """A floor 5 mm + u x 8 cm below the lowest body point (less its margin) now."""
+        env = self.svc.safety
+        z = env.points(self.q())[:, 2] - env.margins
+        floor = float(z.min()) - 0.005 - u * 0.08
+        raised = self.floor is None or floor > self.floor
+        self._put_safety({"floor_z": floor}, self.zones, floor, self.anchor,
+                         raised and "busy" not in SKIP)
+
+    @allowed("clear_floor")
+    @rule()
+    @live
+    def clear_floor(self) -> None:
+        self._put_safety({"floor_z": None}, self.zones, None, self.anchor, False)
+
+    def _put_safety(self, body: dict[str, Any], zones: list[dict[str, Any]],
+                    floor: float | None, anchor: np.ndarray | None, busy: bool) -> None:
+        """PUT /safety (instructor); what is in force is judged on each side of it, and
+        across it the weaker of the two (an accepted change applies while it is answered)."""
+        self.check()  # every sample so far judged against the envelope before
         before = self.rec.samples[-3:]
-        r = self.http.put(f"{self.url}/safety", json={"zones": zones},
-                          headers=auth(INSTRUCTOR))
+        r = self.http.put(f"{self.url}/safety", json=body, headers=auth(INSTRUCTOR))
         after_start = len(self.rec)
         ok = self.expect(r, (200,), SAFETY_CODES)
-        # the samples during the request: against the zones in force on both sides of it
         during = self.rec.since(self.checked)
         self.checked += len(during)
-        kept = [z for z in self.zones if z in zones] if ok else self.zones
-        self._judge(during, kept)
         if ok:
-            self.zones = zones
+            kept = [z for z in self.zones if z in zones]
+            low = None if floor is None or self.floor is None else min(floor, self.floor)
+            self._judge(during, kept, low)
+            self.zones, self.floor = zones, floor
             self.anchor = anchor if zones else None
             if busy:
                 self._not_busy(before, after_start)
+        else:
+            self._judge(during, self.zones, self.floor)
 
     def _not_busy(self, before: list[Any], after_start: int) -> None:
         """An accepted PUT /safety: no motion ran throughout it, the arm did not move."""
