@@ -76,9 +76,12 @@ run: install
 test: install-test test-deps
 	$(MAKE) --no-print-directory test-run
 
+# (the serial part runs even if the parallel one failed: one run shows every failure)
 test-run:
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial" --durations=15
-	$(BIN)/python -m pytest -q -m serial --durations=5
+	rc=0; \
+	  $(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial" --durations=15 || rc=$$?; \
+	  $(BIN)/python -m pytest -q -m serial --durations=5 || rc=$$?; \
+	  exit $$rc
 
 # `make test` beside a CPU load: stress-ng keeps LOAD_CPUS cores busy for the whole run, as a
 # shared machine does (a test that fails only then is a flaky test, issue 22).
