@@ -38,6 +38,7 @@ class Actuator(Protocol):
     #: Counts the commands noted as sent (any source): the executor's own last setpoint is
     #: still the arm's commanded state while this has not moved on.
     command_seq: int
+    commanded_at: float
 
     @property
     def commanded(self) -> np.ndarray | None: ...

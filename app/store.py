@@ -240,6 +240,11 @@ class Store:
         return StoreHealth(ok=error is None, path=str(self.path),
                            pending=len(self._pending) + audit, error=error)
 
+    def settings_pending(self) -> int:
+        """Settings not yet written (of `health().pending`: a request's own in-flight audit
+        record is pending while it runs, and says nothing of whether a setting is on disk)."""
+        return len(self._pending)
+
     # ------------------------------------------------------------ settings
 
     def get_setting_sync(self, scope: str, key: str) -> Any:

@@ -1,6 +1,6 @@
 """Walking an rbe3001 with pass-through SET_PID steps, each within what the guard accepts (at
-most 0.03 s of motion at the joint's velocity limit from where the joint is: app/guard.py
-`check_passthrough`), waiting (bounded) for the arm to follow each step."""
+most 0.03 s of motion at the joint's velocity limit from where the joint is, and from the last
+command: app/guard.py `check_passthrough`), waiting (bounded) for the arm to follow each step."""
 
 from __future__ import annotations
 
@@ -26,11 +26,16 @@ async def pid_walk(client: httpx.AsyncClient, svc: Any, target: Any, *, url: str
     cap = svc.model.vmax * PASSTHROUGH_STEP_S * STEP_FRACTION
     deadline = time.monotonic() + timeout
     while True:
-        here = np.asarray(svc.driver.positions, dtype=float)
+        # from where the arm was last told to go (the arm is within half a step of it)
+        here = np.asarray(svc.driver.told(), dtype=float)
         if np.all(np.abs(target - here) <= cap):
             nxt = target
         else:
             nxt = here + np.clip(target - here, -cap, cap)
+        # the setpoint may move from the last command only as fast as the joint may: a full
+        # step needs PASSTHROUGH_STEP_S since that command
+        while time.monotonic() - svc.driver.commanded_at < PASSTHROUGH_STEP_S:
+            await asyncio.sleep(0.002)
         ticks = svc.model.transmission.to_ticks(nxt)
         r = await client.post(url, json={"joints": [{"position_ticks": float(t)} for t in ticks]},
                               headers=headers)

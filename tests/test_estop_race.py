@@ -75,12 +75,14 @@ def watch_goals(svc: ArmService) -> list[tuple[bool, dict[int, int]]]:
 
 
 async def settle(svc: ArmService, timeout: float = 10.0) -> None:
-    """Until the arm is where it was last told to go (bounded)."""
+    """Until the arm is where it was last told to go, PASSTHROUGH_STEP_S after that command
+    (a full step may then be sent again: app/guard.py), bounded."""
     deadline = time.monotonic() + timeout
     while True:
         told, here = svc.driver.told(), svc.driver.positions
         if told is not None and here is not None and np.all(
-                np.abs(told - here) <= svc.model.vmax * PASSTHROUGH_STEP_S):
+                np.abs(told - here) <= svc.model.vmax * PASSTHROUGH_STEP_S) and (
+                time.monotonic() - svc.driver.commanded_at > PASSTHROUGH_STEP_S):
             return
         assert time.monotonic() < deadline, (told, here)
         await asyncio.sleep(0.005)
@@ -130,7 +132,8 @@ async def test_estop_against_set_pid_at_varying_offsets() -> None:
             await settle(svc)
             here = np.asarray(svc.driver.positions, dtype=float)
             sign = 1.0 if k % 2 == 0 else -1.0
-            goal = here + sign * svc.model.vmax * PASSTHROUGH_STEP_S * 0.8
+            told = np.asarray(svc.driver.told(), dtype=float)
+            goal = told + sign * svc.model.vmax * PASSTHROUGH_STEP_S * 0.6
             ticks = tr.to_ticks(goal)
             body = {"joints": [{"position_ticks": float(t)} for t in ticks]}
             start = len(seen)
@@ -194,7 +197,8 @@ async def test_a_command_queued_before_the_latch_is_not_written_after_it() -> No
         for k in range(10):
             await settle(svc)
             here = np.asarray(svc.driver.positions, dtype=float)
-            goal = here + (1 if k % 2 == 0 else -1) * svc.model.vmax * PASSTHROUGH_STEP_S * 0.8
+            told = np.asarray(svc.driver.told(), dtype=float)
+            goal = told + (1 if k % 2 == 0 else -1) * svc.model.vmax * PASSTHROUGH_STEP_S * 0.6
             sps = [(float(t), 0.0, 0.0) for t in tr.to_ticks(goal)]
             start = len(seen)
 

@@ -38,7 +38,8 @@ def describe(svc: ArmService, store: Store | None, editable: bool) -> s.Safety:
     env, cfg = svc.safety, svc.safety.settings
     health = store.health() if store is not None else None
     persisted = env.source == "profile" or (health is not None and health.ok
-                                            and health.pending == 0)
+                                            and store is not None
+                                            and store.settings_pending() == 0)
     return s.Safety(zones=list(cfg.zones), floor_z=cfg.floor_z,
                     speed_override=cfg.speed_override, tool_margin=env.profile.tool_margin,
                     body_margin=env.profile.body_margin, body_points=list(env.bodies),

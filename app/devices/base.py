@@ -109,6 +109,9 @@ class Driver(OwnerTask, abc.ABC):
         #: last one the arm was told.
         self._commanded_ticks: np.ndarray | None = None
         self.command_seq = 0
+        #: When the last command was noted (monotonic s): a pass-through setpoint may move
+        #: from the last command only as fast as the joint may (app/guard.py).
+        self.commanded_at = 0.0
         #: Asked in the owner task just before a gated command (one that moves the arm) is
         #: written; raises to refuse it (the service sets the estop latch's check here).
         self.motion_gate: Callable[[], None] | None = None
@@ -191,6 +194,7 @@ class Driver(OwnerTask, abc.ABC):
             cur[list(joints)] = np.asarray(ticks, dtype=float)
         self._commanded_ticks = cur
         self.command_seq += 1
+        self.commanded_at = time.monotonic()
 
     def forget_commanded(self, joints: Any = None) -> None:
         """What the device holds is no longer known from here (a servo set up again holds
