@@ -17,6 +17,11 @@ from app.store import DB_NAME, Store
 from tests.conftest import running_client
 from tests.test_classroom import ALICE, TEACH, VIEW, H, class_settings, until
 
+#: The refusal interval of the tests that count one interval's records: intervals are aligned
+#: to the clock, and a minute's boundary fell inside a test on a loaded machine (two records of
+#: 22 and 3 where one of 25 was expected); a day's boundary falls in one only at midnight.
+DAY = 86400.0
+
 
 def db_rows(data_dir: Path, where: str = "1") -> list[dict[str, Any]]:
     db = sqlite3.connect(data_dir / DB_NAME)
@@ -34,7 +39,8 @@ async def written(app: Any) -> None:
 
 
 async def test_a_flood_of_bad_tokens_is_one_record_per_address_and_reason(tmp_path: Path) -> None:
-    async with running_client(class_settings(data_dir=str(tmp_path))) as (app, c):
+    async with running_client(class_settings(data_dir=str(tmp_path),
+                                             audit_refusal_interval_s=DAY)) as (app, c):
         t0 = time.time()
         r = await c.post("/api/v1/arms/angler/stop", headers=H(ALICE))
         assert r.status_code == 200
@@ -80,7 +86,8 @@ async def test_a_role_refusal_is_counted_not_recorded_and_other_refusals_are_kep
     """A viewer's move passes the token gate (its start is recorded) but is refused 403 by the
     route's role check: the start record goes, the refusal is counted. A 409 is no gate's:
     recorded one by one."""
-    async with running_client(class_settings(data_dir=str(tmp_path))) as (app, c):
+    async with running_client(class_settings(data_dir=str(tmp_path),
+                                             audit_refusal_interval_s=DAY)) as (app, c):
         move = {"positions": [0.1, 0.2, 0.3], "speed": 0.5}
         for _ in range(25):
             r = await c.post("/api/v1/arms/rbe3001/move/joints", json=move, headers=H(VIEW))
@@ -150,7 +157,8 @@ async def test_body_limit_and_host_refusals_are_counted(tmp_path: Path) -> None:
     """413 from the body limit and 400 bad_host from the Host guard (an open server)."""
     from tests.conftest import make_settings
 
-    async with running_client(make_settings(data_dir=str(tmp_path), max_body_bytes=100)) as (
+    async with running_client(make_settings(data_dir=str(tmp_path), max_body_bytes=100,
+                                            audit_refusal_interval_s=DAY)) as (
             app, c):
         for _ in range(20):
             r = await c.post("/api/v1/arms/rbe3001/stop", content=b"x" * 200)
