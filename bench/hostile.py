@@ -580,12 +580,13 @@ async def passthrough_phase(server: ServerProcess, rounds: int, seed: int) -> No
         if arm.latch_offsets:
             worst = np.max(arm.latch_offsets, axis=0)
             over = sum(bool(np.any(o > arm.hold_tol)) for o in arm.latch_offsets)
-            what = ("joints moved, latch to 0.4 s after" if arm.name == "rbe3001"
+            what = ("joints moved, latch to 0.4 s after (measured: the hold, plus a "
+                    "loaded joint's droop and overshoot)" if arm.name == "rbe3001"
                     else "servo goals from where the arm was")
             print(f"  {arm.name} after {len(arm.latch_offsets)} latches: {what}: worst "
-                  + ", ".join(f"{n} {w:.4g} (tolerance {t:.3g})" for n, w, t in
+                  + ", ".join(f"{n} {w:.4g} (hold tolerance {t:.3g})" for n, w, t in
                               zip(arm.model.names, worst, arm.hold_tol, strict=True))
-                  + f"; {over} latches beyond it")
+                  + f"; {over} latches over it")
         print(f"  {arm.name} telemetry dropped {arm.watch.dropped} samples")
     print(f"  SET_PID chase: the largest step the route took {largest:.3f} rad "
           f"(0.03 s at the limit is {0.03 * rb.model.vmax[0]:.3f})")
