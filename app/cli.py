@@ -72,7 +72,7 @@ def _settings(args: argparse.Namespace) -> Any:
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from app.main import create_app
+    from app.web.factory import create_app
 
     settings = _settings(args)
     logging.basicConfig(level=settings.log_level.upper(),
@@ -81,7 +81,7 @@ def _serve(args: argparse.Namespace) -> int:
     if settings.host not in LOOPBACK and not settings.auth_enabled:
         log.warning("binding %s with no tokens: anyone who can reach this port may move the "
                     "arms (set ARMSERVER_OPERATOR_TOKENS)", settings.host)
-    from app.serving import ArmServer
+    from app.web.serving import ArmServer
 
     config = uvicorn.Config(app, host=settings.host, port=settings.port,
                             log_level=settings.log_level, ws_max_size=settings.max_ws_message_bytes,
@@ -97,10 +97,10 @@ def http_limits(settings: Any) -> dict[str, Any]:
     """uvicorn options that bound what one client can make the server do before any route
     runs: httptools' C parser with a bound on the request head (`max_header_bytes`: httptools
     has none of its own, a 64 MiB header took 3.8 s to parse) and `max_connections` open at
-    once (503 `busy`, JSON). See app/serving.py."""
+    once (503 `busy`, JSON). See app/web/serving.py."""
     import functools
 
-    from app.serving import ArmHttpToolsProtocol
+    from app.web.serving import ArmHttpToolsProtocol
 
     http = functools.partial(ArmHttpToolsProtocol, max_head=settings.max_header_bytes)
     return {"http": http, "limit_concurrency": settings.max_connections}

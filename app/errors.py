@@ -5,11 +5,11 @@ the client exception (`app.client`) it becomes. From this table come:
 
 - the server's exceptions below: a class names its `code`; its `status_code` is the table's (a
   class whose code is not in the table fails at import);
-- the OpenAPI error descriptions (`app.api.common.errors`, the `ErrorBody.code` enum);
+- the OpenAPI error descriptions (`app.web.routes.common.errors`, the `ErrorBody.code` enum);
 - the client's error classes for each code (`app.client.errors`).
 
 Routes never build error bodies by hand: they raise one of these and the handler in
-`app.main` renders `{"detail": ..., "code": ...}`. `tests/test_errors.py` walks every raise
+`app.web.factory` renders `{"detail": ..., "code": ...}`. `tests/test_errors.py` walks every raise
 site and every code literal in app/ against the table.
 """
 

@@ -1,10 +1,10 @@
 """One hosted arm: its driver (which owns the link), telemetry hub, motion executor and safety
 guard (the emergency stop latch and the checks that every path that moves the arm goes
-through, app/guard.py), wired together here and nowhere else.
+through, app/safety/guard.py), wired together here and nowhere else.
 
 Routes call this; it never touches a link itself (the driver's task does). The motion executor
 gets the guard, the driver as its actuator and the model, not the service; the hub stamps each
-sample with the estop latch and the motion in progress (app/arm_hub.py).
+sample with the estop latch and the motion in progress (app/telemetry/arm_hub.py).
 """
 
 from __future__ import annotations
@@ -19,13 +19,10 @@ from typing import Any, TypeVar
 import numpy as np
 
 from app import schemas as s
-from app.arm_hub import ArmHub
 from app.arms import arm_type
 from app.config import ArmProfile, SafetySettings
-from app.control import on_control, running_loop, start_now
-from app.devices.base import Driver
-from app.devices.factory import make_driver
-from app.envelope import ArmSafety
+from app.device.driver import Driver
+from app.device.factory import make_driver
 from app.errors import (
     AlreadyHomed,
     Busy,
@@ -35,12 +32,15 @@ from app.errors import (
     NoGripper,
     NotSupported,
 )
-from app.guard import SafetyGuard, require_finite
 from app.links.base import LinkState
-from app.motion import MotionExecutor
-from app.motion_stream import AT_REST
-from app.tasks import retrieve
-from app.telemetry import TelemetryHub
+from app.motion.executor import MotionExecutor
+from app.motion.stream import AT_REST
+from app.runtime.control_thread import on_control, running_loop, start_now
+from app.runtime.tasks import retrieve
+from app.safety.envelope import ArmSafety
+from app.safety.guard import SafetyGuard, require_finite
+from app.telemetry.arm_hub import ArmHub
+from app.telemetry.hub import TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
 
 log = logging.getLogger(__name__)
@@ -82,7 +82,8 @@ class ArmService:
 
     @property
     def home_loop(self) -> Any:
-        """The control loop this arm runs on (`app.control`): its async methods cross there."""
+        """The control loop this arm runs on (`app.runtime.control_thread`): its async methods
+        cross there."""
         return self.driver.home_loop
 
     # --------------------------------------------------------- descriptions
@@ -351,7 +352,7 @@ class ArmService:
 
     def press_estop(self) -> None:
         """Latch from the HTTP thread without waiting for its loop: the estop fast path
-        (app/api/arms.py) presses as soon as a request's head is read; the route's press
+        (app/web/routes/arms.py) presses as soon as a request's head is read; the route's press
         follows and reports. With the arm on the control thread, this thread then waits (up
         to PRESS_WAIT_S) until the latch is set there: both threads share one core and one
         GIL, and the control thread, woken, would otherwise wait for the rest of this

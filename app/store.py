@@ -11,7 +11,8 @@ futures, so a slow disk or a locked database never blocks the loop (ARCHITECTURE
   answered by reads, and retried every RETRY_S and before every later write, until it lands.
   Meanwhile `health()` says what is wrong (`/api/v1/health`), and `put` answers False so the
   route can say "applied, not yet persisted".
-- The audit log (app/audit.py decides what is recorded): an `AuditEntry` is appended without
+- The audit log (app/classroom/audit.py decides what is recorded): an `AuditEntry` is appended
+without
   waiting and may change after (a request's start record gets its status when the request
   ends; a refusal summary counts on). The writer thread writes what is new or changed at most
   AUDIT_FLUSH_S after it happened, in one transaction: a start record is in the database file
@@ -93,7 +94,8 @@ MIGRATIONS: list[str] = [
            updated REAL NOT NULL,
            PRIMARY KEY (scope, key)
        )""",
-    # issue 14: the audit log (app/audit.py); the queues live in `settings` ("queue:<arm>")
+    # issue 14: the audit log (app/classroom/audit.py); the queues live in `settings`
+    # ("queue:<arm>")
     """CREATE TABLE audit (
            seq INTEGER PRIMARY KEY AUTOINCREMENT,
            time REAL NOT NULL,

@@ -42,8 +42,8 @@ from app.config import (
     homed_at_start,
     load_profile,
 )
-from app.envelope import ArmSafety
-from app.main import create_app
+from app.safety.envelope import ArmSafety
+from app.web.factory import create_app
 
 API = "/api/v1"
 ARMS = ("rbe3001", "angler")

@@ -1,6 +1,7 @@
 """Walking an rbe3001 with pass-through SET_PID steps, each within what the guard accepts (at
 most 0.03 s of motion at the joint's velocity limit from where the joint is, and from the last
-command: app/guard.py `check_passthrough`), waiting (bounded) for the arm to follow each step."""
+command: app/safety/guard.py `check_passthrough`), waiting (bounded) for the arm to follow each
+step."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from typing import Any
 import httpx
 import numpy as np
 
-from app.guard import PASSTHROUGH_STEP_S
+from app.safety.guard import PASSTHROUGH_STEP_S
 
 #: Fraction of the accepted step each walking step takes.
 STEP_FRACTION = 0.6

@@ -26,7 +26,7 @@ from fastapi import FastAPI
 
 from app.cli import http_limits
 from app.config import Settings
-from app.main import create_app
+from app.web.factory import create_app
 
 #: How long the simulated arms may take to answer their first poll, s.
 READY_TIMEOUT_S = 10.0

@@ -16,14 +16,14 @@ from _wait import new_samples, wait_for
 from fastapi import FastAPI
 
 from app.arms.dynamixel.driver import DynamixelDriver
+from app.arms.dynamixel.sim_bus import DynamixelBus
 from app.config import homed_at_start, load_profile
-from app.devices.factory import make_sim_device
+from app.device.factory import make_sim_device
 from app.links.serial import SerialLink
 from app.links.sim import SimLink
-from app.main import create_app
-from app.sim.dynamixel_bus import DynamixelBus
 from app.sim.serve import serve_pty
-from app.telemetry import TelemetryHub
+from app.telemetry.hub import TelemetryHub
+from app.web.factory import create_app
 from protocol import mx28
 from protocol.dynamixel import ErrorCode
 from tests.conftest import make_settings, wait_ready

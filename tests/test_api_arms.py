@@ -9,8 +9,8 @@ import pytest
 from conftest import make_settings
 from fastapi import FastAPI
 
-from app.main import create_app
 from app.schemas import ArmDetail, Health, Sample
+from app.web.factory import create_app
 
 API = "/api/v1"
 
@@ -195,7 +195,7 @@ async def test_openapi_documents_every_route(app_client: httpx.AsyncClient) -> N
 
 
 async def test_dashboard_is_served_when_present(app_client: httpx.AsyncClient) -> None:
-    from app.main import STATIC_DIR
+    from app.web.factory import STATIC_DIR
 
     if not (STATIC_DIR / "index.html").is_file():
         pytest.skip("no dashboard in app/static")

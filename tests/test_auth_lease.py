@@ -8,7 +8,7 @@ import time
 import pytest
 from conftest import OPERATOR, VIEWER, make_settings, running_client
 
-from app.auth import Access, Role, bearer_token
+from app.web.security import Access, Role, bearer_token
 
 API = "/api/v1"
 ARM = f"{API}/arms/rbe3001"

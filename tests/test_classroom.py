@@ -13,8 +13,8 @@ import httpx
 import numpy as np
 import pytest
 
-from app.auth import Access
-from app.classroom import home_pose
+from app.classroom.queue import home_pose
+from app.web.security import Access
 from tests.conftest import make_settings, running_client
 
 ALICE, BOB, CAROL, TEACH, VIEW = "tok-alice-1", "tok-bob-2", "tok-carol-3", "tok-teach-4", "tok-v"

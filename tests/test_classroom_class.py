@@ -21,7 +21,7 @@ from typing import Any
 import httpx
 import numpy as np
 
-from app.classroom import home_pose
+from app.classroom.queue import home_pose
 from tests.conftest import make_settings, running_client
 
 STUDENTS = 50

@@ -23,7 +23,7 @@ from app import schemas as s
 from app.client import ArmClient, AsyncArmClient
 from app.client.cli import main as cli_main
 from app.config import Settings
-from app.main import create_app
+from app.web.factory import create_app
 
 OPERATOR = "client-test-operator"
 

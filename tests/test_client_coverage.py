@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from app.client import ArmClient, ArmServerError, AsyncArmClient
-from app.main import create_app
+from app.web.factory import create_app
 
 #: (HTTP method, OpenAPI path) -> client method name. Path parameter names are ignored.
 ROUTES: dict[tuple[str, str], str] = {
@@ -89,7 +89,8 @@ ARGS: dict[str, tuple[Any, ...]] = {
     "rbe3001_set_gain": ("a1", 0, 1.0, 0.0, 0.0), "rbe3001_set_claw": ("a1", 1.0),
     "dxl_ping": ("a1",), "dxl_read_register": ("a1", 3, "led"),
     "dxl_write_register": ("a1", 3, "led", 1), "dxl_sync_read": ("a1", "led", [1, 2]),
-    "dxl_sync_write": ("a1", "led", {1: 0}), "dxl_reboot": ("a1", 3), "home": ("a1",), "unhome": ("a1",),
+    "dxl_sync_write": ("a1", "led", {1: 0}), "dxl_reboot": ("a1", 3), "home": ("a1",),
+    "unhome": ("a1",),
     "take_lease": ("a1",),
     "renew_lease": ("a1", "L1"), "release_lease": ("a1", "L1"),
     "safety": ("a1",), "set_safety": ("a1",),

@@ -1,4 +1,4 @@
-"""app/collector.py: while a server runs, the start-up objects are frozen, automatic full
+"""app/runtime/gc_policy.py: while a server runs, the start-up objects are frozen, automatic full
 collections are rare, and the full collections it runs itself wait for no arm to be moving
 (a full collection stops every thread: 140-180 ms with 700 hostile clients connected)."""
 
@@ -11,10 +11,10 @@ from typing import Any
 import pytest
 from _wait import wait_for
 
-from app import collector as c
+from app.runtime import gc_policy as c
 from app import schemas as s
-from app.collector import Collector, moving
 from app.config import homed_at_start, load_profile
+from app.runtime.gc_policy import Collector, moving
 from app.service import ArmService
 
 

@@ -1,4 +1,5 @@
-"""End to end: the dashboard's queue panel (app/static/classroom.js) in headless Chromium against
+"""End to end: the dashboard's queue panel (app/web/static/classroom.js) in headless Chromium
+against
 a real server with named tokens: a student joins, takes the offered turn (the page claims and
 renews the lease: it is still hers after several ttls), sees herself as the holder; the
 instructor's page shows the instructor controls and revokes the lease, and the student's page

@@ -31,7 +31,7 @@ import pytest
 import uvicorn
 from conftest import OPERATOR, make_settings
 
-from app.main import create_app
+from app.web.factory import create_app
 
 pytestmark = pytest.mark.browser
 

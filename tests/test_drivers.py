@@ -16,12 +16,12 @@ from _wait import held_still, new_samples, wait_for
 from app.arms.dynamixel.driver import DynamixelDriver
 from app.arms.rbe3001.driver import Rbe3001Driver
 from app.config import FaultConfig, load_profile
-from app.devices.factory import make_sim_device
+from app.device.factory import make_sim_device
 from app.errors import ArmError, CorruptReply, DeviceTimeout, LinkDown
 from app.links.serial import SerialLink
 from app.links.sim import SimLink
 from app.sim.serve import serve_pty, serve_tcp
-from app.telemetry import TelemetryHub
+from app.telemetry.hub import TelemetryHub
 from protocol import mx28
 from protocol import rbe3001 as rb
 

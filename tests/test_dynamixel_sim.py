@@ -22,7 +22,7 @@ from dynamixel_sdk import (
     PortHandler,
 )
 
-from app.sim.dynamixel_bus import DynamixelBus
+from app.arms.dynamixel.sim_bus import DynamixelBus
 from app.sim.serve import PtyServer, serve_pty, serve_tcp
 from protocol import dynamixel as dxl
 from protocol.dynamixel import ErrorCode, Packet

@@ -30,8 +30,8 @@ from fastapi import FastAPI
 
 from app import schemas as s
 from app.config import Settings
-from app.main import create_app
 from app.store import DB_NAME
+from app.web.factory import create_app
 
 API = "/api/v1"
 RB = f"{API}/arms/rbe3001"
@@ -269,7 +269,8 @@ async def test_a_locked_database_is_an_error_in_health_not_a_lost_change(tmp_pat
             assert app.state.services["rbe3001"].safety.speed_override == 0.4  # applied
             h = (await client.get(f"{API}/health")).json()
             assert h["status"] == "degraded" and h["store"]["ok"] is False
-            # the setting, and the audit record of the PUT (app/audit.py): both kept, unsaved
+            # the setting, and the audit record of the PUT (app/classroom/audit.py): both kept,
+            # unsaved
             assert h["store"]["pending"] == 2 and "locked" in h["store"]["error"]
         finally:
             other.execute("ROLLBACK")

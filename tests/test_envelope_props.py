@@ -25,8 +25,8 @@ from hypothesis import strategies as st
 
 from app import schemas as s
 from app.config import KeepOutBox, SafetySettings, load_profile
-from app.envelope import KeepOut
 from app.errors import ArmError
+from app.safety.envelope import KeepOut
 from app.service import ArmService
 from kinematics.trajectory import time_grid
 

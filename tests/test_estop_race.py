@@ -18,7 +18,7 @@ import httpx
 import numpy as np
 from conftest import running_client
 
-from app.guard import PASSTHROUGH_STEP_S
+from app.safety.guard import PASSTHROUGH_STEP_S
 from app.service import ArmService
 from protocol import dynamixel as dxl
 from protocol import mx28
@@ -76,7 +76,7 @@ def watch_goals(svc: ArmService) -> list[tuple[bool, dict[int, int]]]:
 
 async def settle(svc: ArmService, timeout: float = 10.0) -> None:
     """Until the arm is where it was last told to go, PASSTHROUGH_STEP_S after that command
-    (a full step may then be sent again: app/guard.py), bounded."""
+    (a full step may then be sent again: app/safety/guard.py), bounded."""
     deadline = time.monotonic() + timeout
     while True:
         told, here = svc.driver.told(), svc.driver.positions
@@ -187,8 +187,8 @@ async def test_a_command_queued_before_the_latch_is_not_written_after_it() -> No
     """On the control loop itself: a pass-through SET_PID is checked and queued, then the
     estop latches before the owner task writes it. The owner task asks the latch as it
     writes: the command fails with estop_latched and the device gets only the hold."""
-    from app.control import call_in
     from app.errors import EstopLatched
+    from app.runtime.control_thread import call_in
 
     async with running_client() as (app, client):
         svc: ArmService = app.state.services["rbe3001"]

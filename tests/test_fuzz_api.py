@@ -45,9 +45,9 @@ from schemathesis.checks import (
 )
 from schemathesis.python import asgi as st_asgi
 
-from app.arm_model import ArmModel
+from app.arms import model_for
 from app.config import load_profile
-from app.main import create_app
+from app.web.factory import create_app
 
 pytestmark = pytest.mark.slow
 
@@ -171,7 +171,7 @@ def _write_report(targets: dict[str, Target], seconds: float) -> None:
 #: Random floats almost never land inside the joint limits, so positive runs also draw bodies
 #: that pass every check (moves and set-points within the limits, tips the arm reaches): the
 #: motion paths, the executor and the devices get exercised, not only the refusals.
-MODELS = {a: ArmModel(load_profile(a)) for a in ARMS}
+MODELS = {a: model_for(load_profile(a)) for a in ARMS}
 
 
 def _joints(arm: str) -> st.SearchStrategy[list[float]]:

@@ -7,7 +7,7 @@ import struct
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from app.sim.rbe3001_firmware import Rbe3001Firmware
+from app.arms.rbe3001.sim import Rbe3001Firmware
 from protocol.rbe3001 import DecodeError, decode_command, decode_packet, decode_reply
 
 ANY_BYTES = st.binary(min_size=0, max_size=200)

@@ -21,7 +21,7 @@ import httpx
 import pytest
 from conftest import make_settings, running_client
 
-from app.deps import ViewerRole
+from app.web.deps import ViewerRole
 
 API = "/api/v1"
 RB = f"{API}/arms/rbe3001"
@@ -157,7 +157,7 @@ async def test_allowed_hosts_extends_the_list_and_tokens_lift_the_check() -> Non
 
 
 def test_a_wildcard_bind_accepts_ip_literals_not_names() -> None:
-    from app.hostguard import HostPolicy
+    from app.web.hostguard import HostPolicy
 
     p = HostPolicy(make_settings(host="0.0.0.0", allowed_hosts=""))
     assert p.host_ok("192.168.1.5:8000") and p.host_ok("[fe80::1]:8000")
@@ -238,7 +238,7 @@ SECRET = "op2-SECRET-91c3"
 
 
 def test_redaction_decodes_parameter_names_and_blanks_credentials() -> None:
-    from app.auth import redact
+    from app.web.security import redact
 
     assert SECRET not in redact(f"GET /t?tok%65n={SECRET}&rate=1")
     assert SECRET not in redact(f"GET /t?rate=1&%74oken={SECRET}")

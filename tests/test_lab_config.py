@@ -10,7 +10,7 @@ from conftest import make_settings, running_client
 from pydantic import ValidationError
 
 from app.config import load_arms
-from app.mqtt import parse_broker_url
+from app.telemetry.mqtt import parse_broker_url
 
 
 def test_count_hosts_numbered_copies(tmp_path: Path) -> None:

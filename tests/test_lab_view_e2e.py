@@ -1,4 +1,4 @@
-"""End to end: the lab view (app/static/lab.html + lab.js, its own MQTT-over-WebSocket client)
+"""End to end: the lab view (app/web/static/lab.html + lab.js, its own MQTT-over-WebSocket client)
 in Debian's headless Chromium, reading a real Mosquitto's websockets listener that two real
 arm servers publish to (different prefixes under one root). What the tiles show is compared
 with what the servers say: every arm present, online, the joints of /state, the emergency stop,

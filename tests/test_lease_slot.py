@@ -1,7 +1,7 @@
 """A plain lease (taken while nobody queued) and the classroom queue's slot (issue 22, item 11),
 end to end over the HTTP API (httpx over ASGI, the real app and its simulated arms).
 
-The rule (app/classroom.py, README "Running a lab session"): once someone waits, a plain
+The rule (app/classroom/queue.py, README "Running a lab session"): once someone waits, a plain
 lease ends at most one slot (`ARMSERVER_SLOT_S`) after the moment the queue went from nobody
 waiting to someone waiting, renewed or not; then the arm is handed off to the head of the
 queue as between two queue slots. If nobody waits any more before then, the slot is lifted.
@@ -20,7 +20,7 @@ from typing import Any
 import httpx
 import numpy as np
 
-from app.classroom import home_pose
+from app.classroom.queue import home_pose
 from tests.conftest import make_settings, running_client
 
 ALICE, BOB, CAROL, TEACH, VIEW = "tok-alice-1", "tok-bob-2", "tok-carol-3", "tok-teach-4", "tok-v"

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from app.arms.rbe3001.sim import Rbe3001Firmware
 from app.config import FaultConfig
 from app.links.base import LinkError, LinkState
 from app.links.discovery import (
@@ -24,7 +25,6 @@ from app.links.discovery import (
 from app.links.hid import HidLink, with_report_id
 from app.links.serial import SerialLink
 from app.links.sim import SimLink
-from app.sim.rbe3001_firmware import Rbe3001Firmware
 from protocol.rbe3001 import SetGain, Status, StatusReply, decode_reply, encode_command
 
 

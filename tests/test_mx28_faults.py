@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
 
-from app.sim.dynamixel_bus import DynamixelBus
+from app.arms.dynamixel.sim_bus import DynamixelBus
 from protocol import dynamixel as dxl
 from protocol import mx28
 from protocol.dynamixel import ErrorCode, Packet

@@ -15,16 +15,16 @@ import pytest
 from _wait import new_samples, wait_for
 
 from app import schemas as s
-from app.arm_hub import ArmHub
 from app.arms.rbe3001.driver import Rbe3001Driver
 from app.config import homed_at_start, load_profile
-from app.devices.base import Driver
-from app.devices.factory import make_sim_device
+from app.device.driver import Driver
+from app.device.factory import make_sim_device
 from app.errors import EstopLatched, InvalidRequest, JointLimit, NotSupported
-from app.guard import SafetyGuard
 from app.links.sim import SimLink
+from app.safety.guard import SafetyGuard
 from app.service import ArmService
-from app.telemetry import TelemetryHub
+from app.telemetry.arm_hub import ArmHub
+from app.telemetry.hub import TelemetryHub
 
 APP = Path(__file__).resolve().parents[1] / "app"
 
@@ -49,16 +49,17 @@ def _imports(path: Path, top_level_only: bool) -> set[str]:
 
 
 def test_motion_and_the_guard_do_not_import_the_service() -> None:
-    files = [*APP.glob("motion*.py"), APP / "guard.py", APP / "arm_hub.py"]
+    files = [*(APP / "motion").glob("*.py"), *(APP / "safety").glob("*.py"),
+             APP / "telemetry" / "arm_hub.py"]
     assert len(files) >= 4
     for path in files:
         assert "app.service" not in _imports(path, top_level_only=False), path.name
 
 
-def test_main_does_not_import_the_cli_and_the_cli_imports_main_only_when_serving() -> None:
-    assert not any(m.startswith("app.cli") for m in _imports(APP / "main.py", False))
-    assert "app.main" not in _imports(APP / "cli.py", top_level_only=True)
-    code = "import sys, app.cli; print('app.main' in sys.modules)"
+def test_the_app_factory_does_not_import_the_cli_and_the_cli_imports_it_only_when_serving() -> None:
+    assert not any(m.startswith("app.cli") for m in _imports(APP / "web" / "factory.py", False))
+    assert "app.web.factory" not in _imports(APP / "cli.py", top_level_only=True)
+    code = "import sys, app.cli; print('app.web.factory' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=60, check=True)
     assert out.stdout.strip() == "False"

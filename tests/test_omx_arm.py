@@ -20,15 +20,15 @@ import pytest
 from dynamixel_sdk import COMM_SUCCESS
 
 from app.arms import ARM_TYPES, arm_type
+from app.arms.dynamixel.sim_bus import DynamixelBus
+from app.arms.dynamixel.sim_xm430 import Xm430Servo
 from app.arms.model import chain_points
 from app.arms.openmanipulator_x.driver import OmxDriver
 from app.config import homed_at_start, load_arms, load_profile
-from app.devices.factory import make_sim_device
+from app.device.factory import make_sim_device
 from app.errors import JointLimit, Unreachable
 from app.links.sim import SimLink
-from app.sim.dynamixel_bus import DynamixelBus
-from app.sim.xm430_servo import Xm430Servo
-from app.telemetry import TelemetryHub
+from app.telemetry.hub import TelemetryHub
 from kinematics import omx
 from protocol import dynamixel as dxl
 from protocol import xm430
@@ -48,7 +48,7 @@ def test_one_registry_line_and_the_type() -> None:
     assert TYPE.protocol == "dynamixel" and TYPE.control_table is xm430
     assert TYPE.has_pitch is MODEL.has_pitch is True
     assert TYPE.joints == len(PROFILE.joints) == 4
-    assert TYPE.routers == ("app.api.dynamixel",)
+    assert TYPE.routers == ("app.arms.dynamixel.api",)
     # API.md: the default server hosts the rbe3001 and the angler only
     assert [p.model for p in load_arms(None)] == ["rbe3001", "angler"]
 

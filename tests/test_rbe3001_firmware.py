@@ -7,8 +7,8 @@ import struct
 
 import pytest
 
+from app.arms.rbe3001.sim import CYCLE_S, Rbe3001Firmware
 from app.config import load_profile
-from app.sim.rbe3001_firmware import CYCLE_S, Rbe3001Firmware
 from protocol.rbe3001 import (
     Ack,
     JointSetpoint,

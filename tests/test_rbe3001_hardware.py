@@ -15,16 +15,16 @@ import pytest
 from _wait import fresh_state, new_samples, wait_for
 from conftest import OPERATOR, VIEWER, make_settings, running_client
 
-from app.arm_model import ArmModel
+from app.arms import model_for
 from app.arms.rbe3001.driver import Rbe3001Driver
+from app.arms.rbe3001.sim import Rbe3001Firmware
 from app.config import FaultConfig, ForceConfig, load_profile
 from app.errors import DeviceTimeout
 from app.links.serial import SerialLink
 from app.links.sim import SimLink
 from app.service import ArmService
-from app.sim.rbe3001_firmware import Rbe3001Firmware
 from app.sim.serve import serve_pty, serve_tcp
-from app.telemetry import TelemetryHub
+from app.telemetry.hub import TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
 from protocol import rbe3001 as rb
 
@@ -130,7 +130,7 @@ async def test_an_unknown_command_error_packet_is_a_device_error():
 
 
 def test_tip_force_is_null_near_the_elbow_singularity_never_huge():
-    model = ArmModel(load_profile("rbe3001"))
+    model = model_for(load_profile("rbe3001"))
     tau = np.array([0.0, 0.1, 0.0])  # 0.1 N m on the shoulder
     ordinary = model.tip_force(np.array([0.0, 0.6, 0.3]), tau)
     assert ordinary is not None and np.linalg.norm(ordinary) < 2.0

@@ -17,7 +17,7 @@ from test_control import record_setpoints
 
 from app import schemas as s
 from app.config import load_profile
-from app.motion_stream import MAX_STEP_S
+from app.motion.stream import MAX_STEP_S
 from app.service import ArmService
 
 START, TARGET = [0.0, 0.3, 0.2], [1.2, 1.4, -0.6]

@@ -30,7 +30,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from app.config import ArmProfile, Settings, homed_at_start, load_profile
-from app.main import create_app
+from app.web.factory import create_app
 
 API = "/api/v1"
 RB = f"{API}/arms/rbe3001"

@@ -14,13 +14,13 @@ import pytest
 from _wait import wait_for
 
 from app.arms.rbe3001.driver import Rbe3001Driver
+from app.arms.rbe3001.sim import CYCLE_S, Rbe3001Firmware
 from app.config import load_profile
-from app.devices.factory import make_sim_device
+from app.device.factory import make_sim_device
 from app.links.serial import SerialLink
 from app.links.sim import SimLink
-from app.sim.rbe3001_firmware import CYCLE_S, Rbe3001Firmware
 from app.sim.serve import serve_tcp
-from app.telemetry import TelemetryHub
+from app.telemetry.hub import TelemetryHub
 from protocol import rbe3001 as rb
 
 
@@ -389,7 +389,7 @@ async def test_a_pass_through_write_is_followed_by_a_poll() -> None:
     """A register written through the Dynamixel pass-through (a goal, the LED) shows in a
     sample one bus round trip later, not at the next scheduled poll (issue 12: goal to the
     first sample that moved)."""
-    from app.devices.factory import make_driver
+    from app.device.factory import make_driver
     from protocol import mx28
 
     base = load_profile("angler")  # polled every 10 s

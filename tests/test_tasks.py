@@ -1,4 +1,5 @@
-"""app/tasks.py: `cancel_and_wait` ends a task even when the task loses a cancellation (Python
+"""app/runtime/tasks.py: `cancel_and_wait` ends a task even when the task loses a cancellation
+(Python
 3.11's `asyncio.wait_for` swallows one that arrives as its inner future completes, CPython
 gh-86296; a shutdown of the fuzzed server hung on a motion executor that went on looping)."""
 
@@ -8,7 +9,7 @@ import asyncio
 
 import pytest
 
-from app.tasks import cancel_and_wait
+from app.runtime.tasks import cancel_and_wait
 
 
 async def test_a_task_that_loses_the_first_cancellation_still_ends() -> None:

@@ -1,4 +1,4 @@
-"""The telemetry broadcast (app/api/ws_fanout.py) over a real uvicorn server on loopback:
+"""The telemetry broadcast (app/web/ws_fanout.py) over a real uvicorn server on loopback:
 clients of one arm at one rate are served by one task writing pre-built frames, and each
 still gets every sample once, in order, batched, with events; a client that changes its rate
 moves to that rate's broadcast; a client that negotiated compression gets its own sender."""
@@ -19,7 +19,7 @@ from websockets.asyncio.client import ClientConnection, connect
 from websockets.frames import Frame, Opcode
 from websockets.streams import StreamReader
 
-from app.api.ws_fanout import text_frame
+from app.web.ws_fanout import text_frame
 
 WS = "/api/v1/arms/{arm}/telemetry"
 

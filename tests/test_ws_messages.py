@@ -21,14 +21,14 @@ from conftest import LiveServer, serve_live
 from websockets.asyncio.client import ClientConnection, connect
 from websockets.exceptions import ConnectionClosed
 
-from app.api.telemetry import (
+from app.client.core import ws_close_error
+from app.web.routes.telemetry import (
     MAX_MESSAGE_DEPTH,
     MAX_RATE_HZ,
     MIN_RATE_HZ,
     BadMessage,
     parse_message,
 )
-from app.client.core import ws_close_error
 
 WS = "/api/v1/arms/{arm}/telemetry"
 #: How long a refused socket may take to close, s (it closes at once; the bound is for a busy

@@ -14,10 +14,10 @@ from pathlib import Path
 import pytest
 from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite
 
-from app.sim.dynamixel_bus import DynamixelBus
-from app.sim.mx28_servo import Mx28Servo
+from app.arms.dynamixel.sim_bus import DynamixelBus
+from app.arms.dynamixel.sim_mx28 import Mx28Servo
+from app.arms.dynamixel.sim_xm430 import Xm430Servo
 from app.sim.serve import main
-from app.sim.xm430_servo import Xm430Servo
 from kinematics import omx
 from protocol import dynamixel as dxl
 from protocol import xm430

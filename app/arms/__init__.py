@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from app.arms.base import ArmType
+    from app.arms.model import KinematicsModel
 
 #: Arm type name -> module of its package (the package's ``ARM`` is the ArmType).
 ARM_TYPES: dict[str, str] = {
@@ -22,7 +23,8 @@ ARM_TYPES: dict[str, str] = {
     "openmanipulator_x": "app.arms.openmanipulator_x",
 }
 
-__all__ = ["ARM_TYPES", "all_arm_types", "arm_routers", "arm_type", "builtin_profiles", "known"]
+__all__ = ["ARM_TYPES", "all_arm_types", "arm_routers", "arm_type", "builtin_profiles", "known",
+           "model_for"]
 
 _LOADED: dict[str, ArmType] = {}
 
@@ -54,6 +56,12 @@ def arm_type(name: str) -> ArmType:
         raise ValueError(f"{module}.ARM is named {t.name!r}, registered as {name!r}")
     _LOADED[name] = t
     return t
+
+
+def model_for(profile: Any) -> KinematicsModel:
+    """The kinematics model of `profile`'s arm type, bound to it (app/arms/model.py is the
+    contract; each arm type binds its own maths)."""
+    return arm_type(profile.model).model(profile)
 
 
 def all_arm_types() -> list[ArmType]:

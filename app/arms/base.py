@@ -16,7 +16,7 @@ How to add an arm type (docs/architecture.md says it at length):
 1. ``app/arms/<name>/__init__.py`` with ``ARM = ArmType(...)``; its profile(s) as
    ``app/arms/<name>/*.toml`` (``model = "<name>"``); ``model.py`` with a
    :class:`KinematicsModel` subclass binding the pure maths in ``kinematics/``;
-   the driver (a ``app.devices.base.Driver``) and the simulator (a device behind SimLink,
+   the driver (a ``app.device.driver.Driver``) and the simulator (a device behind SimLink,
    the same bytes as the hardware) where the package or app/sim/ keeps them.
 2. One line in ``ARM_TYPES`` (app/arms/__init__.py).
 """
@@ -33,10 +33,10 @@ from app.arms.model import Chain, ChainStep, KinematicsModel, Solution, chain_po
 
 if TYPE_CHECKING:
     from app.config import ArmProfile
-    from app.devices.base import Driver
+    from app.device.actuator import Actuator
     from app.links.base import Link
     from app.sim.base import SimDevice
-    from app.telemetry import TelemetryHub
+    from app.telemetry.hub import TelemetryHub
 
 __all__ = ["ArmType", "Chain", "ChainStep", "KinematicsModel", "Solution", "UsbMatch",
            "chain_points"]
@@ -70,8 +70,8 @@ class ArmType:
     joints: int
     #: ``model(profile)``: the kinematics model (see app/arms/model.py).
     model: Callable[[ArmProfile], KinematicsModel]
-    #: ``driver(profile, link, hub)``: the owner task of the arm's link (app/devices/base.py).
-    driver: Callable[[ArmProfile, Link, TelemetryHub], Driver]
+    #: ``driver(profile, link, hub)``: the owner task of the arm's link (app/device/driver.py).
+    driver: Callable[[ArmProfile, Link, TelemetryHub], Actuator]
     #: ``simulator(profile)``: the simulated hardware a ``kind = "sim"`` link talks to (a
     #: SimDevice answering the same bytes as the real device).
     simulator: Callable[[ArmProfile], SimDevice]

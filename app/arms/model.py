@@ -94,7 +94,7 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
 
 def chain_points(chain: Chain, q: Sequence[float]) -> np.ndarray:
     """Body points (B, 3) m of ``chain`` at joints ``q``: the base, then each step's point.
-    The reference for the dashboard's JavaScript (app/static/app.js `chainPoints`)."""
+    The reference for the dashboard's JavaScript (app/web/static/app.js `chainPoints`)."""
     rot, pos = np.eye(3), np.zeros(3)
     out = [pos.copy()]
     for st in chain.steps:

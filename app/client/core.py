@@ -124,7 +124,7 @@ def ws_handshake_error(exc: Exception) -> ArmServerError:
     return ConnectionFailed("connection_failed", f"telemetry: {type(exc).__name__}: {exc}", 0)
 
 
-#: Telemetry close codes that carry an error (app/api/telemetry.py): code -> (code, status).
+#: Telemetry close codes that carry an error (app/web/routes/telemetry.py): code -> (code, status).
 WS_CLOSE = {4401: ("unauthorized", 401), 4403: ("forbidden", 403), 4404: ("unknown_arm", 404),
             1008: ("invalid_request", 422), 1009: ("too_large", 413)}
 

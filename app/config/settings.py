@@ -62,14 +62,15 @@ class Settings(BaseSettings):
     def _mqtt_url(cls, v: str | None) -> str | None:
         if v is None or not v.strip():
             return None
-        from app.mqtt import parse_broker_url
+        from app.telemetry.mqtt import parse_broker_url
 
         try:
             parse_broker_url(v)
         except ValueError as exc:  # its message quotes the URL: password included
             raise ValueError(mask_url(str(exc))) from None
         return v.strip()
-    #: Run the arms (links, polls, motion) on their own thread and loop (app.control).
+    #: Run the arms (links, polls, motion) on their own thread and loop
+    #: (app.runtime.control_thread).
     control_thread: bool = True
     #: Largest request head (request line and headers), bytes: more is refused with 400 after
     #: that many bytes, before any parsing of the rest (uvicorn's h11 parser).
@@ -106,7 +107,7 @@ class Settings(BaseSettings):
                     or self.tokens_file)
 
     #: Host names an open server answers to besides its loopback names and bound host
-    #: (comma separated; `*`: any). See app/hostguard.py and README "Access and safety".
+    #: (comma separated; `*`: any). See app/web/hostguard.py and README "Access and safety".
     allowed_hosts: str = ""
 
     # ------------------------------------------------ validation (issue 11.5)

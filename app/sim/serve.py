@@ -26,9 +26,10 @@ import signal
 from collections.abc import Sequence
 from urllib.parse import urlsplit
 
+from app.arms.dynamixel.sim_bus import DynamixelBus
+from app.arms.dynamixel.sim_xm430 import Xm430Servo
 from app.config import FaultConfig
 from app.sim.base import SimDevice
-from app.sim.dynamixel_bus import DynamixelBus
 from app.sim.servers import PACKET_SIZE as PACKET_SIZE  # the servers, re-exported
 from app.sim.servers import READ_CHUNK as READ_CHUNK
 from app.sim.servers import REPLY_BACKLOG as REPLY_BACKLOG
@@ -37,7 +38,6 @@ from app.sim.servers import PtyServer as PtyServer
 from app.sim.servers import TcpServer as TcpServer
 from app.sim.servers import serve_pty as serve_pty
 from app.sim.servers import serve_tcp as serve_tcp
-from app.sim.xm430_servo import Xm430Servo
 from protocol.mx28 import HARDWARE_ERRORS, hardware_error_bits
 
 log = logging.getLogger(__name__)

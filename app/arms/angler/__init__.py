@@ -2,7 +2,7 @@
 Dynamixel MX-28 (2.0) servos on Protocol 2.0 through a U2D2. Package: the profile
 (angler.toml), the kinematics model and IK options (model.py, kinematics/pprp.py). Shared
 with every Dynamixel arm (app/arms/dynamixel/): the driver, the simulated bus
-(app/sim/dynamixel_bus.py) and the pass-through router (app/api/dynamixel.py)."""
+(app/arms/dynamixel/sim_bus.py) and the pass-through router (app/arms/dynamixel/api.py)."""
 
 from __future__ import annotations
 
@@ -15,10 +15,10 @@ from protocol import mx28
 
 if TYPE_CHECKING:
     from app.config import ArmProfile
-    from app.devices.base import Driver
+    from app.device.driver import Driver
     from app.links.base import Link
     from app.sim.base import SimDevice
-    from app.telemetry import TelemetryHub
+    from app.telemetry.hub import TelemetryHub
 
 
 def _driver(profile: ArmProfile, link: Link, hub: TelemetryHub) -> Driver:

@@ -11,12 +11,12 @@ from typing import TYPE_CHECKING
 from app.arms.base import UsbMatch
 
 if TYPE_CHECKING:
+    from app.arms.dynamixel.sim_mx28 import Mx28Servo
     from app.config import ArmProfile
     from app.sim.base import SimDevice
-    from app.sim.mx28_servo import Mx28Servo
 
 #: The Dynamixel pass-through routes (generic, parameterised by the arm's control table).
-ROUTER = "app.api.dynamixel"
+ROUTER = "app.arms.dynamixel.api"
 #: The ROBOTIS U2D2 (FTDI FT232H); its latency timer defaults to 16 ms, ROBOTIS says 1 ms.
 U2D2 = UsbMatch("serial", 0x0403, 0x6014, "dynamixel-u2d2", ftdi_latency=True)
 
@@ -26,7 +26,7 @@ def simulated_bus(profile: ArmProfile, servo: type[Mx28Servo] | None = None,
     """A simulated bus holding the profile's servos (its joints' `motor_id`s, then
     `extra_ids`, e.g. a gripper's servo) at the link's baud rate, in the joints' operating
     modes; `servo` is the servo class of them all (default MX-28, e.g. an XM430 class)."""
-    from app.sim.dynamixel_bus import DynamixelBus
+    from app.arms.dynamixel.sim_bus import DynamixelBus
 
     modes = {int(j.motor_id): j.operating_mode for j in profile.joints
              if j.motor_id is not None and j.operating_mode is not None}

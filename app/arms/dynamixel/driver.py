@@ -10,14 +10,14 @@ address 126) is read as 0.1 % of the stall torque (the chain's default effort un
 
 from __future__ import annotations
 
-from app.arms.dynamixel.chain import (
+from app.arms.dynamixel.exchange import DxlRequest
+from app.arms.dynamixel.faults import FAULT_BITS, decode_faults, fault_advice
+from app.arms.dynamixel.servos import (
     BOOT_WAIT_S,
     FAULT_REFRESH_S,
     POWER_CHECK_S,
     DynamixelChainDriver,
 )
-from app.arms.dynamixel.exchange import DxlRequest
-from app.arms.dynamixel.faults import FAULT_BITS, decode_faults, fault_advice
 from app.errors import NoGripper
 
 __all__ = ["BOOT_WAIT_S", "FAULT_BITS", "FAULT_REFRESH_S", "POWER_CHECK_S", "DxlRequest",

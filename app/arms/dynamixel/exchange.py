@@ -14,7 +14,7 @@ import asyncio
 from dataclasses import dataclass
 from typing import Any
 
-from app.devices.base import Driver
+from app.device.driver import Driver
 from app.errors import CorruptReply, DeviceError, DeviceTimeout
 from protocol import dynamixel as dxl
 from protocol.mx28 import ControlItem

@@ -3,8 +3,8 @@ on five Dynamixel XM430-W350-T servos, Protocol 2.0 through a U2D2. Package: the
 (openmanipulator_x.toml, citing the ROBOTIS e-manual), the kinematics model (model.py,
 kinematics/omx.py, with the wrist's pitch), the driver (driver.py, a Dynamixel servo chain
 with the gripper servo) and the simulated bus of XM430s (protocol/xm430.py's control table,
-app/sim/xm430_servo.py). Shared with every Dynamixel arm (app/arms/dynamixel.py): the
-pass-through router (app/api/dynamixel.py, here on the XM430 table) and the U2D2's USB ids.
+app/arms/dynamixel/sim_xm430.py). Shared with every Dynamixel arm (app/arms/dynamixel.py): the
+pass-through router (app/arms/dynamixel/api.py, here on the XM430 table) and the U2D2's USB ids.
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from protocol import xm430
 
 if TYPE_CHECKING:
     from app.config import ArmProfile
-    from app.devices.base import Driver
+    from app.device.driver import Driver
     from app.links.base import Link
     from app.sim.base import SimDevice
-    from app.telemetry import TelemetryHub
+    from app.telemetry.hub import TelemetryHub
 
 
 def _driver(profile: ArmProfile, link: Link, hub: TelemetryHub) -> Driver:
@@ -32,8 +32,8 @@ def _driver(profile: ArmProfile, link: Link, hub: TelemetryHub) -> Driver:
 
 def _simulator(profile: ArmProfile) -> SimDevice:
     """The joints' and the gripper's servos, every one an XM430-W350, in their modes."""
-    from app.sim.dynamixel_bus import DynamixelBus
-    from app.sim.xm430_servo import Xm430Servo
+    from app.arms.dynamixel.sim_bus import DynamixelBus
+    from app.arms.dynamixel.sim_xm430 import Xm430Servo
 
     modes = {int(j.motor_id or 0): j.operating_mode for j in profile.joints
              if j.operating_mode is not None}

@@ -1,5 +1,5 @@
 """The OpenManipulator-X driver: five XM430-W350-T servos on Protocol 2.0 through a U2D2, a
-Dynamixel servo chain (app/arms/dynamixel/chain.py: polling, set-up, faults, reboot,
+Dynamixel servo chain (app/arms/dynamixel/servos.py: polling, set-up, faults, reboot,
 pass-through). Its own parts:
 
 - Effort: the XM430's item 126 is Present Current (about 2.69 mA a unit, e-manual

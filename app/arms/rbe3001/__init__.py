@@ -1,7 +1,7 @@
 """The RBE3001 arm type: a 3-DOF RRR arm on the WPI RBE3001 Nucleo firmware, 64-byte HID
 packets (protocol/rbe3001.py). Package: the profile (rbe3001.toml), the kinematics model
 (model.py, kinematics/rrr.py), the driver (driver.py), the pass-through routes (api.py); the
-simulated firmware stays in app/sim/rbe3001_firmware.py."""
+simulated firmware stays in app/arms/rbe3001/sim.py."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ from app.arms.rbe3001.model import RrrModel
 
 if TYPE_CHECKING:
     from app.config import ArmProfile
-    from app.devices.base import Driver
+    from app.device.driver import Driver
     from app.links.base import Link
     from app.sim.base import SimDevice
-    from app.telemetry import TelemetryHub
+    from app.telemetry.hub import TelemetryHub
 
 
 def _driver(profile: ArmProfile, link: Link, hub: TelemetryHub) -> Driver:
@@ -25,7 +25,7 @@ def _driver(profile: ArmProfile, link: Link, hub: TelemetryHub) -> Driver:
 
 
 def _simulator(profile: ArmProfile) -> SimDevice:
-    from app.sim.rbe3001_firmware import Rbe3001Firmware
+    from app.arms.rbe3001.sim import Rbe3001Firmware
 
     return Rbe3001Firmware(profile)
 

@@ -15,11 +15,11 @@ import numpy as np
 from fastapi import APIRouter
 
 from app import schemas as s
-from app.api.common import DEVICE, errors
 from app.arms.rbe3001.driver import Rbe3001Driver
-from app.deps import ControlArm
 from app.errors import InvalidRequest
 from app.service import ArmService
+from app.web.deps import ControlArm
+from app.web.routes.common import DEVICE, errors
 from protocol import rbe3001 as rb
 
 router = APIRouter(prefix="/arms/{arm}/rbe3001", tags=["rbe3001"])

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from app.devices.base import Driver
+from app.device.driver import Driver
 from app.errors import CorruptReply, DeviceError, DeviceTimeout
 from protocol import rbe3001 as rb
 

@@ -1,0 +1,253 @@
+"""Dynamixel Protocol 2.0 pass-through: ping, registers by control-table name, SYNC read and
+write, reboot. Raw register values (`raw`), named by the arm's control table (its arm type's
+`control_table`, e.g. protocol/mx28.py for the MX-28; the XM430's has the same layout). One
+router for every Dynamixel arm type: it names none.
+
+Every check happens before anything is sent: the name must be in the table (422
+`unknown_register`), a write must be to a writable item (422 `read_only`) and within the item's
+raw range (422 `out_of_range`), and a `goal_position` must be for one of the arm's motors; goal
+positions, one or several, are then checked like a planned move from where the arm is, on the
+control thread (`ArmService.command_passthrough`). Writes and reboots are refused while the
+estop is latched, except the safe ones: torque off and the LED. Reads may name any id
+(the bus may carry other servos).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Annotated, Any, cast
+
+from fastapi import APIRouter, Body, Path
+
+from app import schemas as s
+from app.arms import arm_type
+from app.errors import InUse, OutOfRange, ReadOnly, UnknownId, UnknownRegister
+from app.service import ArmService
+from app.web.deps import ControlArm
+from app.web.routes.common import DEVICE, errors
+from protocol import mx28
+
+if TYPE_CHECKING:
+    from app.arms.dynamixel.exchange import DynamixelBusDriver
+
+router = APIRouter(prefix="/arms/{arm}/dynamixel", tags=["dynamixel"])
+
+DxlId = Annotated[int, Path(ge=0, le=252, description="Dynamixel id")]
+RegName = Annotated[str, Path(max_length=64, description="control-table item, e.g. goal_position")]
+
+_NOT_SUPPORTED = "409 `not_supported` on an arm that does not speak Dynamixel."
+
+
+def _driver(svc: ArmService) -> DynamixelBusDriver:
+    svc.require_protocol("dynamixel")
+    return cast("DynamixelBusDriver", svc.driver)  # a Dynamixel arm's: checked just above
+
+
+def _table(svc: ArmService) -> Any:
+    """The arm's control table module (protocol/mx28.py's shape); the MX-28's by default."""
+    return arm_type(svc.profile.model).control_table or mx28
+
+
+def _item(svc: ArmService, name: str) -> mx28.ControlItem:
+    try:
+        item: mx28.ControlItem = _table(svc).item(name)
+    except KeyError as exc:
+        raise UnknownRegister(str(exc.args[0])) from None
+    return item
+
+
+def _joint_of(svc: ArmService, dxl_id: int) -> int:
+    for k, j in enumerate(svc.profile.joints):
+        if j.motor_id == dxl_id:
+            return k
+    ids = ", ".join(str(j.motor_id) for j in svc.profile.joints)
+    raise UnknownId(f"id {dxl_id} is not a motor of {svc.name} (its ids: {ids}); "
+                    "goal_position writes go only to the arm's own motors")
+
+
+_PROFILE = "the arm profile's {what} (then restart the server)"
+_REBOOT = "POST /api/v1/arms/{arm}/dynamixel/{id}/reboot, which sets the servo up again"
+#: Items the driver relies on for the arm's own servos, each with why and with the route (or
+#: the profile setting) that changes it properly: how the driver addresses the servos, at what
+#: speed and protocol they answer, how a goal is read, and every limit and profile it sets so
+#: that a servo cannot outrun the planned trajectory (`profile_velocity` 32767 removed the
+#: speed cap). Writing one through pass-through is 409 `in_use` unless the profile allows raw
+#: access.
+DRIVER_SETTINGS: dict[str, tuple[str, str]] = {
+    "id": ("the driver addresses the servo by it", _PROFILE.format(what="joints.motor_id")),
+    "secondary_id": ("a shared id would answer for several servos",
+                     _PROFILE.format(what="joints.motor_id")),
+    "baud_rate": ("the link runs at one rate", _PROFILE.format(what="link.baudrate")),
+    "protocol_version": ("the driver speaks Protocol 2.0", "none: the driver needs 2.0"),
+    "status_return_level": ("the driver needs a reply to every instruction",
+                            "none: the driver needs level 2"),
+    "return_delay_time": ("replies must come within the link timeout",
+                          _PROFILE.format(what="link.timeout_s")),
+    "operating_mode": ("the driver commands positions in the profile's mode", _REBOOT),
+    "drive_mode": ("direction and profile type are the driver's",
+                   _PROFILE.format(what="joints.sign")),
+    "homing_offset": ("joint positions are read through it", "POST /api/v1/arms/{arm}/home"),
+    "velocity_limit": ("it bounds the joint's speed",
+                       _PROFILE.format(what="joints.max_velocity")),
+    "acceleration_limit": ("it bounds the joint's acceleration",
+                           _PROFILE.format(what="joints.max_acceleration")),
+    "max_position_limit": ("it keeps the joint within its range",
+                           _PROFILE.format(what="joints.max")),
+    "min_position_limit": ("it keeps the joint within its range",
+                           _PROFILE.format(what="joints.min")),
+    "profile_velocity": ("it caps the servo's speed at the joint's velocity limit",
+                         "the move routes' `speed` and `duration` (POST /api/v1/arms/{arm}/"
+                         "move/joints)"),
+    "profile_acceleration": ("it caps the servo's acceleration",
+                             "the move routes' `speed` and `duration` (POST /api/v1/arms/"
+                             "{arm}/move/joints)"),
+    "shutdown": ("it says which faults turn the torque off to protect the servo", _REBOOT),
+}
+
+
+def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int) -> None:
+    """Everything a write must pass before it is queued."""
+    if not item.writable:
+        raise ReadOnly(f"{item.name} is read-only")
+    if not item.min_raw <= raw <= item.max_raw:
+        raise OutOfRange(f"{item.name} takes raw values {item.min_raw}..{item.max_raw}, "
+                         f"got {raw}")
+    if item.name in DRIVER_SETTINGS and not svc.profile.raw_access and (any(
+            j.motor_id == dxl_id for j in svc.profile.joints)
+            or dxl_id == svc.profile.gripper.motor_id):  # a gripper's own servo is the arm's
+        why, route = DRIVER_SETTINGS[item.name]
+        raise InUse(f"{item.name} of servo {dxl_id} is set by the {svc.name} driver ({why}); "
+                    f"change it with {route.format(arm=svc.name, id=dxl_id)}. Pass-through "
+                    "may not write it: the profile does not allow raw access")
+    if item.name == "goal_position":
+        _joint_of(svc, dxl_id)  # checked with the others' goals: `_send`
+    elif not _safe(item, raw):
+        svc.require_motion_allowed()
+
+
+def _safe(item: mx28.ControlItem, raw: int) -> bool:
+    """Writes that cannot move the arm, allowed while the estop is latched: torque off, LED."""
+    return item.name == "led" or (item.name == "torque_enable" and raw == 0)
+
+
+async def _send(svc: ArmService, item: mx28.ControlItem, values: dict[int, int],
+                send: Callable[[bool], Awaitable[None]]) -> None:
+    """Send checked writes; goal positions of the arm's joints, one or several, go through
+    the arm's pass-through gate together (checked like a planned move from where the arm is,
+    on the control thread). `send(gated)`: gated unless every write is a safe one."""
+    if item.name == "goal_position":
+        goals = {_joint_of(svc, i): float(raw) for i, raw in values.items()}
+        await svc.command_passthrough(goals, lambda: send(True))
+        return
+    await send(not all(_safe(item, raw) for raw in values.values()))
+
+
+def _value(svc: ArmService, dxl_id: int, item: mx28.ControlItem, raw: int) -> s.RegisterValue:
+    return s.RegisterValue(id=dxl_id, name=item.name, address=item.address, size=item.size,
+                           raw=raw, unit=item.unit, value=_table(svc).to_unit(item, raw))
+
+
+@router.post(
+    "/ping",
+    response_model=s.PingResult,
+    summary="PING one id, or every id on the bus",
+    description="With `id`: that servo's model number and firmware version, or an empty list "
+    "if no servo answers (an absent servo is an answer). Without (or with no body): a "
+    "broadcast ping, answering every servo that replied. " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def ping(svc: ControlArm,
+               req: Annotated[s.PingRequest | None, Body()] = None) -> s.PingResult:
+    found = await _driver(svc).ping(req.id if req is not None else None)
+    return s.PingResult(devices=[s.PingDevice(id=i, model_number=m, firmware_version=f)
+                                 for i, m, f in found])
+
+
+@router.get(
+    "/{dxl_id}/registers/{name}",
+    response_model=s.RegisterValue,
+    summary="READ one control-table item",
+    description="The raw value and, where the item has a unit, the value in it (e.g. deg). "
+    "422 `unknown_register` for a name not in the arm's control table. Operator token (it uses the "
+    "bus). " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def read_register(svc: ControlArm, dxl_id: DxlId, name: RegName) -> s.RegisterValue:
+    drv = _driver(svc)
+    item = _item(svc, name)
+    return _value(svc, dxl_id, item, await drv.read_register(dxl_id, item))
+
+
+@router.put(
+    "/{dxl_id}/registers/{name}",
+    response_model=s.RegisterValue,
+    summary="WRITE one control-table item",
+    description="Writes `raw`. 422 `unknown_register`, `read_only`, `out_of_range`; "
+    "`goal_position` only to the arm's motors (422 `unknown_id`) and within the joint limits "
+    "(422 `joint_limit`); 409 `in_use`, naming the route that changes it, for the settings the "
+    "driver relies on (" + ", ".join(DRIVER_SETTINGS) + ") of the arm's own servos unless the "
+    "profile allows raw access; 409 `estop_latched` for anything but torque "
+    "off and the LED while the estop is latched. Answers the value written. " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def write_register(svc: ControlArm, dxl_id: DxlId, name: RegName,
+                         req: s.RegisterWrite) -> s.RegisterValue:
+    drv = _driver(svc)
+    item = _item(svc, name)
+    _check_write(svc, item, dxl_id, req.raw)
+    await _send(svc, item, {dxl_id: req.raw},
+                lambda gated: drv.write_register(dxl_id, item, req.raw, gated=gated))
+    return _value(svc, dxl_id, item, req.raw)
+
+
+@router.post(
+    "/sync-read",
+    response_model=s.SyncReadResult,
+    summary="SYNC_READ one item from several ids",
+    description="One instruction, one status packet per id (ids answered in the order asked, "
+    "duplicates removed). " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def sync_read(svc: ControlArm, req: s.SyncReadRequest) -> s.SyncReadResult:
+    drv = _driver(svc)
+    item = _item(svc, req.name)
+    ids = list(dict.fromkeys(req.ids))
+    return s.SyncReadResult(name=item.name, values=await drv.sync_read(item, ids))
+
+
+@router.post(
+    "/sync-write",
+    response_model=s.Ack,
+    summary="SYNC_WRITE one item to several ids",
+    description="Every value is checked as for a single write before the one instruction is "
+    "sent (all or nothing); goal positions of the arm's joints are checked together, as one "
+    "command from where the arm is (joint limits, keep-out zones and floor along the path "
+    "each servo takes at its Profile Velocity, raw access too). " + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def sync_write(svc: ControlArm, req: s.SyncWriteRequest) -> s.Ack:
+    drv = _driver(svc)
+    item = _item(svc, req.name)
+    values = dict(req.values)
+    for dxl_id, raw in values.items():
+        _check_write(svc, item, dxl_id, raw)
+    await _send(svc, item, values, lambda gated: drv.sync_write(item, values, gated=gated))
+    return s.Ack(command=f"SYNC_WRITE {item.name}")
+
+
+@router.post(
+    "/{dxl_id}/reboot",
+    response_model=s.Ack,
+    summary="REBOOT one servo (clears a hardware fault)",
+    description="One REBOOT (never a factory reset): the servo restarts with its RAM defaults, "
+    "which clears a hardware error. One of the arm's servos is then set up again as at "
+    "connect (operating mode, profile velocity, goal = present position, torque on); a joint "
+    "that needs homing comes back not homed. Works while the arm has a fault; refused while "
+    "the estop is latched (409 `estop_latched`) or a motion runs or is queued (409 `busy`). "
+    + _NOT_SUPPORTED,
+    responses=errors(*DEVICE),
+)
+async def reboot(svc: ControlArm, dxl_id: DxlId) -> s.Ack:
+    _driver(svc)
+    await svc.reboot(dxl_id)
+    return s.Ack(command=f"REBOOT {dxl_id}")

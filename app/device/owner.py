@@ -1,0 +1,365 @@
+"""The owner task of one arm's link and the samples it publishes: the machinery under
+`Driver` (app/device/driver.py), which holds the state it works on and the protocol exchange.
+
+Requests from `Driver.submit` wait in a bounded queue; the owner task opens the link (capped
+exponential backoff), serves requests one at a time, polls at the profile's rate between them
+and publishes each sample (tip, tip velocity and tip force reused while readings repeat).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from app.errors import ArmError, DeviceError, DeviceTimeout, LinkDown
+from app.links.base import Link, LinkError, LinkState
+from app.telemetry.hub import TelemetryHub
+
+if TYPE_CHECKING:
+    from app.arms.model import KinematicsModel
+    from app.config import ArmProfile
+
+#: The driver's logger, as before the owner task had a module of its own.
+log = logging.getLogger("app.device.driver")
+
+#: First and last reconnect delay, s: quick enough to recover a replugged cable within a second,
+#: slow enough not to spin on a port that is gone.
+BACKOFF_FIRST_S = 0.1
+BACKOFF_MAX_S = 2.0
+#: A poll may run this much before its slot: epoll rounds waits up to whole milliseconds, so
+#: waiting for the exact slot would stretch a 2 ms period to 3. The schedule stays absolute.
+POLL_EARLY_S = 0.001
+#: Polls a stalled loop may catch up on back to back (10 periods: 20 ms at 500 Hz) before
+#: it skips ahead instead; a short stall then costs no sample, a long one no burst.
+POLL_CATCH_UP = 10
+#: Consecutive failed polls before samples are marked stale and an event is sent.
+STALE_AFTER = 3
+
+
+@dataclass
+class _Request:
+    message: Any
+    future: asyncio.Future[Any]
+    timeout: float
+    queued_at: float = field(default_factory=time.monotonic)
+    #: A command that moves the arm: `motion_gate` is asked just before it is written (the
+    #: estop latch wins over a command queued before it), and `on_send` notes it as sent.
+    gated: bool = False
+    on_send: Callable[[], None] | None = None
+
+
+class OwnerTask:
+    """The owner task and the samples of a `Driver`: everything here runs in the owner task,
+    on the loop the driver was started on. `Driver.__init__` sets the state below; `Driver`
+    (or its subclass) gives the exchange, the poll and the hooks."""
+
+    profile: ArmProfile
+    link: Link
+    hub: TelemetryHub
+    model: KinematicsModel
+    motion_gate: Callable[[], None] | None
+    _queue: asyncio.Queue[_Request]
+    _idle: asyncio.Future[None] | None
+    _poll_now: bool
+    _derived_key: tuple[list[float], list[float], list[float] | None] | None
+    _derived: tuple[Any, Any, Any] | None
+    _seq: int
+    _poll_failures: int
+    stale: bool
+    stale_error: ArmError | None
+    last_error: str | None
+    stats: dict[str, int]
+    gripper: float | None
+    positions: np.ndarray | None
+    velocities: np.ndarray | None
+    faults: list[dict[str, Any]]
+    homed: list[bool]
+    torques_raw: np.ndarray | None
+    torque_tare: np.ndarray | None
+
+    if TYPE_CHECKING:  # Driver's
+        @property
+        def name(self) -> str: ...
+
+        async def _exchange(self, message: Any, timeout: float) -> Any: ...
+
+        async def _poll(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]: ...
+
+        async def _on_connected(self) -> None: ...
+
+        def _reset_reader(self) -> None: ...
+
+        def forget_commanded(self, joints: Any = None) -> None: ...
+
+    # ------------------------------------------------------------ owner task
+
+    async def _run(self) -> None:
+        delay = BACKOFF_FIRST_S
+        was_up = False
+        while True:
+            self.link.state = LinkState.CONNECTING
+            try:
+                await self.link.open()
+                self._reset_reader()
+                self.forget_commanded()  # what the device holds now is its own
+                await self._on_connected()
+            except LinkError as exc:
+                self._lost(str(exc), was_up)
+                was_up = False
+                await self.link.close()
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, BACKOFF_MAX_S)
+                continue
+            except ArmError as exc:  # device did not answer its set-up: retry like a lost link
+                self.link.state = LinkState.DOWN
+                self.link.last_error = f"device set-up failed: {exc.detail}"
+                self._lost(self.link.last_error, was_up)
+                was_up = False
+                await self.link.close()
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, BACKOFF_MAX_S)
+                continue
+            delay = BACKOFF_FIRST_S
+            self.link.state = LinkState.UP
+            self.link.last_error = None
+            self.last_error = None
+            log.info("%s: link up (%s %s)", self.name, self.link.kind, self.link.address)
+            if self.stats["reconnects"] or was_up:
+                self.hub.event("link_back", kind=self.link.kind)
+            was_up = True
+            try:
+                await self._session()
+            except LinkError as exc:
+                self.stats["reconnects"] += 1
+                self._lost(str(exc), True)
+                await self.link.close()
+                await asyncio.sleep(delay)
+            except Exception as exc:  # a bug must not end the link task: start the link afresh
+                log.exception("%s: link session failed", self.name)
+                self.stats["reconnects"] += 1
+                self._lost(f"internal error: {type(exc).__name__}: {exc}", True)
+                await self.link.close()
+                await asyncio.sleep(delay)
+
+    def _lost(self, reason: str, announce: bool) -> None:
+        self.link.state = LinkState.DOWN
+        self.link.last_error = reason
+        changed = self.last_error != reason
+        self.last_error = reason
+        self.stale = True
+        self._fail_pending(LinkDown(f"{self.name} link lost: {reason}"))
+        if announce:
+            log.warning("%s: link lost: %s", self.name, reason)
+            self.hub.event("link_lost", reason=reason)
+        elif changed:
+            log.warning("%s: cannot open link: %s", self.name, reason)
+        self._publish_stale()
+
+    def _fail_pending(self, exc: ArmError) -> None:
+        while not self._queue.empty():
+            req = self._queue.get_nowait()
+            if not req.future.done():
+                req.future.set_exception(exc)
+
+    async def _session(self) -> None:
+        period = 1.0 / self.profile.link.poll_hz
+        loop = asyncio.get_running_loop()
+        next_poll = loop.time()
+        polled = False  # the last thing done was a poll
+        while True:
+            now = loop.time()
+            due = now >= next_poll - POLL_EARLY_S
+            # A queued request goes between two polls even when the next one is already due:
+            # polls that fall behind (a slow bus, a loaded machine) catch up back to back,
+            # and a setpoint stream must not wait for the whole catch-up (it did: an executor
+            # held up for hundreds of milliseconds behind its own arm's polls).
+            if self._poll_now or (due and not (polled and not self._queue.empty())):
+                self._poll_now = False
+                await self._do_poll()
+                polled = True
+                if due:  # a poll a request asked for (`poll_after`) leaves the schedule as it was
+                    next_poll += period
+                    if next_poll < loop.time() - POLL_CATCH_UP * period:  # far behind: skip
+                        next_poll = loop.time() + period
+                continue
+            try:
+                req = self._queue.get_nowait()
+            except asyncio.QueueEmpty:
+                await self._idle_until(loop, next_poll - POLL_EARLY_S)
+                continue
+            polled = False
+            await self._serve(req)
+
+    async def _idle_until(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
+        """Wait for a request or loop time `when`, whichever is first: one bare future and one
+        timer the loop keeps (no task: `asyncio.wait_for` makes one per call on Python 3.11,
+        at every poll that was most of an idle arm's cost). `submit` resolves the future."""
+        fut = loop.create_future()
+        self._idle = fut
+        timer = loop.call_at(when, _resolve, fut)
+        try:
+            await fut
+        finally:
+            self._idle = None
+            timer.cancel()
+
+    def _wake_owner(self) -> None:
+        """A request was queued: end the owner task's idle wait (from any thread)."""
+        fut = self._idle
+        if fut is None or fut.done():
+            return
+        loop = fut.get_loop()
+        try:
+            same = asyncio.get_running_loop() is loop
+        except RuntimeError:
+            same = False
+        if same:
+            fut.set_result(None)
+        else:
+            loop.call_soon_threadsafe(_resolve, fut)
+
+    async def _serve(self, req: _Request) -> None:
+        if req.future.done():  # the caller gave up (cancelled) while queued
+            return
+        self.stats["requests"] += 1
+        try:
+            if req.gated and self.motion_gate is not None:
+                self.motion_gate()  # raises (EstopLatched): nothing is written
+            if req.on_send is not None:
+                req.on_send()
+            reply = await self._exchange(req.message, req.timeout)
+        except LinkError:
+            if not req.future.done():
+                req.future.set_exception(LinkDown(f"{self.name} link lost during the request"))
+            raise
+        except asyncio.CancelledError:
+            if not req.future.done():
+                req.future.set_exception(LinkDown(f"{self.name}: driver stopping"))
+            raise
+        except Exception as exc:  # a bug or unencodable request: fail it, keep the link task
+            if isinstance(exc, ArmError):
+                err: ArmError = exc
+                if isinstance(exc, DeviceTimeout):
+                    self.stats["timeouts"] += 1
+                    self._reset_reader()
+            else:
+                log.exception("%s: request %r failed", self.name, req.message)
+                err = DeviceError(f"{self.name}: cannot send the request: {exc}")
+            if not req.future.done():
+                req.future.set_exception(err)
+            return
+        self.stats["replies"] += 1
+        if getattr(req.message, "poll_after", False):
+            self._poll_now = True  # taken next, ahead of the schedule and of queued requests
+        if not req.future.done():
+            req.future.set_result(reply)
+
+    async def _do_poll(self) -> None:
+        self.stats["polls"] += 1
+        try:
+            q, qd, tau = await self._poll()
+        except LinkError:
+            raise
+        except (ArmError, ValueError, ArithmeticError) as exc:
+            if not isinstance(exc, ArmError):  # a reply our conversions could not take
+                log.warning("%s: poll reply not usable: %s", self.name, exc)
+                exc = DeviceError(f"{self.name}: poll reply not usable: {exc}")
+            self.stats["poll_failures"] += 1
+            if isinstance(exc, DeviceTimeout):
+                self._reset_reader()
+            self._poll_failures += 1
+            if self._poll_failures == STALE_AFTER:
+                self.stale = True
+                self.stale_error = exc
+                self.last_error = exc.detail
+                log.warning("%s: device not answering polls: %s", self.name, exc.detail)
+                self.hub.event("device_stale", reason=exc.detail, code=exc.code)
+                self._publish_stale()
+            return
+        if self._poll_failures >= STALE_AFTER:
+            log.info("%s: device answering again", self.name)
+            self.hub.event("device_back")
+        self._poll_failures = 0
+        self.stale = False
+        self.stale_error = None
+        self.positions, self.velocities = q, qd
+        self.torques_raw = tau
+        self._publish(q, qd, self._tared(tau), stale=False)
+
+    # ------------------------------------------------------------ samples
+
+    def _publish(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray | None, stale: bool) -> None:
+        self._seq += 1
+        positions = q.tolist()
+        velocities = qd.tolist()
+        torques = None if tau is None else tau.tolist()
+        # An arm at rest reads the same values poll after poll: its tip, tip velocity and tip
+        # force are then those of the last sample, not worth a forward kinematics, a Jacobian
+        # and a solve again (most of a sample's cost; the encoded bytes are the same).
+        key = (positions, velocities, torques)
+        if key == self._derived_key and self._derived is not None:
+            tip, tip_v, force = self._derived
+        else:
+            m = self.model
+            J = m.jacobian(q)
+            tip, tip_v, force = m.tip(q), _vec(J @ qd), None  # tip: with pitch for a wrist
+            if tau is not None:
+                f = m.tip_force(q, tau, J)
+                if f is not None and np.all(np.isfinite(f)):
+                    force = _vec(f)
+            self._derived_key, self._derived = key, (tip, tip_v, force)
+        sample: dict[str, Any] = {
+            "seq": self._seq,
+            "time": time.time(),
+            "positions": positions,
+            "velocities": velocities,
+            "torques": torques,
+            "tip": tip,
+            "tip_velocity": tip_v,
+            "tip_force": force,
+            "gripper": self.gripper,
+            "motion": None,
+            "estop": False,
+            "link": self.link.state.value,
+            "stale": stale,
+            "faults": list(self.faults),
+            "homed": list(self.homed),
+        }
+        self.hub.publish(sample)  # the arm's hub adds the estop, motion, fault and homing fields
+
+    def publish_state(self) -> None:
+        """Publish the latest reading again, at once, with the arm's state as it is now: for a
+        change of state a client must see without waiting for the next reading (an estop's
+        latch; like `stale` when the link is lost). The next poll's reading follows as it comes.
+        Nothing before the first reading; a stale arm's sample stays stale."""
+        if self.stale:
+            self._publish_stale()
+        elif self.positions is not None and self.velocities is not None:
+            self._publish(self.positions, self.velocities, self._tared(self.torques_raw),
+                          stale=False)
+
+    def _tared(self, tau: np.ndarray | None) -> np.ndarray | None:
+        """Raw torques less the tare (None: no torques)."""
+        if tau is not None and self.torque_tare is not None:
+            tared: np.ndarray = tau - self.torque_tare
+            return tared
+        return tau
+
+    def _publish_stale(self) -> None:
+        if self.positions is not None and self.velocities is not None:
+            self._publish(self.positions, np.zeros_like(self.velocities), None, stale=True)
+
+
+def _resolve(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)
+
+
+def _vec(v: np.ndarray) -> dict[str, float]:
+    return {"x": float(v[0]), "y": float(v[1]), "z": float(v[2])}
