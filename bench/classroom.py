@@ -1,4 +1,5 @@
-"""The classroom's figures (app/classroom.py, app/audit.py), in-process over the simulated arms.
+"""The classroom's figures (app/classroom/queue.py, app/classroom/audit.py), in-process over the
+simulated arms.
 
 Run: ``python bench/classroom.py``. Prints
 
@@ -28,7 +29,7 @@ import httpx
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.config import Settings  # noqa: E402
-from app.main import create_app  # noqa: E402
+from app.web.factory import create_app  # noqa: E402
 
 STUDENTS = 8
 SLOT_S = 1.0

@@ -1,4 +1,4 @@
-"""Thread or process for the control loop (app/control.py)? What one crossing costs.
+"""Thread or process for the control loop (app/runtime/control_thread.py)? What one crossing costs.
 
     python bench/crossing.py [--n 5000]
 
@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from app.control import ControlThread  # noqa: E402
+from app.runtime.control_thread import ControlThread  # noqa: E402
 
 SAMPLE = {"seq": 1, "time": 0.0, "positions": [0.1, 0.2, 0.3], "velocities": [0.0, 0.0, 0.0],
           "torques": None, "tip": {"x": 0.1, "y": 0.2, "z": 0.3},

@@ -68,7 +68,7 @@ async def driver_rate(path: str, seconds: float) -> tuple[float, int, float]:
     from app.arms.dynamixel.driver import DynamixelDriver
     from app.config import load_profile
     from app.links.serial import SerialLink
-    from app.telemetry import TelemetryHub
+    from app.telemetry.hub import TelemetryHub
     from protocol import mx28
 
     profile = load_profile("angler")

@@ -1,4 +1,4 @@
-"""How fast the safety envelope checks a trajectory (app/envelope.py).
+"""How fast the safety envelope checks a trajectory (app/safety/envelope.py).
 
 Run: ``python bench/envelope.py``. For both arms, with 4 keep-out zones and a floor, prints
 

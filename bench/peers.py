@@ -30,7 +30,7 @@ PY = str(ROOT / ".venv" / "bin" / "python")
 SIMS = """
 import asyncio, sys
 from app.config import load_profile
-from app.devices.factory import make_sim_device
+from app.device.factory import make_sim_device
 from app.sim.serve import serve_tcp
 async def main():
     servers = [await serve_tcp(make_sim_device(load_profile(n))) for n in ("rbe3001", "angler")]

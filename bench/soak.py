@@ -48,7 +48,7 @@ from websockets.asyncio.client import connect  # noqa: E402
 from websockets.exceptions import ConnectionClosed  # noqa: E402
 
 from app.config import FaultConfig, Settings  # noqa: E402
-from app.main import create_app  # noqa: E402
+from app.web.factory import create_app  # noqa: E402
 
 API = "/api/v1"
 #: Codes a request may fail with under link faults and concurrent use (API.md, app/errors.py).

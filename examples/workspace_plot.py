@@ -1,6 +1,6 @@
 """Workspace of each arm: tip positions reachable within the joint limits, side and top views.
 
-Offline by default (the arm model from the built-in profiles: `app.arm_model.ArmModel`);
+Offline by default (the arm model from the built-in profiles: `app.arms.model_for`);
 with `--url` it asks a running server's `GET /workspace` instead, so the plot shows what that
 server's profiles allow. Writes docs/workspace_<arm>.png.
 
@@ -29,11 +29,11 @@ DOCS = Path(__file__).resolve().parent.parent / "docs"
 
 def offline_points(arm: str, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
     """(points (n, 3) m, home tip (3,), joint-limit corners' tips, joint names) from the profile."""
-    from app.arm_model import ArmModel
+    from app.arms import model_for
     from app.config import load_profile
 
     profile = load_profile(arm)
-    model = ArmModel(profile)
+    model = model_for(profile)
     pts = model.workspace(n, seed=0)
     home = model.fk(np.asarray(profile.home or (model.lower + model.upper) / 2, dtype=float))
     return pts, home, model.lower, model.names
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
             source = f"GET {a.url}/api/v1/arms/{arm}/workspace"
         else:
             pts, home, _, _ = offline_points(arm, a.points)
-            source = "app.arm_model.ArmModel, built-in profile"
+            source = "app.arms.model_for, built-in profile"
         out = a.out_dir / f"workspace_{arm}.png"
         plot(arm, pts, home, out, source)
         log(f"{arm}: {len(pts)} points, bounds {np.round(pts.min(0), 3).tolist()} .. "
