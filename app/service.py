@@ -33,14 +33,14 @@ from app.errors import (
     NotSupported,
 )
 from app.links.base import LinkState
-from app.motion.executor import MotionExecutor
+from app.motion.executor import MotionExecutor, MotionRecord
 from app.motion.stream import AT_REST
-from app.runtime.control_thread import on_control, running_loop, start_now
+from app.runtime.control_thread import on_home, running_loop, start_now
 from app.runtime.tasks import retrieve
 from app.safety.envelope import ArmSafety
 from app.safety.guard import SafetyGuard, require_finite
 from app.telemetry.arm_hub import ArmHub
-from app.telemetry.hub import TelemetryHub
+from app.telemetry.hub import Subscription, TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
 
 log = logging.getLogger(__name__)
@@ -156,7 +156,11 @@ class ArmService:
             info.tip_force_unavailable = self.model.tip_force_unavailable(q, J)
         return info
 
-    def tare_force(self) -> s.ForceTare:
+    async def tare_force(self) -> s.ForceTare:
+        """Runs `_tare_force` on the arm's control loop (the tare is the owner task's)."""
+        return await on_home(self.home_loop, self._tare_force)
+
+    async def _tare_force(self) -> s.ForceTare:
         """The current joint torques become the zero of `torques` and `tip_force`."""
         self._require_force()
         drv = self.driver
@@ -168,7 +172,11 @@ class ArmService:
         return s.ForceTare(joints=list(self.model.names),
                            offsets=[float(v) for v in drv.torque_tare])
 
-    def clear_tare(self) -> s.ForceTare:
+    async def clear_tare(self) -> s.ForceTare:
+        """Runs `_clear_tare` on the arm's control loop (the tare is the owner task's)."""
+        return await on_home(self.home_loop, self._clear_tare)
+
+    async def _clear_tare(self) -> s.ForceTare:
         self._require_force()
         self.driver.torque_tare = None
         self.hub.event("force_tare", offsets=None)
@@ -214,9 +222,13 @@ class ArmService:
     def require_motion_allowed(self) -> None:
         self.guard.require_motion_allowed()
 
-    @on_control
     async def command_passthrough(self, goals: dict[int, float],
                                   send: Callable[[], Awaitable[T]]) -> T:
+        """Runs `_command_passthrough` on the arm's control loop (its state changes only there)."""
+        return await on_home(self.home_loop, lambda: self._command_passthrough(goals, send))
+
+    async def _command_passthrough(self, goals: dict[int, float],
+                                   send: Callable[[], Awaitable[T]]) -> T:
         """A pass-through position command (joint index -> encoder ticks), checked and sent
         on the control thread in one step: nothing (an estop, a motion, another command)
         comes between the check and the queue, and the owner task still refuses it if the
@@ -243,8 +255,11 @@ class ArmService:
 
     # --------------------------------------------------------- the envelope, at once
 
-    @on_control
     async def apply_safety(self, new: SafetySettings) -> None:
+        """Runs `_apply_safety` on the arm's control loop (its state changes only there)."""
+        return await on_home(self.home_loop, lambda: self._apply_safety(new))
+
+    async def _apply_safety(self, new: SafetySettings) -> None:
         """Change the envelope on the control thread, where motion is planned and checked.
         It applies at once: a change that adds or moves a zone or raises the floor is
         refused with 409 `busy` while a motion runs or is queued or the arm moves (the
@@ -273,8 +288,11 @@ class ArmService:
                     check.check_joint_path(here, told)
         self.safety.apply(new, "stored")
 
-    @on_control
     async def home(self, positions: list[float] | None, rehome: bool = False) -> s.ArmDetail:
+        """Runs `_home` on the arm's control loop (its state changes only there)."""
+        return await on_home(self.home_loop, lambda: self._home(positions, rehome))
+
+    async def _home(self, positions: list[float] | None, rehome: bool = False) -> s.ArmDetail:
         """Declare the arm's current physical pose (the profile's home pose by default): the
         joints that need homing take these positions; the others read absolute positions and
         keep them. The commanded state is forgotten, so the next motion starts from the
@@ -309,8 +327,11 @@ class ArmService:
         self.hub.event("homed", positions=[float(v) for v in q])
         return self.detail()
 
-    @on_control
     async def unhome(self) -> s.ArmDetail:
+        """Runs `_unhome` on the arm's control loop (its state changes only there)."""
+        return await on_home(self.home_loop, lambda: self._unhome())
+
+    async def _unhome(self) -> s.ArmDetail:
         """Forget the zero of every joint that needs homing, on purpose: moves that would move
         them are refused (409 `not_homed`) until the arm is homed again."""
         if self.motion.current is not None or self.motion.queued():
@@ -322,8 +343,11 @@ class ArmService:
         self.hub.event("unhomed", homed=list(self.driver.homed))
         return self.detail()
 
-    @on_control
     async def reboot(self, dxl_id: int) -> None:
+        """Runs `_reboot` on the arm's control loop (its state changes only there)."""
+        return await on_home(self.home_loop, lambda: self._reboot(dxl_id))
+
+    async def _reboot(self, dxl_id: int) -> None:
         """REBOOT one servo and set it up again (the driver); the commanded state is
         forgotten: the servo's goal is now its present position."""
         self.guard.require_motion_allowed()
@@ -335,14 +359,20 @@ class ArmService:
 
     # --------------------------------------------------------- stop, estop, gripper
 
-    @on_control
     async def stop(self, reason: str = "stopped by request") -> s.StopResult:
+        """Runs `_stop` on the arm's control loop (its state changes only there)."""
+        return await on_home(self.home_loop, lambda: self._stop(reason))
+
+    async def _stop(self, reason: str = "stopped by request") -> s.StopResult:
         """Stop all motion; `reason` (who or what stopped it) goes into each motion's record."""
         stopped = await self.motion.stop_all(reason=reason)
         return s.StopResult(stopped=stopped, estop=self.estop)
 
-    @on_control
     async def latch_estop(self) -> s.EstopState:
+        """Runs `_latch_estop` on the arm's control loop (its state changes only there)."""
+        return await on_home(self.home_loop, lambda: self._latch_estop())
+
+    async def _latch_estop(self) -> s.EstopState:
         """Latch, and command the hold once per latch: a press on a latched estop changes
         nothing (each hold re-commanded at the measured position walked a sagging arm down).
         Answers when the latch's hold is commanded; its error, if it failed, goes to the
@@ -390,20 +420,123 @@ class ArmService:
             hold.result()  # its error, if it failed
         return s.EstopState(estop=True)
 
-    def release_estop(self) -> s.EstopState:
+    async def release_estop(self) -> s.EstopState:
+        """Runs `_release_estop` on the arm's control loop (the latch is its)."""
+        return await on_home(self.home_loop, self._release_estop)
+
+    async def _release_estop(self) -> s.EstopState:
         if self.guard.release():
             log.info("%s: emergency stop released", self.name)
             self.hub.event("estop_released", latched=False)
         return s.EstopState(estop=False)
 
-    @on_control
     async def set_gripper(self, value: float) -> s.GripperState:
+        """On the control loop: `_set_gripper`."""
+        return await on_home(self.home_loop, lambda: self._set_gripper(value))
+
+    async def _set_gripper(self, value: float) -> s.GripperState:
         if not self.profile.gripper.actuated:
             raise NoGripper(f"{self.name} has a {self.profile.gripper.kind} end effector, "
                             "not an actuated gripper")
         self.guard.require_motion_allowed()
         await self.driver.set_gripper(value)
         return s.GripperState(value=value)
+
+    # --------------------------------------------------------- the facade: motion
+
+    async def move_joints(self, req: s.MoveJoints) -> MotionRecord:
+        return await self.motion.move_joints(req)
+
+    async def move_pose(self, req: s.MovePose) -> MotionRecord:
+        return await self.motion.move_pose(req)
+
+    async def preview_joints(self, req: s.MoveJoints) -> s.Motion:
+        """A joint move's plan, nothing sent (planned on the control loop, from its queue)."""
+        async def plan() -> s.Motion:
+            return self.motion.preview_joints(req)
+        return await on_home(self.home_loop, plan)
+
+    async def preview_pose(self, req: s.MovePose) -> s.Motion:
+        async def plan() -> s.Motion:
+            return self.motion.preview_pose(req)
+        return await on_home(self.home_loop, plan)
+
+    def motion_record(self, motion_id: str) -> MotionRecord:
+        return self.motion.get(motion_id)
+
+    async def cancel_motion(self, motion_id: str, reason: str) -> MotionRecord:
+        return await self.motion.cancel(motion_id, reason)
+
+    async def stop_all(self, reason: str) -> list[str]:
+        return await self.motion.stop_all(reason=reason)
+
+    async def emergency_hold(self) -> None:
+        """Stop streaming and hold where the arm is (the executor's), without the latch."""
+        await self.motion.emergency_stop()
+
+    @property
+    def moving(self) -> bool:
+        """A motion is running."""
+        return self.motion.current is not None
+
+    @property
+    def current_motion(self) -> MotionRecord | None:
+        return self.motion.current
+
+    # --------------------------------------------------------- the facade: the device
+
+    @property
+    def positions(self) -> np.ndarray | None:
+        """The last joint reading (rad, m), None before any."""
+        return self.driver.positions
+
+    # --------------------------------------------------------- the facade: telemetry
+
+    def event(self, name: str, **data: Any) -> None:
+        """An event on the arm's telemetry stream."""
+        self.hub.event(name, **data)
+
+    def subscribe(self, backlog: int | None = None) -> Subscription:
+        return self.hub.subscribe(backlog)
+
+    @property
+    def subscriber_count(self) -> int:
+        return self.hub.subscriber_count
+
+    @property
+    def latest_bytes(self) -> bytes | None:
+        return self.hub.latest_bytes
+
+    async def sample_where(self, pred: Callable[[dict[str, Any]], bool], timeout: float,
+                           then: Callable[[], None] | None = None) -> bool:
+        return await self.hub.sample_where(pred, timeout, then)
+
+    def bind_fanout(self) -> None:
+        self.hub.bind_fanout()
+
+    # --------------------------------------------------------- the facade: the envelope
+
+    def safety_view(self, store_ok: bool, store_error: str | None, settings_pending: int,
+                    editable: bool) -> s.Safety:
+        """The envelope as API.md's `Safety`: `persisted` unless a stored setting waits."""
+        env, cfg = self.safety, self.safety.settings
+        persisted = env.source == "profile" or (store_ok and settings_pending == 0)
+        return s.Safety(zones=list(cfg.zones), floor_z=cfg.floor_z,
+                        speed_override=cfg.speed_override, tool_margin=env.profile.tool_margin,
+                        body_margin=env.profile.body_margin, body_points=list(env.bodies),
+                        source=env.source, persisted=persisted, editable=editable,
+                        store_error=store_error)
+
+    @property
+    def safety_settings(self) -> SafetySettings:
+        return self.safety.settings
+
+    def restore_safety(self, settings: SafetySettings) -> None:
+        """At start-up, before the arm runs: the stored settings replace the profile's."""
+        self.safety.apply(settings, "stored")
+
+    def check_passthrough_velocities(self, velocities: np.ndarray) -> None:
+        self.guard.check_passthrough_velocity_ticks(velocities)
 
     def require_protocol(self, protocol: str) -> None:
         if self.protocol != protocol:

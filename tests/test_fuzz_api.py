@@ -106,7 +106,7 @@ class Target:
                 held = leases.held(name)
                 if held is not None:
                     await leases.release(name, held.id)
-                svc.release_estop()
+                await svc.release_estop()
                 ex = svc.motion
                 cur = ex.current
                 if len(ex._queue) > 2 or (cur is not None and cur.planned_duration > 3.0):

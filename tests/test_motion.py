@@ -143,7 +143,7 @@ async def test_estop_latches_refuses_moves_and_release_reenables(rbe):
     await asyncio.sleep(0.4)  # under test: the latched arm holds for 0.4 s
     np.testing.assert_allclose(rbe.driver.positions, held, atol=0.05)
     assert rbe.hub.latest["estop"] is True
-    rbe.release_estop()
+    await rbe.release_estop()
     m2 = await rbe.motion.move_joints(s.MoveJoints(positions=[0.0, 0.7, 0.4]))
     await m2.wait()
     assert m2.status == "done"

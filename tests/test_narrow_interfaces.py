@@ -130,7 +130,7 @@ async def test_the_arm_hub_stamps_estop_and_motion_in_wire_order() -> None:
         assert latest is not None and latest["estop"] is True
         assert list(latest) == SAMPLE_KEYS
         assert s.Sample.model_validate(latest).estop is True
-        svc.release_estop()
+        await svc.release_estop()
         rec = await svc.motion.move_joints(s.MoveJoints(positions=[0.05, 0.3, 0.2]))
         latest = await wait_for(lambda: (x := svc.hub.latest) is not None
                                 and x["motion"] is not None and x, what="a sample with the motion")

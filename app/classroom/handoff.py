@@ -34,13 +34,13 @@ async def handoff(svc: ArmService) -> str | None:
     if svc.estop:
         return "the emergency stop is latched"
     deadline = time.monotonic() + FIRST_SAMPLE_S
-    while svc.driver.positions is None and time.monotonic() < deadline:  # noqa: ASYNC110
+    while svc.positions is None and time.monotonic() < deadline:  # noqa: ASYNC110
         await asyncio.sleep(0.05)  # just started: the driver has no event for its first sample
     try:
         await svc.stop()
         home = home_pose(svc)
-        rec = await svc.motion.move_joints(s.MoveJoints(positions=[float(v) for v in home],
-                                                        speed=HANDOFF_SPEED, mode="replace"))
+        rec = await svc.move_joints(s.MoveJoints(positions=[float(v) for v in home],
+                                                 speed=HANDOFF_SPEED, mode="replace"))
         async with asyncio.timeout(rec.planned_duration + HANDOFF_SLACK_S):
             await rec.wait()
     except ArmError as exc:
@@ -52,7 +52,7 @@ async def handoff(svc: ArmService) -> str | None:
     faults = device_faults(svc)
     if faults:
         return f"device faults after the move home: {faults}"
-    q = svc.driver.positions
+    q = svc.positions
     if q is None:
         return "no position reading after the move home"
     return None
@@ -73,5 +73,5 @@ def device_faults(svc: ArmService) -> list[Any]:
 
 
 def positions(svc: ArmService) -> list[float] | None:
-    q = svc.driver.positions
+    q = svc.positions
     return None if q is None else [round(float(v), 6) for v in q]

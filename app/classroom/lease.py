@@ -234,7 +234,7 @@ class LeaseManager:
                 stopped = (await svc.stop(f"stopped: {what}")).stopped
             except ArmError as exc:  # stop failed on the device: still report the lapse
                 log.warning("%s: stop after lease lapse failed: %s", lease.arm, exc.detail)
-            svc.hub.event("lease_expired", lease=lease.id, stopped=stopped, reason=why)
+            svc.event("lease_expired", lease=lease.id, stopped=stopped, reason=why)
         self._notify(why, lease.arm, lease.id)
 
     async def _watch(self) -> None:

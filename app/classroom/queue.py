@@ -269,8 +269,8 @@ class Classroom:
                 left = self._leases.slot_left(arm)
                 cur.slot_end = None if left is None else time.time() + left
                 if svc is not None:
-                    svc.hub.event("lease_granted", entry=cur.id, who=cur.name,
-                                  slot_end=cur.slot_end)
+                    svc.event("lease_granted", entry=cur.id, who=cur.name,
+                              slot_end=cur.slot_end)
                 self._changed(q)
             return
         # the lease ended: released, lapsed, slot_over, revoked
@@ -282,7 +282,7 @@ class Classroom:
                 reason = "offer not claimed in time"
             self._end(q, cur, status, reason)
             if svc is not None:
-                svc.hub.event("lease_ended", entry=cur.id, who=cur.name, reason=reason)
+                svc.event("lease_ended", entry=cur.id, who=cur.name, reason=reason)
             self._changed(q)
             self._kick(arm, handoff=True)
         elif q.waiting():
@@ -323,8 +323,8 @@ class Classroom:
             q.handing_off = False
         q.handoffs += 1
         q.last_handoff = {"ok": why is None, "reason": why, "time": time.time()}
-        svc.hub.event("handoff", ok=why is None, reason=why,
-                      positions=positions(svc))
+        svc.event("handoff", ok=why is None, reason=why,
+                  positions=positions(svc))
         if why is not None:
             q.blocked = why
             log.warning("%s: hand-off failed, the arm is left with nobody: %s", q.arm, why)
@@ -342,8 +342,8 @@ class Classroom:
         head.status = "offered"
         head.lease_id = lease.id
         head.offered_until = time.time() + self.claim_s
-        svc.hub.event("lease_offered", entry=head.id, who=head.name,
-                      claim_until=head.offered_until)
+        svc.event("lease_offered", entry=head.id, who=head.name,
+                  claim_until=head.offered_until)
         self._changed(q)
 
     # ------------------------------------------------------------ helpers
@@ -396,9 +396,9 @@ class Classroom:
         self._slot_for_plain_lease(q)
         svc = self._services.get(q.arm)
         if svc is not None:
-            svc.hub.event("queue", entries=[{"id": e.id, "who": e.name, "status": e.status}
-                                            for e in q.entries],
-                          handing_off=q.handing_off, blocked=q.blocked)
+            svc.event("queue", entries=[{"id": e.id, "who": e.name, "status": e.status}
+                                        for e in q.entries],
+                      handing_off=q.handing_off, blocked=q.blocked)
         if persist and self._store is not None:
             # every active entry, the current one first: after a restart it waits at the head
             rows = [{"id": e.id, "name": e.name, "created": e.created} for e in q.entries]

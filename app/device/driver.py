@@ -43,7 +43,7 @@ from app.errors import (
     NotSupported,
 )
 from app.links.base import Link, LinkState
-from app.runtime.control_thread import on_control
+from app.runtime.control_thread import on_home
 from app.runtime.tasks import cancel_and_wait, retrieve
 from app.telemetry.hub import TelemetryHub
 
@@ -137,9 +137,14 @@ class Driver(OwnerTask, abc.ABC):
         self._fail_pending(LinkDown(f"{self.name}: server shutting down"))
         await self.link.close()
 
-    @on_control
     async def submit(self, message: Any, timeout: float | None = None, *, gated: bool = False,
                      on_send: Callable[[], None] | None = None) -> Any:
+        """Runs `_submit` on the owner task's loop (the queue is the owner task's)."""
+        return await on_home(self.home_loop, lambda: self._submit(
+            message, timeout, gated=gated, on_send=on_send))
+
+    async def _submit(self, message: Any, timeout: float | None = None, *, gated: bool = False,
+                      on_send: Callable[[], None] | None = None) -> Any:
         """Queue `message` for the owner task and await its reply (or its typed error); from
         any loop (it runs on the owner task's loop). A `gated` message moves the arm: the
         owner task asks `motion_gate` just before writing it, and calls `on_send` as it is

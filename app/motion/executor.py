@@ -19,7 +19,7 @@ from app.errors import Busy
 from app.motion.history import MotionRecord, Plan
 from app.motion.planner import State
 from app.motion.stream import Events, MotionStream
-from app.runtime.control_thread import on_control
+from app.runtime.control_thread import on_home
 
 __all__ = ["Events", "MotionExecutor", "MotionRecord", "Plan"]
 
@@ -68,13 +68,19 @@ class MotionExecutor(MotionStream):
             return None
         return {"id": rec.id, "status": rec.status, "progress": round(rec.progress, 4)}
 
-    @on_control
     async def move_joints(self, req: s.MoveJoints) -> MotionRecord:
+        """On the control loop: `_move_joints`."""
+        return await on_home(self.home_loop, lambda: self._move_joints(req))
+
+    async def _move_joints(self, req: s.MoveJoints) -> MotionRecord:
         q1 = self.planner.joint_vector(req.positions)
         return self._submit("joints", "joint", req, self._plan_joint_from, q1)
 
-    @on_control
     async def move_pose(self, req: s.MovePose) -> MotionRecord:
+        """On the control loop: `_move_pose`."""
+        return await on_home(self.home_loop, lambda: self._move_pose(req))
+
+    async def _move_pose(self, req: s.MovePose) -> MotionRecord:
         p = np.array([req.x, req.y, req.z])
         return self._submit("pose", req.path, req, self._plan_pose_from, p)
 
@@ -86,8 +92,11 @@ class MotionExecutor(MotionStream):
         p = np.array([req.x, req.y, req.z])
         return self._preview("pose", req.path, req, self._plan_pose_from, p)
 
-    @on_control
     async def cancel(self, motion_id: str, reason: str = "cancelled") -> MotionRecord:
+        """Runs `_cancel` on the arm's control loop (its state changes only there)."""
+        return await on_home(self.home_loop, lambda: self._cancel(motion_id, reason))
+
+    async def _cancel(self, motion_id: str, reason: str = "cancelled") -> MotionRecord:
         """Cancel one motion; `reason` says who cancelled it (kept in its record)."""
         rec = self.get(motion_id)
         if rec.status == "queued":
@@ -100,8 +109,11 @@ class MotionExecutor(MotionStream):
             await rec.wait()
         return rec
 
-    @on_control
     async def stop_all(self, reason: str) -> list[str]:
+        """On the control loop: `_stop_all`."""
+        return await on_home(self.home_loop, lambda: self._stop_all(reason))
+
+    async def _stop_all(self, reason: str) -> list[str]:
         stopped = [r.id for r in self._queue]
         while self._queue:
             self._finish(self._queue.popleft(), "stopped", reason)
@@ -114,8 +126,11 @@ class MotionExecutor(MotionStream):
             await cur.wait()
         return stopped
 
-    @on_control
     async def emergency_stop(self) -> None:
+        """Runs `_emergency_stop` on the arm's control loop (its state changes only there)."""
+        return await on_home(self.home_loop, lambda: self._emergency_stop())
+
+    async def _emergency_stop(self) -> None:
         """Stop streaming now, clear the queue and command a hold where the arm is
         (`hold_point`: its measured position, or its last command if it rests there), never
         where an older plan left it. The caller commands it once per latch, not per press."""

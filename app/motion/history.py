@@ -19,7 +19,7 @@ import numpy as np
 
 from app import schemas as s
 from app.errors import MotionExpired, UnknownMotion
-from app.runtime.control_thread import on_control
+from app.runtime.control_thread import on_home
 
 HISTORY = 256
 HISTORY_S = 600.0
@@ -67,8 +67,11 @@ class MotionRecord:
     #: The control loop the record's executor runs on (waiting crosses there).
     home_loop: Any = field(default=None, repr=False)
 
-    @on_control
     async def wait(self) -> MotionRecord:
+        """Runs `_wait` on the executor's control loop (the record's event is set there)."""
+        return await on_home(self.home_loop, lambda: self._wait())
+
+    async def _wait(self) -> MotionRecord:
         await self.done.wait()
         return self
 

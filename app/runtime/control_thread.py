@@ -8,15 +8,17 @@ is that nothing on the HTTP loop can hold the control loop up: the GIL is handed
 `SWITCH_INTERVAL_S` (not CPython's 5 ms default), the control loop does no parsing and no
 fan-out (samples go into the hub's locked shared log, events cross to the HTTP loop with
 `call_soon_threadsafe`), and
-everything the API asks of an arm crosses into the control loop (`on_control`). The figures
+everything the API asks of an arm crosses into the control loop (`on_home`). The figures
 that back this choice are in the README ("Reliability").
 
 Crossing rules:
-- An object created or started on the control loop remembers it as its `home_loop`; its
-  methods decorated with `@on_control` run there whoever awaits them (the caller awaits a
-  wrapped concurrent future; cancelling the caller cancels the call).
-- Called from its own loop (tests that run a service in their loop, the executor itself), an
-  `@on_control` method is a plain await: no thread, no hop.
+- An object started on the control loop remembers it as its `home_loop`; each of its public
+  async methods runs its private body there, explicitly: `return await on_home(self.home_loop,
+  lambda: self._method(...))` (the caller awaits a wrapped concurrent future; cancelling the
+  caller cancels the call). Everything the control thread owns (the estop latch, the guard,
+  the executor, the driver queue, the envelope, the tare) changes only that way.
+- Called from its own loop (tests that run a service in their loop, the executor itself), it
+  is a plain await: no thread, no hop.
 """
 
 from __future__ import annotations
@@ -24,13 +26,12 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
-import functools
 import logging
 import os
 import sys
 import threading
-from collections.abc import Awaitable, Callable, Coroutine
-from typing import Any, ParamSpec, TypeVar
+from collections.abc import Callable, Coroutine
+from typing import Any, TypeVar
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,6 @@ CONTROL_NICE = -10
 #: How long starting the thread may take, s.
 START_TIMEOUT_S = 10.0
 
-P = ParamSpec("P")
 T = TypeVar("T")
 
 
@@ -139,19 +139,13 @@ async def call_in(loop: asyncio.AbstractEventLoop | None,
     return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(fn(), loop))
 
 
-def on_control(method: Callable[P, Awaitable[T]]) -> Callable[P, Coroutine[Any, Any, T]]:
-    """Run an async method on its object's `home_loop` (see the module doc)."""
-
-    @functools.wraps(method)
-    async def crossing(*args: P.args, **kwargs: P.kwargs) -> T:
-        home = getattr(args[0], "home_loop", None)
-
-        async def call() -> T:
-            return await method(*args, **kwargs)
-
-        return await call_in(home, call)
-
-    return crossing
+async def on_home(loop: asyncio.AbstractEventLoop | None,
+                  fn: Callable[[], Coroutine[Any, Any, T]]) -> T:
+    """`await fn()` on `loop`, the home loop of the object whose state `fn` changes: the one
+    typed way for another thread to ask the control thread anything (an arm's public async
+    methods are `return await on_home(self.home_loop, lambda: self._method(...))`). From the
+    home loop itself (or before it is started) it is a plain await."""
+    return await call_in(loop, fn)
 
 
 def start_now(loop: asyncio.AbstractEventLoop | None, coro: Coroutine[Any, Any, Any]) -> None:

@@ -108,5 +108,5 @@ def moving(services: Mapping[str, Any]) -> Callable[[], bool]:
     """`busy()` for a Collector: whether any arm of `services` (name -> ArmService) is
     executing a motion (read from another thread: one attribute read per arm)."""
     def busy() -> bool:
-        return any(svc.motion.current is not None for svc in list(services.values()))
+        return any(svc.moving for svc in list(services.values()))
     return busy

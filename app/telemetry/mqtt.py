@@ -146,7 +146,7 @@ class MqttBridge:
 
     def start(self) -> None:
         for name, svc in self._services.items():
-            sub = svc.hub.subscribe(SAMPLE_BUFFER)
+            sub = svc.subscribe(SAMPLE_BUFFER)
             self._arms.append(_ArmOut(svc, sub, f"{self.prefix}/{name}"))
         self._task = asyncio.create_task(self._run(), name="mqtt-bridge")
 

@@ -88,10 +88,10 @@ def create_app(settings: Settings | None = None,
                 svc = ArmService(p)
                 safety.load_stored(svc, store)
                 services[p.name] = svc
-                svc.hub.bind_fanout()
+                svc.bind_fanout()
                 await _on_control(control, svc.start())
                 log.info("arm %s (%s) on %s link %s", p.name, p.model, p.link.kind,
-                         svc.driver.link.address or "-")
+                         svc.link_status().address or "-")
             leases.start()
             app.state.mqtt = start_mqtt_bridge(settings, services)
             room.load()

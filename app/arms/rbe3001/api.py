@@ -59,7 +59,7 @@ async def set_pid(svc: ControlArm, req: s.SetPid) -> s.SetPidReply:
     setpoints = [(j.position_ticks, j.velocity_ticks_s, j.force) for j in req.joints]
     joints = tuple(rb.JointSetpoint(*sp) for sp in setpoints)
     _encodable(rb.SetPid(joints))  # type: ignore[arg-type]  # 3 joints: the schema's length
-    svc.guard.check_passthrough_velocity_ticks(np.array([sp[1] for sp in setpoints]))
+    svc.check_passthrough_velocities(np.array([sp[1] for sp in setpoints]))
     goals = {k: float(sp[0]) for k, sp in enumerate(setpoints)}
     reply = await svc.command_passthrough(goals, lambda: drv.set_pid(setpoints))
     return s.SetPidReply(position_ticks=[float(x) for x in reply.position_ticks])

@@ -83,7 +83,7 @@ async def arm_detail(svc: ViewerArm) -> s.ArmDetail:
 async def arm_state(svc: ViewerArm) -> Response:
     svc.state()  # 503 link_down before the first sample
     # The hub encoded this sample once at publish time; answer those bytes as they are.
-    return Response(content=svc.hub.latest_bytes, media_type="application/json")
+    return Response(content=svc.latest_bytes, media_type="application/json")
 
 
 class StateFastPath:
@@ -129,7 +129,7 @@ class StateFastPath:
         if scope.get("method") != "GET":
             return None
         svc = self._arm(scope, "/state", b"")
-        return svc.hub.latest_bytes if svc is not None else None
+        return svc.latest_bytes if svc is not None else None
 
     async def _press_estop(self, scope: Scope) -> None:
         """`POST {prefix}/arms/{arm}/estop`, a request the estop route will accept (the same
@@ -146,7 +146,7 @@ class StateFastPath:
             # This loop sends the telemetry: it waits (idle) for the sample that shows the
             # latch and sends it before it spends itself on the rest of this request (the
             # route answers after the hold anyway, later than that sample).
-            await svc.hub.sample_where(_shows_estop, ESTOP_SAMPLE_WAIT_S, svc.press_estop)
+            await svc.sample_where(_shows_estop, ESTOP_SAMPLE_WAIT_S, svc.press_estop)
         except Exception:  # outside the error layers: the route's press still follows
             log.exception("estop fast path: the early press failed")
 

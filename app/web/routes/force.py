@@ -26,7 +26,7 @@ _DOC = (" 409 `no_force_sensing` on an arm that senses no joint torques; 409 `le
     responses=errors(401, 403, 404, 409, 422, 503),
 )
 async def tare(svc: ControlArm) -> s.ForceTare:
-    return svc.tare_force()
+    return await svc.tare_force()
 
 
 @router.delete(
@@ -37,4 +37,4 @@ async def tare(svc: ControlArm) -> s.ForceTare:
     responses=errors(401, 403, 404, 409, 422),
 )
 async def clear_tare(svc: ControlArm) -> s.ForceTare:
-    return svc.clear_tare()
+    return await svc.clear_tare()

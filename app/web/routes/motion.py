@@ -49,7 +49,7 @@ async def _answer(record: MotionRecord, wait: bool, response: Response) -> s.Mot
 )
 async def move_joints(svc: ControlArm, req: s.MoveJoints, response: Response) -> s.Motion:
     check_joint_count(svc, req.positions)
-    record = await svc.motion.move_joints(req)
+    record = await svc.move_joints(req)
     return await _answer(record, req.wait, response)
 
 
@@ -65,7 +65,7 @@ async def move_joints(svc: ControlArm, req: s.MoveJoints, response: Response) ->
                **errors(*DEVICE)},
 )
 async def move_pose(svc: ControlArm, req: s.MovePose, response: Response) -> s.Motion:
-    record = await svc.motion.move_pose(req)
+    record = await svc.move_pose(req)
     return await _answer(record, req.wait, response)
 
 
@@ -80,7 +80,7 @@ async def move_pose(svc: ControlArm, req: s.MovePose, response: Response) -> s.M
 )
 async def plan_joints(svc: ViewerArm, req: s.MoveJoints) -> s.Motion:
     check_joint_count(svc, req.positions)
-    return svc.motion.preview_joints(req)
+    return await svc.preview_joints(req)
 
 
 @router.post(
@@ -92,7 +92,7 @@ async def plan_joints(svc: ViewerArm, req: s.MoveJoints) -> s.Motion:
     responses=errors(*READ, 409),
 )
 async def plan_pose(svc: ViewerArm, req: s.MovePose) -> s.Motion:
-    return svc.motion.preview_pose(req)
+    return await svc.preview_pose(req)
 
 
 @router.get(
@@ -106,7 +106,7 @@ async def plan_pose(svc: ViewerArm, req: s.MovePose) -> s.Motion:
     responses=errors(*READ, 410, extra=_GONE),
 )
 async def get_motion(svc: ViewerArm, motion_id: MotionId) -> s.Motion:
-    return svc.motion.get(motion_id).to_schema()
+    return svc.motion_record(motion_id).to_schema()
 
 
 @router.delete(
@@ -119,7 +119,7 @@ async def get_motion(svc: ViewerArm, motion_id: MotionId) -> s.Motion:
     responses=errors(*READ, 403, 410, extra=_GONE),
 )
 async def cancel_motion(svc: OperatorArm, motion_id: MotionId, who: CallerDep) -> s.Motion:
-    rec = await svc.motion.cancel(motion_id, f"cancelled by {who}")
+    rec = await svc.cancel_motion(motion_id, f"cancelled by {who}")
     return rec.to_schema()
 
 
@@ -159,7 +159,7 @@ async def estop(svc: ViewerArm) -> s.EstopState:
     responses=errors(*READ, 403, 409),
 )
 async def release_estop(svc: ControlArm) -> s.EstopState:
-    return svc.release_estop()
+    return await svc.release_estop()
 
 
 @router.post(

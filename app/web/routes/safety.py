@@ -35,16 +35,10 @@ def _store(request: Request) -> Store | None:
 
 
 def describe(svc: ArmService, store: Store | None, editable: bool) -> s.Safety:
-    env, cfg = svc.safety, svc.safety.settings
     health = store.health() if store is not None else None
-    persisted = env.source == "profile" or (health is not None and health.ok
-                                            and store is not None
-                                            and store.settings_pending() == 0)
-    return s.Safety(zones=list(cfg.zones), floor_z=cfg.floor_z,
-                    speed_override=cfg.speed_override, tool_margin=env.profile.tool_margin,
-                    body_margin=env.profile.body_margin, body_points=list(env.bodies),
-                    source=env.source, persisted=persisted, editable=editable,
-                    store_error=health.error if health is not None else "no store")
+    if health is None or store is None:
+        return svc.safety_view(False, "no store", 0, editable)
+    return svc.safety_view(health.ok, health.error, store.settings_pending(), editable)
 
 
 def load_stored(svc: ArmService, store: Store) -> None:
@@ -52,10 +46,10 @@ def load_stored(svc: ArmService, store: Store) -> None:
     try:
         stored = store.get_setting_sync(SCOPE.format(svc.name), KEY)
         if stored is not None:
-            svc.safety.apply(SafetySettings.model_validate(stored), "stored")
+            svc.restore_safety(SafetySettings.model_validate(stored))
+            cfg = svc.safety_settings
             log.info("%s: safety envelope from the store (%d zone(s), floor %s, speed %g)",
-                     svc.name, len(svc.safety.settings.zones), svc.safety.settings.floor_z,
-                     svc.safety.speed_override)
+                     svc.name, len(cfg.zones), cfg.floor_z, cfg.speed_override)
     except (StoreError, ValidationError, ValueError) as exc:
         log.error("%s: stored safety settings not used (the profile's apply): %s",  # noqa: TRY400
                   svc.name, exc)
@@ -92,7 +86,7 @@ async def get_safety(svc: ViewerArm, role: ViewerRole, request: Request) -> s.Sa
     responses=errors(*READ, 403),
 )
 async def put_safety(svc: InstructorArm, req: s.SafetyUpdate, request: Request) -> s.Safety:
-    cur = svc.safety.settings
+    cur = svc.safety_settings
     given = req.model_fields_set
     try:
         new = SafetySettings(
@@ -106,8 +100,8 @@ async def put_safety(svc: InstructorArm, req: s.SafetyUpdate, request: Request) 
     store = _store(request)
     if store is not None:
         await store.put_setting(SCOPE.format(svc.name), KEY, new.model_dump(mode="json"))
-    svc.hub.event("safety", zones=len(new.zones), floor_z=new.floor_z,
-                  speed_override=new.speed_override)
+    svc.event("safety", zones=len(new.zones), floor_z=new.floor_z,
+              speed_override=new.speed_override)
     log.info("%s: safety envelope changed: %d zone(s), floor %s, speed %g", svc.name,
              len(new.zones), new.floor_z, new.speed_override)
     return describe(svc, store, True)

@@ -205,7 +205,7 @@ def subscribers_over_limit(state: object, svc: ArmService) -> str | None:
     """Why one more subscriber to `svc` is refused (settings `max_subscribers_per_arm`,
     `max_subscribers`), or None."""
     settings = state.settings  # type: ignore[attr-defined]  # app.state: untyped
-    here = svc.hub.subscriber_count
+    here = svc.subscriber_count
     if here >= settings.max_subscribers_per_arm:
         return f"{svc.name[:32]} has {here} subscribers (limit {settings.max_subscribers_per_arm})"
     services = state.services  # type: ignore[attr-defined]  # app.state: untyped
@@ -238,7 +238,7 @@ class _Stream:
     async def run(self) -> None:
         # The subscription carries the latest sample as of subscribing (`initial`); every later
         # sample is in the hub's log from the subscription's cursor on: none lost, none twice.
-        sub = self.svc.hub.subscribe()
+        sub = self.svc.subscribe()
         try:
             tasks = {asyncio.create_task(self._send(sub)),
                      asyncio.create_task(self._receive())}
