@@ -42,8 +42,13 @@ from app.config import (
     homed_at_start,
     load_profile,
 )
-from app.safety.envelope import ArmSafety
-from app.web.factory import create_app
+
+try:  # the layout since issue 23; the one before it (to run these on older commits)
+    from app.safety.envelope import ArmSafety
+    from app.web.factory import create_app
+except ImportError:  # pragma: no cover - an older tree
+    from app.envelope import ArmSafety  # type: ignore[no-redef]
+    from app.main import create_app  # type: ignore[no-redef]
 
 API = "/api/v1"
 ARMS = ("rbe3001", "angler")

@@ -210,6 +210,42 @@ async def test_estop_after_a_goal_position_holds_where_the_angler_is() -> None:
             await client.delete(f"{AN}/estop")
 
 
+async def test_estop_while_a_servo_runs_into_its_goal_holds_where_the_arm_is() -> None:
+    """The hold is the last command only for a joint at rest within one step of it: theta3
+    running at its limit (2 rad/s), pressed 80 mrad before its goal (twelve times), holds
+    where it is (the servo's goal within 30 ms of motion at the limit of where theta3 was at
+    the latch), not at the goal still ahead of it. A hold at the pending goal lands beyond
+    that whenever the goal was over 60 mrad ahead at the latch and within it at the hold
+    (a few presses in twelve); held where it is, the offset is one poll of motion."""
+    async with served(profiles()) as (app, client):
+        svc = svc_of(app, "angler")
+        rec = Recorder(svc)
+        tol = estop_tolerance(svc)
+        offsets: list[float] = []
+        try:
+            for k in range(12):
+                await client.delete(f"{AN}/estop")
+                await at_rest(rec)
+                goal = measured(app, "angler")
+                goal[2] = 0.6 if k % 2 == 0 else -0.6
+                r = await client.put(f"{AN}/dynamixel/{motor_of(svc, 2)}/registers/"
+                                     "goal_position", json={"raw": goal_raw(svc, 2, goal)})
+                assert r.status_code == 200, r.text
+                await wait_samples(rec, lambda g: bool(g) and g[-1].q is not None
+                                   and abs(g[-1].q[2] - goal[2]) <= 0.08, 5.0, len(rec) - 1)
+                got = after_latch(await press_and_watch(client, rec, "angler", 60))
+                offsets.append(float(abs(got[-1].setpoint[2] - got[0].q[2])))
+            print(f"\nangler theta3 at its limit, estop 80 mrad before its goal: servo goal "
+                  f"from where theta3 was at the latch {np.round(offsets, 4).tolist()} "
+                  f"(tolerance {tol[2]:.3f})")
+            assert max(offsets) <= tol[2], (
+                f"the servo's goal ended {max(offsets):.4f} rad from where theta3 was at the "
+                f"latch (tolerance {tol[2]:.3f}): offsets {np.round(offsets, 4).tolist()}")
+        finally:
+            rec.close()
+            await client.delete(f"{AN}/estop")
+
+
 # ---------------------------------------------------------------- 2. a plan starts from the arm
 
 
