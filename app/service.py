@@ -312,10 +312,7 @@ class ArmService:
             if self.profile.home is None:
                 raise InvalidRequest(f"{self.name}'s profile has no home pose: give positions")
             positions = list(self.profile.home)
-        q = np.array(positions, dtype=float)
-        if q.shape != (self.model.n,):
-            raise InvalidRequest(f"{self.name} has {self.model.n} joints "
-                                 f"({', '.join(self.model.names)}), got {len(positions)} positions")
+        q = self.model.joint_vector(positions)
         self.guard.check_joint_target(q)
         if self.driver.positions is None or self.driver.stale:
             raise LinkDown(f"{self.name}: no fresh joint positions from the device to home from")

@@ -14,7 +14,7 @@ choice (:meth:`Transmission.to_ticks_int`).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Any
 
@@ -68,8 +68,14 @@ class Transmission:
         lead = self.lead_m[~np.isnan(self.lead_m)]
         if not np.all(lead > 0):
             raise ValueError("lead_m must be positive (or NaN for a revolute joint)")
-        for name in ("ticks_per_rev", "sign", "lead_m"):  # offset_ticks moves when homing
-            getattr(self, name).setflags(write=False)  # what the cached values below rest on
+        for name in ("ticks_per_rev", "offset_ticks", "sign", "lead_m"):
+            getattr(self, name).setflags(write=False)  # frozen whole: homing makes a new one
+
+    def with_offset(self, k: int, offset_ticks: float) -> Transmission:
+        """The same transmission with joint `k`'s offset (ticks) changed: homing's."""
+        offsets = np.array(self.offset_ticks, dtype=np.float64)
+        offsets[k] = offset_ticks
+        return replace(self, offset_ticks=offsets)
 
     @classmethod
     def from_joints(

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel
 
-from app.errors import JointLimit, Unreachable
+from app.errors import InvalidRequest, JointLimit, Unreachable
 from kinematics import limits
 from kinematics.errors import KinematicsError
 from kinematics.singular import TIP_FORCE_MAX_COND, singular_reason
@@ -235,6 +235,14 @@ class KinematicsModel(abc.ABC):
     def violations(self, q: np.ndarray) -> list[str]:
         """Which joint is outside which limit and by how much; empty within the limits."""
         return limits.violations(q, self.names, self.lower, self.upper, self.kinds)
+
+    def joint_vector(self, positions: Sequence[float]) -> np.ndarray:
+        """`positions` as a joint vector, one per joint: 422 `invalid_request` naming the arm
+        and its joints for any other length (the one check of every route that takes them)."""
+        if len(positions) != self.n:
+            raise InvalidRequest(f"{self.profile.name} has {self.n} joints "
+                                 f"({', '.join(self.names)}), got {len(positions)} positions")
+        return np.array(positions, dtype=float)
 
     def check_limits(self, q: np.ndarray) -> None:
         v = self.violations(q)

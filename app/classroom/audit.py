@@ -39,6 +39,7 @@ from typing import Any, TypeVar
 from fastapi import FastAPI
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from app import schemas as s
 from app.store import AuditEntry, Store
 from app.web.security import Access, Identity, bearer_token
 
@@ -46,7 +47,7 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-PREFIX = "/api/v1/"
+PREFIX = s.API_PREFIX + "/"
 READS = frozenset({"GET", "HEAD", "OPTIONS"})
 #: Body bytes kept for the summary, and the summary's length at most.
 BODY_KEEP = 4096

@@ -14,7 +14,7 @@ from app import schemas as s
 
 T = TypeVar("T")
 
-API = "/api/v1"
+API = s.API_PREFIX
 LEASE_HEADER = "X-Arm-Lease"
 #: How long a `wait=true` move may hold the request open: the planner caps a move at 600 s.
 WAIT_TIMEOUT_S = 660.0

@@ -280,8 +280,9 @@ class Driver(OwnerTask, abc.ABC):
         tr = self.model.transmission
         if self.positions is not None:
             now = float(self.positions[k])
-            # the arrays of the (frozen) Transmission are shared by every user of the model
-            tr.offset_ticks[k] += (now - q) * float(tr.ticks_per_unit[k])
+            # a new (frozen) Transmission for the model every user of the arm shares
+            self.model.transmission = tr.with_offset(
+                k, float(tr.offset_ticks[k]) + (now - q) * float(tr.ticks_per_unit[k]))
             self.units_version += 1
             self.command_seq += 1  # a setpoint in the old units no longer means the same
             self.positions = self.positions.copy()

@@ -19,6 +19,7 @@ import numpy as np
 
 from app.errors import ArmError, DeviceError, DeviceTimeout, LinkDown
 from app.links.base import Link, LinkError, LinkState
+from app.runtime.tasks import resolve
 from app.telemetry.hub import TelemetryHub
 
 if TYPE_CHECKING:
@@ -26,7 +27,7 @@ if TYPE_CHECKING:
     from app.config import ArmProfile
 
 #: The driver's logger, as before the owner task had a module of its own.
-log = logging.getLogger("app.device.driver")
+log = logging.getLogger(__name__)
 
 #: First and last reconnect delay, s: quick enough to recover a replugged cable within a second,
 #: slow enough not to spin on a port that is gone.
@@ -202,7 +203,7 @@ class OwnerTask:
         at every poll that was most of an idle arm's cost). `submit` resolves the future."""
         fut = loop.create_future()
         self._idle = fut
-        timer = loop.call_at(when, _resolve, fut)
+        timer = loop.call_at(when, resolve, fut)
         try:
             await fut
         finally:
@@ -222,7 +223,7 @@ class OwnerTask:
         if same:
             fut.set_result(None)
         else:
-            loop.call_soon_threadsafe(_resolve, fut)
+            loop.call_soon_threadsafe(resolve, fut)
 
     async def _serve(self, req: _Request) -> None:
         if req.future.done():  # the caller gave up (cancelled) while queued
@@ -355,10 +356,6 @@ class OwnerTask:
         if self.positions is not None and self.velocities is not None:
             self._publish(self.positions, np.zeros_like(self.velocities), None, stale=True)
 
-
-def _resolve(fut: asyncio.Future[None]) -> None:
-    if not fut.done():
-        fut.set_result(None)
 
 
 def _vec(v: np.ndarray) -> dict[str, float]:

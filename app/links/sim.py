@@ -14,6 +14,7 @@ from collections import deque
 
 from app.config import FaultConfig
 from app.links.base import Link, LinkError, LinkState
+from app.runtime.tasks import resolve
 from app.sim.base import SimDevice
 from app.sim.faults import ReplyFaults
 
@@ -107,7 +108,7 @@ class SimLink(Link):
                 wake = min(wake, self._down_at)
             fut = loop.create_future()
             self._waiter = fut
-            timer = loop.call_at(wake, _resolve, fut)
+            timer = loop.call_at(wake, resolve, fut)
             try:
                 await fut
             finally:
@@ -158,7 +159,3 @@ class SimLink(Link):
     def _now() -> float:
         return asyncio.get_running_loop().time()
 
-
-def _resolve(fut: asyncio.Future[None]) -> None:
-    if not fut.done():
-        fut.set_result(None)

@@ -35,10 +35,7 @@ class Planner:
         self.dt = 1.0 / control_hz
 
     def joint_vector(self, positions: list[float]) -> np.ndarray:
-        if len(positions) != self.model.n:
-            raise InvalidRequest(f"{self.name} has {self.model.n} joints "
-                                 f"({', '.join(self.model.names)}), got {len(positions)} positions")
-        q = np.array(positions, dtype=float)
+        q = self.model.joint_vector(positions)
         self.guard.check_joint_target(q)
         return q
 

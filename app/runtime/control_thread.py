@@ -33,6 +33,8 @@ import threading
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
+from app.runtime.tasks import retrieve
+
 log = logging.getLogger(__name__)
 
 #: GIL hand-over interval while the control thread runs, s (CPython's default is 5 ms: a
@@ -153,11 +155,6 @@ def start_now(loop: asyncio.AbstractEventLoop | None, coro: Coroutine[Any, Any, 
     is it or None). Its outcome is not awaited: an error is retrieved and logged at debug."""
     running = running_loop()
     if loop is None or loop is running or loop.is_closed():
-        asyncio.ensure_future(coro).add_done_callback(_retrieve)
+        asyncio.ensure_future(coro).add_done_callback(retrieve)
     else:
-        asyncio.run_coroutine_threadsafe(coro, loop).add_done_callback(_retrieve)
-
-
-def _retrieve(fut: asyncio.Future[Any] | concurrent.futures.Future[Any]) -> None:
-    if not fut.cancelled() and fut.exception() is not None:
-        log.debug("a call started with start_now failed: %r", fut.exception())
+        asyncio.run_coroutine_threadsafe(coro, loop).add_done_callback(retrieve)

@@ -4,7 +4,11 @@ watcher)."""
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
+import logging
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 #: How long `cancel_and_wait` waits for a cancelled task before cancelling it again, s.
 CANCEL_AGAIN_S = 0.1
@@ -28,9 +32,16 @@ async def cancel_and_wait(task: asyncio.Task[Any] | None) -> None:
         raise exc
 
 
-def retrieve(fut: asyncio.Future[Any]) -> None:
+def retrieve(fut: asyncio.Future[Any] | concurrent.futures.Future[Any]) -> None:
     """A done callback for a future whose outcome nobody may read (a caller that gave up, a
-    hold whose presses were told): mark its error read, or asyncio logs "exception never
-    retrieved"."""
-    if not fut.cancelled():
-        fut.exception()
+    hold whose presses were told, a call started with `start_now`): mark its error read, or
+    asyncio logs "exception never retrieved"; the error is logged at debug."""
+    if not fut.cancelled() and fut.exception() is not None:
+        log.debug("a call nobody waited for failed: %r", fut.exception())
+
+
+def resolve(fut: asyncio.Future[None] | None) -> None:
+    """Wake a waiter: set `fut`'s result unless it is done already (a timer or a callback
+    from another thread may come after the waiter gave up)."""
+    if fut is not None and not fut.done():
+        fut.set_result(None)

@@ -95,7 +95,11 @@ from app.schemas.telemetry import (
     TelemetryMessage,
 )
 
+#: The version prefix of every route of the contract (server, audit and client alike).
+API_PREFIX = "/api/v1"
+
 __all__ = [
+    "API_PREFIX",
     "Ack",
     "ArmChain",
     "ArmDetail",

@@ -28,6 +28,8 @@ from typing import Any
 
 import orjson
 
+from app.runtime.tasks import resolve
+
 #: Samples a subscriber may fall behind before the oldest are dropped: 4 s at 500 Hz.
 DEFAULT_BACKLOG = 2000
 #: Events a subscriber may fall behind (events are rare: motion, estop, link).
@@ -80,7 +82,7 @@ class Subscription:
         if running is loop:
             fut.set_result(None)
         else:
-            loop.call_soon_threadsafe(_resolve, fut)
+            loop.call_soon_threadsafe(resolve, fut)
 
     @property
     def has_events(self) -> bool:
@@ -98,7 +100,7 @@ class Subscription:
         self._loop = loop
         self._waiter = fut = loop.create_future()
         self._hub._add_waiter(self)
-        timer = None if timeout is None else loop.call_at(loop.time() + timeout, _resolve, fut)
+        timer = None if timeout is None else loop.call_at(loop.time() + timeout, resolve, fut)
         try:
             if self.pending:  # published between the check and the registration
                 return True
@@ -249,7 +251,7 @@ class TelemetryHub:
 
         def check(sample: dict[str, Any]) -> None:
             if pred(sample):  # resumed after the subscribers this sample wakes have run
-                loop.call_soon_threadsafe(loop.call_soon, _resolve, seen)
+                loop.call_soon_threadsafe(loop.call_soon, resolve, seen)
 
         remove = self.add_listener(check)
         try:
@@ -369,7 +371,3 @@ class TelemetryHub:
         return (f'{{"type":"telemetry","arm":{self.arm_json},'
                 f'"samples":[{",".join(samples)}],"dropped":{dropped}}}')
 
-
-def _resolve(fut: asyncio.Future[None]) -> None:
-    if not fut.done():
-        fut.set_result(None)

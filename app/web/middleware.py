@@ -11,13 +11,14 @@ from typing import Any
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from app import schemas as s
 from app.errors import Unauthorized
 from app.web.error_responses import send_error
 from app.web.security import Access, bearer_token
 
 log = logging.getLogger("armserver")
 
-API_PREFIX = "/api/v1"
+API_PREFIX = s.API_PREFIX
 
 
 class InternalErrors:

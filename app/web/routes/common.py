@@ -27,10 +27,7 @@ def errors(*statuses: int, extra: dict[int, str] | None = None) -> dict[int | st
 
 
 def check_joint_count(svc: ArmService, positions: Sequence[float]) -> None:
-    n = svc.model.n
-    if len(positions) != n:
-        raise InvalidRequest(f"{svc.name} has {n} joints ({', '.join(svc.model.names)}); "
-                             f"got {len(positions)} positions")
+    svc.model.joint_vector(positions)
 
 
 def finite(values: Any, what: str) -> None:
