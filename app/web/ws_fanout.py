@@ -15,6 +15,8 @@ than `SLOW_CLIENT_BYTES`: its backlog in the hub is bounded, and its next messag
 The direct write is used only where it is sound: uvicorn's websockets-sansio protocol (the
 default) with no extension negotiated (`ws_compression` off: permessage-deflate frames need
 the library). Anything else (the test client, compression on) gets the per-client sender.
+Reaching that protocol from a route's WebSocket takes Starlette's and uvicorn's internals:
+they are behind app/doors/starlette.py and app/doors/uvicorn.py, and nowhere else.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ import contextlib
 import math
 from typing import Any
 
+from app.doors import starlette as starlette_door
+from app.doors import uvicorn as uvicorn_door
 from app.telemetry.hub import Subscription, TelemetryHub
 
 #: Longest an event waits for the broadcast to notice it, s.
@@ -52,31 +56,21 @@ def text_frame(payload: bytes) -> bytes:
 
 class RawSocket:
     """The transport under an accepted uvicorn (websockets-sansio) WebSocket, for frames the
-    server builds itself; `open()` is None where a direct write is not sound."""
+    server builds itself; `open()` is None where a direct write is not sound. What it needs of
+    Starlette and uvicorn is behind their doors (app/doors/)."""
 
     def __init__(self, proto: Any) -> None:
         self._proto = proto
-        self.transport: asyncio.WriteTransport = proto.transport
+        self.transport: asyncio.WriteTransport = uvicorn_door.ws_transport(proto)
 
     @classmethod
     def open(cls, ws: Any) -> RawSocket | None:
-        proto = _protocol_of(getattr(ws, "_send", None))
-        conn = getattr(proto, "conn", None)
-        if proto is None or conn is None or getattr(proto, "transport", None) is None:
-            return None
-        if type(proto).__name__ != "WebSocketsSansIOProtocol":  # wsproto: extensions elsewhere
-            return None
-        if getattr(conn, "extensions", None) or not getattr(proto, "handshake_complete", False):
-            return None  # compression negotiated (frames need the library), or not accepted
-        if not hasattr(proto, "close_sent"):
-            return None
-        return cls(proto)
+        proto = uvicorn_door.websocket_protocol(starlette_door.send_owners(ws))
+        return None if proto is None else cls(proto)
 
     @property
     def closed(self) -> bool:
-        p = self._proto
-        return bool(p.close_sent or getattr(p, "disconnected", False)
-                    or self.transport.is_closing())
+        return uvicorn_door.ws_closed(self._proto) or self.transport.is_closing()
 
     @property
     def slow(self) -> bool:
@@ -85,31 +79,6 @@ class RawSocket:
     def write(self, frame: bytes) -> None:
         if not self.closed:
             self.transport.write(frame)
-
-
-def _protocol_of(send: Any, depth: int = 12) -> Any:
-    """The uvicorn protocol whose `asgi_send` is at the bottom of `send`, the ASGI send
-    callable as the middlewares wrapped it (each wrapper holds the one below in its closure,
-    or as a bound method's object); None if there is none within `depth` wrappers."""
-    seen: set[int] = set()
-    todo = [send]
-    for _ in range(depth * 4):
-        if not todo:
-            return None
-        fn = todo.pop(0)
-        if fn is None or id(fn) in seen:
-            continue
-        seen.add(id(fn))
-        owner = getattr(fn, "__self__", None)
-        if owner is not None and hasattr(owner, "conn") and hasattr(owner, "transport"):
-            return owner
-        for cell in getattr(fn, "__closure__", None) or ():
-            with contextlib.suppress(ValueError):  # an empty cell
-                if callable(cell.cell_contents):
-                    todo.append(cell.cell_contents)
-        if owner is not None:
-            todo.append(getattr(owner, "send", None))
-    return None
 
 
 class Member:
