@@ -7,18 +7,18 @@ is opened, so a server with no serial arm never loads them.
 
 Reads are buffered by an asyncio Protocol: bytes land in a buffer as the loop receives them,
 a read with bytes waiting returns them at once, and a read that must wait does so on one timer
-the loop keeps (no task per read, as `asyncio.wait_for` would make).
+the loop keeps (no task per read, as `asyncio.wait_for` would make). pyserial-asyncio's
+transport gets a leaner reader and a direct write (app/doors/serial_asyncio.py, the only place
+that touches its internals).
 """
 
 from __future__ import annotations
 
 import asyncio
-import functools
 import logging
 import os
-from collections.abc import Callable
-from typing import Any
 
+from app.doors import serial_asyncio as serial_door
 from app.links.base import Link, LinkError, LinkState
 
 log = logging.getLogger(__name__)
@@ -112,7 +112,7 @@ class SerialLink(Link):
         self.state = LinkState.CONNECTING
         try:
             import serial
-            import serial_asyncio  # noqa: F401  (its transport: see _transport_class)
+            import serial_asyncio  # noqa: F401  (its transport: app/doors/serial_asyncio.py)
         except ImportError as exc:
             raise self._down(f"pyserial-asyncio not available: {exc}") from exc
         self._errors = (OSError, serial.SerialException)
@@ -121,8 +121,9 @@ class SerialLink(Link):
             # mid-move; it is refused instead, told who holds the port.
             port = serial.serial_for_url(self.address, baudrate=self.baudrate, exclusive=True)
             proto = _Buffered()
-            # what serial_asyncio.create_serial_connection does, with our reader (below)
-            proto.transport = _transport_class()(asyncio.get_running_loop(), proto, port)
+            # what serial_asyncio.create_serial_connection does, with a leaner reader
+            proto.transport = serial_door.open_transport(asyncio.get_running_loop(), proto,
+                                                         port, READ_CHUNK)
             self._proto = proto  # (connection_made comes later, from call_soon)
         except (*self._errors, ValueError) as exc:
             holder = lock_holder(self.address) if "lock" in str(exc) else None
@@ -140,7 +141,7 @@ class SerialLink(Link):
         if proto.ended is not None or transport is None or transport.is_closing():
             raise self._lost(proto.ended or "closed")
         try:
-            data = _write_now(transport, data)
+            data = serial_door.write_now(transport, data)
             if data:
                 transport.write(data)
         except self._errors as exc:
@@ -199,55 +200,3 @@ class SerialLink(Link):
             proto.transport.close()
         log.warning("serial link %s lost: %s", self.address, reason)
         return self._down(f"serial link {self.address} lost: {reason}")
-
-
-@functools.cache
-def _transport_class() -> Callable[[asyncio.AbstractEventLoop, asyncio.Protocol, Any],
-                                    asyncio.Transport]:
-    """pyserial-asyncio's transport with a leaner reader (built on first use: pyserial is
-    imported only when a serial link opens).
-
-    Its own `_read_ready` calls pyserial's `read`, which asks `select` whether the port is
-    readable (the loop has just said so) and loops on a timeout object: a system call and a
-    few dozen lines of Python for each reply, hundreds of times a second on an idle arm. The
-    port is non-blocking, so one `os.read` does it: what is there, or end of file (a socket
-    whose peer closed, a pseudo-terminal without its master) or an error, both of which end
-    the connection as pyserial's `SerialException` would."""
-    import serial
-    import serial_asyncio
-
-    class Transport(serial_asyncio.SerialTransport):  # type: ignore[misc]
-        def _read_ready(self) -> None:
-            try:
-                data = os.read(self._serial.fileno(), READ_CHUNK)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError as exc:
-                self._close(exc=serial.SerialException(f"read failed: {exc}"))
-                return
-            if data:
-                self._protocol.data_received(data)
-            else:
-                self._close(exc=serial.SerialException("the port reports end of file "
-                                                       "(device disconnected)"))
-
-    return Transport
-
-
-def _write_now(transport: Any, data: bytes) -> bytes:
-    """Write what the port takes now, as pyserial-asyncio's own writer would a loop iteration
-    later; what is left, for the transport to buffer.
-
-    pyserial-asyncio's `write` only buffers: it adds a writer to the loop, writes when the loop
-    says the port is writable and removes the writer again, so each request cost two
-    `epoll_ctl` calls and one loop iteration, and left one iteration later (at 700 polls a
-    second, a visible part of an idle server's CPU). With nothing buffered ahead of it, the
-    bytes go out here with one `os.write` on the non-blocking port (what pyserial's own write
-    comes down to, under its timeout loop)."""
-    if transport.get_write_buffer_size():  # (the caller refuses a closing transport)
-        return data
-    try:
-        n = os.write(transport.serial.fileno(), data)
-    except (BlockingIOError, InterruptedError):
-        return data
-    return data[n:]
