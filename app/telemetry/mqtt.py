@@ -24,6 +24,8 @@ coroutine is a Task: two thirds of the bridge's CPU went there). Their bound is 
 the broker has not taken the previous tick's last message, the next tick sends nothing and the
 samples wait in the hub (bounded, counted); 5 s of that and the bridge reconnects. The QoS 1
 messages (events, online flags: rare) go through aiomqtt, which waits for their PUBACKs.
+What this takes of aiomqtt's and paho's internals (the paho client aiomqtt holds, the socket
+writer aiomqtt adds late) is in app/doors/aiomqtt.py and app/doors/paho.py, nowhere else.
 """
 
 from __future__ import annotations
@@ -44,6 +46,8 @@ from urllib.parse import unquote, urlsplit
 import aiomqtt
 import paho.mqtt.client as mqtt
 from aiomqtt.exceptions import MqttConnectError
+
+from app.doors import aiomqtt as aiomqtt_door
 
 if TYPE_CHECKING:
     from app.config import Settings
@@ -210,11 +214,7 @@ class MqttBridge:
         was = self.state
         self.state = "refused" if refused else "down"
         self.last_error = f"{type(exc).__name__}: {exc}"[:300]
-        # aiomqtt keeps the disconnection's exception in a future nobody awaits unless they
-        # iterate messages (we subscribe to nothing): read it, or asyncio logs it as an error
-        gone = getattr(self._client, "_disconnected", None)
-        if isinstance(gone, asyncio.Future) and gone.done() and not gone.cancelled():
-            gone.exception()
+        aiomqtt_door.retrieve_disconnection(self._client)  # or asyncio logs it as an error
         self._client = None
         if self._pending is not None and not self._pending.is_published():
             self._lost_in_flight(self._in_flight)
@@ -291,7 +291,7 @@ class MqttBridge:
             if time.monotonic() - self._pending_since > PUBLISH_TIMEOUT_S:
                 raise TimeoutError(f"the broker took no message for {PUBLISH_TIMEOUT_S:g} s")
             return
-        paho = client._client  # aiomqtt < 3 keeps paho's client here; QoS 0 needs no await
+        paho = aiomqtt_door.paho_client(client)  # QoS 0 needs no await
         qos1 = []
         sent: list[tuple[_ArmOut, int]] = []
         info: mqtt.MQTTMessageInfo | None = None
@@ -330,7 +330,7 @@ class MqttBridge:
             if rc != mqtt.MQTT_ERR_SUCCESS:
                 raise aiomqtt.MqttCodeError(rc, "Could not publish message")
             if sock is not None:
-                asyncio.get_running_loop().call_soon(_drop_stale_writer, paho, sock.fileno())
+                aiomqtt_door.drop_late_writer_soon(paho, sock.fileno())
         if not qos1:
             self.published += count
             return
@@ -349,20 +349,6 @@ class MqttBridge:
         for a, n in lost:
             a.dropped += n
             self.dropped_samples += n
-
-
-def _drop_stale_writer(paho: mqtt.Client, fd: int) -> None:
-    """Remove the socket writer aiomqtt added late, if paho has nothing left to write.
-
-    paho's publish asks aiomqtt for a writer, and aiomqtt adds it with `call_soon_threadsafe`,
-    a loop iteration later; the tick's own `loop_write` above has by then written everything
-    and paho has asked for the (not yet added) writer's removal. The writer then added stays:
-    paho, thinking none is registered, never asks again, and the loop calls it for ever on a
-    writable socket (the HTTP loop at 100 % CPU, telemetry latency p99 0.4-0.5 s in
-    bench/mqtt.py). Scheduled with `call_soon`, this runs after that late addition."""
-    if not paho._registered_write:  # paho: no writer wanted (it asks again when it needs one)
-        with contextlib.suppress(ValueError, OSError):  # the socket closed meanwhile
-            asyncio.get_running_loop().remove_writer(fd)
 
 
 @contextlib.contextmanager
