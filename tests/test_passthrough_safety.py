@@ -212,7 +212,7 @@ async def test_estop_after_a_goal_position_holds_where_the_angler_is() -> None:
 
 async def test_estop_while_a_servo_runs_into_its_goal_holds_where_the_arm_is() -> None:
     """The hold is the last command only for a joint at rest within one step of it: theta3
-    running at its limit (2 rad/s), pressed 80 mrad before its goal (twelve times), holds
+    running at its limit (2 rad/s), pressed 65..93 mrad before its goal (twelve times), holds
     where it is (the servo's goal within 30 ms of motion at the limit of where theta3 was at
     the latch), not at the goal still ahead of it. A hold at the pending goal lands beyond
     that whenever the goal was over 60 mrad ahead at the latch and within it at the hold
@@ -228,14 +228,15 @@ async def test_estop_while_a_servo_runs_into_its_goal_holds_where_the_arm_is() -
                 await at_rest(rec)
                 goal = measured(app, "angler")
                 goal[2] = 0.6 if k % 2 == 0 else -0.6
+                ahead = 0.065 + 0.0025 * k  # a sweep: wherever the hold's latency puts the edge
                 r = await client.put(f"{AN}/dynamixel/{motor_of(svc, 2)}/registers/"
                                      "goal_position", json={"raw": goal_raw(svc, 2, goal)})
                 assert r.status_code == 200, r.text
                 await wait_samples(rec, lambda g: bool(g) and g[-1].q is not None
-                                   and abs(g[-1].q[2] - goal[2]) <= 0.08, 5.0, len(rec) - 1)
+                                   and abs(g[-1].q[2] - goal[2]) <= ahead, 5.0, len(rec) - 1)
                 got = after_latch(await press_and_watch(client, rec, "angler", 60))
                 offsets.append(float(abs(got[-1].setpoint[2] - got[0].q[2])))
-            print(f"\nangler theta3 at its limit, estop 80 mrad before its goal: servo goal "
+            print(f"\nangler theta3 at its limit, estop 65..93 mrad before its goal: servo goal "
                   f"from where theta3 was at the latch {np.round(offsets, 4).tolist()} "
                   f"(tolerance {tol[2]:.3f})")
             assert max(offsets) <= tol[2], (
