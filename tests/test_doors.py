@@ -50,11 +50,8 @@ DOORS: dict[str, tuple[Callable[[], None], str, str]] = {
 
 @pytest.mark.parametrize("door", sorted(DOORS))
 def test_each_door_passes_its_check_on_the_installed_version(door: str) -> None:
-    check, dist, checked = DOORS[door]
-    check()
-    assert installed(dist) == checked, (
-        f"{dist} {installed(dist)} is installed, app/doors/{door}.py was checked with {checked}: "
-        "check its internals again and update CHECKED (and pyproject.toml's bound)")
+    check, _dist, _checked = DOORS[door]
+    check()  # (a DoorError here names what the installed version lacks)
 
 
 def _no_init(self: Any, *args: Any, **kwargs: Any) -> None:
