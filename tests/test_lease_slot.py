@@ -21,9 +21,9 @@ import httpx
 import numpy as np
 
 from app.classroom.queue import home_pose
-from tests.conftest import make_settings, running_client
+from tests.conftest import running_client
+from tests.test_classroom import ALICE, BOB, CAROL, TEACH, VIEW, class_settings, until
 
-ALICE, BOB, CAROL, TEACH, VIEW = "tok-alice-1", "tok-bob-2", "tok-carol-3", "tok-teach-4", "tok-v"
 ARM = "rbe3001"
 SLOT_S = 1.5
 #: Renewal period of the holder: well inside the ttl below.
@@ -38,21 +38,9 @@ def H(token: str) -> dict[str, str]:
 
 
 def settings(**over: Any) -> Any:
-    base: dict[str, Any] = {"operator_tokens": f"alice:{ALICE},bob:{BOB},carol:{CAROL}",
-                            "instructor_tokens": f"teach:{TEACH}", "viewer_tokens": VIEW,
-                            "claim_s": 5.0, "slot_s": SLOT_S, "lease_ttl_s": 3.0}
-    base.update(over)
-    return make_settings(**base)
-
-
-async def until(pred: Any, timeout: float = 20.0, what: str = "condition") -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        got = await pred()
-        if got:
-            return got
-        await asyncio.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}")
+    """The classroom tests' settings, with this file's slot and a claim and ttl long enough
+    for a loaded machine."""
+    return class_settings(**{"claim_s": 5.0, "slot_s": SLOT_S, "lease_ttl_s": 3.0, **over})
 
 
 async def queue(c: httpx.AsyncClient) -> dict[str, Any]:
