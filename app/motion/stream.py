@@ -42,11 +42,13 @@ MAX_SETPOINT_FAILURES = 3
 MAX_STEP_S = 0.03
 #: A tick later than this, s, is reported (log and a `motion_held_up` event).
 HELD_UP_S = 0.1
-#: A hold keeps a joint's last command when the joint is within HOLD_NEAR_S of motion at its
-#: velocity limit of it; else the hold is where the joint is measured (`hold_point`).
+#: A hold keeps a joint's last command when the joint is within the settle tolerance of it, or
+#: at rest within HOLD_NEAR_S of motion at its velocity limit of it; else the hold is where
+#: the joint is measured (`hold_point`).
 HOLD_NEAR_S = 0.03
 #: A joint whose measured speed is over AT_REST of its velocity limit is moving (a tightened
-#: envelope waits for the arm to stop: app/service.py `apply_safety`).
+#: envelope waits for the arm to stop: app/service.py `apply_safety`; a hold does not keep a
+#: moving joint's command).
 AT_REST = 0.05
 
 
@@ -319,14 +321,16 @@ class MotionStream:
             self._cmd = None
 
     def hold_point(self) -> np.ndarray | None:
-        """Where the arm is: its measured position, except a joint within one step
-        (HOLD_NEAR_S of motion at its velocity limit, or the settle tolerance) of its last
-        command, which holds at that command (a joint sagging under gravity is not walked
-        down a little further at each hold; one step is what the executor and the guard let
-        a setpoint move anyway). Never an older setpoint: the arm does not move to hold. Not
-        clipped to the joint limits (an arm outside them, with raw access, holds where it
-        is). None before any reading. (Not the velocity reading: the rbe3001 firmware's is
-        a windowed difference that lags the position by up to a window.)"""
+        """Where the arm is: its measured position, except a joint that has arrived at its
+        last command, which holds at that command (a joint sagging under gravity is not
+        walked down a little further at each hold): one within the settle tolerance of it,
+        or at rest (its speed under AT_REST of its limit) within one step (HOLD_NEAR_S of
+        motion at its limit) of it. A joint still running towards its command (a servo
+        heading for a goal) holds where it is. Never an older setpoint: the arm does not
+        move to hold. Not clipped to the joint limits (an arm outside them, with raw access,
+        holds where it is). None before any reading. (The tolerance case does not ask the
+        speed: the rbe3001 firmware's velocity is a windowed difference that lags the
+        position by up to a window, and read 0.5 rad/s at a settled arm.)"""
         q = self.device.positions
         if q is None:
             return None
@@ -335,8 +339,12 @@ class MotionStream:
         if cmd is None:
             return q
         m = self.model
-        near = np.abs(cmd - q) <= np.maximum(m.vmax * HOLD_NEAR_S, self.tolerance())
-        return np.where(np.isfinite(cmd) & near, cmd, q)
+        off = np.abs(cmd - q)
+        qd = self.device.velocities
+        still = (np.zeros(m.n, dtype=bool) if qd is None
+                 else np.abs(np.asarray(qd, dtype=float)) <= m.vmax * AT_REST)
+        keep = (off <= self.tolerance()) | ((off <= m.vmax * HOLD_NEAR_S) & still)
+        return np.where(np.isfinite(cmd) & keep, cmd, q)
 
     def _within_limits(self, q: np.ndarray) -> np.ndarray:
         """Every position the executor commands (setpoint, brake, hold) is clipped to the joint
