@@ -47,18 +47,9 @@ def stop_arms(app: Any, hold: bool) -> list[concurrent.futures.Future[Any]]:
         loop = svc.home_loop
         if loop is None or loop.is_closed():
             continue
-        coro = svc.motion.emergency_stop() if hold else _stop_for_shutdown(svc)
+        coro = svc.emergency_hold() if hold else svc.stop_all(SHUTDOWN_REASON)
         futures.append(asyncio.run_coroutine_threadsafe(coro, loop))
     return futures
-
-
-async def _stop_for_shutdown(svc: Any) -> list[str]:
-    """`POST /stop`, with the reason the running motion ends with saying why (on the arm's
-    loop)."""
-    cur = svc.motion.current
-    if cur is not None and cur.status == "running" and cur.reason is None:
-        cur.reason = SHUTDOWN_REASON
-    return list(await svc.motion.stop_all(reason=SHUTDOWN_REASON))
 
 
 class ArmServer(uvicorn_door.SignalServer):
