@@ -130,7 +130,7 @@ class SafetyGuard:
         - speed: a joint that goes to a new position as fast as it can (a PID step; `pace`
           NaN or None) may be sent at most `PASSTHROUGH_STEP_S` times its velocity limit
           (times the speed override) from where it is, the longest step the motion executor
-          itself sends (app/motion_stream.MAX_STEP_S); 422 `velocity_limit` beyond. A joint
+          itself sends (app/motion/stream.py MAX_STEP_S); 422 `velocity_limit` beyond. A joint
           whose device paces itself at or under its limit (`pace`, a Dynamixel servo's
           Profile Velocity) may be sent anywhere.
         """
@@ -225,7 +225,7 @@ class SafetyGuard:
 
 #: The longest pass-through step a joint that is not paced by its device may be sent, in
 #: seconds of motion at its velocity limit: the executor's own longest setpoint step
-#: (app/motion_stream.MAX_STEP_S, tested equal). The rbe3001's PID takes a step at the speed
+#: (app/motion/stream.py MAX_STEP_S, tested equal). The rbe3001's PID takes a step at the speed
 #: its error gives (a 3 rad step peaks near 2.9 rad/s, twice the limit); 0.03 s at 1.5 rad/s
 #: is 45 mrad, which it takes well under the limit.
 PASSTHROUGH_STEP_S = 0.03
