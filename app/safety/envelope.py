@@ -4,11 +4,12 @@ Every planned motion is checked along its whole trajectory, at the executor's co
 through the position of every joint origin and of the tip (the model's `joint_origins`), before
 anything moves; so is every pass-through position command, on the path the device takes from
 the measured position to its target (`check_path`: app/safety/guard.py `passthrough_path`, the
-straight joint-space line for a PID step, each servo ramping at its own pace). A body point is inside a zone when it lies in the box
-grown by its margin on every side (the tip's margin is the tool's size, `tool_margin` in the
-profile's `[safety]`; the other points use `body_margin`), and below the floor when its height
-is under `floor_z` plus that margin. A hit is refused with 422 `keep_out` naming the zone (or
-`floor`), the body point, where it would be and when.
+straight joint-space line for a PID step, each servo ramping at its own pace). A body point is
+inside a zone when it lies in the box grown by its margin on every side (the tip's margin is
+the tool's size, `tool_margin` in the profile's `[safety]`; the other points use
+`body_margin`), and below the floor when its height is under `floor_z` plus that margin. A hit
+is refused with 422 `keep_out` naming the zone (or `floor`), the body point, where it would be
+and when.
 
 The check is one vectorised pass over (time, body point, zone): no Python loop over points
 (bench/envelope.py prints the rate). `speed_override` scales the velocity, acceleration and jerk
