@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import socket
-import threading
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
@@ -29,11 +27,10 @@ from typing import Any
 
 import httpx
 import numpy as np
-import uvicorn
-from conftest import make_settings, wait_ready
+from conftest import LiveServer, make_settings, running_client
+from conftest import serve_live as conftest_serve_live
 from fastapi import FastAPI
 
-from app.cli import http_limits
 from app.config import (
     ArmProfile,
     KeepOutBox,
@@ -42,13 +39,7 @@ from app.config import (
     homed_at_start,
     load_profile,
 )
-
-try:  # the layout since issue 23; the one before it (to run these on older commits)
-    from app.safety.envelope import ArmSafety
-    from app.web.factory import create_app
-except ImportError:  # pragma: no cover - an older tree
-    from app.envelope import ArmSafety  # type: ignore[no-redef]
-    from app.main import create_app  # type: ignore[no-redef]
+from app.safety.envelope import ArmSafety
 
 API = "/api/v1"
 ARMS = ("rbe3001", "angler")
@@ -95,59 +86,17 @@ def auth(token: str) -> dict[str, str]:
 async def served(profiles_: list[ArmProfile] | None = None, settings: Settings | None = None,
                  headers: dict[str, str] | None = None
                  ) -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
-    """The app in process (lifespan running), an httpx client over ASGI."""
-    app = create_app(settings or make_settings(), profiles=profiles_)
-    async with app.router.lifespan_context(app):
-        await wait_ready(app)
-        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), headers=headers,
-                                     base_url="http://armserver.test", timeout=30.0) as client:
-            yield app, client
-    assert app.state.internal_errors == 0, "the last-resort error handler was hit"
-
-
-@dataclass
-class Live:
-    url: str
-    app: FastAPI
+    """conftest's in-process app and client, over `profiles_`."""
+    async with running_client(settings, headers, profiles_) as pair:
+        yield pair
 
 
 @contextlib.contextmanager
 def serve_live(profiles_: list[ArmProfile] | None = None,
-               settings: Settings | None = None) -> Iterator[Live]:
-    """A real uvicorn server on a free loopback port, in a thread (conftest's `serve_live`,
-    with profiles)."""
-    settings = settings or make_settings()
-    app = create_app(settings, profiles=profiles_)
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.bind(("127.0.0.1", 0))
-    port = sock.getsockname()[1]
-    config = uvicorn.Config(app, log_level="warning", lifespan="on",
-                            ws_max_size=settings.max_ws_message_bytes, **http_limits(settings))
-    server = uvicorn.Server(config)
-    loop_box: dict[str, asyncio.AbstractEventLoop] = {}
-
-    def run() -> None:
-        async def main() -> None:
-            loop_box["loop"] = asyncio.get_running_loop()
-            await server.serve(sockets=[sock])
-        asyncio.run(main())
-
-    thread = threading.Thread(target=run, name="safety-uvicorn", daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 10.0
-    while not server.started:
-        if not thread.is_alive() or time.monotonic() > deadline:
-            raise RuntimeError("uvicorn did not start")
-        time.sleep(0.01)
-    asyncio.run_coroutine_threadsafe(wait_ready(app), loop_box["loop"]).result(15.0)
-    try:
-        yield Live(f"http://127.0.0.1:{port}", app)
-    finally:
-        server.should_exit = True
-        thread.join(10)
-        sock.close()
-    assert app.state.internal_errors == 0, "the last-resort error handler was hit"
+               settings: Settings | None = None) -> Iterator[LiveServer]:
+    """conftest's live uvicorn server, over `profiles_`."""
+    with conftest_serve_live(settings, profiles=profiles_) as live:
+        yield live
 
 
 # ---------------------------------------------------------------- the device's own state

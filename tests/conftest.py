@@ -25,7 +25,7 @@ import uvicorn
 from fastapi import FastAPI
 
 from app.cli import http_limits
-from app.config import Settings
+from app.config import ArmProfile, Settings
 from app.web.factory import create_app
 
 #: How long the simulated arms may take to answer their first poll, s.
@@ -62,9 +62,12 @@ async def wait_ready(app: FastAPI, timeout: float = READY_TIMEOUT_S) -> None:
 
 @contextlib.asynccontextmanager
 async def running_client(settings: Settings | None = None,
-                         headers: dict[str, str] | None = None
+                         headers: dict[str, str] | None = None,
+                         profiles: list[ArmProfile] | None = None
                          ) -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
-    app = create_app(settings or make_settings())
+    """The app in process (lifespan running) over `profiles` (default: the default simulated
+    arms), an httpx client over ASGI."""
+    app = create_app(settings or make_settings(), profiles=profiles)
     async with app.router.lifespan_context(app):
         await wait_ready(app)
         transport = httpx.ASGITransport(app=app)
@@ -125,9 +128,12 @@ def _free_socket(sndbuf: int | None) -> socket.socket:
 
 
 @contextlib.contextmanager
-def serve_live(settings: Settings | None = None, sndbuf: int | None = None) -> Iterator[LiveServer]:
+def serve_live(settings: Settings | None = None, sndbuf: int | None = None,
+               profiles: list[ArmProfile] | None = None) -> Iterator[LiveServer]:
+    """A real uvicorn server on a free loopback port, in a thread, over `profiles` (default:
+    the default simulated arms)."""
     settings = settings or make_settings()
-    app = create_app(settings)
+    app = create_app(settings, profiles=profiles)
     sock = _free_socket(sndbuf)
     port = sock.getsockname()[1]
     config = uvicorn.Config(app, log_level="warning", lifespan="on",

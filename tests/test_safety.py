@@ -24,13 +24,12 @@ import httpx
 import numpy as np
 import pytest
 from _walk import pid_walk
-from conftest import make_settings, serve_live, wait_ready
+from conftest import make_settings, running_client, serve_live
 from fastapi import FastAPI
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
 from app.config import ArmProfile, Settings, homed_at_start, load_profile
-from app.web.factory import create_app
 
 API = "/api/v1"
 RB = f"{API}/arms/rbe3001"
@@ -41,13 +40,9 @@ AN = f"{API}/arms/angler"
 async def served(profiles: list[ArmProfile] | None = None, settings: Settings | None = None,
                  headers: dict[str, str] | None = None
                  ) -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
-    app = create_app(settings or make_settings(), profiles=profiles)
-    async with app.router.lifespan_context(app):
-        await wait_ready(app)
-        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), headers=headers,
-                                     base_url="http://armserver.test", timeout=30.0) as client:
-            yield app, client
-    assert app.state.internal_errors == 0
+    """conftest's in-process app and client, over `profiles`."""
+    async with running_client(settings, headers, profiles) as pair:
+        yield pair
 
 
 def raw_profiles() -> list[ArmProfile]:
