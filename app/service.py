@@ -38,7 +38,7 @@ from app.motion.stream import AT_REST
 from app.runtime.control_thread import on_home, running_loop, start_now
 from app.runtime.tasks import retrieve
 from app.safety.envelope import ArmSafety
-from app.safety.guard import SafetyGuard, require_finite
+from app.safety.guard import SafetyGuard
 from app.telemetry.arm_hub import ArmHub
 from app.telemetry.hub import Subscription, TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
@@ -239,8 +239,6 @@ class ArmService:
         if self.motion.current is not None or self.motion.queued():
             raise Busy(f"{self.name}: a planned motion is running or queued: stop it "
                        f"(POST /api/v1/arms/{self.name}/stop) before a pass-through command")
-        for k, ticks in goals.items():
-            require_finite([ticks], f"the goal of joint {self.model.names[k]}")
         told = self.driver.told()
         if told is None or self.driver.stale:
             raise LinkDown(f"{self.name}: no fresh joint positions from the device to check a "

@@ -18,6 +18,7 @@ limits of motions planned after it changes (app/motion/executor.py asks `scaled`
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
@@ -35,6 +36,14 @@ if TYPE_CHECKING:
 #: at most MAX_PATH_POINTS long (a full-range sweep of the rbe3001's shoulder is ~1000).
 PATH_STEP = {"revolute": 0.002, "prismatic": 0.0005}
 MAX_PATH_POINTS = 4000
+
+
+def path_fractions(delta: np.ndarray, kinds: Sequence[str]) -> np.ndarray:
+    """Fractions 0..1 (N, 1) of a joint-space move `delta` (n,) sampled at PATH_STEP per
+    joint, at most MAX_PATH_POINTS of them: where a path check looks."""
+    step = np.array([PATH_STEP[k] for k in kinds])
+    n = int(np.clip(np.ceil(np.max(np.abs(delta) / step)), 1, MAX_PATH_POINTS - 1))
+    return np.linspace(0.0, 1.0, n + 1)[:, None]
 
 
 @dataclass(frozen=True)
@@ -179,9 +188,7 @@ class ArmSafety:
             self.check_path(q1[None, :], "to the commanded position")
             return
         q0 = np.asarray(q0, dtype=float)
-        step = np.array([PATH_STEP[k] for k in self.model.kinds])
-        n = int(np.clip(np.ceil(np.max(np.abs(q1 - q0) / step)), 1, MAX_PATH_POINTS - 1))
-        s = np.linspace(0.0, 1.0, n + 1)[:, None]
+        s = path_fractions(q1 - q0, self.model.kinds)
         self.check_path(q0 + s * (q1 - q0), "along the straight joint-space path to the "
                         "commanded position")
 

@@ -28,7 +28,7 @@ from app.errors import (
     ShuttingDown,
     VelocityLimit,
 )
-from app.safety.envelope import MAX_PATH_POINTS, PATH_STEP, ArmSafety
+from app.safety.envelope import ArmSafety, path_fractions
 
 
 class SafetyGuard:
@@ -236,11 +236,9 @@ def passthrough_path(here: np.ndarray, target: np.ndarray, speed: np.ndarray,
     """The joint path (N, n) a pass-through command takes from `here` to `target`: joints the
     device paces ramp at their own `speed` (each arrives on its own), the others move along
     the straight line over the slowest paced joint's time (over none: the straight line).
-    Sampled at PATH_STEP per joint, at most MAX_PATH_POINTS points."""
+    Sampled where the envelope's path checks look (`path_fractions`)."""
     delta = target - here
-    step = np.array([PATH_STEP[k] for k in kinds])
-    n = int(np.clip(np.ceil(np.max(np.abs(delta) / step)), 1, MAX_PATH_POINTS - 1))
-    s = np.linspace(0.0, 1.0, n + 1)[:, None]
+    s = path_fractions(delta, kinds)
     if not np.any(paced):
         return np.asarray(here + s * delta, dtype=float)
     t_each = np.where(paced, np.abs(delta) / np.maximum(speed, 1e-12), 0.0)
