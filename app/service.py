@@ -474,10 +474,6 @@ class ArmService:
         """A motion is running."""
         return self.motion.current is not None
 
-    @property
-    def current_motion(self) -> MotionRecord | None:
-        return self.motion.current
-
     # --------------------------------------------------------- the facade: the device
 
     @property

@@ -89,16 +89,6 @@ class SafetyGuard:
                            f"after a power cycle or reboot): home the arm with POST "
                            f"/api/v1/arms/{self.name}/home first")
 
-    def check_homed_joint(self, joint: int, start: np.ndarray | None, ticks: float) -> None:
-        """`check_homed` for one joint's raw goal (ticks)."""
-        q = np.full(self.model.n, np.nan)
-        q[joint] = ticks
-        target = self.model.transmission.from_ticks(q)
-        cur = np.full(self.model.n, np.nan) if start is None else np.full(self.model.n, start[0])
-        tol = self._tolerance[joint]
-        if start is None or not abs(float(target[joint]) - float(cur[joint])) <= tol:
-            self.check_homed(None, target)
-
     def check_joint_target(self, q: np.ndarray) -> None:
         """Joint limits for any commanded position, planned or pass-through."""
         require_finite(q, "joint positions")
