@@ -18,7 +18,6 @@ control thread, in the same listener call as the sample it goes with.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
@@ -27,6 +26,7 @@ from typing import Any
 
 import httpx
 import numpy as np
+from _wait import wait_for, wait_until
 from conftest import LiveServer, make_settings, running_client
 from conftest import serve_live as conftest_serve_live
 from fastapi import FastAPI
@@ -200,31 +200,30 @@ class Recorder:
         return self.samples[-1]
 
 
+def _samples_when(rec: Recorder, pred: Callable[[list[Rec]], bool],
+                  start: int) -> Callable[[], list[list[Rec]] | None]:
+    """A condition for tests/_wait.py: the samples since `start`, boxed (an empty list may
+    satisfy `pred`), once pred(them) holds."""
+    def ready() -> list[list[Rec]] | None:
+        got = rec.since(start)
+        return [got] if pred(got) else None
+    return ready
+
+
 async def wait_samples(rec: Recorder, pred: Callable[[list[Rec]], bool],
                        timeout: float = 10.0, start: int = 0) -> list[Rec]:
     """Poll (bounded) until pred(samples since `start`) holds; those samples."""
-    deadline = time.monotonic() + timeout
-    while True:
-        got = rec.since(start)
-        if pred(got):
-            return got
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for samples "
-                                 f"({len(got)} seen)")
-        await asyncio.sleep(0.01)
+    box: list[list[Rec]] = await wait_for(_samples_when(rec, pred, start), timeout,
+                                          "samples", every=0.01)
+    return box[0]
 
 
 def wait_samples_sync(rec: Recorder, pred: Callable[[list[Rec]], bool],
                       timeout: float = 10.0, start: int = 0) -> list[Rec]:
-    deadline = time.monotonic() + timeout
-    while True:
-        got = rec.since(start)
-        if pred(got):
-            return got
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for samples "
-                                 f"({len(got)} seen)")
-        time.sleep(0.01)
+    """`wait_samples` for a plain thread (blocking)."""
+    box: list[list[Rec]] = wait_until(_samples_when(rec, pred, start), timeout, "samples",
+                                      every=0.01)
+    return box[0]
 
 
 def positions(recs: list[Rec]) -> np.ndarray:
