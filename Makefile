@@ -122,6 +122,7 @@ lint: install-test
 	$(BIN)/ruff check protocol kinematics app tests bench examples
 	$(BIN)/mypy --strict protocol kinematics app
 	$(BIN)/python tools/check_cycles.py app
+	$(BIN)/python tools/check_cycles.py --types app
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -66,7 +66,7 @@ def sdk_write_rdt(path: str, rdt: int) -> None:
 
 async def driver_rate(path: str, seconds: float) -> tuple[float, int, float]:
     from app.arms.dynamixel.driver import DynamixelDriver
-    from app.config import load_profile
+    from app.arms.loading import load_profile
     from app.links.serial import SerialLink
     from app.telemetry.hub import TelemetryHub
     from protocol import mx28

@@ -29,7 +29,7 @@ PY = str(ROOT / ".venv" / "bin" / "python")
 #: Serves both simulated devices on TCP (one process), prints the two ports, runs until killed.
 SIMS = """
 import asyncio, sys
-from app.config import load_profile
+from app.arms.loading import load_profile
 from app.device.factory import make_sim_device
 from app.sim.serve import serve_tcp
 async def main():

@@ -30,7 +30,7 @@ DOCS = Path(__file__).resolve().parent.parent / "docs"
 def offline_points(arm: str, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
     """(points (n, 3) m, home tip (3,), joint-limit corners' tips, joint names) from the profile."""
     from app.arms import model_for
-    from app.config import load_profile
+    from app.arms.loading import load_profile
 
     profile = load_profile(arm)
     model = model_for(profile)

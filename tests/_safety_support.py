@@ -31,14 +31,8 @@ from conftest import LiveServer, make_settings, running_client
 from conftest import serve_live as conftest_serve_live
 from fastapi import FastAPI
 
-from app.config import (
-    ArmProfile,
-    KeepOutBox,
-    SafetySettings,
-    Settings,
-    homed_at_start,
-    load_profile,
-)
+from app.arms.loading import load_profile
+from app.config import ArmProfile, KeepOutBox, SafetySettings, Settings, homed_at_start
 from app.safety.envelope import ArmSafety
 
 API = "/api/v1"

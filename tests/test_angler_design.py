@@ -9,7 +9,7 @@ import pytest
 from _wait import wait_for
 from fastapi import FastAPI
 
-from app.config import load_profile
+from app.arms.loading import load_profile
 from protocol import mx28
 
 API = "/api/v1/arms/angler"

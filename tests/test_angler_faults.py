@@ -17,7 +17,8 @@ from fastapi import FastAPI
 
 from app.arms.dynamixel.driver import DynamixelDriver
 from app.arms.dynamixel.sim_bus import DynamixelBus
-from app.config import homed_at_start, load_profile
+from app.arms.loading import load_profile
+from app.config import homed_at_start
 from app.device.factory import make_sim_device
 from app.links.serial import SerialLink
 from app.links.sim import SimLink

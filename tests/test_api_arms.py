@@ -204,7 +204,7 @@ async def test_dashboard_is_served_when_present(app_client: httpx.AsyncClient) -
 
 
 def test_create_app_takes_explicit_profiles() -> None:
-    from app.config import load_profile
+    from app.arms.loading import load_profile
 
     app = create_app(make_settings(), [load_profile("angler")])
     assert app.title == "armserver"

@@ -12,7 +12,8 @@ import pytest
 from _wait import wait_for
 
 from app import schemas as s
-from app.config import homed_at_start, load_profile
+from app.arms.loading import load_profile
+from app.config import homed_at_start
 from app.runtime import gc_policy as c
 from app.runtime.gc_policy import Collector, moving
 from app.service import ArmService

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from app.config import ArmProfile, ConfigError, Settings, load_arms, load_profile
+from app.arms.loading import check_profile, load_arms, load_profile
+from app.config import ArmProfile, ConfigError, Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -51,13 +52,18 @@ def test_two_arms_of_one_model_need_distinct_names(tmp_path):
 
 
 def test_bad_profiles_are_refused_with_reasons():
+    """The models' own checks and the arm type's (check_profile, where profiles are read)
+    refuse with the reason and where; the plain model knows no arm type."""
     base = load_profile("rbe3001").model_dump()
     for patch, match in [({"geometry": {"l1": 0.2}}, "geometry needs"),
                          ({"joints": base["joints"][:2]}, "3 joints"),
+                         ({"model": "scara"}, 'unknown arm type .scara.*"angler"'),
                          ({"geometry": {**base["geometry"], "l2": float("nan")}}, "finite")]:
-        with pytest.raises(ValidationError, match=match):
-            ArmProfile.model_validate({**base, **patch})
+        with pytest.raises(ConfigError, match=match):
+            check_profile({**base, **patch}, "test profile")
     bad = dict(base["joints"][0], min=1.0, max=0.0)
+    with pytest.raises(ConfigError, match="(?s)test profile.*min must be below max"):
+        check_profile({**base, "joints": [bad, *base["joints"][1:]]}, "test profile")
     with pytest.raises(ValidationError, match="min must be below max"):
         ArmProfile.model_validate({**base, "joints": [bad, *base["joints"][1:]]})
 

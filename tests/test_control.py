@@ -17,7 +17,7 @@ from _wait import wait_for
 from conftest import OPERATOR, VIEWER, make_settings, running_client
 
 from app import schemas as s
-from app.config import load_profile
+from app.arms.loading import load_profile
 from app.service import ArmService
 
 API = "/api/v1"

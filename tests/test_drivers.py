@@ -14,8 +14,9 @@ import pytest
 from _wait import held_still, new_samples, wait_for
 
 from app.arms.dynamixel.driver import DynamixelDriver
+from app.arms.loading import load_profile
 from app.arms.rbe3001.driver import Rbe3001Driver
-from app.config import FaultConfig, load_profile
+from app.config import FaultConfig
 from app.device.factory import make_sim_device
 from app.errors import ArmError, CorruptReply, DeviceTimeout, LinkDown
 from app.links.serial import SerialLink

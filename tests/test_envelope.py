@@ -377,5 +377,5 @@ max = { x = 0.4, y = 0.4, z = 0.4 }
     bad = tmp_path / "bad.toml"
     bad.write_text(cfg.read_text().replace("speed_override = 0.5", "speed_override = 2.0"))
     with pytest.raises(ValueError, match="speed_override"):
-        from app.config import load_arms
+        from app.arms.loading import load_arms
         load_arms(bad)

@@ -24,7 +24,8 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from app import schemas as s
-from app.config import KeepOutBox, SafetySettings, load_profile
+from app.arms.loading import load_profile
+from app.config import KeepOutBox, SafetySettings
 from app.errors import ArmError
 from app.safety.envelope import KeepOut
 from app.service import ArmService

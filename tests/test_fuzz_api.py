@@ -46,7 +46,7 @@ from schemathesis.checks import (
 from schemathesis.python import asgi as st_asgi
 
 from app.arms import model_for
-from app.config import load_profile
+from app.arms.loading import load_profile
 from app.web.factory import create_app
 
 pytestmark = pytest.mark.slow

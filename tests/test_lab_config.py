@@ -9,8 +9,8 @@ import pytest
 from conftest import make_settings, running_client
 from pydantic import ValidationError
 
-from app.config import load_arms
-from app.telemetry.mqtt import parse_broker_url
+from app.arms.loading import load_arms
+from app.config.settings import parse_broker_url
 
 
 def test_count_hosts_numbered_copies(tmp_path: Path) -> None:

@@ -15,8 +15,9 @@ import pytest
 from _wait import new_samples, wait_for
 
 from app import schemas as s
+from app.arms.loading import load_profile
 from app.arms.rbe3001.driver import Rbe3001Driver
-from app.config import homed_at_start, load_profile
+from app.config import homed_at_start
 from app.device.driver import Driver
 from app.device.factory import make_sim_device
 from app.errors import EstopLatched, InvalidRequest, JointLimit, NotSupported

@@ -22,9 +22,10 @@ from dynamixel_sdk import COMM_SUCCESS
 from app.arms import ARM_TYPES, arm_type
 from app.arms.dynamixel.sim_bus import DynamixelBus
 from app.arms.dynamixel.sim_xm430 import Xm430Servo
+from app.arms.loading import check_profile, load_arms, load_profile
 from app.arms.model import chain_points
 from app.arms.openmanipulator_x.driver import OmxDriver
-from app.config import homed_at_start, load_arms, load_profile
+from app.config import homed_at_start
 from app.device.factory import make_sim_device
 from app.errors import JointLimit, Unreachable
 from app.links.sim import SimLink
@@ -66,11 +67,11 @@ def test_profile_refused_without_motor_ids() -> None:
     data = PROFILE.model_dump()
     data["joints"][2]["motor_id"] = None
     with pytest.raises(ValueError, match="need a Dynamixel motor_id"):
-        type(PROFILE).model_validate(data)
+        check_profile(data)
     data = PROFILE.model_dump()
     data["geometry"].pop("l4")
     with pytest.raises(ValueError, match="geometry needs"):
-        type(PROFILE).model_validate(data)
+        check_profile(data)
 
 
 # ------------------------------------------------------------------ kinematics model

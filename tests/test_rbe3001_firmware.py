@@ -7,8 +7,8 @@ import struct
 
 import pytest
 
+from app.arms.loading import load_profile
 from app.arms.rbe3001.sim import CYCLE_S, Rbe3001Firmware
-from app.config import load_profile
 from protocol.rbe3001 import (
     Ack,
     JointSetpoint,
@@ -227,7 +227,7 @@ def test_encoder_readings_are_quarter_ticks() -> None:
 def test_no_gain_can_spin_a_joint_past_its_end_stops() -> None:
     """A negative gain turns the loop unstable: the joint runs to the mechanism's end stop and
     stays there, as on the arm, instead of spinning for ever."""
-    from app.config import load_profile
+    from app.arms.loading import load_profile
 
     profile = load_profile("rbe3001")
     fw = Rbe3001Firmware(profile)

@@ -16,9 +16,10 @@ from _wait import fresh_state, new_samples, wait_for
 from conftest import OPERATOR, VIEWER, make_settings, running_client
 
 from app.arms import model_for
+from app.arms.loading import load_profile
 from app.arms.rbe3001.driver import Rbe3001Driver
 from app.arms.rbe3001.sim import Rbe3001Firmware
-from app.config import FaultConfig, ForceConfig, load_profile
+from app.config import FaultConfig, ForceConfig
 from app.errors import DeviceTimeout
 from app.links.serial import SerialLink
 from app.links.sim import SimLink

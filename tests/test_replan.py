@@ -16,7 +16,7 @@ import pytest
 from test_control import record_setpoints
 
 from app import schemas as s
-from app.config import load_profile
+from app.arms.loading import load_profile
 from app.motion.stream import MAX_STEP_S
 from app.service import ArmService
 

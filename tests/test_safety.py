@@ -29,7 +29,8 @@ from fastapi import FastAPI
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from app.config import ArmProfile, Settings, homed_at_start, load_profile
+from app.arms.loading import load_profile
+from app.config import ArmProfile, Settings, homed_at_start
 
 API = "/api/v1"
 RB = f"{API}/arms/rbe3001"

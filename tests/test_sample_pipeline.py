@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from _wait import wait_for
 
+from app.arms.loading import load_profile
 from app.arms.rbe3001.driver import Rbe3001Driver
 from app.arms.rbe3001.sim import CYCLE_S, Rbe3001Firmware
-from app.config import load_profile
 from app.device.factory import make_sim_device
 from app.links.serial import SerialLink
 from app.links.sim import SimLink

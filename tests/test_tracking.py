@@ -14,7 +14,8 @@ import pytest
 from _wait import held_still, new_samples
 
 from app import schemas as s
-from app.config import homed_at_start, load_profile
+from app.arms.loading import load_profile
+from app.config import homed_at_start
 from app.service import ArmService
 
 

@@ -98,7 +98,8 @@ class ArmType:
     default_server: bool = True
 
     def validate(self, profile: ArmProfile) -> None:
-        """Raise ValueError where a profile does not fit this type (called by ArmProfile)."""
+        """Raise ValueError where a profile does not fit this type (called by
+        app/arms/loading.py check_profile)."""
         missing = self.geometry_keys - set(profile.geometry)
         if missing:
             raise ValueError(f"{self.name} geometry needs {sorted(missing)}")

@@ -4,24 +4,19 @@ An arm profile holds everything that differs between arms and between a simulate
 real link: geometry, joint limits, encoder and transmission data, link address and rates.
 Code never hard-codes these; the built-in profiles carry the design documents' values.
 
-A package (issue 13's module size): profiles.py (the profile models), loading.py (profile
-and config files), settings.py (the server's settings); every name is re-exported here, so
-`from app.config import ...` is the one way in.
+A package: profiles.py (the profile models, plain data: they know no arm type), settings.py
+(the server's settings); every name is re-exported here, so `from app.config import ...` is
+the one way in. Reading profiles and config files, and checking a profile against its arm
+type, is app/arms/loading.py: the registry's side, so that config depends on nothing above it
+and the arm types may name ArmProfile in their types without a cycle.
 """
 
 from __future__ import annotations
 
-from app.config.loading import (
-    MAX_COPIES,
-    ConfigError,
-    ServerConfig,
-    homed_at_start,
-    load_arms,
-    load_profile,
-)
 from app.config.profiles import (
     ArmProfile,
     CartesianLimits,
+    ConfigError,
     FaultConfig,
     ForceConfig,
     GripperConfig,
@@ -31,6 +26,7 @@ from app.config.profiles import (
     Point3,
     SafetyConfig,
     SafetySettings,
+    homed_at_start,
 )
 from app.config.settings import (
     LOG_LEVELS,
@@ -51,16 +47,12 @@ __all__ = [
     "KeepOutBox",
     "LOG_LEVELS",
     "LinkConfig",
-    "MAX_COPIES",
     "Point3",
     "SETTING_RANGES",
     "SafetyConfig",
     "SafetySettings",
-    "ServerConfig",
     "Settings",
     "env_name",
     "homed_at_start",
-    "load_arms",
-    "load_profile",
     "settings_error",
 ]

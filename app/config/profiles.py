@@ -1,5 +1,7 @@
 """Arm profiles: the pydantic models of a profile (link, joints, gripper, force, limits,
-safety envelope) and their checks; the arm type named by `model` validates the rest."""
+safety envelope) and their own checks. Plain data: what the arm type named by `model` asks of
+a profile (geometry keys, joint count) is checked where profiles are read
+(app/arms/loading.py `check_profile`), so this module imports no arm type."""
 
 from __future__ import annotations
 
@@ -14,7 +16,11 @@ from pydantic import (
     model_validator,
 )
 
-from app.arms import arm_type
+
+class ConfigError(ValueError):
+    """A config file or profile that cannot be used; the message says what is wrong, where,
+    and (for an unknown profile) which profiles are built in. `armserver serve` prints it and
+    exits 2, no traceback."""
 
 
 class _Strict(BaseModel):
@@ -241,17 +247,6 @@ class ArmProfile(_Strict):
                 raise ValueError(f"geometry {k} must be finite")
         return v
 
-    @field_validator("model")
-    @classmethod
-    def _known_type(cls, v: str) -> str:
-        arm_type(v)  # ValueError naming the known arm types
-        return v
-
-    @model_validator(mode="after")
-    def _check(self) -> ArmProfile:
-        arm_type(self.model).validate(self)  # geometry keys, joint count, the type's own
-        return self
-
     @property
     def joint_names(self) -> list[str]:
         return [j.name for j in self.joints]
@@ -263,3 +258,9 @@ class ArmProfile(_Strict):
     @property
     def upper(self) -> list[float]:
         return [j.max for j in self.joints]
+
+
+def homed_at_start(p: ArmProfile) -> ArmProfile:
+    """`p` with its link marked homed at start (the built-in simulators start at a known
+    pose)."""
+    return p.model_copy(update={"link": p.link.model_copy(update={"homed_at_start": True})})

@@ -12,7 +12,9 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Any
+from urllib.parse import unquote, urlsplit
 
 from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -62,8 +64,6 @@ class Settings(BaseSettings):
     def _mqtt_url(cls, v: str | None) -> str | None:
         if v is None or not v.strip():
             return None
-        from app.telemetry.mqtt import parse_broker_url
-
         try:
             parse_broker_url(v)
         except ValueError as exc:  # its message quotes the URL: password included
@@ -178,6 +178,42 @@ def is_secret(name: str) -> bool:
     """Whether a setting's value is a secret (its name says token, secret or password; a
     `*_file` setting is the path of one, not one)."""
     return bool(_SECRET_NAME.search(name)) and not name.lower().endswith("_file")
+
+
+@dataclass(frozen=True)
+class BrokerUrl:
+    """An MQTT broker address, parsed from ARMSERVER_MQTT_URL."""
+
+
+    host: str
+    port: int
+    username: str | None
+    password: str | None
+    tls: bool
+
+    @property
+    def public(self) -> str:
+        """The URL without credentials (health, logs)."""
+        scheme = "mqtts" if self.tls else "mqtt"
+        user = f"{self.username}@" if self.username else ""
+        return f"{scheme}://{user}{self.host}:{self.port}"
+
+
+def parse_broker_url(url: str) -> BrokerUrl:
+    """`mqtt://[user[:password]@]host[:port]` (mqtts:// for TLS; default ports 1883 / 8883)."""
+    parts = urlsplit(url.strip())
+    if parts.scheme not in ("mqtt", "mqtts", "tcp"):
+        raise ValueError(f"MQTT URL must start with mqtt:// or mqtts://, got {url!r}")
+    if not parts.hostname:
+        raise ValueError(f"MQTT URL names no host: {url!r}")
+    tls = parts.scheme == "mqtts"
+    try:
+        port = parts.port or (8883 if tls else 1883)
+    except ValueError as exc:
+        raise ValueError(f"MQTT URL has a bad port: {exc}") from None
+    user = unquote(parts.username) if parts.username else None
+    password = unquote(parts.password) if parts.password is not None else None
+    return BrokerUrl(parts.hostname, port, user, password, tls)
 
 
 def mask_url(text: str) -> str:

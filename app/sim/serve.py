@@ -120,7 +120,8 @@ def _pairs(items: Sequence[str]) -> dict[int, int]:
 def _profile_device(source: str) -> tuple[SimDevice, str]:
     """The simulator of a profile's arm type, and a line saying what it is."""
     from app.arms import arm_type
-    from app.config import ConfigError, load_profile
+    from app.arms.loading import load_profile
+    from app.config import ConfigError
 
     try:
         profile = load_profile(source)

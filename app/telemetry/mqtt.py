@@ -41,12 +41,12 @@ from collections import deque
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
-from urllib.parse import unquote, urlsplit
 
 import aiomqtt
 import paho.mqtt.client as mqtt
 from aiomqtt.exceptions import MqttConnectError
 
+from app.config.settings import parse_broker_url
 from app.doors import aiomqtt as aiomqtt_door
 
 if TYPE_CHECKING:
@@ -67,39 +67,6 @@ EVENT_BUFFER = 256
 SAMPLE_BUFFER = 2000
 
 BridgeState = Literal["connecting", "up", "down", "refused"]
-
-
-@dataclass(frozen=True)
-class BrokerUrl:
-    host: str
-    port: int
-    username: str | None
-    password: str | None
-    tls: bool
-
-    @property
-    def public(self) -> str:
-        """The URL without credentials (health, logs)."""
-        scheme = "mqtts" if self.tls else "mqtt"
-        user = f"{self.username}@" if self.username else ""
-        return f"{scheme}://{user}{self.host}:{self.port}"
-
-
-def parse_broker_url(url: str) -> BrokerUrl:
-    """`mqtt://[user[:password]@]host[:port]` (mqtts:// for TLS; default ports 1883 / 8883)."""
-    parts = urlsplit(url.strip())
-    if parts.scheme not in ("mqtt", "mqtts", "tcp"):
-        raise ValueError(f"MQTT URL must start with mqtt:// or mqtts://, got {url!r}")
-    if not parts.hostname:
-        raise ValueError(f"MQTT URL names no host: {url!r}")
-    tls = parts.scheme == "mqtts"
-    try:
-        port = parts.port or (8883 if tls else 1883)
-    except ValueError as exc:
-        raise ValueError(f"MQTT URL has a bad port: {exc}") from None
-    user = unquote(parts.username) if parts.username else None
-    password = unquote(parts.password) if parts.password is not None else None
-    return BrokerUrl(parts.hostname, port, user, password, tls)
 
 
 @dataclass

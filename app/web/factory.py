@@ -24,10 +24,11 @@ from starlette.types import Scope
 
 from app import schemas
 from app.arms import arm_routers
+from app.arms.loading import load_arms
 from app.classroom.audit import AuditLog
 from app.classroom.lease import LeaseManager
 from app.classroom.queue import Classroom
-from app.config import ArmProfile, Settings, load_arms
+from app.config import ArmProfile, Settings
 from app.runtime.control_thread import ControlThread
 from app.runtime.gc_policy import Collector, moving
 from app.service import ArmService

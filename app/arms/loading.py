@@ -1,5 +1,9 @@
 """Loading arm profiles (built-in names or TOML files) and server config files (`[[arms]]`
-entries with overrides and copies), with a `ConfigError` that says what and where."""
+entries with overrides and copies), each profile checked against its arm type
+(`check_profile`), with a `ConfigError` that says what and where.
+
+This is the registry's side of the profiles: app/config holds the plain models and imports no
+arm type, so the arm types may name ArmProfile in their types without an import cycle."""
 
 from __future__ import annotations
 
@@ -10,16 +14,12 @@ from typing import Any
 from pydantic import Field, ValidationError
 
 from app.arms import arm_type, builtin_profiles
-from app.config.profiles import ArmProfile, _Strict
+from app.config.profiles import ArmProfile, ConfigError, _Strict, homed_at_start
+
+__all__ = ["MAX_COPIES", "ServerConfig", "check_profile", "load_arms", "load_profile"]
 
 #: Most copies one `[[arms]]` entry may ask for (`count`).
 MAX_COPIES = 256
-
-
-class ConfigError(ValueError):
-    """A config file or profile that cannot be used; the message says what is wrong, where,
-    and (for an unknown profile) which profiles are built in. `armserver serve` prints it and
-    exits 2, no traceback."""
 
 
 def _builtins() -> str:
@@ -47,6 +47,25 @@ def _invalid(exc: ValidationError, where: str) -> ConfigError:
     return ConfigError("\n".join(lines))
 
 
+def check_profile(data: object, where: str = "profile") -> ArmProfile:
+    """`data` (a mapping, as read from TOML) as a profile that its arm type accepts: the
+    models' own checks, then the type named by `model` (known, its geometry keys, its joint
+    count, its own check). Raises :class:`ConfigError` saying where and what."""
+    try:
+        profile = ArmProfile.model_validate(data)
+    except ValidationError as exc:
+        raise _invalid(exc, where) from None
+    try:
+        kind = arm_type(profile.model)
+    except ValueError as exc:  # names the known arm types
+        raise ConfigError(f"{where}: model: {exc}") from None
+    try:
+        kind.validate(profile)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    return profile
+
+
 def load_profile(source: str | Path) -> ArmProfile:
     """Load a profile by built-in name (a `*.toml` shipped in an arm type's package, e.g.
     `rbe3001`, `angler`) or from a TOML file path.
@@ -61,10 +80,7 @@ def load_profile(source: str | Path) -> ArmProfile:
             raise ConfigError(f"profile {str(source)!r}: not a built-in profile (those are "
                               f"{_builtins()}) and no profile file {path}")
         data, where = _read_toml(path, "profile file"), f"profile file {path}"
-    try:
-        return ArmProfile.model_validate(data)
-    except ValidationError as exc:
-        raise _invalid(exc, where) from None
+    return check_profile(data, where)
 
 
 class ServerConfig(_Strict):
@@ -117,10 +133,7 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
         copies = [base] if count == 1 else [
             {**base, "name": f"{base.get('name')}-{n}"} for n in range(1, count + 1)]
         for copy in copies:
-            try:
-                profiles.append(ArmProfile.model_validate(copy))
-            except ValidationError as exc:
-                raise _invalid(exc, where) from None
+            profiles.append(check_profile(copy, where))
     names = [p.name for p in profiles]
     if len(set(names)) != len(names):
         raise ConfigError(f"config file {path}: arm names must be unique, got {names} (give "
@@ -128,10 +141,6 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
     if not profiles:
         raise ConfigError(f"config file {path} names no [[arms]]")
     return profiles
-
-
-def homed_at_start(p: ArmProfile) -> ArmProfile:
-    return p.model_copy(update={"link": p.link.model_copy(update={"homed_at_start": True})})
 
 
 def _merge(base: dict[str, object], over: dict[str, object]) -> dict[str, object]:
