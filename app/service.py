@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 PRESS_WAIT_S = 0.005
 
 T = TypeVar("T")
+D = TypeVar("D", bound=Driver)
 
 
 class ArmService:
@@ -529,9 +530,24 @@ class ArmService:
     def check_passthrough_velocities(self, velocities: np.ndarray) -> None:
         self.guard.check_passthrough_velocity_ticks(velocities)
 
+    @property
+    def faults(self) -> list[dict[str, Any]]:
+        """The hardware faults the driver reports now (API "Faults and homing"); empty when
+        all is well."""
+        return list(self.driver.faults)
+
     def require_protocol(self, protocol: str) -> None:
         if self.protocol != protocol:
             raise NotSupported(f"{self.name} speaks {self.protocol}, not {protocol}")
+
+    def protocol_driver(self, protocol: str, kind: type[D]) -> D:
+        """The arm's driver as `kind`, the driver of the wire protocol a pass-through router
+        speaks (its reads; its commands go through `command_passthrough`), or 409
+        `not_supported` on an arm that speaks another protocol."""
+        self.require_protocol(protocol)
+        if not isinstance(self.driver, kind):
+            raise NotSupported(f"{self.name}'s driver is not a {kind.__name__}")
+        return self.driver
 
     def now(self) -> float:
         return time.time()

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import time
-from typing import Any
 
 import numpy as np
 
@@ -49,27 +48,13 @@ async def handoff(svc: ArmService) -> str | None:
         return "the arm did not reach home in time"
     if rec.status != "done":
         return f"the move home ended {rec.status}: {rec.reason or '-'}"
-    faults = device_faults(svc)
+    faults = svc.faults
     if faults:
         return f"device faults after the move home: {faults}"
     q = svc.positions
     if q is None:
         return "no position reading after the move home"
     return None
-
-
-def device_faults(svc: ArmService) -> list[Any]:
-    """Faults the driver reports (engineer dxl's `faults`, where present), the link's state and
-    staleness. Empty when all is well."""
-    out: list[Any] = []
-    for holder in (svc, svc.driver):
-        found = getattr(holder, "faults", None)
-        if found:
-            out.extend(found if isinstance(found, list) else [found])
-    stale = getattr(svc.driver, "stale_error", None)
-    if stale is not None:
-        out.append(str(getattr(stale, "detail", stale)))
-    return out
 
 
 def positions(svc: ArmService) -> list[float] | None:

@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from app import schemas as s
-from app.classroom.handoff import device_faults, handoff, home_pose, positions
+from app.classroom.handoff import handoff, home_pose, positions
 from app.classroom.lease import LeaseManager
 from app.errors import AlreadyQueued, Forbidden, InvalidOrder, UnknownEntry
 from app.runtime.tasks import cancel_and_wait
@@ -408,4 +408,4 @@ class Classroom:
             self._store.put_setting_nowait(SCOPE.format(q.arm), KEY, rows)
 
 
-__all__ = ["Classroom", "device_faults", "handoff", "home_pose"]
+__all__ = ["Classroom", "handoff", "home_pose"]

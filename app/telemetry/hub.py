@@ -67,6 +67,11 @@ class Subscription:
         self.delivered = 0
         self.closed = False
 
+    @property
+    def hub(self) -> TelemetryHub:
+        """The log this subscription reads (a broadcast groups its members by it)."""
+        return self._hub
+
     def _push_event(self, encoded: str) -> None:
         self._events.append(encoded)
         self._wake()

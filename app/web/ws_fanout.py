@@ -176,9 +176,10 @@ class Broadcasts:
     def __init__(self) -> None:
         self._groups: dict[tuple[int, float], Broadcast] = {}
 
-    async def serve(self, hub: TelemetryHub, period: float, member: Member,
-                    until: asyncio.Event) -> None:
-        """Serve `member` in the broadcast for (hub, period) until `until` is set."""
+    async def serve(self, period: float, member: Member, until: asyncio.Event) -> None:
+        """Serve `member` in the broadcast for (its subscription's hub, period) until `until`
+        is set."""
+        hub = member.sub.hub
         key = (id(hub), period)
         group = self._groups.get(key)
         if group is None or group.hub is not hub:

@@ -15,20 +15,18 @@ estop is latched, except the safe ones: torque off and the LED. Reads may name a
 from __future__ import annotations
 
 from collections.abc import Awaitable, Callable
-from typing import TYPE_CHECKING, Annotated, Any, cast
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Path
 
 from app import schemas as s
 from app.arms import arm_type
+from app.arms.dynamixel.exchange import DynamixelBusDriver
 from app.errors import InUse, OutOfRange, ReadOnly, UnknownId, UnknownRegister
 from app.service import ArmService
 from app.web.deps import ControlArm
 from app.web.routes.common import DEVICE, errors
 from protocol import mx28
-
-if TYPE_CHECKING:
-    from app.arms.dynamixel.exchange import DynamixelBusDriver
 
 router = APIRouter(prefix="/arms/{arm}/dynamixel", tags=["dynamixel"])
 
@@ -39,8 +37,8 @@ _NOT_SUPPORTED = "409 `not_supported` on an arm that does not speak Dynamixel."
 
 
 def _driver(svc: ArmService) -> DynamixelBusDriver:
-    svc.require_protocol("dynamixel")
-    return cast("DynamixelBusDriver", svc.driver)  # a Dynamixel arm's: checked just above
+    bus: type[DynamixelBusDriver] = DynamixelBusDriver  # type: ignore[type-abstract]  # isinstance
+    return svc.protocol_driver("dynamixel", bus)
 
 
 def _table(svc: ArmService) -> Any:

@@ -9,7 +9,6 @@ overflow) is a 422 for the caller, not a failure inside the task that owns the l
 from __future__ import annotations
 
 import struct
-from typing import cast
 
 import numpy as np
 from fastapi import APIRouter
@@ -28,8 +27,7 @@ _NOT_SUPPORTED = "409 `not_supported` on an arm that does not speak the RBE3001 
 
 
 def _driver(svc: ArmService) -> Rbe3001Driver:
-    svc.require_protocol("rbe3001")
-    return cast(Rbe3001Driver, svc.driver)  # an rbe3001 arm's: checked just above
+    return svc.protocol_driver("rbe3001", Rbe3001Driver)
 
 
 def _encodable(cmd: rb.Command) -> None:

@@ -267,8 +267,8 @@ class _Stream:
                 await self._send_prompt(sub)
             elif raw is not None:  # one task and one frame per batch for every such client
                 self._changed = asyncio.Event()
-                await _broadcasts(ws.app.state).serve(self.svc.hub, self.period,
-                                                      Member(sub, raw), self._changed)
+                await _broadcasts(ws.app.state).serve(self.period, Member(sub, raw),
+                                                      self._changed)
             else:
                 await self._send_ticked(sub)
 
