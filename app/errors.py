@@ -66,6 +66,9 @@ _ROWS: tuple[tuple[str, int | None, str, str, str], ...] = (
     ("no_force_sensing", 409, "NoForceSensing", "NotSupported", "the arm senses no joint torques"),
     ("fault", 409, "Fault", "Fault", "a servo reports a hardware fault: reboot it"),
     ("not_homed", 409, "NotHomed", "NotHomed", "a joint lost its zero: home the arm first"),
+    ("not_calibrated", 409, "NotCalibrated", "NotCalibrated",
+     "a joint's zero is not known on this hardware: calibrate it first (POST "
+     "/api/v1/arms/{arm}/calibration)"),
     ("already_homed", 409, "AlreadyHomed", "Conflict",
      "the arm knows where it is: an instructor re-homes it, or un-home it first (DELETE /home)"),
     ("torque_off", 409, "TorqueOff", "TorqueOff", "a joint's servo holds no torque"),
@@ -264,6 +267,13 @@ class NotHomed(Conflict):
     """A joint that loses its zero at power-up has not been homed (POST /home)."""
 
     code = "not_homed"
+
+
+class NotCalibrated(Conflict):
+    """A joint whose zero the hardware does not know has no calibration on this hardware (POST
+    /calibration declares the pose the arm is at)."""
+
+    code = "not_calibrated"
 
 
 class AlreadyHomed(Conflict):

@@ -79,6 +79,10 @@ class NotHomed(Conflict):
     """not_homed: a joint lost its zero; home the arm."""
 
 
+class NotCalibrated(Conflict):
+    """not_calibrated: a joint's zero is not known on this hardware; calibrate the arm."""
+
+
 class TorqueOff(Conflict):
     """torque_off: a joint's servo holds no torque."""
 

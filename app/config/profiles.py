@@ -65,6 +65,18 @@ class LinkConfig(_Strict):
     sim_echo: bool = Field(False, description="rbe3001 simulator only: reply as firmware builds "
                            "that echo the request's unwritten floats, instead of zeroing them as "
                            "PidServer.cpp does (the default)")
+    calibrated_at_start: bool | None = Field(
+        None, description="the joints the profile marks `zero_known = false` start calibrated: "
+        "None (the default) for a simulated link (`kind = \"sim\"`: its zero is the "
+        "simulator's) and not for a real one; false makes a simulator start like hardware")
+    sim_firmware: Literal["status", "stock_99", "stock_silent"] = Field(
+        "status", description="rbe3001 simulator only: the firmware build: `status` has the "
+        "STATUS server (38); `stock_99` answers STATUS with error 99 and `stock_silent` not at "
+        "all, as builds without it (RBE3001_nucleo_firmware: no server registered for the id)")
+    sim_gain_claw_reply: Literal["zeros", "echo", "silent", "other"] = Field(
+        "zeros", description="rbe3001 simulator only: what SET_GAIN (39) and SET_CLAW (40) "
+        "answer: zeros (PidServer's reply buffer), the echo, nothing (the design document: "
+        "they \"do not provide any return values\"), or other bytes")
 
 
 class JointConfig(_Strict):
@@ -91,6 +103,12 @@ class JointConfig(_Strict):
     settle_tolerance: float | None = Field(
         None, gt=0.0, description="rad or m: a motion is done when the joint is this close to "
         "where it was sent (default: 8 encoder ticks)")
+    zero_known: bool = Field(
+        True, description="the hardware knows this joint's zero (an absolute encoder read "
+        "against a fixed mark, a servo set up to the profile); false where the zero is wherever "
+        "the board was powered on or the horn was fitted (the rbe3001's three; the angler's "
+        "theta3): on a real link the joint starts not calibrated and a move waits for "
+        "POST /calibration (the offset found is stored under the hardware's identity)")
 
     @model_validator(mode="after")
     def _check(self) -> JointConfig:
@@ -232,6 +250,19 @@ class ArmProfile(_Strict):
     home: list[float] | None = Field(None, description="joint positions of the home pose")
     raw_access: bool = Field(False, description="allow pass-through commands outside the limits")
     safety: SafetyConfig = Field(default_factory=SafetyConfig)
+    calibration_poses: dict[str, list[float]] = Field(
+        default_factory=dict, description="named calibration poses, joint values per joint "
+        "(rad or m): POST /calibration {\"pose\": NAME} declares the arm is at one (e.g. "
+        "`jig`: the arm held in its jig)")
+    power_on_pose: str | None = Field(
+        None, description="where the firmware zeroes its encoders at power-on, the name of "
+        "one of `calibration_poses`: the joints then start calibrated (source `profile`) on "
+        "the assumption the board was powered on in that pose")
+    geometry_sets: dict[str, dict[str, float]] = Field(
+        default_factory=dict, description="named sets of link lengths (m) an arm of this type "
+        "may have; `geometry_set` picks one, its values replace those in `geometry`")
+    geometry_set: str | None = Field(None, description="the name in `geometry_sets` this arm "
+                                     "has (None: `geometry` as written)")
     tracking_margin: float = Field(
         0.9, gt=0.0, le=1.0, description="moves are planned with the joints' velocity and "
         "acceleration limits times this (a line: its joint velocity bound; the Cartesian "
@@ -246,6 +277,31 @@ class ArmProfile(_Strict):
             if not math.isfinite(x):
                 raise ValueError(f"geometry {k} must be finite")
         return v
+
+    @model_validator(mode="after")
+    def _calibration_and_geometry(self) -> ArmProfile:
+        n = len(self.joints)
+        for name, pose in self.calibration_poses.items():
+            if len(pose) != n or not all(math.isfinite(v) for v in pose):
+                raise ValueError(f"calibration pose {name}: give {n} finite joint values")
+        if self.power_on_pose is not None and self.power_on_pose not in self.calibration_poses:
+            raise ValueError(f"power_on_pose {self.power_on_pose!r} is not one of "
+                             f"calibration_poses {sorted(self.calibration_poses)}")
+        for name, values in self.geometry_sets.items():
+            if not all(math.isfinite(v) and v > 0.0 for v in values.values()):
+                raise ValueError(f"geometry set {name}: lengths must be finite and positive")
+        if self.geometry_set is not None:
+            chosen = self.geometry_sets.get(self.geometry_set)
+            if chosen is None:
+                raise ValueError(f"geometry_set {self.geometry_set!r} is not one of "
+                                 f"geometry_sets {sorted(self.geometry_sets)}")
+            self.geometry = {**self.geometry, **chosen}
+        return self
+
+    @property
+    def calibration_joints(self) -> list[int]:
+        """The indexes of the joints whose zero the hardware does not know."""
+        return [i for i, j in enumerate(self.joints) if not j.zero_known]
 
     @property
     def joint_names(self) -> list[str]:
