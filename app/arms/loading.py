@@ -16,10 +16,17 @@ from pydantic import Field, ValidationError
 from app.arms import arm_type, builtin_profiles
 from app.config.profiles import ArmProfile, ConfigError, _Strict, homed_at_start
 
-__all__ = ["MAX_COPIES", "ServerConfig", "check_profile", "load_arms", "load_profile"]
+__all__ = ["MAX_COPIES", "TOP_LEVEL_KEYS", "ServerConfig", "check_profile", "load_arms",
+           "load_profile"]
+
+#: The top-level tables and keys a server config file may have; anything else is refused at
+#: start with its name. `cameras` is read by app/cameras/config.py (`load_cameras`).
+TOP_LEVEL_KEYS = frozenset({"arms", "cameras"})
 
 #: Most copies one `[[arms]]` entry may ask for (`count`).
 MAX_COPIES = 256
+#: Most worker processes one server may run (`worker` in an `[[arms]]` entry, app/lab).
+MAX_WORKERS = 64
 
 
 def _builtins() -> str:
@@ -90,7 +97,8 @@ class ServerConfig(_Strict):
     arms: list[dict[str, object]] = Field(default_factory=list)
 
 
-def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
+def load_arms(config_file: str | Path | None,
+              placed: dict[str, int] | None = None) -> list[ArmProfile]:
     """The arms a server hosts. With no config file: every built-in profile, simulated.
 
     A config file is TOML with `[[arms]]` tables, each either `profile = "rbe3001"` (or a
@@ -98,12 +106,19 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
     `count = N` (1..256) in an entry hosts N copies named `{name}-1` .. `{name}-N` (a lab of
     simulated arms from one entry; a copy's link address, if any, is shared, so use it with
     `kind = "sim"`).
+    `worker = K` (0..MAX_WORKERS-1) names the worker process that hosts the entry's arms under
+    `armserver serve --workers N` (app/lab); it is written into `placed` (arm name -> K), if
+    given, and otherwise only checked.
     """
     if config_file is None:  # the built-in simulators start at a known pose: homed
         builtin = [load_profile(n) for n in builtin_profiles()]
         return [homed_at_start(p) for p in builtin if arm_type(p.model).default_server]
     path = Path(config_file)
     data = _read_toml(path, "config file")
+    unknown = sorted(set(data) - TOP_LEVEL_KEYS)
+    if unknown:  # a misspelt table would otherwise be silently ignored
+        raise ConfigError(f"config file {path}: unknown table or key {', '.join(unknown)} "
+                          f"(known: {', '.join(sorted(TOP_LEVEL_KEYS))})")
     arms = data.get("arms", [])
     if not isinstance(arms, list) or not all(isinstance(a, dict) for a in arms):
         raise ConfigError(f"config file {path}: `arms` must be [[arms]] tables")
@@ -112,6 +127,11 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
         entry = dict(entry)
         where = f"config file {path}, [[arms]] #{k + 1}"
         count = entry.pop("count", 1)
+        worker = entry.pop("worker", None)
+        if worker is not None and (isinstance(worker, bool) or not isinstance(worker, int)
+                                   or not 0 <= worker < MAX_WORKERS):
+            raise ConfigError(f"{where}: worker must be an integer 0..{MAX_WORKERS - 1}, "
+                              f"got {worker!r}")
         if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_COPIES:
             raise ConfigError(f"{where}: count must be an integer 1..{MAX_COPIES}, got {count!r}")
         base_name = entry.pop("profile", None)
@@ -134,6 +154,8 @@ def load_arms(config_file: str | Path | None) -> list[ArmProfile]:
             {**base, "name": f"{base.get('name')}-{n}"} for n in range(1, count + 1)]
         for copy in copies:
             profiles.append(check_profile(copy, where))
+            if worker is not None and placed is not None:
+                placed[profiles[-1].name] = worker
     names = [p.name for p in profiles]
     if len(set(names)) != len(names):
         raise ConfigError(f"config file {path}: arm names must be unique, got {names} (give "
