@@ -19,6 +19,11 @@ MODEL_NUMBER = 30
 E_MANUAL = "https://emanual.robotis.com/docs/en/dxl/mx/mx-28-2/"
 #: Present/Goal Position resolution: 4096 ticks per revolution, 0.088 deg per tick
 TICKS_PER_REV = 4096
+#: Velocity Limit (44) as shipped: 230 (0.229 rpm units, 52.7 rpm) from firmware V42; 380
+#: (87 rpm) in earlier firmware, the value older copies of the e-manual page still show
+#: (ROBOTIS-GIT/emanual docs/en/dxl/mx/mx-28-2.md at 203f49b). A servo on older firmware keeps
+#: 380: the driver reads the item, it never assumes this.
+VELOCITY_LIMIT_DEFAULT = 230
 
 
 @dataclass(frozen=True)
@@ -63,7 +68,9 @@ _ROWS: tuple[tuple[str, int, int, str, int | None, str | None, float, bool, int,
     ("min_voltage_limit", 34, 2, "rw", 95, "V", 0.1, False, 95, 160),
     ("pwm_limit", 36, 2, "rw", 885, "percent", 0.113, False, 0, 885),
     ("acceleration_limit", 40, 4, "rw", 32767, "rev/min^2", 214.577, False, 0, 32767),
-    ("velocity_limit", 44, 4, "rw", 380, "rpm", 0.229, False, 0, 1023),
+    # Velocity Limit: 230 (52.7 rpm) from firmware V42, 380 before it (the e-manual's
+    # MX-28(2.0) page, "Control Table of EEPROM Area"; VELOCITY_LIMIT_DEFAULT below)
+    ("velocity_limit", 44, 4, "rw", 230, "rpm", 0.229, False, 0, 1023),
     ("max_position_limit", 48, 4, "rw", 4095, "deg", 0.088, False, 0, 4095),
     ("min_position_limit", 52, 4, "rw", 0, "deg", 0.088, False, 0, 4095),
     ("shutdown", 63, 1, "rw", 52, None, 1.0, False, 0, 0xFF),

@@ -18,7 +18,7 @@ from protocol import mx28
     ("max_voltage_limit", 32, 2, 160, "rw"),
     ("min_voltage_limit", 34, 2, 95, "rw"),
     ("pwm_limit", 36, 2, 885, "rw"),
-    ("velocity_limit", 44, 4, 380, "rw"),
+    ("velocity_limit", 44, 4, 230, "rw"),  # 230 from firmware V42
     ("max_position_limit", 48, 4, 4095, "rw"),
     ("min_position_limit", 52, 4, 0, "rw"),
     ("shutdown", 63, 1, 52, "rw"),

@@ -43,6 +43,7 @@ def _run(bus: DynamixelBus, id: int, t0: float, seconds: float, item: str) -> li
 def test_position_move_never_faster_than_no_load_speed(volts: float, rpm: float) -> None:
     bus = DynamixelBus(operating_modes={1: 4})
     bus.set_supply_voltage(volts)
+    assert _w(bus, 1, 44, 380, 4) == 0  # Velocity Limit as before firmware V42 (default 230)
     assert _w(bus, 1, 64, 1, 1) == 0
     assert _w(bus, 1, 112, 380, 4) == 0  # Profile Velocity 87 rpm: more than the motor can
     assert _w(bus, 1, 116, 2048 + 4 * 4096, 4) == 0
@@ -62,6 +63,7 @@ def test_position_move_never_faster_than_no_load_speed(volts: float, rpm: float)
 def test_pwm_limit_scales_the_cap_and_velocity_and_pwm_modes_obey_it() -> None:
     bus = DynamixelBus(operating_modes={1: 1, 2: 16, 3: 4})
     assert _w(bus, 3, 36, 442, 2) == 0  # PWM Limit: half duty
+    assert _w(bus, 1, 44, 380, 4) == 0  # Velocity Limit as before firmware V42 (default 230)
     for i in (1, 2, 3):
         assert _w(bus, i, 64, 1, 1) == 0
     assert _w(bus, 1, 104, 380, 4) == 0  # Goal Velocity at the Velocity Limit
@@ -81,12 +83,13 @@ def test_pwm_limit_scales_the_cap_and_velocity_and_pwm_modes_obey_it() -> None:
 
 def test_velocity_limit_is_the_ceiling_of_profile_and_goal_velocity() -> None:
     bus = DynamixelBus(operating_modes={2: 1})
-    # Profile Velocity 394 (90 rpm) > Velocity Limit 380: data limit error, nothing changes
-    assert _w(bus, 1, 112, 394, 4) == ErrorCode.DATA_LIMIT
+    # Profile Velocity 231 > Velocity Limit 230 (its default from firmware V42): data limit
+    # error, nothing changes
+    assert _w(bus, 1, 112, 231, 4) == ErrorCode.DATA_LIMIT
     assert bus.servo(1).get("profile_velocity") == 0  # type: ignore[union-attr]
-    assert _w(bus, 1, 112, 380, 4) == 0
-    assert _w(bus, 2, 104, -381, 4) == ErrorCode.DATA_LIMIT
-    assert _w(bus, 2, 104, -380, 4) == 0
+    assert _w(bus, 1, 112, 230, 4) == 0
+    assert _w(bus, 2, 104, -231, 4) == ErrorCode.DATA_LIMIT
+    assert _w(bus, 2, 104, -230, 4) == 0
     # lower the limit (EEPROM, torque off): the ceiling moves with it
     assert _w(bus, 1, 44, 200, 4) == 0
     assert _w(bus, 1, 112, 201, 4) == ErrorCode.DATA_LIMIT
@@ -170,8 +173,10 @@ def sdk(tmp_path: Path) -> Iterator[tuple[PortHandler, PacketHandler, DynamixelB
 def test_sdk_velocity_limit_refusal_and_speed_cap(
         sdk: tuple[PortHandler, PacketHandler, DynamixelBus]) -> None:
     port, ph, bus = sdk
-    assert patient(ph.write4ByteTxRx, port, 1, 112, 394) == (COMM_SUCCESS, ErrorCode.DATA_LIMIT)
+    assert patient(ph.write4ByteTxRx, port, 1, 112, 231) == (COMM_SUCCESS, ErrorCode.DATA_LIMIT)
     assert patient(ph.read4ByteTxRx, port, 1, 112) == (0, COMM_SUCCESS, 0)
+    # Velocity Limit as before firmware V42 (default 230), so the profile can outrun the motor
+    assert patient(ph.write4ByteTxRx, port, 1, 44, 380) == (COMM_SUCCESS, 0)
     assert patient(ph.write4ByteTxRx, port, 1, 112, 380) == (COMM_SUCCESS, 0)
     assert patient(ph.write1ByteTxRx, port, 1, 64, 1) == (COMM_SUCCESS, 0)
     assert patient(ph.write4ByteTxRx, port, 1, 116, 2048 + 20 * 4096) == (COMM_SUCCESS, 0)
