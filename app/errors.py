@@ -108,6 +108,8 @@ _ROWS: tuple[tuple[str, int | None, str, str, str], ...] = (
      "the server is shutting down: no new motion"),
     ("store_unavailable", 503, "StoreUnavailable", "Unavailable",
      "the audit store cannot be read now"),
+    ("camera_down", 503, "CameraDown", "Unavailable",
+     "the camera gives no frames now (its last error says why); it is being reconnected"),
     ("device_timeout", 504, "DeviceTimeout", "DeviceTimeout",
      "the device did not answer in time"),
     ("not_settled", None, "NotSettled", "ArmServerError",
@@ -378,6 +380,10 @@ class ShuttingDown(ArmError):
 
 class StoreUnavailable(ArmError):
     code = "store_unavailable"
+
+
+class CameraDown(ArmError):
+    code = "camera_down"
 
 
 class DeviceTimeout(ArmError):
