@@ -39,6 +39,8 @@ from app.runtime.control_thread import on_home, running_loop, start_now
 from app.runtime.tasks import retrieve
 from app.safety.envelope import ArmSafety
 from app.safety.guard import SafetyGuard
+from app.sim.world import World
+from app.sim.world_tap import world_of
 from app.telemetry.arm_hub import ArmHub
 from app.telemetry.hub import Subscription, TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
@@ -86,6 +88,12 @@ class ArmService:
         """The control loop this arm runs on (`app.runtime.control_thread`): its async methods
         cross there."""
         return self.driver.home_loop
+
+    @property
+    def world(self) -> World | None:
+        """The arm's simulated world (app/sim/world.py) when its link is simulated in this
+        process, else None (a real arm, or a simulator on a pty or socket)."""
+        return world_of(getattr(self.driver.link, "device", None))
 
     # --------------------------------------------------------- descriptions
 

@@ -21,8 +21,10 @@ def make_link(profile: ArmProfile) -> Link:
     cfg = profile.link
     if cfg.kind == "sim":
         from app.links.sim import SimLink
+        from app.sim.world_tap import with_world
 
-        return SimLink(make_sim_device(profile), faults=cfg.faults,
+        # the device watched by its simulated world (app/sim/world.py: objects, bins, grasp)
+        return SimLink(with_world(profile, make_sim_device(profile)), faults=cfg.faults,
                        address=f"sim:{profile.model}")
     if cfg.kind == "hid":
         from app.links.hid import HidLink

@@ -1,0 +1,102 @@
+"""The coupling of a simulated device to its world: a SimDevice that passes every byte to the
+device it wraps and, at most every `TAP_PERIOD_S` of simulated time, hands the world what the
+simulated hardware holds (joint positions in device ticks, the claw's opening).
+
+What it reads is each simulator's own state, the same numbers the device would report:
+
+- the RBE3001 firmware (app/arms/rbe3001/sim.py): ``position_ticks`` (what GetPIDPosition
+  returns) and ``claw`` (0..1);
+- a Dynamixel bus (app/arms/dynamixel/sim_bus.py): each joint servo's Present Position (132),
+  by the profile's ``motor_id``; an OpenManipulator-X's gripper servo's Present Position turned
+  into 0..1 as its driver does (finger travel from ``[gripper]``, e-manual: 4096 ticks a turn).
+
+It runs where the device runs (the control thread, inside the link's write and read): one
+reading and one deque append per period, nothing else.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from app.config import ArmProfile
+from app.sim.base import SimDevice
+from app.sim.world import TAP_PERIOD_S, World
+
+Reading = tuple[tuple[float, ...], float | None]
+_XM430_TICKS_PER_RAD = 4096 / (2 * 3.141592653589793)
+
+
+def reader_for(profile: ArmProfile, device: Any) -> Callable[[], Reading | None]:
+    """A function reading `device`'s joint ticks and claw opening (None: nothing to read now,
+    e.g. a servo that does not answer on the bus)."""
+    if hasattr(device, "position_ticks") and hasattr(device, "claw"):
+        def rbe3001() -> Reading:
+            return tuple(device.position_ticks), float(device.claw)
+        return rbe3001
+    if hasattr(device, "servo"):
+        ids = [int(j.motor_id or 0) for j in profile.joints]
+        g = profile.gripper
+        grip_id = g.motor_id if g.actuated else None
+
+        def bus() -> Reading | None:
+            ticks = []
+            for i in ids:
+                s = device.servo(i)
+                if s is None:
+                    return None
+                ticks.append(float(s.get("present_position")))
+            value = None
+            if grip_id is not None:
+                s = device.servo(grip_id)
+                if s is not None:
+                    metres = ((s.get("present_position") - g.offset_ticks)
+                              / _XM430_TICKS_PER_RAD / g.rad_per_m)
+                    value = (g.max - metres) / (g.max - g.min) if g.max != g.min else None
+            return tuple(ticks), value
+        return bus
+    raise TypeError(f"no world reader for a {type(device).__name__}")
+
+
+class WorldTap:
+    """A SimDevice: `device` with its `world` watching. Bytes and timing are the device's."""
+
+    def __init__(self, device: SimDevice, world: World,
+                 read: Callable[[], Reading | None]) -> None:
+        self.device = device
+        self.world = world
+        self.packetized = device.packetized
+        self._read = read
+        self._next = float("-inf")
+
+    def receive(self, data: bytes, now: float) -> list[tuple[float, bytes]]:
+        out = self.device.receive(data, now)
+        self._tap(now)
+        return out
+
+    def advance(self, now: float) -> None:
+        self.device.advance(now)
+        self._tap(now)
+
+    def _tap(self, now: float) -> None:
+        if now < self._next:
+            return
+        self._next = now + TAP_PERIOD_S
+        reading = self._read()
+        if reading is not None:
+            self.world.observe(*reading)
+
+
+def with_world(profile: ArmProfile, device: SimDevice) -> SimDevice:
+    """`device` watched by a new World of `profile`'s arm (the device itself where no world
+    reader fits it)."""
+    try:
+        read = reader_for(profile, device)
+    except TypeError:
+        return device
+    return WorldTap(device, World(profile), read)
+
+
+def world_of(device: object) -> World | None:
+    """The world watching a link's simulated device, or None (a real link, or no world)."""
+    return device.world if isinstance(device, WorldTap) else None
