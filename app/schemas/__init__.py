@@ -26,6 +26,25 @@ from app.schemas.arms import (
     Tip,
     Vec3,
 )
+from app.schemas.calibration import (
+    ArmCalibration,
+    ArmCalibrationRequest,
+    GravityCalibrationRequest,
+    GravityFit,
+    GravityRun,
+    JointCalibration,
+)
+from app.schemas.cameras import (
+    Calibration,
+    CalibrationRequest,
+    CameraDetail,
+    CameraStatus,
+    CameraSummary,
+    Correspondence,
+    Detection,
+    Detections,
+    Pixel,
+)
 from app.schemas.classroom import (
     AuditRecord,
     Lease,
@@ -94,6 +113,8 @@ from app.schemas.telemetry import (
     Sample,
     TelemetryMessage,
 )
+from app.schemas.teleop import ReplayRequest, TeleopLatency, TeleopSession, TeleopStart
+from app.schemas.world import WorldBin, WorldObject, WorldScene, WorldTable
 
 #: The version prefix of every route of the contract (server, audit and client alike).
 API_PREFIX = "/api/v1"
@@ -101,13 +122,23 @@ API_PREFIX = "/api/v1"
 __all__ = [
     "API_PREFIX",
     "Ack",
+    "ArmCalibration",
+    "ArmCalibrationRequest",
     "ArmChain",
     "ArmDetail",
     "ArmSummary",
     "AuditRecord",
     "Bool",
+    "Calibration",
+    "CalibrationRequest",
+    "CameraDetail",
+    "CameraStatus",
+    "CameraSummary",
     "Capabilities",
     "ChainStep",
+    "Correspondence",
+    "Detection",
+    "Detections",
     "Duration",
     "DxlIdValue",
     "ErrorBody",
@@ -119,6 +150,9 @@ __all__ = [
     "ForceTare",
     "ForwardResult",
     "Gain",
+    "GravityCalibrationRequest",
+    "GravityFit",
+    "GravityRun",
     "GripperCommand",
     "GripperState",
     "Health",
@@ -127,6 +161,7 @@ __all__ = [
     "Int",
     "InverseRequest",
     "InverseResult",
+    "JointCalibration",
     "JointInfo",
     "JointVector",
     "Lease",
@@ -142,6 +177,7 @@ __all__ = [
     "PingDevice",
     "PingRequest",
     "PingResult",
+    "Pixel",
     "QueueEntry",
     "QueueMode",
     "QueueOrder",
@@ -149,6 +185,7 @@ __all__ = [
     "Rbe3001Status",
     "RegisterValue",
     "RegisterWrite",
+    "ReplayRequest",
     "Safety",
     "SafetyUpdate",
     "Sample",
@@ -164,8 +201,15 @@ __all__ = [
     "SyncWriteRequest",
     "TelemetryMessage",
     "TelemetryStats",
+    "TeleopLatency",
+    "TeleopSession",
+    "TeleopStart",
     "Tip",
     "Unit",
     "Vec3",
     "Workspace",
+    "WorldBin",
+    "WorldObject",
+    "WorldScene",
+    "WorldTable",
 ]

@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import Field
 
 from app.schemas.arms import LinkStatus
+from app.schemas.cameras import CameraStatus
 from app.schemas.common import Model
 
 
@@ -40,3 +41,6 @@ class Health(Model):
     auth: bool
     store: StoreStatus | None = None
     mqtt: MqttStatus | None = Field(None, description="present when ARMSERVER_MQTT_URL is set")
+    cameras: dict[str, CameraStatus] = Field(
+        default_factory=dict, description="each camera: up, or down with its last error (a "
+        "camera does not make `status` degraded: the arms serve without it)")

@@ -9,6 +9,7 @@ The console entry point is app/cli.py's; this module never imports it.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -25,6 +26,8 @@ from starlette.types import Scope
 from app import schemas
 from app.arms import arm_routers
 from app.arms.loading import load_arms
+from app.cameras.config import CameraConfig, load_cameras
+from app.cameras.hub import CameraHub
 from app.classroom.audit import AuditLog
 from app.classroom.lease import LeaseManager
 from app.classroom.queue import Classroom
@@ -40,6 +43,7 @@ from app.web.middleware import API_PREFIX, BodyLimit, InternalErrors, TokenGate
 from app.web.routes import (
     arms,
     audit,
+    cameras,
     classroom,
     force,
     homing,
@@ -48,6 +52,8 @@ from app.web.routes import (
     motion,
     safety,
     telemetry,
+    teleop,
+    world,
 )
 from app.web.security import Access, install_log_redaction
 
@@ -57,11 +63,16 @@ STATIC_DIR = Path(__file__).parent / "static"
 
 
 def create_app(settings: Settings | None = None,
-               profiles: list[ArmProfile] | None = None) -> FastAPI:
+               profiles: list[ArmProfile] | None = None,
+               camera_configs: list[CameraConfig] | None = None) -> FastAPI:
     """The server for `profiles` (default: the arms of `settings.config`, else the two
-    simulated arms). The arms start in the lifespan, not here."""
+    simulated arms) and `camera_configs` (default: the config's `[[cameras]]`, else one
+    simulated camera per simulated arm). The arms and cameras start in the lifespan."""
     settings = settings if settings is not None else Settings()
+    config_profiles = profiles is None
     profiles = profiles if profiles is not None else load_arms(settings.config)
+    if camera_configs is None:
+        camera_configs = load_cameras(settings.config if config_profiles else None, profiles)
     install_log_redaction()
 
     @asynccontextmanager
@@ -94,6 +105,9 @@ def create_app(settings: Settings | None = None,
                 log.info("arm %s (%s) on %s link %s", p.name, p.model, p.link.kind,
                          svc.link_status().address or "-")
             leases.start()
+            # cameras: a thread each, off the control thread and this loop (app/cameras)
+            app.state.cameras = CameraHub(camera_configs, services, store)
+            app.state.cameras.start(asyncio.get_running_loop())
             app.state.mqtt = start_mqtt_bridge(settings, services)
             room.load()
             room.start()
@@ -103,10 +117,14 @@ def create_app(settings: Settings | None = None,
                     access.describe())
             yield
         finally:
+            if getattr(app.state, "teleop", None) is not None:  # the followers hold first
+                await app.state.teleop.close()
             await collector.close()
             if getattr(app.state, "mqtt", None) is not None:
                 await app.state.mqtt.close()
             await room.close()
+            if getattr(app.state, "cameras", None) is not None:
+                await app.state.cameras.close()
             await leases.close()
             for svc in services.values():
                 try:
@@ -135,12 +153,16 @@ def create_app(settings: Settings | None = None,
     app.state.services = {}
     app.state.internal_errors = 0
     app.state.mqtt = None
+    app.state.cameras = None
 
-    for r in (arms, motion, kinematics, lease, telemetry, safety, force, classroom, audit):
+    for r in (arms, motion, kinematics, lease, telemetry, safety, force, classroom, audit,
+              cameras):
         app.include_router(r.router, prefix=API_PREFIX)
     for router in arm_routers():  # each arm type's pass-through routes (app/arms)
         app.include_router(router, prefix=API_PREFIX)
     app.include_router(homing.router, prefix=API_PREFIX)  # faults and homing (v1.1)
+    app.include_router(teleop.router, prefix=API_PREFIX)  # teleoperation (v1.2)
+    app.include_router(world.router, prefix=API_PREFIX)  # simulated world (v1.2)
     _document_websocket_messages(app)
     install_error_handlers(app)
 

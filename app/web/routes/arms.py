@@ -43,8 +43,11 @@ async def health(services: ServicesDep, settings: SettingsDep, request: Request)
     ok = ok and (store is None or store.ok)
     bridge = getattr(request.app.state, "mqtt", None)
     mqtt = s.MqttStatus.model_validate(bridge.status()) if bridge is not None else None
+    hub = getattr(request.app.state, "cameras", None)
+    cams = {name: s.CameraStatus(up=up, last_error=err)
+            for name, (up, err) in (hub.status().items() if hub is not None else ())}
     return s.Health(status="ok" if ok else "degraded", arms=links, auth=settings.auth_enabled,
-                    store=store, mqtt=mqtt)
+                    store=store, mqtt=mqtt, cameras=cams)
 
 
 @router.get(

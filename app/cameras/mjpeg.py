@@ -1,0 +1,100 @@
+"""The MJPEG stream of one camera: one producer for every client (`multipart/x-mixed-replace`).
+
+The producer runs on the HTTP loop while anyone watches: on each new frame (handed over from
+the camera's thread with `call_soon_threadsafe`) it gets the frame's JPEG (encoded once, in a
+worker thread) and puts the same part into every client's slot. A slot holds one part: a client
+that has not taken the last one yet loses it for the newer (a slow client drops frames; nothing
+queues without bound).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator, Callable
+from concurrent.futures import Executor
+
+from app.cameras.camera import Camera, Frame
+
+__all__ = ["BOUNDARY", "MjpegFeed"]
+
+log = logging.getLogger(__name__)
+
+BOUNDARY = "frame"
+#: The producer asks an on-demand camera for frames this often while anyone watches, s.
+DEMAND_EVERY_S = 1.0
+
+
+def part(seq: int, jpeg: bytes) -> bytes:
+    head = (f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n"
+            f"X-Frame-Seq: {seq}\r\n\r\n")
+    return head.encode("ascii") + jpeg + b"\r\n"
+
+
+class MjpegFeed:
+    """One camera's shared producer and its clients' one-part slots."""
+
+    def __init__(self, camera: Camera, pool: Executor, loop: asyncio.AbstractEventLoop) -> None:
+        self.camera = camera
+        self._pool = pool
+        self._loop = loop
+        self._slots: set[asyncio.Queue[bytes]] = set()
+        self._new = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+        self._unlisten: Callable[[], None] | None = None
+        #: Parts produced (each encoded once) and parts a slow client never took.
+        self.produced = 0
+        self.dropped = 0
+
+    @property
+    def clients(self) -> int:
+        return len(self._slots)
+
+    def _on_frame(self, _: Frame) -> None:  # the camera's thread
+        self._loop.call_soon_threadsafe(self._new.set)
+
+    async def frames(self) -> AsyncIterator[bytes]:
+        """A client's parts, from now on, until it goes away."""
+        slot: asyncio.Queue[bytes] = asyncio.Queue(maxsize=1)
+        self._slots.add(slot)
+        if self._task is None or self._task.done():
+            self._unlisten = self.camera.add_listener(self._on_frame)
+            self._task = asyncio.create_task(self._run(), name=f"mjpeg:{self.camera.name}")
+        self._new.set()  # the latest frame at once
+        try:
+            while True:
+                yield await slot.get()
+        finally:
+            self._slots.discard(slot)
+            if not self._slots:
+                await self.close()
+
+    async def close(self) -> None:
+        if self._unlisten is not None:
+            self._unlisten()
+            self._unlisten = None
+        task, self._task = self._task, None
+        if task is not None and task is not asyncio.current_task():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    async def _run(self) -> None:
+        last = -1
+        while self._slots:
+            self.camera.demand()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._new.wait(), DEMAND_EVERY_S)
+            self._new.clear()
+            got = await self._loop.run_in_executor(self._pool, self.camera.jpeg)
+            if got is None or got[0] == last:
+                continue
+            last = got[0]
+            data = part(*got)
+            self.produced += 1
+            for slot in self._slots:
+                if slot.full():
+                    slot.get_nowait()
+                    self.dropped += 1
+                slot.put_nowait(data)
