@@ -1,8 +1,11 @@
 """`armserver` command line.
 
     armserver serve [--config FILE] [--host 127.0.0.1] [--port 8000] [--log-level info]
+                    [--workers N]     N worker processes behind one address (app/lab)
     armserver devices                 list USB serial and HID devices that look like arms
     armserver sim ...                 run a simulated device on a pty or TCP port (app.sim.serve)
+    armserver setup-servos --port URL --profile NAME [--joint JOINT]
+                                      find Dynamixel servos; set one up as a joint's
     armserver call ... / watch ...    client commands (app.client.cli), where installed
 
 Settings come from the environment (ARMSERVER_*); flags override them. The server binds to
@@ -35,6 +38,9 @@ def _parser() -> argparse.ArgumentParser:
     serve.add_argument("--host", help="address to bind (default 127.0.0.1: this machine only)")
     serve.add_argument("--port", type=int, help="TCP port (default 8000)")
     serve.add_argument("--log-level", choices=["critical", "error", "warning", "info", "debug"])
+    serve.add_argument("--workers", type=_positive, metavar="N",
+                       help="spread the arms over N worker processes behind this one address "
+                       "(app/lab; default: 1, one process, unless the config names workers)")
     serve.add_argument("--access-log", action="store_true",
                        help="log every HTTP request (off by default: at thousands of requests "
                        "a second the log line costs more than the answer)")
@@ -43,6 +49,20 @@ def _parser() -> argparse.ArgumentParser:
     devices = sub.add_parser("devices", help="list attached serial and HID devices",
                              description="List USB serial and HID devices that look like arms.")
     devices.set_defaults(func=_devices)
+
+    setup = sub.add_parser(
+        "setup-servos", help="find Dynamixel servos (any standard baud rate); with --joint, "
+        "give the one servo on the bus that joint's ID, baud rate and settings",
+        description="Scan a Dynamixel bus at the standard baud rates and print what answers; "
+        "with --joint, set up the one servo that is not another joint's (EEPROM, torque off) "
+        "and verify it. Exit 0 when done; 3 no servo, 4 several at once or a collision, "
+        "5 refused (ID in use, torque on), 6 not verified.")
+    setup.add_argument("--port", required=True, help="serial device or pyserial URL "
+                       "(/dev/ttyUSB0, a simulator's pty, socket://127.0.0.1:7000)")
+    setup.add_argument("--profile", required=True, help="built-in profile name or TOML path")
+    setup.add_argument("--joint", help="the joint whose servo is the one on the bus")
+    setup.add_argument("--timeout", type=float, default=0.1, help="reply timeout, s")
+    setup.set_defaults(func=_setup_servos)
 
     # Parsed by app.sim.serve itself (see main); listed here for --help.
     sub.add_parser("sim", help="run a simulated arm device on a pty or TCP port "
@@ -77,6 +97,13 @@ def _serve(args: argparse.Namespace) -> int:
     settings = _settings(args)
     logging.basicConfig(level=settings.log_level.upper(),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from app.lab.placement import lab_workers
+
+    workers = lab_workers(settings, getattr(args, "workers", None))
+    if workers > 1:  # a lab over worker processes (app/lab)
+        from app.lab.serve import serve_lab
+
+        return serve_lab(settings, workers, access_log=bool(getattr(args, "access_log", False)))
     app = create_app(settings)
     if settings.host not in LOOPBACK and not settings.auth_enabled:
         log.warning("binding %s with no tokens: anyone who can reach this port may move the "
@@ -104,6 +131,40 @@ def http_limits(settings: Any) -> dict[str, Any]:
 
     http = functools.partial(ArmHttpToolsProtocol, max_head=settings.max_header_bytes)
     return {"http": http, "limit_concurrency": settings.max_connections}
+
+
+def _positive(text: str) -> int:
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be 1 or more, got {n}")
+    return n
+
+
+def _setup_servos(args: argparse.Namespace) -> int:
+    """`armserver setup-servos`: app/arms/dynamixel/setup.py; the reason on stderr and a
+    non-zero exit when it finds nothing, several servos, or is refused."""
+    from app.arms.dynamixel.setup import EXIT_NONE, SetupError, report, set_up_joint
+    from app.arms.loading import load_profile
+
+    profile = load_profile(args.profile)
+    try:
+        if args.joint is None:
+            found = report(args.port, profile, timeout=args.timeout)
+            if found.collisions:
+                return 4
+            if not found.found:
+                print("armserver setup-servos: no servo answered at any standard baud rate "
+                      "(check power, the cable and the adapter)", file=sys.stderr)
+                return EXIT_NONE
+            return 0
+        set_up_joint(args.port, profile, args.joint, timeout=args.timeout)
+    except SetupError as exc:
+        print(f"armserver setup-servos: {exc.reason}", file=sys.stderr)
+        return exc.exit_code
+    except OSError as exc:
+        print(f"armserver setup-servos: cannot open {args.port}: {exc}", file=sys.stderr)
+        return 2
+    return 0
 
 
 def _devices(args: argparse.Namespace) -> int:

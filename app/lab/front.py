@@ -1,0 +1,234 @@
+"""The lab's front: one ASGI app on the public address that hands each request to the worker
+process owning its arm (app/lab/supervisor.py) and answers the lab-wide endpoints for all.
+
+- `/api/v1/arms/{arm}` and everything under it (HTTP, and the telemetry WebSocket through
+  app/lab/ws_relay.py) go to the arm's worker, headers and body as they came: the worker checks
+  the token, the Host and Origin, the lease and every limit exactly as a single server does,
+  so access and leases are today's (a lease lives in the worker that owns its arm).
+- `GET /api/v1/arms` and `GET /api/v1/health` ask every ready worker (with the caller's
+  headers) and merge their answers in config order; an arm whose worker is down or restarting
+  shows in health as link `down` with the reason (and health says `degraded`), and in the
+  list with its last known summary, link `down`.
+- Everything else (`/api/v1/me`, the audit log, which every worker reads from the one store in
+  ARMSERVER_DATA_DIR, the dashboard, `/openapi.json`, an unknown arm's 404) goes to the first
+  ready worker: each serves the same routes and tokens.
+- A request for an arm whose worker is down is 503 `link_down` ("the server cannot talk to
+  the arm now"), as is a request when no worker is ready.
+
+Why a front in the project and not nginx or Caddy: the two lab-wide lists are merges of the
+workers' answers, which a reverse proxy cannot make without a program of its own beside it;
+and a proxy's health checks would not know which arm lives where. The front costs one more hop
+on loopback, over a Unix socket with kept-alive connections (httpx): bench/lab.py measures it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+from typing import Any
+
+import httpx
+from starlette.types import Receive, Scope, Send
+
+from app.config import Settings
+from app.lab.placement import LabPlan
+from app.lab.supervisor import Supervisor, Worker
+from app.lab.ws_relay import relay_websocket
+from app.web.middleware import API_PREFIX
+
+log = logging.getLogger("armserver.lab")
+
+ARMS = API_PREFIX + "/arms"
+HEALTH = API_PREFIX + "/health"
+#: Request headers the front does not pass on (hop by hop, or recomputed by httpx).
+HOP = frozenset({b"connection", b"keep-alive", b"transfer-encoding", b"te", b"trailer",
+                 b"upgrade", b"proxy-authorization", b"proxy-connection", b"content-length"})
+#: Response headers the front does not pass back (it frames the body itself).
+HOP_BACK = HOP | {b"content-encoding"}
+
+
+#: An HTTP answer: status, headers, body.
+Answer = tuple[int, list[tuple[bytes, bytes]], bytes]
+
+
+def _json_response(status: int, body: Any,
+                   headers: list[tuple[bytes, bytes]] | None = None) -> Answer:
+    data = json.dumps(body, separators=(",", ":")).encode()
+    return status, [(b"content-type", b"application/json"), *(headers or [])], data
+
+
+def down_link(plan: LabPlan, arm: str, reason: str) -> dict[str, Any]:
+    """The health entry (`LinkStatus`) of an arm whose worker is not answering."""
+    link = plan.profile(arm).link
+    return {"kind": link.kind, "address": link.address, "state": "down", "connected": False,
+            "last_error": reason}
+
+
+class LabFront:
+    """The ASGI app of the front (see the module doc). `workers[k]` hosts `plan.workers[k]`."""
+
+    def __init__(self, plan: LabPlan, supervisor: Supervisor, settings: Settings) -> None:
+        self.plan = plan
+        self.supervisor = supervisor
+        self.workers = supervisor.workers
+        self.max_body = settings.max_body_bytes
+        self.auth = settings.auth_enabled
+        self.grace = settings.shutdown_timeout_s
+        self._by_index = {w.index: w for w in self.workers}
+        self._by_arm = {name: self._by_index[k] for name, k in plan.worker_of.items()}
+        #: The last summary each arm's worker gave (`GET /arms`), shown while it is down.
+        self._summaries: dict[str, dict[str, Any]] = {}
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        kind = scope["type"]
+        if kind == "lifespan":
+            return await self._lifespan(receive, send)
+        worker = self._worker_for(scope["path"])
+        if kind == "websocket":
+            return await relay_websocket(scope, receive, send, worker)
+        path, method = scope["path"], scope["method"]
+        if method == "GET" and path in (ARMS, HEALTH):
+            status, headers, body = await (self._arms(scope) if path == ARMS
+                                           else self._health(scope))
+        else:
+            status, headers, body = await self._forward(scope, receive, worker)
+            if status == 404:
+                body = self._all_arms_named(path, body)
+        await send({"type": "http.response.start", "status": status,
+                    "headers": [*headers, (b"content-length", str(len(body)).encode())]})
+        await send({"type": "http.response.body", "body": body})
+
+    async def _lifespan(self, receive: Receive, send: Send) -> None:
+        while True:
+            message = await receive()
+            if message["type"] == "lifespan.startup":
+                self.supervisor.start()
+                await send({"type": "lifespan.startup.complete"})
+            elif message["type"] == "lifespan.shutdown":
+                await self.supervisor.stop(self.grace)
+                await send({"type": "lifespan.shutdown.complete"})
+                return
+
+    def _worker_for(self, path: str) -> Worker | None:
+        """The worker of the arm named in `path`, else the first ready one (None: none)."""
+        if path.startswith(ARMS + "/"):
+            arm = path[len(ARMS) + 1:].split("/", 1)[0]
+            if arm in self._by_arm:
+                return self._by_arm[arm]
+        return next((w for w in self.workers if w.ready), None)
+
+    async def _read_body(self, receive: Receive) -> bytes | None:
+        """The request body, or None once it is over max_body_bytes."""
+        chunks, size = [], 0
+        while True:
+            message = await receive()
+            if message["type"] == "http.disconnect":
+                return b""
+            chunk = message.get("body", b"")
+            size += len(chunk)
+            if size > self.max_body:
+                return None
+            chunks.append(chunk)
+            if not message.get("more_body", False):
+                return b"".join(chunks)
+
+    async def _forward(self, scope: Scope, receive: Receive,
+                       worker: Worker | None) -> Answer:
+        body = await self._read_body(receive)
+        if body is None:
+            return _json_response(413, {"detail": f"the request body is over {self.max_body} "
+                                        "bytes (max_body_bytes)", "code": "too_large"})
+        if worker is None or not worker.ready:
+            return self._down(worker)
+        url = scope.get("raw_path") or scope["path"].encode()
+        if scope.get("query_string"):
+            url += b"?" + scope["query_string"]
+        headers = [(k, v) for k, v in scope["headers"] if k not in HOP]
+        try:
+            r = await worker.client.request(scope["method"], url.decode("latin-1"),
+                                            headers=headers, content=body)
+        except httpx.TransportError as exc:
+            log.warning("worker %d: %r", worker.index, exc)
+            return self._down(worker)
+        return r.status_code, [(k, v) for k, v in r.headers.raw if k.lower() not in HOP_BACK], \
+            r.content
+
+    def _all_arms_named(self, path: str, body: bytes) -> bytes:
+        """A worker's 404 `unknown_arm` names its own arms: the lab's names them all."""
+        arm = path[len(ARMS) + 1:].split("/", 1)[0] if path.startswith(ARMS + "/") else None
+        if arm is None or arm in self._by_arm or b'"unknown_arm"' not in body:
+            return body
+        return json.dumps({"detail": f"no arm {arm[:64]!r}; this server hosts "
+                           f"{', '.join(self.plan.names)}", "code": "unknown_arm"}).encode()
+
+    def _down(self, worker: Worker | None) -> Answer:
+        what = (f"worker {worker.index} (arms {', '.join(worker.arms)}) is restarting"
+                if worker is not None else "no worker process is ready")
+        return _json_response(503, {"detail": f"{what}: retry shortly", "code": "link_down"},
+                              [(b"retry-after", b"1")])
+
+    async def _ask_all(self, scope: Scope,
+                       path: str) -> tuple[dict[int, httpx.Response], Answer | None]:
+        """`GET path` of every ready worker with the caller's headers: the answers by worker,
+        or the first refusal (401, 403, 400 ...) to answer as is."""
+        headers = [(k, v) for k, v in scope["headers"] if k not in HOP]
+        ready = [w for w in self.workers if w.ready]
+        got = await asyncio.gather(*(w.client.get(path, headers=headers) for w in ready),
+                                   return_exceptions=True)
+        answers: dict[int, httpx.Response] = {}
+        for w, r in zip(ready, got, strict=True):
+            if isinstance(r, httpx.TransportError):
+                continue
+            if isinstance(r, BaseException):
+                raise r
+            if r.status_code != 200:
+                return answers, (r.status_code, [(k, v) for k, v in r.headers.raw
+                                                 if k.lower() not in HOP_BACK], r.content)
+            answers[w.index] = r
+        return answers, None
+
+    async def _arms(self, scope: Scope) -> Answer:
+        answers, refusal = await self._ask_all(scope, ARMS)
+        if refusal is not None:
+            return refusal
+        if not answers and not any(w.ready for w in self.workers):
+            return self._down(None)
+        for r in answers.values():
+            for summary in r.json():
+                self._summaries[summary["name"]] = summary
+        out = []
+        for name in self.plan.names:
+            k = self.plan.worker_of[name]
+            if k in answers:
+                out.append(self._summaries[name])
+            elif name in self._summaries:
+                w = self._by_index[k]
+                out.append({**self._summaries[name],
+                            "link": down_link(self.plan, name, w.last_error or "worker down")})
+        return _json_response(200, out)
+
+    async def _health(self, scope: Scope) -> Answer:
+        answers, refusal = await self._ask_all(scope, HEALTH)
+        if refusal is not None:
+            return refusal
+        bodies = {k: r.json() for k, r in answers.items()}
+        first: dict[str, Any] = next(iter(bodies.values()), {})
+        arms: dict[str, Any] = {}
+        ok = True
+        for name in self.plan.names:
+            k = self.plan.worker_of[name]
+            if k in bodies and name in bodies[k].get("arms", {}):
+                arms[name] = bodies[k]["arms"][name]
+            else:
+                w = self._by_index[k]
+                arms[name] = down_link(self.plan, name,
+                                       w.last_error or f"worker {k} is starting")
+                ok = False
+        ok = ok and all(b.get("status") == "ok" for b in bodies.values())
+        for key, value in first.items():  # per-arm maps of other parts (cameras ...): all
+            if key != "arms" and isinstance(value, dict) and all(
+                    isinstance(b.get(key), dict) for b in bodies.values()):
+                first[key] = {k: v for b in bodies.values() for k, v in b[key].items()}
+        out = {"auth": self.auth, **first, "status": "ok" if ok else "degraded", "arms": arms}
+        return _json_response(200, out)

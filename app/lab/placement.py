@@ -1,0 +1,61 @@
+"""Which worker process hosts which arm (`armserver serve --workers N`).
+
+An `[[arms]]` entry may name its worker (`worker = K`, 0-based, app/arms/loading.py); the other
+arms go, in config order, each to the worker that has the fewest arms so far (the lowest index
+on a tie). The front and every worker compute the same plan from the same config, so a worker
+needs only its index to know its arms.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from app.arms.loading import load_arms
+from app.config import ArmProfile, ConfigError, Settings
+
+
+@dataclass(frozen=True)
+class LabPlan:
+    """The arms of each worker, in config order; `worker_of` maps an arm name to its worker."""
+
+    workers: tuple[tuple[ArmProfile, ...], ...]
+    #: Every arm's name, in config order.
+    names: tuple[str, ...]
+
+    @property
+    def worker_of(self) -> dict[str, int]:
+        return {p.name: k for k, arms in enumerate(self.workers) for p in arms}
+
+    def profile(self, name: str) -> ArmProfile:
+        return next(p for arms in self.workers for p in arms if p.name == name)
+
+
+def lab_workers(settings: Settings, workers: int | None) -> int:
+    """How many worker processes to run: `workers` when given (1: today's single process), else
+    one more than the highest `worker` the config names, else 1."""
+    if workers is not None:
+        return workers
+    placed: dict[str, int] = {}
+    load_arms(settings.config, placed)
+    return max(placed.values(), default=0) + 1
+
+
+def plan_lab(settings: Settings, workers: int) -> LabPlan:
+    """Place the config's arms on `workers` processes (see the module doc). Raises ConfigError
+    for an arm placed on a worker that does not exist."""
+    placed: dict[str, int] = {}
+    profiles = load_arms(settings.config, placed)
+    bins: list[list[ArmProfile]] = [[] for _ in range(workers)]
+    for name, k in placed.items():
+        if k >= workers:
+            raise ConfigError(f"arm {name!r} names worker {k}, but the server runs {workers} "
+                              f"worker(s) (0..{workers - 1}): raise --workers")
+    for p in profiles:
+        if p.name in placed:
+            bins[placed[p.name]].append(p)
+    for p in profiles:
+        if p.name not in placed:
+            min(bins, key=len).append(p)
+    order = {p.name: i for i, p in enumerate(profiles)}
+    return LabPlan(tuple(tuple(sorted(b, key=lambda p: order[p.name])) for b in bins),
+                   tuple(p.name for p in profiles))

@@ -1,0 +1,69 @@
+"""`armserver serve --workers N`: the lab's front on the public address, its workers behind it.
+
+The front process writes its settings (tokens included) to a 0700 folder of its own for the
+workers to read, starts them (app/lab/supervisor.py) and serves app/lab/front.py with uvicorn
+on `host:port`, with the same limits as a single server (header bytes, connections, body, the
+WebSocket message size). A first SIGINT/SIGTERM stops the front, which stops each worker once
+(its arms stop as `POST /stop` does).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import httpx
+import uvicorn
+
+from app.config import Settings
+from app.lab.front import LabFront
+from app.lab.placement import plan_lab
+from app.lab.supervisor import Supervisor, Worker
+from app.lab.worker import uvicorn_config
+
+log = logging.getLogger("armserver.lab")
+
+#: How long a forwarded request may take, s: a `wait: true` move answers when it ends.
+REQUEST_TIMEOUT_S = 600.0
+#: Kept-alive connections from the front to each worker.
+KEEPALIVE = 64
+
+
+def worker_client(uds: Path, max_connections: int) -> httpx.AsyncClient:
+    """The front's connection pool to one worker, over its Unix socket."""
+    transport = httpx.AsyncHTTPTransport(uds=str(uds), limits=httpx.Limits(
+        max_connections=max_connections, max_keepalive_connections=KEEPALIVE))
+    return httpx.AsyncClient(transport=transport, base_url="http://localhost",
+                             timeout=httpx.Timeout(REQUEST_TIMEOUT_S, connect=1.0))
+
+
+def build_front(settings: Settings, count: int, folder: Path) -> LabFront:
+    """The front over `count` workers (those the plan leaves without arms are not started)."""
+    plan = plan_lab(settings, count)
+    settings_file = folder / "settings.json"
+    fd = os.open(settings_file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(settings.model_dump_json())
+    workers = [Worker(k, tuple(p.name for p in arms), folder / f"worker-{k}.sock",
+                      worker_client(folder / f"worker-{k}.sock", settings.max_connections))
+               for k, arms in enumerate(plan.workers) if arms]
+    return LabFront(plan, Supervisor(workers, settings_file, count), settings)
+
+
+def serve_lab(settings: Settings, count: int, access_log: bool = False) -> int:
+    """Run the lab until a signal: the front on settings.host:port, `count` workers."""
+    folder = Path(tempfile.mkdtemp(prefix="armserver-lab-"))  # 0700
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # a line per forwarded request
+    try:
+        front = build_front(settings, count, folder)
+        for w in front.workers:
+            log.info("worker %d will host %s", w.index, ", ".join(w.arms))
+        config = uvicorn_config(front, settings, access_log, host=settings.host,
+                                port=settings.port, lifespan="on")
+        uvicorn.Server(config).run()
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    return 0

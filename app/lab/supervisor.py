@@ -1,0 +1,140 @@
+"""The lab's worker processes: start each, see it ready, restart it when it dies, stop them all.
+
+A worker is `python -m app.lab.worker` on its own Unix socket in the lab's 0700 folder. Its
+watcher task awaits the process's exit; unless the lab is stopping, it starts it again at once
+(then after RESTART_BACKOFF_S, doubling to RESTART_MAX_S while it keeps dying young), so a
+killed worker's arms are back in about the time the server takes to start (its imports and its
+arms: about 2 s here). The other workers are separate processes with their own control threads
+and links: a death elsewhere costs them nothing (tests/test_lab_workers.py kills one with
+SIGKILL and reads the other's samples throughout).
+
+`ready` is the front's one question: has the worker answered its health since it last started.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import signal
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+
+log = logging.getLogger("armserver.lab")
+
+#: Wait before restarting a worker that died, s; doubles while it dies within YOUNG_S of its
+#: start, up to RESTART_MAX_S (a worker that cannot start does not spin a core).
+RESTART_BACKOFF_S = 0.05
+RESTART_MAX_S = 5.0
+YOUNG_S = 10.0
+#: How often a starting worker's health is asked, s, and how long one answer may take.
+READY_POLL_S = 0.05
+READY_ASK_S = 1.0
+#: How long a stopping worker gets after its SIGTERM (beyond the server's own graceful
+#: shutdown) before it is killed, s.
+STOP_GRACE_S = 5.0
+
+
+@dataclass
+class Worker:
+    """One worker process and the front's connection pool to it."""
+
+    index: int
+    arms: tuple[str, ...]
+    uds: Path
+    client: httpx.AsyncClient
+    proc: asyncio.subprocess.Process | None = None
+    ready: bool = False
+    starts: int = 0
+    last_error: str | None = None
+
+    @property
+    def pid(self) -> int | None:
+        return self.proc.pid if self.proc is not None else None
+
+
+class Supervisor:
+    """Runs `workers` (their arms fixed by the plan) until `stop()`."""
+
+    def __init__(self, workers: list[Worker], settings_file: Path, count: int) -> None:
+        self.workers = workers
+        self._settings_file = settings_file
+        self._count = count
+        self._stopping = False
+        self._tasks: list[asyncio.Task[None]] = []
+
+    def start(self) -> None:
+        """Start every worker's watcher (it starts the worker, and again when it dies). The
+        front serves at once: until a worker is ready its arms are `down` in health and 503
+        `link_down` (a client waits for health `ok`)."""
+        self._tasks = [asyncio.create_task(self._watch(w), name=f"lab-worker-{w.index}")
+                       for w in self.workers]
+
+    async def _spawn(self, w: Worker) -> asyncio.subprocess.Process:
+        w.uds.unlink(missing_ok=True)
+        return await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "app.lab.worker", "--settings", str(self._settings_file),
+            "--index", str(w.index), "--workers", str(self._count), "--uds", str(w.uds),
+            "--parent", str(os.getpid()), start_new_session=True)
+
+    async def _watch(self, w: Worker) -> None:
+        backoff = RESTART_BACKOFF_S
+        while not self._stopping:
+            started = time.monotonic()
+            w.proc = await self._spawn(w)
+            w.starts += 1
+            log.info("worker %d (pid %d): %s", w.index, w.proc.pid, ", ".join(w.arms))
+            ready = asyncio.create_task(self._until_ready(w))
+            code = await w.proc.wait()
+            ready.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await ready
+            w.ready = False
+            if self._stopping:
+                return
+            w.last_error = f"worker {w.index} exited with {code}; restarting"
+            log.error("worker %d (pid %d) exited with %s: restarting its arms (%s)", w.index,
+                      w.proc.pid, code, ", ".join(w.arms))
+            backoff = backoff * 2 if time.monotonic() - started < YOUNG_S else RESTART_BACKOFF_S
+            backoff = min(backoff, RESTART_MAX_S)
+            await asyncio.sleep(backoff)
+
+    async def _until_ready(self, w: Worker) -> None:
+        while True:
+            with contextlib.suppress(httpx.HTTPError):
+                r = await w.client.get("/api/v1/health", timeout=READY_ASK_S)
+                if r.status_code == 200:
+                    w.ready, w.last_error = True, None
+                    log.info("worker %d ready", w.index)
+                    return
+            await asyncio.sleep(READY_POLL_S)
+
+    async def stop(self, grace: float) -> None:
+        """SIGTERM every worker once (its arms stop as `POST /stop` does, then it exits);
+        SIGKILL one still running after `grace` + STOP_GRACE_S s."""
+        self._stopping = True
+        procs = [w.proc for w in self.workers if w.proc is not None and w.proc.returncode is None]
+        for proc in procs:
+            with contextlib.suppress(ProcessLookupError):
+                proc.send_signal(signal.SIGTERM)
+        if procs:
+            _, pending = await asyncio.wait([asyncio.create_task(p.wait()) for p in procs],
+                                            timeout=grace + STOP_GRACE_S)
+            if pending:
+                for proc in procs:
+                    if proc.returncode is None:
+                        log.error("worker pid %d did not stop: killing it", proc.pid)
+                        with contextlib.suppress(ProcessLookupError):
+                            proc.kill()
+                await asyncio.wait(pending, timeout=STOP_GRACE_S)
+        for t in self._tasks:
+            t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        for w in self.workers:
+            await w.client.aclose()
+            w.uds.unlink(missing_ok=True)
