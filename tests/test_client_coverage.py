@@ -56,6 +56,8 @@ ROUTES: dict[tuple[str, str], str] = {
     ("DELETE", "/api/v1/arms/{arm}/lease/{id}"): "release_lease",
     ("GET", "/api/v1/arms/{arm}/safety"): "safety",
     ("PUT", "/api/v1/arms/{arm}/safety"): "set_safety",
+    ("GET", "/api/v1/arms/{arm}/world"): "world",
+    ("PUT", "/api/v1/arms/{arm}/world"): "set_world",
     ("GET", "/api/v1/me"): "me",
     ("POST", "/api/v1/arms/{arm}/queue"): "join_queue",
     ("GET", "/api/v1/arms/{arm}/queue"): "queue",
@@ -65,6 +67,13 @@ ROUTES: dict[tuple[str, str], str] = {
     ("DELETE", "/api/v1/arms/{arm}/queue/{id}"): "leave_queue",
     ("DELETE", "/api/v1/arms/{arm}/lease"): "revoke_lease",
     ("GET", "/api/v1/audit"): "audit",
+    ("GET", "/api/v1/cameras"): "cameras",
+    ("GET", "/api/v1/cameras/{cam}"): "camera",
+    ("GET", "/api/v1/cameras/{cam}/frame.jpg"): "camera_frame",
+    ("GET", "/api/v1/cameras/{cam}/stream"): "camera_stream",
+    ("GET", "/api/v1/cameras/{cam}/detections"): "detections",
+    ("GET", "/api/v1/cameras/{cam}/calibration"): "camera_calibration",
+    ("POST", "/api/v1/cameras/{cam}/calibration"): "calibrate_camera",
 }
 
 #: Routes outside OpenAPI (WebSocket) and helpers built on routes: method -> what it uses.
@@ -94,10 +103,14 @@ ARGS: dict[str, tuple[Any, ...]] = {
     "take_lease": ("a1",),
     "renew_lease": ("a1", "L1"), "release_lease": ("a1", "L1"),
     "safety": ("a1",), "set_safety": ("a1",),
+    "world": ("a1",), "set_world": ("a1", {"objects": [], "bins": []}),
     "tare_force": ("a1",), "clear_tare": ("a1",),
     "me": (), "join_queue": ("a1",), "queue": ("a1",), "reorder_queue": ("a1", ["e1"]),
     "clear_queue": ("a1",), "queue_entry": ("a1", "e1"), "leave_queue": ("a1", "e1"),
     "revoke_lease": ("a1",), "audit": (),
+    "cameras": (), "camera": ("c1",), "camera_frame": ("c1",), "camera_stream": ("c1",),
+    "detections": ("c1",), "camera_calibration": ("c1",),
+    "calibrate_camera": ("c1", [((0, 0), (0.1, 0, 0))] * 4),
 }
 
 

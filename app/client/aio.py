@@ -34,14 +34,16 @@ from app.client.core import (
     ws_handshake_error,
     ws_url,
 )
-from app.client.errors import ArmServerError
+from app.client.errors import ArmServerError, error_from_body
 from app.client.lease import keep_lease
+from app.client.mjpeg import mjpeg_parts
 from app.client.routes import (
     LEASE_HEADER,
     Call,
     Requests,
     move_joints_model,
     move_pose_model,
+    url_path,
 )
 
 log = logging.getLogger(__name__)
@@ -260,6 +262,16 @@ class AsyncArmClient:
         floor), `speed_override=`; fields not given are kept."""
         return await self.send(Requests.set_safety(arm, s.SafetyUpdate(**fields)))
 
+    async def world(self, arm: str) -> s.WorldScene:
+        """A simulated arm's world: objects, bins, the table and the simulated tip."""
+        return await self.send(Requests.world(arm))
+
+    async def set_world(self, arm: str, scene: s.WorldScene | dict[str, Any]) -> s.WorldScene:
+        """Lay out a new scene on a simulated arm (lease holder or instructor): objects
+        (`id`, `kind`, `color`, `position`) and bins (`name`, `color`, `min`, `max`)."""
+        body = scene if isinstance(scene, s.WorldScene) else s.WorldScene.model_validate(scene)
+        return await self.send(Requests.set_world(arm, body))
+
     async def take_lease(self, arm: str) -> s.Lease:
         return await self.send(Requests.take_lease(arm))
 
@@ -310,6 +322,50 @@ class AsyncArmClient:
         """The same as CSV text (a header row, then one row per record)."""
         return await self.send(Requests.audit_csv(
             {"arm": arm, "who": who, "since": since, "until": until, "limit": limit}))
+
+    # --------------------------------------------------------- cameras
+
+    async def cameras(self) -> list[s.CameraSummary]:
+        return await self.send(Requests.cameras())
+
+    async def camera(self, cam: str) -> s.CameraDetail:
+        return await self.send(Requests.camera(cam))
+
+    async def camera_frame(self, cam: str) -> bytes:
+        """The camera's latest frame, JPEG bytes."""
+        return await self.send(Requests.camera_frame(cam))
+
+    async def camera_stream(self, cam: str, frames: int = 1) -> list[bytes]:
+        """`frames` successive JPEGs of the camera's MJPEG stream (then the stream is left)."""
+        out: list[bytes] = []
+        async with self._http.stream("GET", url_path("cameras", cam, "stream"),
+                                     headers=self._headers(Requests.camera(cam))) as resp:
+            if resp.status_code >= 400:
+                raise error_from_body(resp.status_code, await resp.aread())
+            async for jpeg in mjpeg_parts(resp.aiter_bytes()):
+                out.append(jpeg)
+                if len(out) >= frames:
+                    break
+        return out
+
+    async def detections(self, cam: str, color: str | None = None,
+                         min_area: int = 50) -> s.Detections:
+        """Objects of `color` (every colour without) in the latest frame, largest first."""
+        return await self.send(Requests.detections(cam, color, min_area))
+
+    async def camera_calibration(self, cam: str) -> s.Calibration:
+        return await self.send(Requests.camera_calibration(cam))
+
+    async def calibrate_camera(self, cam: str,
+                               points: Sequence[tuple[tuple[float, float],
+                                                      tuple[float, float, float]]],
+                               arm: str | None = None) -> s.Calibration:
+        """Fit the camera's table calibration from (pixel (u, v), tip position (x, y, z))
+        pairs, 4 or more; `arm`: the camera's arm, whose lease this client's requests carry."""
+        req = s.CalibrationRequest(points=[
+            s.Correspondence(pixel=s.Pixel(u=u, v=v), position=s.Vec3(x=x, y=y, z=z))
+            for (u, v), (x, y, z) in points])
+        return await self.send(Requests.calibrate_camera(cam, req, arm))
 
     @contextlib.asynccontextmanager
     async def queue_turn(self, arm: str, poll: float = 0.25, every: float | None = None,

@@ -51,6 +51,8 @@ def parse_answer(call: Call[T], resp: httpx.Response) -> T:
         return call.parse(None)
     if call.text:
         return call.parse(resp.text)
+    if call.raw:
+        return call.parse(resp.content)
     return call.parse(resp.json())
 
 

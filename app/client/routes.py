@@ -35,6 +35,8 @@ class Call(Generic[T]):
     headers: dict[str, str] = field(default_factory=dict)
     #: Parse the answer's text rather than its JSON (e.g. the audit log as CSV).
     text: bool = False
+    #: Parse the answer's bytes (e.g. a camera's JPEG frame).
+    raw: bool = False
 
 
 def url_path(*parts: object) -> str:
@@ -52,6 +54,10 @@ def _none(_: Any) -> None:
 
 def _audit_rows(data: Any) -> list[s.AuditRecord]:
     return [s.AuditRecord.model_validate(r) for r in data]
+
+
+def _cameras(data: Any) -> list[s.CameraSummary]:
+    return TypeAdapter(list[s.CameraSummary]).validate_python(data)
 
 
 def _arms(data: Any) -> list[s.ArmSummary]:
@@ -218,6 +224,16 @@ class Requests:
                     safe=True)
 
     @staticmethod
+    def world(arm: str) -> Call[s.WorldScene]:
+        return Call("GET", url_path("arms", arm, "world"), _model(s.WorldScene), arm=arm,
+                    safe=True)
+
+    @staticmethod
+    def set_world(arm: str, scene: s.WorldScene) -> Call[s.WorldScene]:
+        return Call("PUT", url_path("arms", arm, "world"), _model(s.WorldScene),
+                    _body(scene), arm=arm, safe=True)
+
+    @staticmethod
     def home(arm: str, positions: Sequence[float] | None = None) -> Call[s.ArmDetail]:
         body = None if positions is None else _body(s.HomeRequest(positions=list(positions)))
         return Call("POST", url_path("arms", arm, "home"), _model(s.ArmDetail), body, arm=arm)
@@ -287,6 +303,36 @@ class Requests:
     def audit_csv(params: Mapping[str, Any]) -> Call[str]:
         return Call("GET", url_path("audit"), str, params=_given(params), safe=True, text=True,
                     headers={"Accept": "text/csv"})
+
+    # cameras (API.md "Cameras (v1.2)")
+
+    @staticmethod
+    def cameras() -> Call[list[s.CameraSummary]]:
+        return Call("GET", url_path("cameras"), _cameras, safe=True)
+
+    @staticmethod
+    def camera(cam: str) -> Call[s.CameraDetail]:
+        return Call("GET", url_path("cameras", cam), _model(s.CameraDetail), safe=True)
+
+    @staticmethod
+    def camera_frame(cam: str) -> Call[bytes]:
+        return Call("GET", url_path("cameras", cam, "frame.jpg"), bytes, safe=True, raw=True)
+
+    @staticmethod
+    def detections(cam: str, color: str | None, min_area: int) -> Call[s.Detections]:
+        return Call("GET", url_path("cameras", cam, "detections"), _model(s.Detections),
+                    params=_given({"color": color, "min_area": min_area}), safe=True)
+
+    @staticmethod
+    def camera_calibration(cam: str) -> Call[s.Calibration]:
+        return Call("GET", url_path("cameras", cam, "calibration"), _model(s.Calibration),
+                    safe=True)
+
+    @staticmethod
+    def calibrate_camera(cam: str, req: s.CalibrationRequest, arm: str | None
+                         ) -> Call[s.Calibration]:
+        return Call("POST", url_path("cameras", cam, "calibration"), _model(s.Calibration),
+                    _body(req), arm=arm, safe=True)
 
 
 def _given(params: Mapping[str, Any]) -> dict[str, Any]:
