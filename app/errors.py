@@ -110,6 +110,9 @@ _ROWS: tuple[tuple[str, int | None, str, str, str], ...] = (
      "the audit store cannot be read now"),
     ("camera_down", 503, "CameraDown", "Unavailable",
      "the camera gives no frames now (its last error says why); it is being reconnected"),
+    ("recording_failed", 503, "RecordingFailed", "Unavailable",
+     "a recording's episode could not be written (disk full or another I/O error); the "
+     "dataset keeps every earlier episode"),
     ("device_timeout", 504, "DeviceTimeout", "DeviceTimeout",
      "the device did not answer in time"),
     ("not_settled", None, "NotSettled", "ArmServerError",
@@ -384,6 +387,10 @@ class StoreUnavailable(ArmError):
 
 class CameraDown(ArmError):
     code = "camera_down"
+
+
+class RecordingFailed(ArmError):
+    code = "recording_failed"
 
 
 class DeviceTimeout(ArmError):
