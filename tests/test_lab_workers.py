@@ -1,0 +1,260 @@
+"""A lab behind one address (issue 27): `armserver serve --workers 2` as a real process, its
+workers real processes on their own Unix sockets, the simulated arms behind their links.
+
+The front routes each arm's HTTP and WebSocket to the worker that owns it, merges `/arms` and
+`/health`, passes tokens and leases through unchanged; a worker killed with SIGKILL is
+restarted and its arm comes back while the other worker's samples go on without a gap.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from _wait import wait_for, wait_until
+from conftest import OPERATOR, VIEWER
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
+
+CONFIG = """
+[[arms]]
+profile = "rbe3001"
+name = "left"
+worker = 0
+
+[[arms]]
+profile = "rbe3001"
+name = "right"
+worker = 1
+
+[[arms]]
+profile = "angler"
+name = "rails"
+"""
+ARMS = ["left", "right", "rails"]
+AUTH = {"Authorization": f"Bearer {VIEWER}"}
+OP = {"Authorization": f"Bearer {OPERATOR}"}
+INSTRUCTOR = "instructor-token-lab"
+#: A worker's arms are back within this, s (issue 27 asks 5 s; a loaded two-core machine
+#: gets slack: the bound of a wait, not a timing assert).
+BACK_WITHIN_S = 15.0
+
+
+@dataclass
+class Lab:
+    proc: subprocess.Popen[bytes]
+    url: str
+    ws: str
+
+    def workers(self) -> dict[int, int]:
+        """The worker processes' pids by worker index."""
+        pid = self.proc.pid
+        children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+        out = {}
+        for child in children:
+            try:
+                argv = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
+            except FileNotFoundError:
+                continue
+            if b"app.lab.worker" in argv:
+                out[int(argv[argv.index(b"--index") + 1])] = int(child)
+        return out
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
+    folder = tmp_path_factory.mktemp("lab")
+    (folder / "lab.toml").write_text(CONFIG)
+    port = _free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
+    env.update(ARMSERVER_DATA_DIR=str(folder / "data"), ARMSERVER_VIEWER_TOKENS=VIEWER,
+               ARMSERVER_OPERATOR_TOKENS=OPERATOR,
+               ARMSERVER_INSTRUCTOR_TOKENS=INSTRUCTOR, ARMSERVER_LEASE_TTL_S="5")
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--workers", "2",
+                             "--config", str(folder / "lab.toml"), "--port", str(port),
+                             "--log-level", "warning"], env=env)
+    lab = Lab(proc, f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}")
+    try:
+        def healthy() -> bool:
+            assert proc.poll() is None, "the front exited"
+            return httpx.get(lab.url + "/api/v1/health").json()["status"] == "ok"
+
+        wait_until(healthy, timeout=30, what="every worker's arms up")
+        yield lab
+    finally:
+        workers = list(lab.workers().values()) if proc.poll() is None else []
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        for pid in workers:  # they stop with the front; a stuck one is this test's failure
+            wait_until(lambda pid=pid: not Path(f"/proc/{pid}").exists()  # type: ignore[misc]
+                       or b"zombie" in Path(f"/proc/{pid}/status").read_bytes().lower(),
+                       what=f"worker {pid} stopped with the front")
+
+
+def test_each_arm_answers_from_its_own_worker(lab: Lab) -> None:
+    with httpx.Client(base_url=lab.url, headers=AUTH) as c:
+        arms = c.get("/api/v1/arms")
+        assert arms.status_code == 200
+        assert [a["name"] for a in arms.json()] == ARMS
+        assert [a["model"] for a in arms.json()] == ["rbe3001", "rbe3001", "angler"]
+        health = c.get("/api/v1/health").json()
+        assert health["status"] == "ok" and health["auth"] is True
+        assert list(health["arms"]) == ARMS
+        assert all(link["connected"] for link in health["arms"].values())
+        for arm in ARMS:
+            state = c.get(f"/api/v1/arms/{arm}/state")
+            assert state.status_code == 200, state.text
+            assert len(state.json()["positions"]) in (3, 4)
+            assert c.get(f"/api/v1/arms/{arm}").json()["name"] == arm
+        missing = c.get("/api/v1/arms/nobody/state")
+        assert missing.status_code == 404
+        assert missing.json() == {"detail": "no arm 'nobody'; this server hosts left, right, "
+                                  "rails", "code": "unknown_arm"}
+        assert c.get("/api/v1/me").json()["role"] == "viewer"
+        assert c.get("/").status_code == 200  # the dashboard
+        # the workers are separate processes: one arm's latch is not another's
+        latched = c.post("/api/v1/arms/right/estop")
+        assert latched.status_code == 200 and latched.json() == {"estop": True}
+        assert c.get("/api/v1/arms/right/state").json()["estop"] is True
+        assert c.get("/api/v1/arms/left/state").json()["estop"] is False
+        released = c.delete("/api/v1/arms/right/estop", headers=OP)
+        assert released.status_code == 200, released.text
+        assert c.get("/api/v1/arms/right/state").json()["estop"] is False
+        # the audit log, from the one store every worker writes (within its flush, 0.1 s),
+        # shows the right arm's requests wherever it is read
+        instructor = {"Authorization": f"Bearer {INSTRUCTOR}"}
+
+        def routes() -> list[tuple[str, str]]:
+            audit = c.get("/api/v1/audit", headers=instructor)
+            assert audit.status_code == 200, audit.text
+            return [(a["method"], a["route"]) for a in audit.json()]
+
+        wait_until(lambda: ("DELETE", "/api/v1/arms/right/estop") in routes(),
+                   what="the right arm's worker's records in the audit log")
+        assert ("POST", "/api/v1/arms/right/estop") in routes()
+
+
+def test_tokens_and_leases_as_today(lab: Lab) -> None:
+    with httpx.Client(base_url=lab.url) as c:
+        for path in ("/api/v1/arms", "/api/v1/arms/left/state", "/api/v1/me"):
+            r = c.get(path)
+            assert r.status_code == 401 and r.json()["code"] == "unauthorized", path
+        assert c.get("/api/v1/health").status_code == 200  # open to everyone, as today
+        move = {"positions": [0.0, 0.0, 0.0]}
+        viewer_move = c.post("/api/v1/arms/left/move/joints", json=move, headers=AUTH)
+        assert viewer_move.status_code == 403 and viewer_move.json()["code"] == "forbidden"
+        lease = c.post("/api/v1/arms/left/lease", headers=OP)
+        assert lease.status_code in (200, 201), lease.text
+        lease_id = lease.json()["id"]
+        try:
+            other = c.post("/api/v1/arms/left/move/joints", json=move, headers=OP)
+            assert other.status_code == 409 and other.json()["code"] == "leased"
+            # the lease is the left arm's worker's: the right arm is free
+            assert c.post("/api/v1/arms/right/lease", headers=OP).status_code in (200, 201)
+        finally:
+            assert c.delete(f"/api/v1/arms/left/lease/{lease_id}",
+                            headers=OP).status_code in (200, 204)
+        big = c.post("/api/v1/arms/left/kinematics/forward", headers=OP,
+                     content=b"x" * (64 * 1024 + 1))
+        assert big.status_code == 413 and big.json()["code"] == "too_large"
+
+
+async def test_telemetry_websocket_through_the_front(lab: Lab) -> None:
+    async with connect(f"{lab.ws}/api/v1/arms/rails/telemetry?rate=50",
+                       additional_headers=AUTH) as ws:
+        samples: list[dict[str, Any]] = []
+        while len(samples) < 20:
+            message = json.loads(await asyncio.wait_for(ws.recv(), 10))
+            if message["type"] == "telemetry":
+                assert message["arm"] == "rails"
+                samples += message["samples"]
+        seqs = [s["seq"] for s in samples]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+    for query, code in (("", 4401), ("?token=" + VIEWER, None)):
+        async with connect(f"{lab.ws}/api/v1/arms/nobody/telemetry{query}") as ws:
+            with pytest.raises(ConnectionClosed) as closed:
+                await asyncio.wait_for(ws.recv(), 10)
+            assert closed.value.rcvd is not None
+            assert closed.value.rcvd.code == (code or 4404)
+
+
+@pytest.mark.serial  # reads a sample rate while a process dies: alone, not beside other tests
+async def test_a_killed_worker_comes_back_and_the_other_never_notices(lab: Lab) -> None:
+    before = lab.workers()
+    assert set(before) == {0, 1}
+    samples: list[dict[str, Any]] = []
+    dropped = 0
+
+    async def read_left() -> None:  # worker 0's arm, all along
+        nonlocal dropped
+        async with connect(f"{lab.ws}/api/v1/arms/left/telemetry?rate=50",
+                           additional_headers=AUTH) as ws:
+            async for raw in ws:
+                message = json.loads(raw)
+                if message["type"] == "telemetry":
+                    samples.extend(message["samples"])
+                    dropped += message["dropped"]
+
+    reader = asyncio.create_task(read_left())
+    try:
+        await wait_for(lambda: len(samples) > 50, what="the left arm's samples")
+        first = len(samples)
+        os.kill(before[1], signal.SIGKILL)
+        killed = time.monotonic()
+        async with httpx.AsyncClient(base_url=lab.url, headers=AUTH) as c:
+            async def right_state() -> int:
+                return (await c.get("/api/v1/arms/right/state")).status_code
+
+            async def right_down() -> bool:
+                r = await c.get("/api/v1/health")
+                return r.json()["arms"]["right"]["connected"] is False
+
+            down = await wait_for(right_down, timeout=5, what="the right arm down", every=0.005)
+            assert down
+            await wait_for(_is(right_state, 200), timeout=BACK_WITHIN_S,
+                           what="the right arm back")
+            back_after = time.monotonic() - killed
+            health = (await c.get("/api/v1/health")).json()
+            assert health["status"] == "ok"
+            assert lab.workers()[1] != before[1] and lab.workers()[0] == before[0]
+        await wait_for(lambda: len(samples) > first + 100, what="more left samples")
+    finally:
+        reader.cancel()
+        await asyncio.gather(reader, return_exceptions=True)
+    print(f"the right arm was back {back_after:.2f} s after its worker's SIGKILL")
+    window = samples[first - 10:]
+    seqs = [s["seq"] for s in window]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "the left arm lost samples"
+    assert dropped == 0
+    assert all(s["link"] == "up" and not s.get("stale") for s in window)
+    # its own clock: samples kept their 500 Hz over the kill and the restart
+    span = window[-1]["time"] - window[0]["time"]
+    assert (len(window) - 1) / span > 0.9 * 500.0
+
+
+def _is(fn: Any, value: Any) -> Any:
+    async def check() -> bool:
+        return bool(await fn() == value)
+    return check
