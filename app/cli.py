@@ -62,6 +62,8 @@ def _parser() -> argparse.ArgumentParser:
     setup.add_argument("--profile", required=True, help="built-in profile name or TOML path")
     setup.add_argument("--joint", help="the joint whose servo is the one on the bus")
     setup.add_argument("--timeout", type=float, default=0.1, help="reply timeout, s")
+    setup.add_argument("--baudrates", help="rates to scan, comma separated (default: every "
+                       "standard rate, 57600 first)")
     setup.set_defaults(func=_setup_servos)
 
     # Parsed by app.sim.serve itself (see main); listed here for --help.
@@ -143,13 +145,21 @@ def _positive(text: str) -> int:
 def _setup_servos(args: argparse.Namespace) -> int:
     """`armserver setup-servos`: app/arms/dynamixel/setup.py; the reason on stderr and a
     non-zero exit when it finds nothing, several servos, or is refused."""
-    from app.arms.dynamixel.setup import EXIT_NONE, SetupError, report, set_up_joint
+    from app.arms.dynamixel.setup import (
+        EXIT_NONE,
+        SCAN_ORDER,
+        SetupError,
+        report,
+        set_up_joint,
+    )
     from app.arms.loading import load_profile
 
     profile = load_profile(args.profile)
+    rates = (SCAN_ORDER if not args.baudrates else
+             tuple(int(r) for r in args.baudrates.split(",") if r.strip()))
     try:
         if args.joint is None:
-            found = report(args.port, profile, timeout=args.timeout)
+            found = report(args.port, profile, timeout=args.timeout, rates=rates)
             if found.collisions:
                 return 4
             if not found.found:
@@ -157,7 +167,7 @@ def _setup_servos(args: argparse.Namespace) -> int:
                       "(check power, the cable and the adapter)", file=sys.stderr)
                 return EXIT_NONE
             return 0
-        set_up_joint(args.port, profile, args.joint, timeout=args.timeout)
+        set_up_joint(args.port, profile, args.joint, timeout=args.timeout, rates=rates)
     except SetupError as exc:
         print(f"armserver setup-servos: {exc.reason}", file=sys.stderr)
         return exc.exit_code

@@ -5,7 +5,7 @@ The servers themselves (`serve_pty`, `serve_tcp`, `PtyServer`, `TcpServer`: how 
 meets a real byte stream) are app/sim/servers.py, re-exported here.
 
 Command: `armserver sim dynamixel (--pty PATH | --listen tcp://127.0.0.1:PORT)
-[--ids 1,2,3,4] [--baudrate 1000000] [--mode ID:MODE ...] [--drop F] [--corrupt F]
+[--ids 1,2,3,4 | --factory N] [--baudrate 1000000] [--mode ID:MODE ...] [--drop F] [--corrupt F]
 [--latency S] [--supply V] [--fault ID:FAULT@T ...]` (see `main`). A fault is a hardware
 error name of protocol.mx28.HARDWARE_ERRORS (overload, overheating, electrical_shock,
 motor_encoder, input_voltage), `power_cycle` or `brown_out`, raised on servo ID (or `all`)
@@ -26,7 +26,7 @@ import signal
 from collections.abc import Sequence
 from urllib.parse import urlsplit
 
-from app.arms.dynamixel.sim_bus import DynamixelBus
+from app.arms.dynamixel.sim_bus import FACTORY_BAUDRATE, DynamixelBus
 from app.arms.dynamixel.sim_xm430 import Xm430Servo
 from app.config import FaultConfig
 from app.sim.base import SimDevice
@@ -52,6 +52,10 @@ def _parser() -> argparse.ArgumentParser:
     where.add_argument("--listen", metavar="URL", help="tcp://HOST:PORT to listen on")
     p.add_argument("--ids", default="1,2,3,4", help="servo ids, comma separated")
     p.add_argument("--baudrate", type=int, default=1_000_000, help="bus baud rate, bit/s")
+    p.add_argument("--factory", type=int, default=0, metavar="N",
+                   help="N servos in the factory state instead of --ids: every one ID 1 at "
+                   "57,600 bps (two or more on one ID collide); on a pty they hear only a host "
+                   "at their rate, on a socket (no baud rate) every host")
     p.add_argument("--xm430", default="", metavar="IDS",
                    help="ids (among --ids) that are XM430-W350 servos, model 1020, e.g. an "
                         "OpenManipulator-X: --ids 11,12,13,14,15 --xm430 11,12,13,14,15")
@@ -133,7 +137,10 @@ def _profile_device(source: str) -> tuple[SimDevice, str]:
 async def _run(args: argparse.Namespace) -> None:
     timers: list[asyncio.TimerHandle] = []
     device: SimDevice
-    if args.device == "dynamixel":
+    if args.device == "dynamixel" and args.factory > 0:
+        bus = DynamixelBus.factory(args.factory, None if args.listen else FACTORY_BAUDRATE)
+        device, what = bus, f"dynamixel bus of {args.factory} factory servo(s) (ID 1, 57,600 bps)"
+    elif args.device == "dynamixel":
         ids = [int(i) for i in args.ids.split(",") if i.strip()]
         bus = DynamixelBus(ids, args.baudrate, _pairs(args.mode),
                            {i: Xm430Servo for i in _xm430_ids(args)})

@@ -2,7 +2,9 @@
 
 This lets unmodified host software (DynamixelSDK, pyserial, our serial link) talk to a
 simulator exactly as to hardware: `serve_pty` makes a path that opens like /dev/ttyUSB0,
-`serve_tcp` a `socket://host:port` endpoint. Host bytes go to `device.receive(data, now)`;
+`serve_tcp` a `socket://host:port` endpoint. On a pty the host's termios baud rate reaches a
+device that models it (`set_host_baudrate`: a Dynamixel bus, whose servos at another rate
+hear nothing, as a UART does); a socket carries none. Host bytes go to `device.receive(data, now)`;
 each reply is written `delay` seconds after `now`, strictly in order (a FIFO with one
 writer, so a later reply never overtakes an earlier one). Packetized devices (HID-style,
 64-byte packets) get the host's stream cut into 64-byte packets. A physics tick task calls
@@ -18,6 +20,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import termios
 import time
 import tty
 from collections.abc import Callable
@@ -34,6 +37,19 @@ PACKET_SIZE = 64  # host packet size of packetized devices (rbe3001 HID reports)
 TICK_S = 0.01  # physics tick, s: 100 Hz keeps Present* fresh between requests
 REPLY_BACKLOG = 1024  # replies waiting to be written; beyond this they are dropped (logged)
 READ_CHUNK = 4096  # bytes per read from the pty or socket
+#: termios speed constants (tcgetattr's ispeed) -> bit/s, for the rates this platform has.
+_TERMIOS_RATES = {getattr(termios, f"B{r}"): r for r in (
+    9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600, 1000000,
+    2000000, 3000000, 4000000) if hasattr(termios, f"B{r}")}
+
+
+def pty_baudrate(fd: int) -> int:
+    """The input baud rate the host set on a pty (termios), in bit/s; 0 for a rate without a
+    termios constant here (a UART at a rate no servo runs at: nothing hears it)."""
+    try:
+        return _TERMIOS_RATES.get(termios.tcgetattr(fd)[4], 0)
+    except termios.error:
+        return 0
 
 
 class _Pump:
@@ -126,6 +142,9 @@ class PtyServer:
             log.warning("pty read failed: %s", exc)
             return
         if data:
+            follow = getattr(self.device, "set_host_baudrate", None)
+            if follow is not None:
+                follow(pty_baudrate(self.slave))
             self._pump.on_data(data)
 
     def _write(self, data: bytes) -> None:

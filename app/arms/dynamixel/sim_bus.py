@@ -14,7 +14,16 @@ answered as the e-manual (https://emanual.robotis.com/docs/en/dxl/protocol2/) de
   params the data length error. Status packets on the bus (another device's) are ignored.
 - A servo whose Baud Rate item does not match the bus baud rate hears nothing. Servos start
   configured for the bus baud rate (code 3 at 1 Mbps); a factory reset puts them back at
-  57600 as real ones, after which they fall silent on a 1 Mbps bus.
+  57600 as real ones, after which they fall silent on a 1 Mbps bus. The bus baud rate is the
+  host's: served on a pseudo-terminal it follows the termios rate the host set
+  (`set_host_baudrate`, app/sim/servers.py), as a UART at another rate than the servo's
+  hears framing errors and stays silent (our model of "silence or garbage": silence). None
+  (`baudrate=None`, a TCP socket, which carries no baud rate) lets every servo hear.
+- Factory state (`DynamixelBus.factory`): every servo ID 1 at 57,600 bps, as the MX-28(2.0)
+  and XM430 ship (e-manual, "Control Table of EEPROM Area": ID 1, Baud Rate 1 = 57,600).
+  Two listening servos on one ID both act on an instruction and both answer at once: their
+  status packets collide on the half-duplex line (`_collide`: garbled bytes that fail the
+  CRC; counted in `collisions`).
 
 Reply timing: replies are serialised on the half-duplex bus. Each starts after the
 instruction's wire time, the servo's Return Delay Time (2 us units) and the wire time of
@@ -31,6 +40,16 @@ from protocol import dynamixel as dxl
 from protocol.dynamixel import BROADCAST_ID, ErrorCode, Instruction, Packet, ParseError
 
 _READS = (Instruction.READ, Instruction.SYNC_READ, Instruction.BULK_READ)
+#: The rate a servo ships at (e-manual MX-28(2.0) and XM430-W350: Baud Rate (8) initial 1).
+FACTORY_BAUDRATE = 57_600
+
+
+def baud_code(baudrate: int) -> int:
+    """The Baud Rate (8) code of a rate; ValueError naming the valid rates otherwise."""
+    codes = [c for c, b in BAUD_CODES.items() if b == baudrate]
+    if not codes:
+        raise ValueError(f"baudrate {baudrate} is not an MX-28 rate {sorted(BAUD_CODES.values())}")
+    return codes[0]
 
 
 #: A servo at rest answers a poll with the same status packet each time: framed (stuffing,
@@ -43,24 +62,52 @@ class DynamixelBus:
 
     packetized = False
 
-    def __init__(self, ids: Iterable[int] = (1, 2, 3, 4), baudrate: int = 1_000_000,
+    def __init__(self, ids: Iterable[int] = (1, 2, 3, 4), baudrate: int | None = 1_000_000,
                  operating_modes: Mapping[int, int] | None = None,
                  models: Mapping[int, type[Mx28Servo]] | None = None) -> None:
         """`models` gives a servo class per id (default MX-28), e.g. Xm430Servo for an
-        OpenManipulator-X's ids; every class shares the MX-28's baud-rate codes."""
-        codes = [c for c, b in BAUD_CODES.items() if b == baudrate]
-        if not codes:
-            rates = sorted(BAUD_CODES.values())
-            raise ValueError(f"baudrate {baudrate} is not an MX-28 rate {rates}")
+        OpenManipulator-X's ids; every class shares the MX-28's baud-rate codes. `baudrate`
+        None: the host's rate is unknown (a socket) and every servo hears (servos at 1 Mbps)."""
+        code = baud_code(1_000_000 if baudrate is None else baudrate)
         modes = dict(operating_modes or {})
         self.baudrate = baudrate
         kinds = dict(models or {})
-        self.servos = [kinds.get(i, Mx28Servo)(i, modes.get(i, 3), codes[0])
+        self.servos = [kinds.get(i, Mx28Servo)(i, modes.get(i, 3), code)
                        for i in sorted(set(ids))]
+        #: Instructions whose replies collided (two servos on one ID), counted.
+        self.collisions = 0
         self.parser = dxl.Parser()
         self.errors: list[ParseError] = []  # last framing errors seen, newest last (bounded)
         self._now: float | None = None
         self._busy_until = 0.0
+
+    @classmethod
+    def factory(cls, count: int = 1, baudrate: int | None = FACTORY_BAUDRATE,
+                model: type[Mx28Servo] = Mx28Servo) -> DynamixelBus:
+        """`count` servos as they leave the factory: ID 1, 57,600 bps, position mode, on a
+        bus whose host is at `baudrate` (None: a socket, every servo hears)."""
+        bus = cls(ids=(), baudrate=baudrate)
+        for _ in range(count):
+            bus.add_servo(model)
+        return bus
+
+    def add_servo(self, model: type[Mx28Servo] = Mx28Servo, id: int = 1,
+                  baudrate: int = FACTORY_BAUDRATE) -> Mx28Servo:
+        """Plug one more servo into the bus (default: a factory one, ID 1 at 57,600)."""
+        servo = model(id, 3, baud_code(baudrate))
+        if self._now is not None:
+            servo.advance(0.0, self._now)
+        self.servos.append(servo)
+        return servo
+
+    def remove_servo(self, servo: Mx28Servo) -> None:
+        """Unplug a servo."""
+        self.servos.remove(servo)
+
+    def set_host_baudrate(self, baudrate: int | None) -> None:
+        """The rate the host's UART runs at now (the pty server calls this with the
+        termios rate before each write of the host): servos at another rate hear nothing."""
+        self.baudrate = baudrate
 
     # SimDevice ----------------------------------------------------------------------------
     def advance(self, now: float) -> None:
@@ -94,18 +141,44 @@ class DynamixelBus:
         return out
 
     # helpers ------------------------------------------------------------------------------
+    def hears(self, s: Mx28Servo) -> bool:
+        """Whether servo `s` hears the host: its Baud Rate is the host's (or that is unknown)."""
+        return self.baudrate is None or BAUD_CODES.get(s.get("baud_rate")) == self.baudrate
+
     def servo(self, id: int) -> Mx28Servo | None:
         """The listening servo with this id (the first, if ids collide), or None."""
         for s in self.servos:
-            if s.id == id and BAUD_CODES.get(s.get("baud_rate")) == self.baudrate:
+            if s.id == id and self.hears(s):
                 return s
         return None
+
+    def _same_id(self, id: int) -> list[Mx28Servo]:
+        """Every listening servo with this id (more than one: their replies collide)."""
+        return [s for s in self.servos if s.id == id and self.hears(s)]
 
     def _listening(self) -> list[Mx28Servo]:
         return sorted((s for s in self.servos if self.servo(s.id) is s), key=lambda s: s.id)
 
     def _wire(self, n_bytes: int) -> float:
-        return n_bytes * 10.0 / self.baudrate
+        return n_bytes * 10.0 / (self.baudrate or 1_000_000)
+
+    def _collide(self, replies: list[tuple[Mx28Servo, bytes]]) -> list[tuple[Mx28Servo, bytes]]:
+        """Replies of servos that share an id overlap on the line: one garbled packet. The
+        second starts one byte time after the first (two servos' delays are never exactly
+        equal), and the line reads the AND of both (either transmitter pulls it low), so even
+        two identical replies garble past the header and fail the CRC."""
+        out: list[tuple[Mx28Servo, bytes]] = []
+        for servo, reply in replies:
+            if out and out[-1][0].id == servo.id and len(self._same_id(servo.id)) > 1:
+                first, late = out[-1][1] + b"\xff", b"\xff" + reply
+                n = max(len(first), len(late))
+                first, late = first.ljust(n, b"\xff"), late.ljust(n, b"\xff")
+                merged = bytes(a & b for a, b in zip(first, late, strict=True))
+                out[-1] = (out[-1][0], merged)
+                self.collisions += 1
+            else:
+                out.append((servo, reply))
+        return out
 
     @staticmethod
     def _status(servo: Mx28Servo, error: int, params: bytes = b"") -> tuple[Mx28Servo, bytes]:
@@ -123,10 +196,11 @@ class DynamixelBus:
         if p.error is not None:
             return []  # a status packet: another device's reply
         if p.instruction == Instruction.PING:
-            targets = self._listening() if p.id == BROADCAST_ID else [self.servo(p.id)]
-            return [self._status(s, 0, dxl.to_bytes(s.get("model_number"), 2)
-                                 + bytes((s.get("firmware_version"),)))
-                    for s in targets if s is not None]
+            targets = (sorted((s for s in self.servos if self.hears(s)), key=lambda s: s.id)
+                       if p.id == BROADCAST_ID else self._same_id(p.id))
+            return self._collide([self._status(s, 0, dxl.to_bytes(s.get("model_number"), 2)
+                                               + bytes((s.get("firmware_version"),)))
+                                  for s in targets])
         try:
             if p.instruction == Instruction.SYNC_READ:
                 address, length, ids = dxl.decode_sync_read(p.params)
@@ -146,25 +220,23 @@ class DynamixelBus:
                 return []
         except dxl.ProtocolError:
             return []  # a broadcast instruction: nobody answers
-        targets = self._listening() if p.id == BROADCAST_ID else [self.servo(p.id)]
+        targets = self._listening() if p.id == BROADCAST_ID else self._same_id(p.id)
         replies = []
         for s in targets:
-            if s is None:
-                continue
             error, params = self._unicast(s, p)
             level = s.get("status_return_level")
             if p.id != BROADCAST_ID and (level >= 2 or (level == 1 and p.instruction in _READS)):
                 replies.append(self._status(s, error, params))
-        return replies
+        return self._collide(replies)
 
     def _reads(self, items: list[tuple[int, int, int]]) -> list[tuple[Mx28Servo, bytes]]:
         replies = []
         for i, address, length in items:
-            s = self.servo(i)
-            if s is not None and s.get("status_return_level") >= 1:
-                error, data = s.read(address, length)
-                replies.append(self._status(s, error, data))
-        return replies
+            for s in self._same_id(i):
+                if s.get("status_return_level") >= 1:
+                    error, data = s.read(address, length)
+                    replies.append(self._status(s, error, data))
+        return self._collide(replies)
 
     def _unicast(self, s: Mx28Servo, p: Packet) -> tuple[int, bytes]:
         """Run one instruction on one servo: (error code, status params)."""

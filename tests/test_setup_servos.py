@@ -1,0 +1,176 @@
+"""`armserver setup-servos` (issue 24, item 3) against the simulated bus in the factory state
+(every servo ID 1 at 57,600 bps), served on a real pseudo-terminal whose termios baud rate the
+bus honours: factory servos found, set up one at a time as the angler's joints, collisions and
+refusals reported with a non-zero exit and nothing written."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from app.arms.dynamixel.setup import EXIT_NONE, EXIT_SEVERAL
+from app.arms.dynamixel.sim_bus import DynamixelBus
+from app.arms.dynamixel.sim_mx28 import BAUD_CODES
+from app.cli import main
+from app.sim.servers import serve_pty, serve_tcp
+
+ANGLER = {"x": 2, "y": 1, "theta3": 3, "z": 4}  # the profile's motor ids
+
+
+class Served:
+    """A bus served on a pty (or TCP) from a loop in its own thread, for a blocking client."""
+
+    def __init__(self, bus: DynamixelBus, path: Path | None) -> None:
+        self.bus = bus
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        if path is not None:
+            self.server: object = self.run(serve_pty(bus, path))
+            self.url = str(path)
+        else:
+            srv = self.run(serve_tcp(bus))
+            self.server, self.url = srv, f"socket://127.0.0.1:{srv.port}"
+
+    def run(self, coro: object) -> object:
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(10)  # type: ignore[arg-type]
+
+    def call(self, fn: object) -> object:
+        async def go() -> object:
+            return fn()  # type: ignore[operator]
+        return self.run(go())
+
+    def close(self) -> None:
+        self.run(self.server.close())  # type: ignore[attr-defined]
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
+        self.loop.close()
+
+
+@pytest.fixture
+def factory_bus(tmp_path: Path) -> Iterator[Served]:
+    served = Served(DynamixelBus.factory(1), tmp_path / "ttyDXL")
+    try:
+        yield served
+    finally:
+        served.close()
+
+
+def setup(url: str, joint: str | None = None, rates: str | None = "57600,1000000") -> int:
+    """`armserver setup-servos` on `url` for the angler; at the two rates the servos here run
+    at (the full scan of every standard rate is `test_factory_servo_found_at_57600`'s)."""
+    argv = ["setup-servos", "--port", url, "--profile", "angler", "--timeout", "0.15"]
+    if rates:
+        argv += ["--baudrates", rates]
+    return main([*argv, "--joint", joint] if joint else argv)
+
+
+def state(bus: DynamixelBus) -> list[tuple[int, int, int]]:
+    """(ID, baud rate, operating mode) of every servo on the bus, by ID."""
+    return sorted((s.id, BAUD_CODES[s.get("baud_rate")], s.get("operating_mode"))
+                  for s in bus.servos)
+
+
+def test_factory_servo_found_at_57600(factory_bus: Served,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    assert setup(factory_bus.url, rates=None) == 0  # every standard rate
+    out = capsys.readouterr().out
+    assert "found ID 1 at 57,600 bps: MX-28(2.0), firmware 45, operating mode 3" in out
+    assert "[factory state]" in out
+    assert "joint y's ID, but not the profile's 1,000,000 bps" in out
+
+
+def test_four_factory_servos_set_up_one_at_a_time(factory_bus: Served,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    bus = factory_bus.bus
+    assert setup(factory_bus.url, "x") == 0
+    assert state(bus) == [(2, 1_000_000, 4)]
+    x = next(s for s in bus.servos)
+    assert x.get("return_delay_time") == 0  # the profile's link.return_delay_us
+    # the next servo joins the bus beside the one set up: y keeps ID 1, moves to 1 Mbps
+    factory_bus.call(bus.add_servo)
+    assert setup(factory_bus.url, "y") == 0
+    assert state(bus) == [(1, 1_000_000, 4), (2, 1_000_000, 4)]
+    # two new servos at once: both ID 1 at 57,600, their replies collide
+    factory_bus.call(bus.add_servo)
+    extra = factory_bus.call(bus.add_servo)
+    capsys.readouterr()
+    assert setup(factory_bus.url, "theta3") == EXIT_SEVERAL
+    err = capsys.readouterr().err
+    assert "garbled replies at 57,600 bps" in err and "connect one servo at a time" in err
+    assert state(bus).count((1, 57_600, 3)) == 2  # nothing written
+    factory_bus.call(lambda: bus.remove_servo(extra))  # type: ignore[arg-type]
+    assert setup(factory_bus.url, "theta3") == 0
+    factory_bus.call(bus.add_servo)
+    assert setup(factory_bus.url, "z") == 0
+    want = sorted((ANGLER[j], 1_000_000, 4) for j in ANGLER)
+    assert state(bus) == want
+    # every servo as the profile wants it: nothing left to set up for a joint already placed
+    capsys.readouterr()
+    assert setup(factory_bus.url) == 0
+    out = capsys.readouterr().out
+    for joint, i in ANGLER.items():
+        assert f"found ID {i} at 1,000,000 bps" in out and f"= joint {joint}" in out
+
+
+def test_refusals_exit_non_zero_with_a_reason(tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    served = Served(DynamixelBus.factory(0), tmp_path / "ttyEmpty")
+    try:
+        assert setup(served.url, "x") == EXIT_NONE
+        assert "nothing answered at any standard rate" in capsys.readouterr().err
+        assert setup(served.url) == EXIT_NONE
+        # y's servo in place: x's set-up does not take another joint's servo
+        bus = served.bus
+        served.call(lambda: bus.add_servo(id=1, baudrate=1_000_000))
+        assert setup(served.url, "x") == EXIT_NONE
+        assert "only ID 1 (y), already set up" in capsys.readouterr().err
+        assert state(bus) == [(1, 1_000_000, 3)]
+        # two factory servos on one ID: refused, nothing written
+        served.call(bus.add_servo)
+        served.call(bus.add_servo)
+        assert setup(served.url, "x") == EXIT_SEVERAL
+        assert state(bus) == [(1, 57_600, 3), (1, 57_600, 3), (1, 1_000_000, 3)]
+        # torque on (a servo holding a load): EEPROM untouched
+        served.call(lambda: bus.remove_servo(bus.servos[-1]))
+        served.call(lambda: bus.servos[-1].set("torque_enable", 1))
+        assert setup(served.url, "x") == 5
+        assert "torque on" in capsys.readouterr().err
+    finally:
+        served.close()
+
+
+def test_over_a_socket_the_rate_is_read_from_the_servo(capsys: pytest.CaptureFixture[str]
+                                                       ) -> None:
+    """A socket carries no baud rate: one broadcast PING, each servo's rate from its item."""
+    served = Served(DynamixelBus.factory(1, baudrate=None), None)
+    try:
+        assert setup(served.url, "theta3") == 0
+        assert state(served.bus) == [(3, 1_000_000, 4)]
+        assert "joint theta3: set up and verified: ID 3 at 1,000,000 bps" in \
+            capsys.readouterr().out
+    finally:
+        served.close()
+
+
+def test_pty_baud_mismatch_is_silence(tmp_path: Path) -> None:
+    """A servo at 1 Mbps does not answer a host at 57,600 on the pty (and does at 1 Mbps)."""
+    import serial
+
+    from protocol import dynamixel as dxl
+
+    served = Served(DynamixelBus(ids=(1,), baudrate=1_000_000), tmp_path / "ttyMis")
+    try:
+        for rate, answers in ((57_600, False), (1_000_000, True)):
+            port = serial.serial_for_url(served.url, baudrate=rate, timeout=0.2)
+            try:
+                port.write(dxl.ping(1))
+                assert bool(port.read(14)) is answers, rate
+            finally:
+                port.close()
+    finally:
+        served.close()
