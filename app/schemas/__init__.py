@@ -107,6 +107,14 @@ from app.schemas.passthrough import (
     SyncReadResult,
     SyncWriteRequest,
 )
+from app.schemas.recordings import (
+    CurrentEpisode,
+    EpisodeStart,
+    EpisodeSummary,
+    RecordingCreate,
+    RecordingDetail,
+    RecordingSummary,
+)
 from app.schemas.telemetry import (
     EventMessage,
     MotionBrief,
@@ -137,10 +145,13 @@ __all__ = [
     "Capabilities",
     "ChainStep",
     "Correspondence",
+    "CurrentEpisode",
     "Detection",
     "Detections",
     "Duration",
     "DxlIdValue",
+    "EpisodeStart",
+    "EpisodeSummary",
     "ErrorBody",
     "EstopState",
     "EventMessage",
@@ -183,6 +194,9 @@ __all__ = [
     "QueueOrder",
     "QueueStatus",
     "Rbe3001Status",
+    "RecordingCreate",
+    "RecordingDetail",
+    "RecordingSummary",
     "RegisterValue",
     "RegisterWrite",
     "ReplayRequest",
