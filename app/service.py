@@ -454,6 +454,11 @@ class ArmService:
     async def move_pose(self, req: s.MovePose) -> MotionRecord:
         return await self.motion.move_pose(req)
 
+    async def replay(self, targets: np.ndarray, fps: float) -> MotionRecord:
+        """Play joint targets (T, n) back at `fps` as one motion: a soft start to the first,
+        then the frames, checked and streamed like a move (app/motion/replay.py)."""
+        return await self.motion.replay(targets, fps)
+
     async def preview_joints(self, req: s.MoveJoints) -> s.Motion:
         """A joint move's plan, nothing sent (planned on the control loop, from its queue)."""
         async def plan() -> s.Motion:

@@ -16,6 +16,7 @@ import numpy as np
 
 from app import schemas as s
 from app.errors import Busy
+from app.motion import replay
 from app.motion.history import MotionRecord, Plan
 from app.motion.planner import State
 from app.motion.stream import Events, MotionStream
@@ -83,6 +84,17 @@ class MotionExecutor(MotionStream):
     async def _move_pose(self, req: s.MovePose) -> MotionRecord:
         p = np.array([req.x, req.y, req.z])
         return self._submit("pose", req.path, req, self._plan_pose_from, p)
+
+    async def replay(self, targets: np.ndarray, fps: float) -> MotionRecord:
+        """On the control loop: `_replay`."""
+        return await on_home(self.home_loop, lambda: self._replay(targets, fps))
+
+    async def _replay(self, targets: np.ndarray, fps: float) -> MotionRecord:
+        """Queue a replay of joint targets (T, n) at `fps` (app/motion/replay.py): checked
+        now, planned again from the commanded state when it starts, like a joint move."""
+        q = replay.check_targets(self.planner, targets, fps)
+        plan = replay.replay_planner(self.planner, q, fps)
+        return self._submit("joints", "joint", replay.ReplayAsk(), plan, q[-1])
 
     def preview_joints(self, req: s.MoveJoints) -> s.Motion:
         q1 = self.planner.joint_vector(req.positions)

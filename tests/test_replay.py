@@ -1,0 +1,161 @@
+"""Replaying joint targets at a frame rate as one motion (app/motion/replay.py), on a simulated
+OpenManipulator-X behind its real link: the soft start, the frames' tip path, the checks
+before anything moves (joint limits, speed, the envelope, the frame rate), and stop and
+estop like any motion."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import httpx
+import numpy as np
+import orjson
+import pytest
+from _wait import wait_for
+from fastapi import FastAPI
+
+from app.errors import ArmError
+from app.service import ArmService
+from tests.conftest import make_settings, running_client
+
+API = "/api/v1"
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "teleop_omx.toml"
+FPS = 30.0
+
+
+@pytest.fixture()
+async def omx() -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
+    async with running_client(make_settings(config=str(CONFIG))) as pair:
+        yield pair
+
+
+def arm_of(app: FastAPI, name: str = "leader") -> ArmService:
+    arm: ArmService = app.state.services[name]
+    return arm
+
+
+def wave(seconds: float = 2.0, fps: float = FPS) -> np.ndarray:
+    """A smooth path well inside the OMX's limits and speed (under 1 rad/s)."""
+    t = np.arange(int(seconds * fps)) / fps
+    w = 2 * np.pi / seconds
+    return np.stack([0.5 * np.sin(w * t), -0.3 + 0.2 * np.sin(w * t), 0.2 + 0.2 * np.cos(w * t),
+                     0.5 + 0.1 * np.sin(2 * w * t)], axis=1)
+
+
+def path_distance(points: np.ndarray, path: np.ndarray) -> np.ndarray:
+    """Each point's distance (m) to the polyline `path` (k, 3)."""
+    a, b = path[:-1], path[1:]
+    ab = b - a
+    out = []
+    for p in points:
+        t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum(
+            np.einsum("ij,ij->i", ab, ab), 1e-18), 0.0, 1.0)
+        out.append(float(np.min(np.linalg.norm(a + t[:, None] * ab - p, axis=1))))
+    return np.asarray(out)
+
+
+async def test_replay_follows_the_frames_tip_path(
+        omx: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    app, c = omx
+    arm = arm_of(app)
+    targets = wave()
+    sub = arm.subscribe(4000)
+    try:
+        rec = await arm.replay(targets, FPS)
+        assert rec.kind == "joints" and rec.path == "joint"
+        np.testing.assert_allclose(rec.target, targets[-1])
+        await rec.wait()
+        assert rec.status == "done", (rec.reason, rec.code)
+        # the frames' part lasts exactly (T - 1) / fps after the soft start
+        assert rec.planned_duration >= (len(targets) - 1) / FPS
+        samples = [orjson.loads(x) for x in sub.take()[0]]
+    finally:
+        sub.close()
+    moving = [smp for smp in samples
+              if (smp.get("motion") or {}).get("id") == rec.id
+              and (smp["motion"]["status"] == "running")]
+    q = np.array([smp["positions"] for smp in moving], dtype=float)
+    # the part of the motion after the soft start: from where the tip first reaches frame 0
+    path = np.asarray(arm.model.fk(_dense(targets)), dtype=float)
+    tips = np.asarray(arm.model.fk(q), dtype=float)
+    start = np.asarray(arm.model.fk(targets[0]), dtype=float)
+    reached = int(np.argmax(np.linalg.norm(tips - start, axis=1) < 0.002))
+    d = path_distance(tips[reached:], path)
+    assert len(d) > 30
+    assert float(np.max(d)) < 0.002, f"tip {np.max(d) * 1e3:.2f} mm off the frames' path"
+    final = (await c.get(f"{API}/arms/leader/state")).json()["positions"]
+    np.testing.assert_allclose(final, targets[-1], atol=8 * 2 * np.pi / 4096)
+
+
+def _dense(targets: np.ndarray, k: int = 10) -> np.ndarray:
+    """The frames linearly interpolated k times per interval (the executor's own path)."""
+    s = np.linspace(0.0, 1.0, k, endpoint=False)
+    parts = [a + s[:, None] * (b - a) for a, b in zip(targets[:-1], targets[1:], strict=True)]
+    return np.concatenate([*parts, targets[-1:]])
+
+
+@pytest.mark.parametrize(("change", "code"), [
+    ("too_fast", "velocity_limit"),
+    ("beyond_limit", "joint_limit"),
+    ("nan", "invalid_request"),
+    ("wrong_width", "invalid_request"),
+    ("fps", "invalid_request"),
+])
+async def test_replay_refuses_bad_frames_before_moving(
+        omx: tuple[FastAPI, httpx.AsyncClient], change: str, code: str) -> None:
+    app, _ = omx
+    arm = arm_of(app)
+    targets, fps = wave(), FPS
+    if change == "too_fast":
+        targets[10:, 0] += 1.0  # a 1 rad jump in one frame: 30 rad/s
+    elif change == "beyond_limit":
+        targets[5, 1] = 3.0
+    elif change == "nan":
+        targets[3, 2] = np.nan
+    elif change == "wrong_width":
+        targets = targets[:, :3]
+    else:
+        fps = 0.0
+    with pytest.raises(ArmError) as err:
+        await arm.replay(targets, fps)
+    assert err.value.code == code, err.value.detail
+    assert not arm.moving
+
+
+async def test_replay_refused_by_the_envelope(omx: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    app, c = omx
+    arm = arm_of(app)
+    targets = wave()
+    p = np.asarray(arm.model.fk(targets[len(targets) // 4]), dtype=float)  # a frame's tip
+    box = {"name": "cup", "min": dict(zip("xyz", (p - 0.01).tolist(), strict=True)),
+           "max": dict(zip("xyz", (p + 0.01).tolist(), strict=True))}
+    r = await c.put(f"{API}/arms/leader/safety", json={"zones": [box]})
+    assert r.status_code == 200, r.text
+    with pytest.raises(ArmError) as err:
+        await arm.replay(targets, FPS)
+    assert err.value.code == "keep_out", err.value.detail
+    assert not arm.moving
+
+
+@pytest.mark.parametrize("how", ["stop", "cancel", "estop"])
+async def test_replay_stops_like_any_motion(omx: tuple[FastAPI, httpx.AsyncClient],
+                                            how: str) -> None:
+    app, c = omx
+    arm = arm_of(app)
+    rec = await arm.replay(wave(seconds=4.0), FPS)
+    await wait_for(lambda: rec.status == "running" and rec.progress > 0.3,
+                   what="the replay past its soft start")
+    if how == "stop":
+        r = await c.post(f"{API}/arms/leader/stop")
+    elif how == "cancel":
+        r = await c.delete(f"{API}/arms/leader/motions/{rec.id}")
+    else:
+        r = await c.post(f"{API}/arms/leader/estop")
+    assert r.status_code == 200, r.text
+    await rec.wait()
+    assert rec.status == "stopped"
+    assert rec.reason is not None
+    if how == "estop":
+        assert rec.reason == "emergency stop"
+        assert (await c.delete(f"{API}/arms/leader/estop")).status_code == 200
