@@ -260,6 +260,29 @@ class ArmService:
                                      self.driver.pace())
         return await send()
 
+    async def command_setpoint(self, q: np.ndarray) -> None:
+        """Runs `_command_setpoint` on the arm's control loop (its state changes only there)."""
+        return await on_home(self.home_loop, lambda: self._command_setpoint(q))
+
+    async def _command_setpoint(self, q: np.ndarray) -> None:
+        """One streamed joint setpoint (rad or m, every joint) from a source outside the
+        planner that sends one each period (teleoperation, app/teleop/): checked and sent in
+        one step on the control thread like a pass-through position (the guard's
+        `check_passthrough`: the latch, faults, homing, the joint limits, the envelope along
+        the path from where the arm is, the step speed) and written as the executor's own
+        setpoints are (`command_joints`, gated by the latch, noted as the commanded state).
+        409 `busy` while a planned motion runs or is queued (it streams the one commanded
+        state); a refused setpoint sends nothing, so the arm holds its last command."""
+        if self.motion.current is not None or self.motion.queued():
+            raise Busy(f"{self.name}: a planned motion is running or queued: stop it "
+                       f"(POST /api/v1/arms/{self.name}/stop) before streaming setpoints")
+        target = np.asarray(q, dtype=float)
+        if target.shape != (self.model.n,):
+            raise InvalidRequest(f"{self.name}: a setpoint takes {self.model.n} joints, got "
+                                 f"shape {list(target.shape)}")
+        self.guard.check_passthrough(target, self.driver.pace())
+        await self.driver.command_joints(target)
+
     # --------------------------------------------------------- the envelope, at once
 
     async def apply_safety(self, new: SafetySettings) -> None:

@@ -1,0 +1,87 @@
+"""The server's teleoperation sessions: started, listed and stopped here (the routes call
+this), each run on its follower's control loop (app/teleop/session.py)."""
+
+from __future__ import annotations
+
+import itertools
+import uuid
+from collections import OrderedDict
+
+from app import schemas as s
+from app.errors import Busy, InvalidRequest, NotFound, NotSupported
+from app.runtime.control_thread import on_home
+from app.service import ArmService
+from app.teleop.mapping import Mapping, joint_map, tip_map
+from app.teleop.session import TeleopSession
+
+#: Ended sessions kept for GET (with their figures and why they ended).
+KEEP_ENDED = 16
+
+
+class TeleopSessions:
+    """Every session of one server, by id; running and the last KEEP_ENDED ended ones."""
+
+    def __init__(self) -> None:
+        self._sessions: OrderedDict[str, TeleopSession] = OrderedDict()
+        self._ids = itertools.count(1)
+
+    def list(self) -> list[s.TeleopSession]:
+        return [t.describe() for t in list(self._sessions.values())]
+
+    def get(self, sid: str) -> TeleopSession:
+        t = self._sessions.get(sid)
+        if t is None:
+            raise NotFound(f"no teleoperation session {sid!r} (GET /api/v1/teleop lists them)")
+        return t
+
+    async def start(self, req: s.TeleopStart, leader: ArmService,
+                    follower: ArmService) -> TeleopSession:
+        """Check and start a session (the caller checked the follower's lease). 422 for a
+        leader that is the follower or a mapping that does not fit the arms; 409 `busy` for
+        a follower another session drives; 409 `not_supported` for a leader that is not
+        simulated (turning a servo leader's torque off is not built yet); the follower's own
+        refusals (estop, shutdown) as they are."""
+        if leader is follower:
+            raise InvalidRequest(f"the leader and the follower are both {leader.name}: an arm "
+                                 "cannot follow itself")
+        for t in self._sessions.values():
+            if t.status == "running" and t.follower is follower:
+                raise Busy(f"{follower.name} already follows {t.leader.name} (teleoperation "
+                           f"session {t.id}): stop it first (DELETE /api/v1/teleop/{t.id})")
+        if leader.link_status().kind != "sim":
+            raise NotSupported(
+                f"{leader.name} is a real arm: a leader's servos must be free to move by hand, "
+                "and turning their torque off from a teleoperation session is not built yet "
+                "(a simulated leader is moved by its own commands)")
+        follower.require_motion_allowed()
+        mapping = self._mapping(req, leader, follower)
+        sid = f"t{next(self._ids)}-{uuid.uuid4().hex[:8]}"
+        session = TeleopSession(sid, leader, follower, req.rate_hz, req.mapping, mapping,
+                                req.deadman_s)
+        await on_home(follower.home_loop, session.start)
+        self._sessions[sid] = session
+        self._forget_ended()
+        return session
+
+    @staticmethod
+    def _mapping(req: s.TeleopStart, leader: ArmService, follower: ArmService) -> Mapping:
+        if req.mapping == "joints":
+            return joint_map(leader.model, follower.model, req.scale, req.offset,
+                             req.clamp_margin)
+        return tip_map(leader.model, follower.model, req.tip_scale, req.tip_offset,
+                       req.clamp_margin)
+
+    async def stop(self, sid: str, reason: str) -> TeleopSession:
+        t = self.get(sid)
+        await on_home(t.follower.home_loop, lambda: t.stop(reason))
+        return t
+
+    async def close(self) -> None:
+        """Stop every running session (server shutdown), each follower holding."""
+        for t in list(self._sessions.values()):
+            await self.stop(t.id, "server shutting down")
+
+    def _forget_ended(self) -> None:
+        ended = [k for k, t in self._sessions.items() if t.status != "running"]
+        for k in ended[:max(0, len(ended) - KEEP_ENDED)]:
+            del self._sessions[k]

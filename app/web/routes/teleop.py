@@ -1,0 +1,96 @@
+"""Teleoperation (API.md "Teleoperation (v1.2)"): start a leader/follower session under the
+caller's lease on the follower, list the sessions with their figures, stop one. The sessions
+and their checks are app/teleop's; this module maps HTTP onto them."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Path, Request, status
+
+from app import schemas as s
+from app.classroom.lease import LeaseManager
+from app.teleop.sessions import TeleopSessions
+from app.web.deps import (
+    CallerDep,
+    OperatorCaller,
+    OperatorRole,
+    ServicesDep,
+    ViewerRole,
+    lookup_arm,
+)
+from app.web.routes.common import DEVICE, READ, errors
+from app.web.security import Role
+
+router = APIRouter(tags=["teleoperation"])
+
+SessionId = Annotated[str, Path(description="session id, as answered by POST /teleop",
+                                max_length=64)]
+
+
+def sessions_of(request: Request) -> TeleopSessions:
+    """The server's sessions (made with the app's state on first use)."""
+    found: TeleopSessions | None = getattr(request.app.state, "teleop", None)
+    if found is None:
+        found = request.app.state.teleop = TeleopSessions()
+    return found
+
+
+@router.post(
+    "/teleop",
+    response_model=s.TeleopSession,
+    status_code=status.HTTP_201_CREATED,
+    summary="Start teleoperation: a leader arm drives a follower",
+    description="Every 1/`rate_hz` s (30..100) the leader's newest joint sample is mapped to "
+    "a follower target (`joints`: one to one for like arms, scaled, offset, clamped; `tip`: "
+    "the leader's forward kinematics, the follower's IK nearest where it is) and sent to the "
+    "follower through its guard (joint limits, speed, keep-out zones, the estop latch) at "
+    "most at its velocity limit. A leader sample older than `deadman_s` (default 0.2 s), a "
+    "target the guard refuses, or a planned motion on the follower holds the follower (a "
+    "hold, counted); the emergency stop on either arm ends the session. Needs an operator "
+    "token and the follower's lease (X-Arm-Lease). 404 `unknown_arm`; 422 when the leader "
+    "is the follower or the mapping does not fit; 409 `busy` when the follower already "
+    "follows; 409 `not_supported` for a real (not simulated) leader: turning its torque off "
+    "is not built yet.",
+    responses=errors(*DEVICE),
+)
+async def start_teleop(request: Request, req: s.TeleopStart, services: ServicesDep,
+                       who: OperatorCaller,
+                       x_arm_lease: Annotated[str | None, Header(
+                           description="the follower's lease id", max_length=128)] = None,
+                       ) -> s.TeleopSession:
+    leader = lookup_arm(services, req.leader)
+    follower = lookup_arm(services, req.follower)
+    leases: LeaseManager = request.app.state.leases
+    await leases.check(follower.name, x_arm_lease, gated=who.role < Role.INSTRUCTOR)
+    session = await sessions_of(request).start(req, leader, follower)
+    return session.describe()
+
+
+@router.get(
+    "/teleop",
+    response_model=list[s.TeleopSession],
+    summary="Teleoperation sessions and their figures",
+    description="Running sessions, then the last 16 ended ones (`status`, `reason`): the rate "
+    "asked and achieved, the latency from a leader sample to the follower's command (p50, "
+    "p99, ms), commands sent and holds.",
+    responses=errors(401),
+)
+async def list_teleop(_: ViewerRole, request: Request) -> list[s.TeleopSession]:
+    return sessions_of(request).list()
+
+
+@router.delete(
+    "/teleop/{session_id}",
+    response_model=s.TeleopSession,
+    summary="Stop a teleoperation session",
+    description="The session ends and the follower holds where it is (open to operators, "
+    "like POST /arms/{arm}/stop). A session that has ended already is answered as it is. "
+    "404 `not_found` for an unknown id.",
+    responses=errors(*READ, 403),
+)
+async def stop_teleop(_: OperatorRole, request: Request, session_id: SessionId,
+                      who: CallerDep) -> s.TeleopSession:
+    session = await sessions_of(request).stop(session_id, f"stopped by {who}")
+    return session.describe()
+
