@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 HOST   ?= 127.0.0.1
 PORT   ?= 8000
 
-.PHONY: run test test-run test-loaded test-deps install install-test browser mosquitto stress-ng run-lab bench bench-peers fuzz soak lint clean
+.PHONY: run test test-run test-loaded test-deps install install-test browser mosquitto stress-ng run-lab bench bench-peers bench-lab fuzz soak lint clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -108,6 +108,13 @@ bench-peers: install-test
 	rm -rf $(PEERS_OUT)
 	-DUR=$${DUR:-8} $(PEERS)/run.sh $(PEERS_OUT)
 	$(BIN)/python bench/peers.py $(PEERS_OUT) --harness $(PEERS)
+
+# A lab on one PC (issue 27): ARMS simulated rbe3001 arms on socket:// links, WORKERS worker
+# processes behind one address; server on CPU 0, simulators and client on the others.
+ARMS    ?= 4
+WORKERS ?= 2
+bench-lab: install-test
+	$(BIN)/python bench/lab.py --arms $(ARMS) --workers $(WORKERS) --pin
 
 fuzz: install-test
 	ARMSERVER_FUZZ_CASES=300 $(BIN)/python -m pytest -q tests/test_fuzz_api.py \

@@ -1,0 +1,212 @@
+"""A whole lab on one PC (issue 27): N simulated arms on emulated links, one server address.
+
+    python bench/lab.py [--arms 4] [--workers 2] [--model rbe3001] [--seconds 10] [--pin]
+
+Starts one `armserver sim MODEL --listen tcp://127.0.0.1:PORT` per arm (the project's
+simulated firmware or servo bus, out of the server's process; each arm's link is
+`socket://127.0.0.1:PORT`), then `armserver serve --workers W` over them (W = 1: today's single
+process), and while every arm runs at its poll rate prints:
+
+- server CPU: front and workers together, % of one core, in all and per arm;
+- samples/s per arm, min and mean over the arms (each arm's `seq` over its own sample clock);
+- REST `GET /state` p50/p99 through the front, round robin over the arms, one client; and the
+  same request straight to a worker's Unix socket (the front's own cost is the difference);
+- estop p99 through the front: presses (`POST /estop`, each released after) spread over the arms.
+
+`--pin` puts the server's processes on core 0 and the simulators and this client on the
+others (as issue 27's table was measured). The figures need a quiet machine: on a shared one,
+quote ratios from one run, not these numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from pathlib import Path
+
+import httpx
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _server import ROOT, pct  # noqa: E402
+
+API = "/api/v1"
+
+
+def _free_ports(n: int) -> list[int]:
+    socks = [socket.socket() for _ in range(n)]
+    for s in socks:
+        s.bind(("127.0.0.1", 0))
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def _tree(pid: int) -> list[int]:
+    """`pid` and its children (the front and its workers)."""
+    try:
+        kids = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except FileNotFoundError:
+        return []
+    return [pid, *(int(k) for k in kids)]
+
+
+def _cpu_s(pids: list[int]) -> float:
+    total = 0
+    for pid in pids:
+        try:
+            f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except FileNotFoundError:
+            continue
+        total += int(f[11]) + int(f[12])
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def _worker_socket(pids: list[int]) -> str | None:
+    for pid in pids[1:]:
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        if b"--uds" in argv:
+            return argv[argv.index(b"--uds") + 1].decode()
+    return None
+
+
+def _wait_healthy(url: str, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            with urllib.request.urlopen(url + API + "/health", timeout=2) as r:
+                if b'"status":"ok"' in r.read():
+                    return
+        except OSError:
+            pass
+        time.sleep(0.2)
+    raise RuntimeError("the lab did not become healthy")
+
+
+async def _rates(c: httpx.AsyncClient, arms: list[str]) -> dict[str, tuple[int, float]]:
+    out = {}
+    for arm in arms:
+        s = (await c.get(f"{API}/arms/{arm}/state")).json()
+        out[arm] = (s["seq"], s["time"])
+    return out
+
+
+async def measure(url: str, arms: list[str], seconds: float, presses: int,
+                  uds: str | None, pids: list[int]) -> None:
+    async with httpx.AsyncClient(base_url=url, timeout=10) as c:
+        first = await _rates(c, arms)
+        cpu0, t0 = _cpu_s(pids), time.monotonic()
+        rest: list[float] = []
+        k = 0
+        while time.monotonic() - t0 < seconds:
+            arm = arms[k % len(arms)]
+            k += 1
+            start = time.perf_counter()
+            r = await c.get(f"{API}/arms/{arm}/state")
+            rest.append(time.perf_counter() - start)
+            assert r.status_code == 200, r.text
+        cpu = (_cpu_s(pids) - cpu0) / (time.monotonic() - t0)
+        last = await _rates(c, arms)
+        estop: list[float] = []
+        for i in range(presses):
+            arm = arms[i % len(arms)]
+            start = time.perf_counter()
+            r = await c.post(f"{API}/arms/{arm}/estop")
+            estop.append(time.perf_counter() - start)
+            assert r.status_code == 200, r.text
+            assert (await c.delete(f"{API}/arms/{arm}/estop")).status_code == 200
+    direct: list[float] = []
+    if uds is not None:
+        transport = httpx.AsyncHTTPTransport(uds=uds)
+        async with httpx.AsyncClient(transport=transport, base_url="http://localhost") as w:
+            mine = (await w.get(f"{API}/arms")).json()
+            name = mine[0]["name"]
+            for _ in range(max(200, len(rest) // 4)):
+                start = time.perf_counter()
+                await w.get(f"{API}/arms/{name}/state")
+                direct.append(time.perf_counter() - start)
+    rates = [(last[a][0] - first[a][0]) / (last[a][1] - first[a][1]) for a in arms]
+    n = len(arms)
+    print(f"server CPU        {100 * cpu:.0f} % of a core in all, {100 * cpu / n:.1f} % per arm")
+    print(f"samples/s per arm min {min(rates):.0f}  mean {sum(rates) / n:.0f}")
+    print(f"REST GET state    p50 {1e3 * pct(rest, 0.5):.2f} ms  p99 {1e3 * pct(rest, 0.99):.2f}"
+          f" ms through the front ({len(rest)} requests)")
+    if direct:
+        print(f"  straight to a worker's socket: p50 {1e3 * pct(direct, 0.5):.2f} ms  p99 "
+              f"{1e3 * pct(direct, 0.99):.2f} ms (the front's hop: the difference)")
+    print(f"estop             p50 {1e3 * pct(estop, 0.5):.2f} ms  p99 {1e3 * pct(estop, 0.99):.2f}"
+          f" ms ({len(estop)} presses)")
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--arms", type=int, default=4)
+    p.add_argument("--workers", type=int, default=2, help="1: today's single process")
+    p.add_argument("--model", default="rbe3001", help="built-in profile of every arm")
+    p.add_argument("--seconds", type=float, default=10.0)
+    p.add_argument("--presses", type=int, default=200)
+    p.add_argument("--pin", action="store_true",
+                   help="server on core 0; simulators and this client on the others")
+    args = p.parse_args()
+    folder = Path(tempfile.mkdtemp(prefix="armserver-bench-lab-"))
+    ports = _free_ports(args.arms + 1)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
+    env["ARMSERVER_DATA_DIR"] = str(folder / "data")
+    cpus = sorted(os.sched_getaffinity(0))
+    sims = []
+    config = []
+    for i, port in enumerate(ports[1:]):
+        sims.append(subprocess.Popen(
+            [sys.executable, "-m", "app.cli", "sim", args.model, "--listen",
+             f"tcp://127.0.0.1:{port}"], cwd=ROOT, env=env,
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        config.append(f'[[arms]]\nprofile = "{args.model}"\nname = "arm-{i + 1}"\n'
+                      f'[arms.link]\nkind = "serial"\naddress = "socket://127.0.0.1:{port}"\n')
+    (folder / "lab.toml").write_text("\n".join(config))
+    server = None
+    try:
+        if args.pin and len(cpus) > 1:
+            for s in sims:
+                os.sched_setaffinity(s.pid, set(cpus[1:]))
+            os.sched_setaffinity(0, set(cpus[1:]))
+        time.sleep(1.0)  # the simulators listen (a late one is retried by the link's backoff)
+        url = f"http://127.0.0.1:{ports[0]}"
+        server = subprocess.Popen(
+            [sys.executable, "-m", "app.cli", "serve", "--config", str(folder / "lab.toml"),
+             "--port", str(ports[0]), "--workers", str(args.workers), "--log-level",
+             "warning"], cwd=ROOT, env=env)
+        _wait_healthy(url, 60)
+        pids = _tree(server.pid)
+        if args.pin and len(cpus) > 1:
+            for pid in pids:
+                os.sched_setaffinity(pid, {cpus[0]})
+        time.sleep(1.0)  # past start-up's bursts
+        print(f"{args.arms} {args.model} arms, {args.workers} worker(s), {args.seconds:.0f} s"
+              f"{', pinned' if args.pin else ''}")
+        uds = _worker_socket(pids) if args.workers > 1 else None
+        asyncio.run(measure(url, [f"arm-{i + 1}" for i in range(args.arms)], args.seconds,
+                            args.presses, uds, pids))
+    finally:
+        if server is not None:
+            server.send_signal(signal.SIGTERM)
+            try:
+                server.wait(30)
+            except subprocess.TimeoutExpired:
+                server.kill()
+        for s in sims:
+            s.terminate()
+        for s in sims:
+            s.wait(10)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
