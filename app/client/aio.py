@@ -272,6 +272,31 @@ class AsyncArmClient:
         body = scene if isinstance(scene, s.WorldScene) else s.WorldScene.model_validate(scene)
         return await self.send(Requests.set_world(arm, body))
 
+    async def start_teleop(self, leader: str, follower: str, *, rate_hz: float = 50.0,
+                           mapping: Literal["joints", "tip"] = "joints",
+                           deadman_s: float = 0.2, scale: Sequence[float] | None = None,
+                           offset: Sequence[float] | None = None, tip_scale: float = 1.0,
+                           tip_offset: Sequence[float] | None = None,
+                           clamp_margin: float = 0.0) -> s.TeleopSession:
+        """Start teleoperation: `leader` drives `follower` (whose lease this client must
+        hold) at `rate_hz` (30..100), mapping `joints` (one to one: `scale`, `offset` per
+        joint) or `tip` (`tip_scale`, `tip_offset` m); targets clamped `clamp_margin` inside
+        the follower's limits; a leader sample older than `deadman_s` holds the follower."""
+        req = s.TeleopStart(leader=leader, follower=follower, rate_hz=rate_hz, mapping=mapping,
+                            deadman_s=deadman_s, tip_scale=tip_scale, clamp_margin=clamp_margin,
+                            scale=None if scale is None else list(scale),
+                            offset=None if offset is None else list(offset),
+                            tip_offset=None if tip_offset is None else list(tip_offset))
+        return await self.send(Requests.start_teleop(req))
+
+    async def teleop_sessions(self) -> list[s.TeleopSession]:
+        """Teleoperation sessions, running then recently ended, with their figures."""
+        return await self.send(Requests.teleop_sessions())
+
+    async def stop_teleop(self, session_id: str) -> s.TeleopSession:
+        """Stop a teleoperation session; the follower holds where it is."""
+        return await self.send(Requests.stop_teleop(session_id))
+
     async def take_lease(self, arm: str) -> s.Lease:
         return await self.send(Requests.take_lease(arm))
 

@@ -65,6 +65,10 @@ def _arms(data: Any) -> list[s.ArmSummary]:
     return TypeAdapter(list[s.ArmSummary]).validate_python(items)
 
 
+def _teleop_sessions(data: Any) -> list[s.TeleopSession]:
+    return TypeAdapter(list[s.TeleopSession]).validate_python(data)
+
+
 def _body(model: BaseModel) -> dict[str, Any]:
     return model.model_dump(mode="json", exclude_none=True)
 
@@ -232,6 +236,21 @@ class Requests:
     def set_world(arm: str, scene: s.WorldScene) -> Call[s.WorldScene]:
         return Call("PUT", url_path("arms", arm, "world"), _model(s.WorldScene),
                     _body(scene), arm=arm, safe=True)
+
+    @staticmethod
+    def start_teleop(req: s.TeleopStart) -> Call[s.TeleopSession]:
+        # the lease header is the follower's: the session moves it
+        return Call("POST", url_path("teleop"), _model(s.TeleopSession), _body(req),
+                    arm=req.follower)
+
+    @staticmethod
+    def teleop_sessions() -> Call[list[s.TeleopSession]]:
+        return Call("GET", url_path("teleop"), _teleop_sessions, safe=True)
+
+    @staticmethod
+    def stop_teleop(session_id: str) -> Call[s.TeleopSession]:
+        return Call("DELETE", url_path("teleop", session_id), _model(s.TeleopSession),
+                    safe=True)
 
     @staticmethod
     def home(arm: str, positions: Sequence[float] | None = None) -> Call[s.ArmDetail]:
