@@ -203,6 +203,14 @@ class AsyncArmClient:
         req = s.InverseRequest(x=x, y=y, z=z, ik_case=ik_case, theta3=theta3)
         return await self.send(Requests.inverse(arm, req))
 
+    async def inverse_velocity(self, arm: str, positions: Sequence[float],
+                               velocity: Sequence[float]) -> s.InverseVelocityResult:
+        """Joint velocities giving tip velocity (vx, vy, vz) m/s at `positions`."""
+        vx, vy, vz = velocity
+        req = s.InverseVelocityRequest(positions=list(positions),
+                                       velocity=s.Vec3(x=vx, y=vy, z=vz))
+        return await self.send(Requests.inverse_velocity(arm, req))
+
     async def workspace(self, /, arm: str, **params: Any) -> s.Workspace:
         return await self.send(Requests.workspace(arm, params))
 
@@ -250,6 +258,24 @@ class AsyncArmClient:
     async def unhome(self, arm: str) -> s.ArmDetail:
         """Un-home the arm on purpose (before declaring a new home pose)."""
         return await self.send(Requests.unhome(arm))
+
+    async def calibration(self, arm: str) -> s.ArmCalibration:
+        """The joints' calibration on this hardware and the gravity fit."""
+        return await self.send(Requests.calibration(arm))
+
+    async def calibrate(self, arm: str, positions: Sequence[float] | None = None,
+                        pose: str | None = None) -> s.ArmCalibration:
+        """Declare the pose the arm is in (joint values, or a calibration pose's name)."""
+        return await self.send(Requests.calibrate(arm, positions, pose))
+
+    async def forget_calibration(self, arm: str) -> s.ArmCalibration:
+        """Drop the stored calibration of the arm's hardware (instructor)."""
+        return await self.send(Requests.forget_calibration(arm))
+
+    async def calibrate_gravity(self, arm: str, poses: Sequence[Sequence[float]] | None = None,
+                                wait: bool = False) -> s.GravityRun:
+        """The gravity fit's motion through `poses` (default: the server's choice)."""
+        return await self.send(Requests.calibrate_gravity(arm, poses, wait))
 
     # --------------------------------------------------------- lease
 
@@ -347,6 +373,37 @@ class AsyncArmClient:
         """The same as CSV text (a header row, then one row per record)."""
         return await self.send(Requests.audit_csv(
             {"arm": arm, "who": who, "since": since, "until": until, "limit": limit}))
+
+    # --------------------------------------------------------- recordings
+
+    async def recordings(self) -> list[s.RecordingSummary]:
+        return await self.send(Requests.recordings())
+
+    async def recording(self, rid: str) -> s.RecordingDetail:
+        return await self.send(Requests.recording(rid))
+
+    async def create_recording(self, name: str, arms: Sequence[str],
+                               cameras: Sequence[str] = (), fps: int = 30,
+                               task: str = "demonstration") -> s.RecordingDetail:
+        """Operator: a LeRobot v3.0 dataset of `arms` (and `cameras`) at `fps`."""
+        req = s.RecordingCreate(name=name, arms=list(arms), cameras=list(cameras), fps=fps,
+                                task=task)
+        return await self.send(Requests.create_recording(req))
+
+    async def start_episode(self, rid: str, task: str | None = None) -> s.RecordingDetail:
+        """Operator: start recording an episode (409 `busy` while one records)."""
+        return await self.send(Requests.start_episode(rid, task))
+
+    async def stop_episode(self, rid: str) -> s.RecordingDetail:
+        """Operator: end the episode; answers once it is written."""
+        return await self.send(Requests.stop_episode(rid))
+
+    async def discard_episode(self, rid: str) -> s.RecordingDetail:
+        return await self.send(Requests.discard_episode(rid))
+
+    async def recording_archive(self, rid: str) -> bytes:
+        """The dataset's folder as tar bytes."""
+        return await self.send(Requests.recording_archive(rid))
 
     # --------------------------------------------------------- cameras
 

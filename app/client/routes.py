@@ -18,6 +18,9 @@ API = s.API_PREFIX
 LEASE_HEADER = "X-Arm-Lease"
 #: How long a `wait=true` move may hold the request open: the planner caps a move at 600 s.
 WAIT_TIMEOUT_S = 660.0
+#: How long writing an episode (or sending a dataset's archive) may take: a long episode's
+#: videos are joined to the dataset's files before the answer.
+RECORDING_WRITE_S = 300.0
 
 
 @dataclass(frozen=True)
@@ -58,6 +61,10 @@ def _audit_rows(data: Any) -> list[s.AuditRecord]:
 
 def _cameras(data: Any) -> list[s.CameraSummary]:
     return TypeAdapter(list[s.CameraSummary]).validate_python(data)
+
+
+def _recordings(data: Any) -> list[s.RecordingSummary]:
+    return TypeAdapter(list[s.RecordingSummary]).validate_python(data)
 
 
 def _arms(data: Any) -> list[s.ArmSummary]:
@@ -158,6 +165,12 @@ class Requests:
     def inverse(arm: str, req: s.InverseRequest) -> Call[s.InverseResult]:
         return Call("POST", url_path("arms", arm, "kinematics", "inverse"), _model(s.InverseResult),
                     _body(req), arm=arm, safe=True)
+
+    @staticmethod
+    def inverse_velocity(arm: str, req: s.InverseVelocityRequest
+                         ) -> Call[s.InverseVelocityResult]:
+        return Call("POST", url_path("arms", arm, "kinematics", "inverse-velocity"),
+                    _model(s.InverseVelocityResult), _body(req), arm=arm, safe=True)
 
     @staticmethod
     def workspace(arm: str, params: Mapping[str, Any]) -> Call[s.Workspace]:
@@ -262,6 +275,32 @@ class Requests:
         return Call("DELETE", url_path("arms", arm, "home"), _model(s.ArmDetail), arm=arm)
 
     @staticmethod
+    def calibration(arm: str) -> Call[s.ArmCalibration]:
+        return Call("GET", url_path("arms", arm, "calibration"), _model(s.ArmCalibration),
+                    arm=arm, safe=True)
+
+    @staticmethod
+    def calibrate(arm: str, positions: Sequence[float] | None = None,
+                  pose: str | None = None) -> Call[s.ArmCalibration]:
+        body = _body(s.ArmCalibrationRequest(
+            positions=None if positions is None else list(positions), pose=pose))
+        return Call("POST", url_path("arms", arm, "calibration"), _model(s.ArmCalibration),
+                    body, arm=arm)
+
+    @staticmethod
+    def forget_calibration(arm: str) -> Call[s.ArmCalibration]:
+        return Call("DELETE", url_path("arms", arm, "calibration"), _model(s.ArmCalibration),
+                    arm=arm)
+
+    @staticmethod
+    def calibrate_gravity(arm: str, poses: Sequence[Sequence[float]] | None = None,
+                          wait: bool = False) -> Call[s.GravityRun]:
+        body = _body(s.GravityCalibrationRequest(
+            poses=None if poses is None else [list(p) for p in poses], wait=wait))
+        return Call("POST", url_path("arms", arm, "calibration", "gravity"),
+                    _model(s.GravityRun), body, arm=arm)
+
+    @staticmethod
     def take_lease(arm: str) -> Call[s.Lease]:
         return Call("POST", url_path("arms", arm, "lease"), _model(s.Lease), arm=arm)
 
@@ -322,6 +361,41 @@ class Requests:
     def audit_csv(params: Mapping[str, Any]) -> Call[str]:
         return Call("GET", url_path("audit"), str, params=_given(params), safe=True, text=True,
                     headers={"Accept": "text/csv"})
+
+    # recordings (API.md "Recordings (v1.2)")
+
+    @staticmethod
+    def recordings() -> Call[list[s.RecordingSummary]]:
+        return Call("GET", url_path("recordings"), _recordings, safe=True)
+
+    @staticmethod
+    def recording(rid: str) -> Call[s.RecordingDetail]:
+        return Call("GET", url_path("recordings", rid), _model(s.RecordingDetail), safe=True)
+
+    @staticmethod
+    def create_recording(req: s.RecordingCreate) -> Call[s.RecordingDetail]:
+        return Call("POST", url_path("recordings"), _model(s.RecordingDetail), _body(req))
+
+    @staticmethod
+    def start_episode(rid: str, task: str | None) -> Call[s.RecordingDetail]:
+        return Call("POST", url_path("recordings", rid, "episodes"), _model(s.RecordingDetail),
+                    _body(s.EpisodeStart(task=task)))
+
+    @staticmethod
+    def stop_episode(rid: str) -> Call[s.RecordingDetail]:
+        # answers once the episode is written (its videos joined to the dataset's files)
+        return Call("POST", url_path("recordings", rid, "episodes", "stop"),
+                    _model(s.RecordingDetail), timeout=RECORDING_WRITE_S)
+
+    @staticmethod
+    def discard_episode(rid: str) -> Call[s.RecordingDetail]:
+        return Call("DELETE", url_path("recordings", rid, "episodes", "current"),
+                    _model(s.RecordingDetail))
+
+    @staticmethod
+    def recording_archive(rid: str) -> Call[bytes]:
+        return Call("GET", url_path("recordings", rid, "archive"), bytes, safe=True, raw=True,
+                    timeout=RECORDING_WRITE_S)
 
     # cameras (API.md "Cameras (v1.2)")
 

@@ -76,6 +76,8 @@ from app.schemas.kinematics import (
     IKSolution,
     InverseRequest,
     InverseResult,
+    InverseVelocityRequest,
+    InverseVelocityResult,
     JointVector,
     Workspace,
 )
@@ -172,6 +174,8 @@ __all__ = [
     "Int",
     "InverseRequest",
     "InverseResult",
+    "InverseVelocityRequest",
+    "InverseVelocityResult",
     "JointCalibration",
     "JointInfo",
     "JointVector",

@@ -44,3 +44,18 @@ class Workspace(Model):
     points: list[Vec3]
     joint_lower: list[float]
     joint_upper: list[float]
+
+
+class InverseVelocityRequest(Model):
+    """Joint positions (the arm's joint order, rad/m) and a tip velocity (m/s, base frame)."""
+
+    positions: list[Finite] = Field(min_length=1, max_length=16)
+    velocity: Vec3 = Field(description="tip velocity, m/s, in the arm's base frame")
+
+
+class InverseVelocityResult(Model):
+    velocities: list[float] = Field(description="joint velocities (rad/s, m/s): q' = J^-1 x' "
+                                    "for a square Jacobian, the least-norm J^T (J J^T)^-1 x' for "
+                                    "an arm with more joints than tip coordinates")
+    condition: float = Field(description="the 2-norm condition number of the Jacobian")
+    tip_velocity: Vec3 = Field(description="J q': the tip velocity those joint velocities give")

@@ -14,6 +14,7 @@ from app.arms import arm_type
 from app.errors import Unreachable
 from app.web.deps import ViewerArm
 from app.web.routes.common import READ, check_joint_count, errors, finite
+from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
 
 router = APIRouter(tags=["kinematics"])
 
@@ -67,6 +68,37 @@ async def inverse(svc: ViewerArm, req: s.InverseRequest) -> s.InverseResult:
     if not out:
         raise Unreachable(f"no inverse kinematics solution for ({req.x}, {req.y}, {req.z}) m")
     return s.InverseResult(solutions=out)
+
+
+@router.post(
+    "/arms/{arm}/kinematics/inverse-velocity",
+    response_model=s.InverseVelocityResult,
+    summary="Inverse velocity kinematics",
+    description="Joint positions and a tip velocity (m/s) -> the joint velocities that give it, "
+    "q' = J^-1 x' (the design document's section 4.2; for an arm with more joints than tip "
+    "coordinates, the angler's four, the least-norm J^T (J J^T)^-1 x', which weighs 1 rad/s "
+    "as 1 m/s). 422 `unreachable` with the reason near a singularity: the Jacobian's "
+    "condition number above the one rule's bound (kinematics/singular.py), where a small "
+    "tip velocity needs unbounded joint velocities. Geometry only: no limit is checked.",
+    responses=errors(*READ),
+)
+async def inverse_velocity(svc: ViewerArm, req: s.InverseVelocityRequest
+                           ) -> s.InverseVelocityResult:
+    check_joint_count(svc, req.positions)
+    q = np.asarray(req.positions, dtype=float)
+    jac = np.asarray(svc.model.jacobian(q), dtype=float)
+    finite(jac, "the Jacobian")
+    cond = float(condition_number(jac))
+    if not np.isfinite(cond) or cond > TIP_FORCE_MAX_COND:
+        shown = "infinite" if not np.isfinite(cond) else f"{cond:.3g}"
+        raise Unreachable(f"near a singularity: the Jacobian's condition number is {shown}, "
+                          f"above {TIP_FORCE_MAX_COND:g}; no joint velocities give every tip "
+                          "velocity here (the arm is stretched out, folded, or the tip is over "
+                          "the base axis): move away from it")
+    xd = np.array([req.velocity.x, req.velocity.y, req.velocity.z], dtype=float)
+    qd = np.linalg.pinv(jac) @ xd  # J^-1 x' when J is square; least-norm otherwise
+    return s.InverseVelocityResult(velocities=[float(v) for v in qd], condition=cond,
+                                   tip_velocity=_vec(jac @ qd))
 
 
 @router.get(
