@@ -19,7 +19,10 @@ PROFILE = load_profile("angler")
 def test_profile_wiring_is_the_design_matlab() -> None:
     wiring = {j.name: (j.motor_id, j.sign) for j in PROFILE.joints}
     assert wiring == {"x": (2, -1), "y": (1, -1), "theta3": (3, 1), "z": (4, 1)}
-    assert [j.name for j in PROFILE.joints if j.needs_homing] == ["x", "y", "z"]
+    # theta3 too (issue 24): 0 at tick 0 as the MATLAB, in extended position mode, whose
+    # count restarts within one turn at power-up
+    assert [j.name for j in PROFILE.joints if j.needs_homing] == ["x", "y", "theta3", "z"]
+    assert [j.name for j in PROFILE.joints if not j.zero_known] == ["theta3"]
 
 
 def test_joint_speeds_are_within_what_an_mx28_turns() -> None:

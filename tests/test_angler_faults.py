@@ -195,8 +195,9 @@ async def test_a_power_cycle_un_homes_the_multi_turn_joints():
     try:
         assert drv.homed == [True] * 4
         bus.power_cycle([4, 3])  # z's winch and theta3 lose power; the host is not told
-        await _until(lambda: not drv.homed[Z])
-        assert drv.homed == [True, True, True, False]  # theta3 is single-turn: still homed
+        await _until(lambda: not drv.homed[Z] and not drv.homed[2])
+        # theta3 too: extended position mode restarts its count within one turn (issue 24)
+        assert drv.homed == [True, True, False, False]
     finally:
         await drv.close()
 
@@ -209,7 +210,7 @@ async def test_faults_and_homing_over_a_real_pty(tmp_path):
     server = await serve_pty(bus, path)
     drv, _ = await _driver(link=SerialLink(str(path)), homed=False)
     try:
-        assert drv.homed == [False, False, True, False]
+        assert drv.homed == [False] * 4  # theta3 too (issue 24)
         bus.inject_hardware_error(1, "electrical_shock")
         await _until(lambda: drv.faults)
         assert drv.faults[0]["servo"] == 1 and drv.faults[0]["joint"] == "y"
@@ -272,19 +273,21 @@ async def test_api_a_real_link_starts_not_homed_and_home_takes_positions():
         await wait_ready(app)
         async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
                                      base_url="http://armserver.test", timeout=30.0) as c:
-            assert (await c.get(API)).json()["homed"] == [False, False, True, False]
+            assert (await c.get(API)).json()["homed"] == [False] * 4
             r = await c.post(f"{API}/move/pose", json={"x": 0.0, "y": 0.11, "z": 0.0})
             assert r.status_code == 409 and r.json()["code"] == "not_homed"
             assert "y" in r.json()["detail"]
-            # theta3 alone may turn (it is absolute)
+            # theta3 alone does not turn either (issue 24: its zero is the MATLAB's, its count
+            # restarts within one turn at power-up)
             q0 = app.state.services["angler"].driver.positions
             r = await c.post(f"{API}/move/joints", json={
                 "positions": [float(q0[X]), float(q0[Y]), 0.2, float(q0[Z])], "wait": True})
-            assert r.status_code == 200 and r.json()["status"] == "done", r.text
+            assert r.status_code == 409 and r.json()["code"] == "not_homed", r.text
+            assert "theta3" in r.json()["detail"]
             for bad in ({"positions": [0.0, 0.0]}, {"positions": [0.5, 0, 0, 0]}):
                 r = await c.post(f"{API}/home", json=bad)
                 assert r.status_code == 422, r.text
-            assert (await c.get(API)).json()["homed"] == [False, False, True, False]
+            assert (await c.get(API)).json()["homed"] == [False] * 4
             r = await c.post(f"{API}/home", json={"positions": [0.01, -0.02, 0.0, 0.06]})
             assert r.status_code == 200 and r.json()["homed"] == [True] * 4
             q = app.state.services["angler"].driver.positions

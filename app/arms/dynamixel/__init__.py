@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 from app.arms.base import UsbMatch
 
 if TYPE_CHECKING:
+    from app.arms.dynamixel.sim_bus import DynamixelBus
     from app.arms.dynamixel.sim_mx28 import Mx28Servo
     from app.config import ArmProfile
     from app.sim.base import SimDevice
@@ -33,5 +34,23 @@ def simulated_bus(profile: ArmProfile, servo: type[Mx28Servo] | None = None,
     ids = tuple(int(j.motor_id) for j in profile.joints if j.motor_id is not None)
     ids += tuple(int(i) for i in extra_ids if int(i) not in ids)
     models = None if servo is None else dict.fromkeys(ids, servo)
-    return DynamixelBus(ids=ids, baudrate=profile.link.baudrate, operating_modes=modes,
-                        models=models)
+    bus = DynamixelBus(ids=ids, baudrate=profile.link.baudrate, operating_modes=modes,
+                       models=models)
+    _start_within_limits(profile, bus)
+    return bus
+
+
+def _start_within_limits(profile: ArmProfile, bus: DynamixelBus) -> None:
+    """A simulated servo starts mid-turn (tick 2048); a joint whose limits exclude that (the
+    angler's theta3, 0 at tick 0 as the design's MATLAB has it) starts at its home pose."""
+    from app.arms import model_for
+
+    if profile.home is None:
+        return
+    tr = model_for(profile).transmission
+    mid = tr.from_ticks([2048.0] * len(profile.joints))
+    home = tr.to_ticks(list(profile.home))
+    for k, j in enumerate(profile.joints):
+        s = bus.servo(int(j.motor_id)) if j.motor_id is not None else None
+        if s is not None and not j.min <= float(mid[k]) <= j.max:
+            s.pos = float(home[k])
