@@ -87,7 +87,8 @@ class CaptureSource(Source):
             cap = cv2.VideoCapture(src)
         if not cap.isOpened():
             cap.release()
-            raise SourceError(f"cannot open {src}")
+            what = {"device": "device", "stream": "stream", "file": "video file"}[self.kind]
+            raise SourceError(f"cannot open {what} {src}")
         if self.kind == "device":
             cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.config.width)
             cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.config.height)
