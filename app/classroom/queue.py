@@ -37,7 +37,7 @@ import logging
 import secrets
 import time
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -125,8 +125,12 @@ class Classroom:
 
     # ------------------------------------------------------------ life
 
-    def load(self) -> None:
-        """The stored waiting entries of every arm (blocking: start-up, before serving)."""
+    def load(self, names: Collection[str] | None = None) -> None:
+        """The stored waiting entries of every arm (blocking: start-up, before serving).
+        With `names` (the names the server's current tokens have; empty on an open server,
+        which has no queue), an entry of any other name is dropped and logged: left by a
+        server with other tokens, it would keep the arm offered to nobody, and every move
+        answered 409 `leased` until its claim window ran out."""
         if self._store is None:
             return
         for arm in self._services:
@@ -146,6 +150,15 @@ class Classroom:
                     q.history[e.id] = e
                 else:
                     q.entries.append(e)
+            stale = [e for e in q.entries if names is not None and e.name not in names]
+            for e in stale:
+                self._end(q, e, "expired", "dropped at start-up: no current token has the "
+                          f"name {e.name!r}" if names else "dropped at start-up: an open "
+                          "server (no tokens) has no queue")
+                log.warning("%s: stored queue entry %s of %r dropped: %s", arm, e.id, e.name,
+                            e.reason)
+            if stale:
+                self._changed(q)
             if q.entries:
                 log.info("%s: %d queued from the store", arm, len(q.entries))
 

@@ -32,6 +32,7 @@ from app.classroom.audit import AuditLog
 from app.classroom.lease import LeaseManager
 from app.classroom.queue import Classroom
 from app.config import ArmProfile, Settings
+from app.recording.feeds import open_recordings
 from app.runtime.control_thread import ControlThread
 from app.runtime.gc_policy import Collector, moving
 from app.service import ArmService
@@ -43,6 +44,7 @@ from app.web.middleware import API_PREFIX, BodyLimit, InternalErrors, TokenGate
 from app.web.routes import (
     arms,
     audit,
+    calibration,
     cameras,
     classroom,
     force,
@@ -50,6 +52,7 @@ from app.web.routes import (
     kinematics,
     lease,
     motion,
+    recordings,
     safety,
     telemetry,
     teleop,
@@ -99,6 +102,7 @@ def create_app(settings: Settings | None = None,
             for p in profiles:
                 svc = ArmService(p)
                 safety.load_stored(svc, store)
+                calibration.use_store(svc, store)  # found at connect, by hardware identity
                 services[p.name] = svc
                 svc.bind_fanout()
                 await _on_control(control, svc.start())
@@ -108,8 +112,11 @@ def create_app(settings: Settings | None = None,
             # cameras: a thread each, off the control thread and this loop (app/cameras)
             app.state.cameras = CameraHub(camera_configs, services, store)
             app.state.cameras.start(asyncio.get_running_loop())
+            # datasets under the data folder (app/recording), after the arms and cameras
+            app.state.recordings = await open_recordings(settings.data_dir, services,
+                                                         app.state.cameras)
             app.state.mqtt = start_mqtt_bridge(settings, services)
-            room.load()
+            room.load(app.state.access.names)  # entries of names no token has: dropped
             room.start()
             collector.start()  # after start-up: what exists now is frozen
             access: Access = app.state.access
@@ -117,6 +124,8 @@ def create_app(settings: Settings | None = None,
                     access.describe())
             yield
         finally:
+            if getattr(app.state, "recordings", None) is not None:  # an episode is written
+                await app.state.recordings.close()
             if getattr(app.state, "teleop", None) is not None:  # the followers hold first
                 await app.state.teleop.close()
             await collector.close()
@@ -156,11 +165,12 @@ def create_app(settings: Settings | None = None,
     app.state.cameras = None
 
     for r in (arms, motion, kinematics, lease, telemetry, safety, force, classroom, audit,
-              cameras):
+              cameras, recordings):
         app.include_router(r.router, prefix=API_PREFIX)
     for router in arm_routers():  # each arm type's pass-through routes (app/arms)
         app.include_router(router, prefix=API_PREFIX)
     app.include_router(homing.router, prefix=API_PREFIX)  # faults and homing (v1.1)
+    app.include_router(calibration.router, prefix=API_PREFIX)  # joint calibration (v1.2)
     app.include_router(teleop.router, prefix=API_PREFIX)  # teleoperation (v1.2)
     app.include_router(world.router, prefix=API_PREFIX)  # simulated world (v1.2)
     _document_websocket_messages(app)

@@ -110,6 +110,11 @@ class Access:
         self._instructors = [d for d, _, r in self._people if r is Role.INSTRUCTOR]
         self.enabled = bool(self._people)
 
+    @property
+    def names(self) -> frozenset[str]:
+        """The names the configured tokens have (none on an open server)."""
+        return frozenset(n for _, n, _ in self._people)
+
     def identify(self, token: str | None) -> Identity | None:
         """The caller's name and role, None if the token grants none. Constant time over the
         configured tokens: every one is compared, no early exit."""
