@@ -20,6 +20,9 @@ import numpy as np
 
 from app import schemas as s
 from app.arms import arm_type
+from app.calibration import gravity_run
+from app.calibration.book import CalibrationBook
+from app.calibration.gravity import GravityFit, default_poses
 from app.config import ArmProfile, SafetySettings
 from app.device.driver import Driver
 from app.device.factory import make_driver
@@ -41,6 +44,7 @@ from app.safety.envelope import ArmSafety
 from app.safety.guard import SafetyGuard
 from app.sim.world import World
 from app.sim.world_tap import world_of
+from app.store import Store
 from app.telemetry.arm_hub import ArmHub
 from app.telemetry.hub import Subscription, TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
@@ -70,6 +74,11 @@ class ArmService:
                                      cartesian=profile.cartesian)
         # nothing that moves the arm is written while the estop is latched, whenever queued
         self.driver.motion_gate = self.guard.require_not_latched
+        #: The joints' zeros on this hardware and the gravity fit (app/calibration), found in
+        #: the store as the link comes up.
+        self.calibration = CalibrationBook(profile, self.driver, self.hub)
+        self.driver.on_link_ready = self.calibration.on_connect
+        self._gravity_run: gravity_run.GravityRun | None = None
         #: The hold of the current estop latch (commanded once per latch, app loop), and
         #: whether a press has been told how it went.
         self._hold: asyncio.Future[None] | None = None
@@ -130,7 +139,9 @@ class ArmService:
                            geometry=dict(self.profile.geometry), estop=self.estop,
                            poll_hz=self.profile.link.poll_hz,
                            faults=[s.Fault(**f) for f in self.driver.faults],
-                           homed=list(self.driver.homed), force=self.force_info(),
+                           homed=list(self.driver.homed),
+                           calibrated=list(self.driver.calibrated),
+                           firmware=self.driver.firmware_note, force=self.force_info(),
                            chain=s.ArmChain.model_validate(self.model.describe()),
                            telemetry=s.TelemetryStats(subscribers=self.hub.subscriber_count,
                                                       published=self.hub.published,
@@ -156,7 +167,8 @@ class ArmService:
         tare = self.driver.torque_tare
         info = s.ForceInfo(source=source, calibrated=calibrated, note=note,
                            tare=None if tare is None else [float(v) for v in tare],
-                           max_condition_number=TIP_FORCE_MAX_COND)
+                           max_condition_number=TIP_FORCE_MAX_COND,
+                           gravity_compensated=self.driver.gravity is not None)
         q = self.driver.positions
         if q is not None:
             J = self.model.jacobian(q)
@@ -177,6 +189,8 @@ class ArmService:
             raise LinkDown(f"{self.name}: no fresh torque reading to tare against "
                            f"({drv.last_error or drv.link.state.value})")
         drv.torque_tare = np.array(drv.torques_raw, dtype=float)
+        if drv.gravity is not None and drv.positions is not None:  # the tool's load only
+            drv.torque_tare = drv.torque_tare - drv.gravity(drv.positions)
         self.hub.event("force_tare", offsets=[float(v) for v in drv.torque_tare])
         return s.ForceTare(joints=list(self.model.names),
                            offsets=[float(v) for v in drv.torque_tare])
@@ -370,6 +384,143 @@ class ArmService:
         self.hub.event("unhomed", homed=list(self.driver.homed))
         return self.detail()
 
+    # --------------------------------------------------------- calibration (API.md v1.2)
+
+    def use_store(self, store: Store) -> None:
+        """At start-up, before the arm runs: the store its calibration is kept in."""
+        self.calibration.store = store
+
+    def calibration_view(self) -> s.ArmCalibration:
+        return self.calibration.view(self._gravity_run)
+
+    async def calibrate(self, positions: list[float] | None,
+                        pose: str | None) -> s.ArmCalibration:
+        """Runs `_calibrate` on the arm's control loop (the transmission is its)."""
+        return await on_home(self.home_loop, lambda: self._calibrate(positions, pose))
+
+    async def _calibrate(self, positions: list[float] | None,
+                         pose: str | None) -> s.ArmCalibration:
+        """The arm is at `positions` (or the profile's calibration pose `pose`) now: the
+        joints whose zero the hardware does not know take these values (nothing moves), and
+        the calibration is stored under the hardware's identity. 409 `busy` while a motion
+        runs or is queued; 503 `link_down` without a fresh reading."""
+        if pose is not None:
+            named = self.profile.calibration_poses.get(pose)
+            if named is None:
+                raise InvalidRequest(f"{self.name} has no calibration pose {pose!r}; it has "
+                                  f"{sorted(self.profile.calibration_poses) or 'none'}")
+            positions = list(named)
+        assert positions is not None  # (the schema gives one of the two)
+        q = self.model.joint_vector(positions)
+        self.guard.check_joint_target(q)
+        if not self.profile.calibration_joints:
+            raise NotSupported(f"every joint's zero is known to {self.name}'s hardware: "
+                               "nothing to calibrate")
+        if self.motion.current is not None or self.motion.queued():
+            raise Busy(f"{self.name}: a motion is running or queued; stop it before "
+                       "calibrating")
+        if self.driver.positions is None or self.driver.stale:
+            raise LinkDown(f"{self.name}: no fresh joint positions from the device to "
+                           "calibrate against")
+        joints = self.calibration.declare(q)
+        self.motion.forget_command()
+        await self.calibration.save()
+        log.info("%s: calibrated %s at %s (%s)", self.name,
+                 [self.model.names[k] for k in joints], [round(float(v), 5) for v in q],
+                 self.calibration.identity)
+        self.hub.event("calibrated", positions=[float(v) for v in q],
+                       calibrated=list(self.driver.calibrated))
+        return self.calibration_view()
+
+    async def forget_calibration(self) -> s.ArmCalibration:
+        """Runs `_forget_calibration` on the arm's control loop."""
+        return await on_home(self.home_loop, self._forget_calibration)
+
+    async def _forget_calibration(self) -> s.ArmCalibration:
+        """Drop the stored calibration of this hardware and go back to what the profile
+        knows: joints whose zero the hardware does not know are not calibrated again, and
+        the gravity fit is gone. 409 `busy` while a motion runs or is queued."""
+        if self.motion.current is not None or self.motion.queued():
+            raise Busy(f"{self.name}: a motion is running or queued; stop it first")
+        self.calibration.forget()
+        self.motion.forget_command()
+        await self.calibration.drop()
+        self.hub.event("calibrated", positions=None, calibrated=list(self.driver.calibrated))
+        return self.calibration_view()
+
+    async def calibrate_gravity(self, poses: list[list[float]] | None,
+                                wait: bool) -> s.GravityRun:
+        """Runs `_calibrate_gravity` on the arm's control loop."""
+        return await on_home(self.home_loop, lambda: self._calibrate_gravity(poses, wait))
+
+    async def _calibrate_gravity(self, poses: list[list[float]] | None,
+                                 wait: bool) -> s.GravityRun:
+        """Start the gravity calibration's motion (app/calibration/gravity_run.py): each pose
+        a planned joint move (every check of a move applies), the raw torques measured at
+        rest there; then the fit, stored with the calibration. 409 `busy` while a motion (or
+        another run) is running or queued; 409 `no_force_sensing` on an arm without torques."""
+        self._require_force()
+        self.guard.require_motion_allowed()
+        run = self._gravity_run
+        if (run is not None and run.status == "running") or self.motion.current is not None \
+                or self.motion.queued():
+            raise Busy(f"{self.name}: a motion or a gravity calibration is running")
+        m = self.model
+        lower, upper = np.array(self.profile.lower), np.array(self.profile.upper)
+        if poses is None:
+            home = self.profile.home or list((lower + upper) / 2.0)
+            qs = default_poses(m, m.joint_vector(home), lower, upper)
+        else:
+            qs = np.array([m.joint_vector(p) for p in poses])
+        for q in qs:
+            self.guard.check_joint_target(q)
+            self.guard.check_calibrated(None, q)
+        run = gravity_run.GravityRun(poses=qs.tolist())
+        self._gravity_run = run
+        run.task = asyncio.ensure_future(gravity_run.run(
+            run, m, self._gravity_move, self._gravity_rest, self._gravity_done))
+        run.task.add_done_callback(lambda t: self._gravity_ended(run, t))
+        if wait:
+            await asyncio.shield(run.task)
+        return self.calibration.run_view(run)
+
+    async def _gravity_move(self, q: list[float]) -> tuple[str, str, str | None]:
+        rec = await self.motion.move_joints(s.MoveJoints(positions=q))
+        await rec.wait()
+        return rec.id, rec.status, rec.reason
+
+    async def _gravity_rest(self, n: int, timeout: float) -> tuple[np.ndarray,
+                                                                   np.ndarray] | None:
+        """`n` readings in a row at rest (every joint under AT_REST of its limit), averaged:
+        joint values and raw torques (no gravity fit, no tare)."""
+        drv, vmax = self.driver, self.model.vmax
+        got: list[tuple[np.ndarray, np.ndarray]] = []
+
+        def collect(sample: dict[str, Any]) -> bool:
+            q, qd, tau = drv.positions, drv.velocities, drv.torques_raw
+            if sample.get("stale") or q is None or qd is None or tau is None \
+                    or np.any(np.abs(qd) > vmax * AT_REST):
+                got.clear()
+                return False
+            got.append((np.array(q, dtype=float), np.array(tau, dtype=float)))
+            return len(got) >= n
+
+        if not await self.hub.sample_where(collect, timeout):
+            return None
+        return (np.mean([g[0] for g in got], axis=0), np.mean([g[1] for g in got], axis=0))
+
+    async def _gravity_done(self, fit: GravityFit) -> None:
+        self.calibration.set_gravity(fit)
+        await self.calibration.save()
+        self.hub.event("gravity_calibrated", rms=fit.rms, worst=fit.worst)
+
+    def _gravity_ended(self, run: gravity_run.GravityRun, task: asyncio.Task[None]) -> None:
+        if task.cancelled():
+            run.fail("cancelled")
+        elif task.exception() is not None:
+            exc = task.exception()
+            run.fail(f"{type(exc).__name__}: {getattr(exc, 'detail', exc)}")
+
     async def reboot(self, dxl_id: int) -> None:
         """Runs `_reboot` on the arm's control loop (its state changes only there)."""
         return await on_home(self.home_loop, lambda: self._reboot(dxl_id))
@@ -517,6 +668,12 @@ class ArmService:
     def positions(self) -> np.ndarray | None:
         """The last joint reading (rad, m), None before any."""
         return self.driver.positions
+
+    def setpoint(self) -> np.ndarray | None:
+        """Where each joint was last told to go (rad, m): the one commanded record
+        (`Driver.told`), the measured position for a joint told nothing since the link came
+        up; None before any reading. A plain read, from any thread (a recording's action)."""
+        return self.driver.told()
 
     # --------------------------------------------------------- the facade: telemetry
 

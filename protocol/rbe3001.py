@@ -159,9 +159,13 @@ class StatusReply:
 
 @dataclass(frozen=True)
 class Ack:
-    """SET_GAIN and SET_CLAW: the reply's floats carry nothing (zeroed or echoed by build)."""
+    """SET_GAIN and SET_CLAW: the reply's floats carry nothing (zeroed or echoed by build).
+    The design document says they "do not provide any return values": a build may answer
+    other bytes (`other`), or nothing at all (the driver's business: it waits a short quiet
+    time and reports the command sent)."""
 
     command_id: int
+    other: bool = False
 
 
 Reply = SetPidReply | StatusReply | Ack
@@ -370,8 +374,10 @@ class ReplyMatcher:
     for a frame with the right id that cannot be a true answer:
     - a reading reply (SET_PID, STATUS) whose floats 9-14 are not zero: every build either
       zeroes them or echoes the zeros we sent;
-    - a SET_GAIN / SET_CLAW reply whose floats are neither all zero (PidServer-style builds)
-      nor the request's floats (echoing builds);
+    - (a SET_GAIN / SET_CLAW reply whose floats are neither all zero (PidServer-style
+      builds) nor the request's floats (echoing builds) is taken, marked `Ack.other`: those
+      commands "do not provide any return values" (design document), so what a build writes
+      there says nothing of whether it acted);
     - a NaN or infinity where a reading belongs.
     What it cannot tell apart is a late reply with the same id as the outstanding request:
     the caller must not send after a timeout until the link has been quiet (see the driver).
@@ -423,8 +429,8 @@ class ReplyMatcher:
                 raise DecodeError(f"reply to id {cmd.command_id}: floats 9-14 changed "
                                   "(no build writes them): corrupted")
         elif frame[4:] != bytes(PACKET_SIZE - 4) and frame[4:] != self._packet[4:]:
-            raise DecodeError(f"reply to id {cmd.command_id} is neither all zeros nor the "
-                              "echo of the request: corrupted")
+            self.outstanding = None
+            return Ack(cmd.command_id, other=True)
         reply = decode_reply(cmd, frame)
         if reading:
             if len(self._known) >= KNOWN_REPLIES:

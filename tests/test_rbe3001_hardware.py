@@ -47,8 +47,8 @@ async def _exercise(driver: Rbe3001Driver) -> None:
     assert not driver.stale
     status = await driver.status()
     assert isinstance(status, rb.StatusReply)
-    assert await driver.set_gain(1, 0.005, 0.0, 0.0) is None
-    assert await driver.set_claw(0.5) is None and driver.gripper == 0.5
+    assert await driver.set_gain(1, 0.005, 0.0, 0.0) == "acknowledged"
+    assert await driver.set_claw(0.5) == "acknowledged" and driver.gripper == 0.5
     reply = await driver.set_pid([(200.0, 0, 0), (0.0, 0, 0), (0.0, 0, 0)])
     assert isinstance(reply, rb.SetPidReply)
     async def there() -> bool:

@@ -214,16 +214,18 @@ def test_frame_parser_cuts_a_stream_and_resyncs_on_a_known_id() -> None:
     assert fp.feed_report(a) == a and fp.feed_report(a[:63]) is None
 
 
-def test_matcher_takes_zeroed_and_echoed_acks_and_refuses_anything_else() -> None:
+def test_matcher_takes_zeroed_and_echoed_acks_and_marks_anything_else() -> None:
     m = ReplyMatcher()
     req = m.request(SetClaw(0.5))
     assert req == packet(40, 0.5)
     assert m.match(packet(40)) == Ack(40)  # PidServer-style build: all zeros
     m.request(SetClaw(0.5))
     assert m.match(packet(40, 0.5)) == Ack(40)  # echoing build
+    # SET_GAIN and SET_CLAW "do not provide any return values" (design document): other
+    # bytes say nothing of whether the firmware acted; taken, marked (issue 24 item 5)
     m.request(SetGain(1, 0.5, 0.0, 0.0))
-    with pytest.raises(DecodeError, match="neither all zeros nor the echo"):
-        m.match(packet(39, 1.0, 0.5, 0.0, 0.25))
+    assert m.match(packet(39, 1.0, 0.5, 0.0, 0.25)) == Ack(39, other=True)
+    assert m.outstanding is None
 
 
 def test_matcher_uses_id_and_order_not_a_tag() -> None:

@@ -73,6 +73,11 @@ class LinkConfig(_Strict):
         "status", description="rbe3001 simulator only: the firmware build: `status` has the "
         "STATUS server (38); `stock_99` answers STATUS with error 99 and `stock_silent` not at "
         "all, as builds without it (RBE3001_nucleo_firmware: no server registered for the id)")
+    sim_power_on_pose: str | None = Field(
+        None, description="rbe3001 simulator only: the arm is powered on in this calibration "
+        "pose (a name in the profile's `calibration_poses`) and the firmware zeroes its "
+        "encoders there, as RBE3001_nucleo_firmware's src/main.cpp does (`ZeroPID()` at "
+        "start-up); None: the encoders read the profile's offsets (a calibrated arm)")
     sim_gain_claw_reply: Literal["zeros", "echo", "silent", "other"] = Field(
         "zeros", description="rbe3001 simulator only: what SET_GAIN (39) and SET_CLAW (40) "
         "answer: zeros (PidServer's reply buffer), the echo, nothing (the design document: "
@@ -284,6 +289,10 @@ class ArmProfile(_Strict):
         for name, pose in self.calibration_poses.items():
             if len(pose) != n or not all(math.isfinite(v) for v in pose):
                 raise ValueError(f"calibration pose {name}: give {n} finite joint values")
+        sim_pose = self.link.sim_power_on_pose
+        if sim_pose is not None and sim_pose not in self.calibration_poses:
+            raise ValueError(f"link.sim_power_on_pose {sim_pose!r} is not one of "
+                             f"calibration_poses {sorted(self.calibration_poses)}")
         if self.power_on_pose is not None and self.power_on_pose not in self.calibration_poses:
             raise ValueError(f"power_on_pose {self.power_on_pose!r} is not one of "
                              f"calibration_poses {sorted(self.calibration_poses)}")

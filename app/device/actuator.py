@@ -35,6 +35,7 @@ class Actuator(Protocol):
     stale_error: ArmError | None
     faults: list[dict[str, Any]]
     homed: list[bool]
+    calibrated: list[bool]
     #: Counts the commands noted as sent (any source): the executor's own last setpoint is
     #: still the arm's commanded state while this has not moved on.
     command_seq: int

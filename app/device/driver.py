@@ -17,7 +17,7 @@ from __future__ import annotations
 import abc
 import asyncio
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 import numpy as np
@@ -90,6 +90,19 @@ class Driver(OwnerTask, abc.ABC):
         self.faults: list[dict[str, Any]] = []
         #: One flag per joint: False for a joint that needs homing until POST /home.
         self.homed = [not j.needs_homing or profile.link.homed_at_start for j in profile.joints]
+        #: One flag per joint: False for a joint whose zero the hardware does not know
+        #: (profile `zero_known = false`) until a calibration is declared or found stored for
+        #: this hardware (app/calibration/book.py sets them, at connect and on request).
+        self.calibrated = [True] * len(profile.joints)
+        #: Joint torques (N m or N) that gravity puts on the joints at joint values q (the
+        #: gravity fit, app/calibration/gravity.py), subtracted from every reading; None: none.
+        self.gravity: Callable[[np.ndarray], np.ndarray] | None = None
+        #: What the driver found out about the device's firmware at connect that a user
+        #: must know (a build without a command the driver relies on), with what to do; None.
+        self.firmware_note: str | None = None
+        #: Awaited in the owner task each time the link comes up, after the device's set-up
+        #: and before the first poll (the service finds the stored calibration there).
+        self.on_link_ready: Callable[[], Awaitable[None]] | None = None
         #: Counts changes of the ticks <-> joint units conversion (homing moves an offset):
         #: a driver that reuses converted readings for a repeated reply checks it.
         self.units_version = 0
@@ -288,6 +301,37 @@ class Driver(OwnerTask, abc.ABC):
             self.positions = self.positions.copy()
             self.positions[k] = q
         self.homed[k] = True
+
+    def set_offset(self, k: int, offset_ticks: float) -> None:
+        """Set joint `k`'s transmission offset (the device's ticks at the joint's zero) as a
+        stored calibration has it; the same path as `set_home` (`Transmission.with_offset`),
+        without a reading. A setpoint in the old units no longer means the same."""
+        tr = self.model.transmission
+        old = float(tr.offset_ticks[k])
+        if old == offset_ticks:
+            return
+        self.model.transmission = tr.with_offset(k, offset_ticks)
+        self.units_version += 1
+        self.command_seq += 1
+        if self.positions is not None:
+            self.positions = self.positions.copy()
+            self.positions[k] -= (offset_ticks - old) / float(tr.ticks_per_unit[k])
+
+    def hardware_identity(self) -> str:
+        """What tells this arm's hardware from another on the same port, for the stored
+        calibration: the arm type, then the link's own identity where it has one (an HID
+        serial number, a simulator's), else the link's kind and address, and the servo ids
+        where the joints have them (a Dynamixel bus: the bus and its IDs)."""
+        link = self.link
+        ident = link.identity or f"{link.kind}:{link.address}"
+        ids = [j.motor_id for j in self.profile.joints if j.motor_id is not None]
+        if ids:
+            ident += ":ids=" + ",".join(str(i) for i in ids)
+        return f"{self.profile.model}:{ident}"
+
+    async def _link_ready(self) -> None:
+        if self.on_link_ready is not None:
+            await self.on_link_ready()
 
     # ------------------------------------------------------------ for subclasses
 

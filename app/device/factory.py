@@ -25,7 +25,7 @@ def make_link(profile: ArmProfile) -> Link:
 
         # the device watched by its simulated world (app/sim/world.py: objects, bins, grasp)
         return SimLink(with_world(profile, make_sim_device(profile)), faults=cfg.faults,
-                       address=f"sim:{profile.model}")
+                       address=f"sim:{profile.model}", serial_number=cfg.serial_number)
     if cfg.kind == "hid":
         from app.links.hid import HidLink
 

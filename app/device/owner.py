@@ -81,6 +81,8 @@ class OwnerTask:
     velocities: np.ndarray | None
     faults: list[dict[str, Any]]
     homed: list[bool]
+    calibrated: list[bool]
+    gravity: Callable[[np.ndarray], np.ndarray] | None
     torques_raw: np.ndarray | None
     torque_tare: np.ndarray | None
 
@@ -93,6 +95,8 @@ class OwnerTask:
         async def _poll(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]: ...
 
         async def _on_connected(self) -> None: ...
+
+        async def _link_ready(self) -> None: ...
 
         def _reset_reader(self) -> None: ...
 
@@ -110,6 +114,7 @@ class OwnerTask:
                 self._reset_reader()
                 self.forget_commanded()  # what the device holds now is its own
                 await self._on_connected()
+                await self._link_ready()
             except LinkError as exc:
                 self._lost(str(exc), was_up)
                 was_up = False
@@ -291,7 +296,7 @@ class OwnerTask:
         self.stale_error = None
         self.positions, self.velocities = q, qd
         self.torques_raw = tau
-        self._publish(q, qd, self._tared(tau), stale=False)
+        self._publish(q, qd, self._tared(tau, q), stale=False)
 
     # ------------------------------------------------------------ samples
 
@@ -331,6 +336,7 @@ class OwnerTask:
             "stale": stale,
             "faults": list(self.faults),
             "homed": list(self.homed),
+            "calibrated": list(self.calibrated),
         }
         self.hub.publish(sample)  # the arm's hub adds the estop, motion, fault and homing fields
 
@@ -342,11 +348,14 @@ class OwnerTask:
         if self.stale:
             self._publish_stale()
         elif self.positions is not None and self.velocities is not None:
-            self._publish(self.positions, self.velocities, self._tared(self.torques_raw),
-                          stale=False)
+            self._publish(self.positions, self.velocities,
+                          self._tared(self.torques_raw, self.positions), stale=False)
 
-    def _tared(self, tau: np.ndarray | None) -> np.ndarray | None:
-        """Raw torques less the tare (None: no torques)."""
+    def _tared(self, tau: np.ndarray | None, q: np.ndarray) -> np.ndarray | None:
+        """Raw torques less gravity at `q` (where a gravity fit is made) and the tare (None:
+        no torques)."""
+        if tau is not None and self.gravity is not None:
+            tau = tau - self.gravity(q)
         if tau is not None and self.torque_tare is not None:
             tared: np.ndarray = tau - self.torque_tare
             return tared

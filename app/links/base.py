@@ -32,6 +32,10 @@ class Link(abc.ABC):
         self.address = address
         self.state = LinkState.DOWN
         self.last_error: str | None = None
+        #: What identifies the device on the other end, once open (an HID serial number, a
+        #: simulator's), or None where the link cannot tell (a serial port's): the stored
+        #: calibration is kept under it (app/calibration).
+        self.identity: str | None = None
 
     @abc.abstractmethod
     async def open(self) -> None:

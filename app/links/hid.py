@@ -28,6 +28,12 @@ def with_report_id(packet: bytes, report_id: int = REPORT_ID) -> bytes:
     return bytes((report_id,)) + bytes(packet)
 
 
+def _serial_identity(serial: object) -> str | None:
+    """The device's USB serial number (hidapi's `serial_number`) as its identity, the stored
+    calibration's key; None where the device reports none."""
+    return f"hid-serial:{serial}" if isinstance(serial, str) and serial else None
+
+
 def describe(vid: int | None, pid: int | None) -> str:
     """`3742:0007`-style name of a USB id pair."""
     return f"{vid or 0:04x}:{pid or 0:04x}"
@@ -88,6 +94,10 @@ class HidLink(Link):
         dev = hid.device()
         if self.path:
             dev.open_path(self.path.encode())
+            try:
+                self.identity = _serial_identity(dev.get_serial_number_string())
+            except (OSError, ValueError, AttributeError):
+                self.identity = None
             return dev
         found = [
             d
@@ -101,6 +111,7 @@ class HidLink(Link):
                 "(is the arm plugged in? permissions on /dev/hidraw*?)"
             )
         dev.open_path(found[0]["path"])
+        self.identity = _serial_identity(found[0].get("serial_number"))
         return dev
 
     async def write(self, data: bytes) -> None:

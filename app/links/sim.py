@@ -32,9 +32,13 @@ class SimLink(Link):
         faults: FaultConfig | None = None,
         address: str = "sim:rbe3001",
         seed: int | None = 0,
+        serial_number: str | None = None,
     ) -> None:
+        """`serial_number`: the simulated device's, its identity once open (the profile's
+        `link.serial_number`, as an HID device reports its own)."""
         super().__init__(address)
         self.device = device
+        self.serial_number = serial_number
         self.packetized = device.packetized
         self._reply_faults = ReplyFaults(faults, seed)
         self._replies: deque[tuple[float, bytes]] = deque()  # (delivery time, bytes), in order
@@ -73,6 +77,7 @@ class SimLink(Link):
             raise self._down(f"{DISCONNECTED}: back in {self._up_at - now:.3f} s")
         self.state = LinkState.UP
         self.last_error = None
+        self.identity = f"sim-serial:{self.serial_number}" if self.serial_number else None
         self._replies.clear()
         self._schedule_disconnect(now)
 

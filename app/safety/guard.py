@@ -24,6 +24,7 @@ from app.errors import (
     InvalidRequest,
     JointLimit,
     LinkDown,
+    NotCalibrated,
     NotHomed,
     ShuttingDown,
     VelocityLimit,
@@ -78,8 +79,26 @@ class SafetyGuard:
         """Per joint (rad or m): the profile's `settle_tolerance`, else 8 encoder ticks."""
         return self._tolerance.copy()
 
+    def check_calibrated(self, start: np.ndarray | None, target: np.ndarray) -> None:
+        """409 `not_calibrated` for a command that would move a joint whose zero is not known
+        on this hardware (the profile's `zero_known = false`, no calibration declared or
+        stored): its reading, its limits and the kinematics would all be off by the unknown
+        offset."""
+        tol = self._tolerance
+        moved = [k for k, ok in enumerate(self.device.calibrated) if not ok and (
+            start is None or abs(float(target[k]) - float(start[k])) > tol[k])]
+        if moved:
+            names = ", ".join(self.model.names[k] for k in moved)
+            raise NotCalibrated(
+                f"{self.name}: joint {names} is not calibrated on this hardware (its zero is "
+                "not known): put the arm in a calibration pose and declare it with POST "
+                f"/api/v1/arms/{self.name}/calibration (body {{\"pose\": NAME}} or "
+                "{\"positions\": [...]}) first; GET it for the poses")
+
     def check_homed(self, start: np.ndarray | None, target: np.ndarray) -> None:
-        """409 `not_homed` for a command that would move a joint that is not homed."""
+        """409 `not_calibrated` (`check_calibrated`), then 409 `not_homed` for a command that
+        would move a joint that is not homed."""
+        self.check_calibrated(start, target)
         tol = self._tolerance
         moved = [k for k, homed in enumerate(self.device.homed) if not homed and (
             start is None or abs(float(target[k]) - float(start[k])) > tol[k])]

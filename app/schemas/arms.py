@@ -109,6 +109,10 @@ class ForceInfo(Model):
                                            "none, or infinite)")
     tip_force_unavailable: str | None = Field(None, description="why tip_force is null at the "
                                               "latest sample, or null")
+    gravity_compensated: bool = Field(False, description="a gravity fit is subtracted from "
+                                      "`torques` and `tip_force` at every pose (POST "
+                                      ".../calibration/gravity); the tare then zeroes the "
+                                      "tool's load")
 
 
 class ForceTare(Model):
@@ -134,6 +138,11 @@ class ArmDetail(ArmSummary):
     poll_hz: float
     faults: list[Fault] = Field(default_factory=list, description="empty when healthy")
     homed: list[bool] = Field(default_factory=list, description="one flag per joint")
+    calibrated: list[bool] = Field(default_factory=list, description="one flag per joint: "
+                                   "its zero is known on this hardware (API.md Calibration)")
+    firmware: str | None = Field(None, description="what the server found out about the "
+                                 "device's firmware at connect, and what to do, where it "
+                                 "matters (e.g. an rbe3001 build without STATUS)")
     force: ForceInfo | None = None
     chain: ArmChain | None = Field(None, description="the joint chain, to draw the arm")
     telemetry: TelemetryStats | None = None

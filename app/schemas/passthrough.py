@@ -3,7 +3,7 @@ in their names."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field
 
@@ -52,6 +52,10 @@ class SetClaw(Model):
 class Ack(Model):
     ok: bool = True
     command: str
+    reply: Literal["acknowledged", "sent", "other"] | None = Field(
+        None, description="rbe3001 SET_GAIN / SET_CLAW, which \"do not provide any return "
+        "values\" (design document): `acknowledged` (zeros or the echo), `other` (other "
+        "bytes, logged), `sent` (no reply within the quiet wait of one timeout)")
 
 
 # ---------------------------------------------------------------- dynamixel pass-through

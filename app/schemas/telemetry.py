@@ -36,6 +36,7 @@ class Sample(Model):
     stale: bool = False
     faults: list[Fault] = Field(default_factory=list)
     homed: list[bool] = Field(default_factory=list)
+    calibrated: list[bool] = Field(default_factory=list)
 
 
 class TelemetryMessage(Model):

@@ -85,26 +85,29 @@ async def status(svc: ControlArm) -> s.Rbe3001Status:
     summary="SET_GAIN (39): PID gains of one joint",
     description="kp, ki, kd in firmware units (each 0..1000; the firmware's default kp is "
     "0.005, and a negative gain makes the loop unstable: 422) for axis 0-2. Refused while the "
-    "estop is latched (new gains can move a joint). " + _NOT_SUPPORTED,
+    "estop is latched (new gains can move a joint). The firmware's reply carries nothing: "
+    "`reply` says whether it answered (`sent`: no reply within one timeout, as builds that "
+    "answer nothing). " + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
 async def set_gain(svc: ControlArm, req: s.SetGain) -> s.Ack:
     drv = _driver(svc)
     _encodable(rb.SetGain(req.axis, req.kp, req.ki, req.kd))
     svc.require_motion_allowed()
-    await drv.set_gain(req.axis, req.kp, req.ki, req.kd)
-    return s.Ack(command="SET_GAIN")
+    how = await drv.set_gain(req.axis, req.kp, req.ki, req.kd)
+    return s.Ack(command="SET_GAIN", reply=how)
 
 
 @router.post(
     "/set-claw",
     response_model=s.Ack,
     summary="SET_CLAW (40): claw setpoint",
-    description="0.0 open .. 1.0 closed. Refused while the estop is latched. " + _NOT_SUPPORTED,
+    description="0.0 open .. 1.0 closed. Refused while the estop is latched. `reply` as for "
+    "SET_GAIN. " + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
 async def set_claw(svc: ControlArm, req: s.SetClaw) -> s.Ack:
     drv = _driver(svc)
     svc.require_motion_allowed()
-    await drv.set_claw(req.value)
-    return s.Ack(command="SET_CLAW")
+    how = await drv.set_claw(req.value)
+    return s.Ack(command="SET_CLAW", reply=how)

@@ -17,6 +17,18 @@ later than timeout + quiet is treated as never coming. The only way a stale repl
 be taken is a reply delayed by more than twice the timeout (100 HID intervals): it would have
 the right id and would also have to pass the checks below.
 
+SET_GAIN and SET_CLAW "do not provide any return values" (the design document): a build may
+answer zeros, the echo, other bytes or nothing. The driver waits one timeout for a reply (the
+short quiet wait); none is "sent" (and the link is drained before the next request, as after
+any timeout), other bytes are logged and taken: the firmware acted either way.
+
+Stock firmware without STATUS (38). At connect the driver asks STATUS once: a board that
+answers SimplePacketComs' error 99 or nothing at all has no STATUS server, and the server
+cannot read the arm (a SET_PID re-sent as a poll would need a setpoint the server commanded,
+and there is none at connect). The set-up fails with a reason that names the build and what to
+do (`firmware_note`, in the arm's detail; the link's last error; the log, once), and is tried
+again with the link's backoff.
+
 The protocol has no checksum: a reply is refused as corrupt when floats 9-14 of a reading
 changed (every build zeroes them or echoes our zeros), when an acknowledgement is neither all
 zeros nor the echo, when a value is not finite or not plausible, or when a position jumped
@@ -26,15 +38,21 @@ further than the arm can move since the last reading.
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from collections import deque
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from app.device.driver import Driver
 from app.errors import CorruptReply, DeviceError, DeviceTimeout
 from protocol import rbe3001 as rb
+
+log = logging.getLogger(__name__)
+
+#: How the firmware answered a SET_GAIN or SET_CLAW (module doc).
+AckHow = Literal["acknowledged", "sent", "other"]
 
 #: A reading may differ from the last accepted one by at most JUMP_SPEEDS x the joint's
 #: velocity limit x the time since, plus JUMP_SLACK_RAD (encoder noise and averaging).
@@ -57,6 +75,7 @@ class Rbe3001Driver(Driver):
         self._dirty = False
         self._last_q: np.ndarray | None = None
         self._last_q_t = 0.0
+        self._last_units = self.units_version  # the units `_last_q` was read in
         f = self.profile.force
         self._adc_scale = np.array(f.scale if f else [0.0] * 3)
         self._adc_offset = np.array(f.offset if f else [0.0] * 3)
@@ -64,6 +83,8 @@ class Rbe3001Driver(Driver):
         #: Plausibility bounds for decoded values: 64 turns and 64 turns/s.
         self._max_ticks: list[float] = (64 * tpr).tolist()
         self._plausible: Any = None  # the last reply found plausible
+        #: The command id the firmware last answered error 99 for (no server for it).
+        self._unknown_id: int | None = None
         self.gripper = None
 
     # --------------------------------------------------------- pass-through
@@ -83,12 +104,16 @@ class Rbe3001Driver(Driver):
             cmd, gated=not hold, on_send=lambda: self.note_commanded(ticks))
         return reply
 
-    async def set_gain(self, axis: int, kp: float, ki: float, kd: float) -> None:
-        await self.submit(rb.SetGain(axis, kp, ki, kd), gated=True)
+    async def set_gain(self, axis: int, kp: float, ki: float, kd: float) -> AckHow:
+        """SET_GAIN; answers how the firmware answered: `acknowledged` (zeros or the echo),
+        `other` (other bytes, logged) or `sent` (no reply within the quiet wait)."""
+        return _how(await self.submit(rb.SetGain(axis, kp, ki, kd), gated=True))
 
-    async def set_claw(self, value: float) -> None:
-        await self.submit(rb.SetClaw(value), gated=True)
+    async def set_claw(self, value: float) -> AckHow:
+        """SET_CLAW; answers as `set_gain`."""
+        how = _how(await self.submit(rb.SetClaw(value), gated=True))
         self.gripper = float(value)
+        return how
 
     # --------------------------------------------------------- motion interface
 
@@ -100,6 +125,30 @@ class Rbe3001Driver(Driver):
         await self.set_claw(value)
 
     # --------------------------------------------------------- owner task
+
+    async def _on_connected(self) -> None:
+        """Ask STATUS once: a build without it is named (module doc)."""
+        self._unknown_id = None
+        try:
+            await self._setup_exchange(_STATUS, self.timeout)
+        except DeviceError as exc:
+            if self._unknown_id != rb.CommandId.STATUS:
+                raise
+            self.firmware_note = (
+                "this board's firmware has no STATUS server (38): it answered "
+                f"SimplePacketComs' error {rb.ERROR_ID}. The server reads the arm with STATUS: "
+                "flash the course firmware that has it (README, 'On real hardware')")
+            raise DeviceError(f"{self.name}: {self.firmware_note}") from exc
+        except DeviceTimeout as exc:
+            self.firmware_note = (
+                "the board answers nothing to STATUS (38): a firmware without the STATUS "
+                "server (a build that stays silent for an unknown id), or a board that does not "
+                "answer at all. Flash the course firmware that has STATUS (README, 'On real "
+                "hardware') and check the USB cable")
+            raise DeviceTimeout(f"{self.name}: {self.firmware_note}") from exc
+        if self.firmware_note is not None:
+            log.info("%s: the board answers STATUS now", self.name)
+        self.firmware_note = None
 
     def _reset_reader(self) -> None:
         self._frames.clear()
@@ -149,6 +198,9 @@ class Rbe3001Driver(Driver):
             if left <= 0:
                 self._matcher.cancel()
                 self._dirty = True
+                if isinstance(message, rb.SetGain | rb.SetClaw):  # no return values: sent
+                    self.stats["unanswered"] = self.stats.get("unanswered", 0) + 1
+                    return _SENT
                 raise DeviceTimeout(f"{self.name}: no reply to {name} "
                                     f"within {timeout * 1000:.0f} ms")
             frame = await self._next_frame(left)
@@ -158,6 +210,7 @@ class Rbe3001Driver(Driver):
             try:
                 reply = self._matcher.match(frame)
             except rb.UnknownToFirmware as exc:
+                self._unknown_id = exc.command_id
                 raise DeviceError(f"{self.name}: {exc} ({name}): this firmware build does not "
                                   "serve it") from None
             except rb.DecodeError as exc:
@@ -167,6 +220,11 @@ class Rbe3001Driver(Driver):
             if reply is None:
                 self.stats["stale_replies"] += self._matcher.stale - stale
                 continue
+            if isinstance(reply, rb.Ack) and reply.other:
+                self.stats["other_replies"] = self.stats.get("other_replies", 0) + 1
+                log.warning("%s: %s answered bytes that are neither zeros nor the echo (%s): "
+                            "taken, the command carries no return value", self.name, name,
+                            frame[4:40].hex())
             self._check_plausible(reply)
             return reply
 
@@ -188,6 +246,8 @@ class Rbe3001Driver(Driver):
         as corrupt. The bound grows with the time since, so a real fast move is accepted late,
         never refused for ever."""
         now = time.monotonic()
+        if self._last_units != self.units_version:  # a calibration moved the zero: a new start
+            self._last_q, self._last_units = None, self.units_version
         if self._last_q is not None and q.tolist() != self._last_q.tolist():  # (at rest: equal)
             bound = JUMP_SPEEDS * self.model.vmax * (now - self._last_q_t) + JUMP_SLACK_RAD
             jump = np.abs(q - self._last_q)
@@ -215,6 +275,14 @@ class Rbe3001Driver(Driver):
 
 
 _STATUS = rb.Status()
+#: A SET_GAIN / SET_CLAW that got no reply within the quiet wait (module doc).
+_SENT = object()
+
+
+def _how(reply: object) -> AckHow:
+    if reply is _SENT:
+        return "sent"
+    return "other" if isinstance(reply, rb.Ack) and reply.other else "acknowledged"
 
 
 def _command_name(message: Any) -> str:

@@ -14,6 +14,16 @@ Behaviour copied from WPIRoboticsEngineering/RBE3001_nucleo_firmware (see
   `echo=True` (profile `[link] sim_echo`), as builds that echo: STATUS leaves floats 9-14 as
   received, SET_GAIN and SET_CLAW send the request back unchanged.
 - Unknown ids, packets that are not 64 bytes and packets with out-of-range fields: silence.
+- Firmware builds (profile `[link] sim_firmware`): `status` serves STATUS (38); `stock_99`
+  answers it with SimplePacketComs' error packet (id 99, the unknown id in bytes 4-7), and
+  `stock_silent` not at all, as builds without a STATUS server.
+- SET_GAIN and SET_CLAW "do not provide any return values" (design document): `[link]
+  sim_gain_claw_reply` = `zeros` (PidServer's zeroed buffer, or the echo with `sim_echo`),
+  `echo`, `silent` (no reply) or `other` (bytes that are neither).
+- Power-on (`[link] sim_power_on_pose`): the arm starts in that calibration pose and the
+  encoders read zero there (src/main.cpp's `ZeroPID()` at start-up, "set the current encoder
+  value to 0"); without it they read the profile's offsets. (Its USB serial number, the
+  calibration's identity, is the profile's `[link] serial_number`, which the SimLink reports.)
 - Encoder: whole ticks, firmware 4-sample moving average (so readings move in 1/4 ticks).
 - Velocity: position difference over 61 PID cycles (~152 ms), stale between updates.
 - Controller output: 0.5 +- 0.2 (clamped 0.3..0.7) from stop, kp 0.005, ki 0, kd 0.
@@ -32,16 +42,21 @@ shoulder q1 the elevation of link 2 above the horizontal; link 3 points along
 (sin(q1 - q2), -cos(q1 - q2)) in the arm's vertical plane, so at q = 0 link 2 is level and
 link 3 hangs straight down. ticks = offset + sign * q * tpr / (2 pi).
 Strain ADC = offset + torque / scale (the profile's [force] table), averaged over 5 cycles.
+The load cell sits between the gearbox and the link: it reads the torque the link carries
+(holding it against gravity, and accelerating it), not the motor's, whose static friction it
+does not see: at rest it reads minus the gravity torque exactly.
 """
 
 from __future__ import annotations
 
 import math
+import struct
 from collections import deque
 from collections.abc import Sequence
 
 from app.config import ArmProfile
 from protocol.rbe3001 import (
+    ERROR_ID,
     PACKET_SIZE,
     Ack,
     DecodeError,
@@ -52,9 +67,12 @@ from protocol.rbe3001 import (
     Status,
     StatusReply,
     decode_command,
+    encode_packet,
     encode_reply,
 )
 
+#: SimplePacketComs' error packet head: id 99, then the unknown id, both uint32.
+ERROR_REPLY = struct.Struct("<II")
 CYCLE_S = 0.0025  # firmware PID period since Jan 2018 (400 Hz)
 VELOCITY_CYCLES = 61  # firmware velocity update period, cycles
 ENCODER_AVERAGE = 4  # firmware moving average of the AS5050 reading, samples
@@ -98,6 +116,13 @@ class Rbe3001Firmware:
         if echo is None:
             echo = profile.link.sim_echo if profile is not None else False
         self.echo = echo
+        link = profile.link if profile is not None else None
+        self.firmware = link.sim_firmware if link is not None else "status"
+        self.gain_claw_reply = link.sim_gain_claw_reply if link is not None else "zeros"
+        power_on = None
+        if profile is not None and profile.link.sim_power_on_pose is not None:
+            power_on = profile.calibration_poses[profile.link.sim_power_on_pose]
+            start_q = power_on
         if profile is not None:
             ticks_per_rev = [j.ticks_per_rev for j in profile.joints]
             offset_ticks = [j.offset_ticks for j in profile.joints]
@@ -126,8 +151,14 @@ class Rbe3001Firmware:
         self.coulomb = 0.05  # N m
 
         self.q = [float(x) for x in start_q]  # rad
+        if power_on is not None:  # ZeroPID() at start-up: the encoders read 0 here
+            self.offset = [-self.sign[i] * self.q[i] * self.tpr[i] / (2 * math.pi)
+                           for i in range(3)]
         self.qd = [0.0, 0.0, 0.0]  # rad/s
         self.torque = [0.0, 0.0, 0.0]  # motor torque at the joint, N m
+        #: The torque the link carries, what its load cell reads, N m: at rest, minus gravity.
+        g = self._gravity()
+        self.load = [-g[0], -g[1], -g[2]]
         start = [self._encoder(i) for i in range(3)]
         self._samples = [deque([s] * ENCODER_AVERAGE, ENCODER_AVERAGE) for s in start]
         self._strain = [deque([self._adc(i)] * STRAIN_AVERAGE, STRAIN_AVERAGE) for i in range(3)]
@@ -157,7 +188,10 @@ class Rbe3001Firmware:
             cmd = decode_command(data)
         except DecodeError:
             return []
-        return [(REPLY_DELAY_S, self._handle(cmd, bytes(data)))]
+        if isinstance(cmd, Status) and self.firmware == "stock_silent":
+            return []
+        reply = self._handle(cmd, bytes(data))
+        return [] if reply is None else [(REPLY_DELAY_S, reply)]
 
     def advance(self, now: float) -> None:
         """Run whole 2.5 ms PID cycles up to `now` (s); a gap over MAX_CATCHUP_S is cut."""
@@ -185,7 +219,8 @@ class Rbe3001Firmware:
 
     def _state(self) -> tuple[object, ...]:
         """Everything a cycle writes, but its counters."""
-        return (self.q[:], self.qd[:], self.torque[:], [tuple(d) for d in self._samples],
+        return (self.q[:], self.qd[:], self.torque[:], self.load[:],
+                [tuple(d) for d in self._samples],
                 [tuple(d) for d in self._strain], self._integral[:], self._last_error[:],
                 self.claw)
 
@@ -218,12 +253,13 @@ class Rbe3001Firmware:
         return round(self.offset[i] + self.sign[i] * self.q[i] * self.tpr[i] / (2 * math.pi))
 
     def _adc(self, i: int) -> float:
-        v = self.adc_offset[i] + self.torque[i] / self.adc_scale[i]
+        v = self.adc_offset[i] + self.load[i] / self.adc_scale[i]
         return round(min(1.0, max(0.0, v)) * ADC_STEPS) / ADC_STEPS
 
     # --- commands ---------------------------------------------------------------------
 
-    def _handle(self, cmd: SetPid | Status | SetGain | SetClaw, request: bytes) -> bytes:
+    def _handle(self, cmd: SetPid | Status | SetGain | SetClaw,
+                request: bytes) -> bytes | None:
         if isinstance(cmd, SetPid):
             for i, sp in enumerate(cmd.setpoints):
                 if abs(sp.position_ticks - self.setpoint[i]) > SETPOINT_DEADBAND_TICKS:
@@ -232,6 +268,8 @@ class Rbe3001Firmware:
             reading = (self.position_ticks, self._velocity(), self.strain_adc)
             return encode_reply(SetPidReply(*reading), request, echo=self.echo)
         if isinstance(cmd, Status):
+            if self.firmware == "stock_99":  # SimplePacketComs: no server for the id
+                return ERROR_REPLY.pack(ERROR_ID, int(cmd.command_id)) + bytes(PACKET_SIZE - 8)
             reading = (self.position_ticks, self._velocity(), self.strain_adc)
             return encode_reply(StatusReply(*reading), request, echo=self.echo)
         if isinstance(cmd, SetGain):
@@ -241,9 +279,18 @@ class Rbe3001Firmware:
             self._integral[i] = 0.0
             self._last_error[i] = None
             self.enabled[i] = True
-            return encode_reply(Ack(cmd.command_id), request, echo=self.echo)
+            return self._ack(cmd.command_id, request)
         self.claw_setpoint = cmd.value
-        return encode_reply(Ack(cmd.command_id), request, echo=self.echo)
+        return self._ack(cmd.command_id, request)
+
+    def _ack(self, command_id: int, request: bytes) -> bytes | None:
+        """SET_GAIN's and SET_CLAW's reply, as the build answers them (module doc)."""
+        how = self.gain_claw_reply
+        if how == "silent":
+            return None
+        if how == "other":  # e.g. a build that leaves its own values in the buffer
+            return encode_packet(command_id, [1.0, 2.0, 3.0, 0.5])
+        return encode_reply(Ack(command_id), request, echo=self.echo or how == "echo")
 
     def _velocity(self) -> tuple[float, float, float]:
         v = self.velocity_ticks_s
@@ -265,6 +312,7 @@ class Rbe3001Firmware:
             push = drive + gravity[i]
             w = self.qd[i]
             if w == 0.0 and abs(push) <= self.coulomb:
+                self.load[i] = -gravity[i]
                 continue  # static friction holds
             friction = self.coulomb * math.copysign(1.0, w if w != 0.0 else push)
             # Semi-implicit: the speed-proportional terms are integrated implicitly (stable).
@@ -272,11 +320,16 @@ class Rbe3001Firmware:
             if w != 0.0 and w_new * w < 0.0:
                 w_new = 0.0  # Coulomb friction stops, never reverses, the joint within a step
             self.qd[i] = w_new
+            # the link's own inertia (the reflected inertia is the motor side's) times its
+            # acceleration, and the weight it holds
+            link_inertia = inertia[i] - self.reflected_inertia
+            self.load[i] = link_inertia * (w_new - w) / dt - gravity[i]
             self.q[i] += w_new * dt
             lo, hi = self.hard_stops[i]
             if not lo <= self.q[i] <= hi:  # the mechanism's end stop: the joint stops dead
                 self.q[i] = min(hi, max(lo, self.q[i]))
                 self.qd[i] = 0.0
+                self.load[i] = -gravity[i]
         for i in range(3):
             self._samples[i].append(self._encoder(i))
             self._strain[i].append(self._adc(i))
