@@ -1,0 +1,355 @@
+"""One episode being recorded: the time grid, the telemetry resampled onto it, the commanded
+setpoints, the cameras' frames encoded as they come; `finish` hands over what `Dataset.append`
+writes.
+
+Frame k is at wall-clock `t0 + k / fps` (`timestamp = k / fps` exactly). A task on the HTTP
+loop wakes at each grid time and:
+
+- takes the arms' telemetry samples since the last wake (`ArmService.subscribe`: a cursor in
+  the hub's shared log, bounded backlog; the control thread is never waited for or slowed)
+  and resamples their joint positions (then the gripper, where the arm has one) linearly at
+  every grid time the samples already pass (app/recording/grid.py);
+- notes the action of frame k: where each joint was last told to go (`ArmService.setpoint`,
+  the arm's one commanded record; during teleoperation the follower's setpoint is the
+  leader's mapped joints), then the gripper as last measured (no commanded gripper is kept);
+- looks at each camera's latest frame and, one period later, gives frame k the one nearest
+  its grid time among those seen; the image goes to a worker thread that encodes it
+  (app/recording/video.py) through a bounded queue.
+
+What is held per episode is bounded: the samples not yet resampled (a period's worth), one
+state and action per frame, a few sampled images per camera for the stats, and at most
+`MAX_EPISODE_S` of recording (the episode then ends and is written). A camera that gives no
+new frame for `CAMERA_LOST_S` ends the episode with an error, as does an encoder that falls
+`QUEUE_FRAMES` behind.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import queue
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import orjson
+
+from app.recording.dataset import ArmLayout, EpisodeFrames
+from app.recording.grid import resample
+from app.recording.video import EpisodeVideo
+from app.service import ArmService
+
+log = logging.getLogger(__name__)
+
+#: Longest episode, s: its states and actions stay in memory until it is written.
+MAX_EPISODE_S = 1800.0
+#: A camera whose newest frame is older than this is lost, s.
+CAMERA_LOST_S = 2.0
+#: Frames an encoder may fall behind (per episode, all cameras) before the episode ends.
+QUEUE_FRAMES = 120
+#: Images kept per camera for its stats (lerobot samples about this many).
+STAT_IMAGES = 50
+#: Telemetry samples a recording may fall behind before the oldest are dropped (the hub's
+#: backlog for this subscriber: 8 s at 500 Hz).
+SAMPLE_BACKLOG = 4000
+
+
+@dataclass(frozen=True)
+class CameraFrame:
+    seq: int
+    time: float  # wall clock, s
+    image: np.ndarray  # (H, W, 3) uint8 BGR
+
+
+@dataclass
+class CameraFeed:
+    """What a recording needs of a camera: its size and its latest frame (None before any)."""
+    name: str
+    width: int
+    height: int
+    latest: Callable[[], CameraFrame | None]
+
+
+class RecordingError(Exception):
+    """An episode ended on its own (camera lost, encoder behind, too long)."""
+
+
+class _ArmTrack:
+    """One arm's samples not yet resampled, and its states and actions so far."""
+
+    def __init__(self, svc: ArmService, layout: ArmLayout) -> None:
+        self.svc, self.layout = svc, layout
+        self.sub = svc.subscribe(SAMPLE_BACKLOG)
+        self.times: deque[float] = deque()
+        self.values: deque[list[float]] = deque()
+        self.gripper: float = 0.0
+        if self.sub.initial is not None:
+            self._add(self.sub.initial)
+
+    def _add(self, encoded: str) -> None:
+        s = orjson.loads(encoded)
+        if s.get("positions") is None or s.get("time") is None:
+            return
+        row = [float(x) for x in s["positions"]]
+        if self.layout.gripper:
+            g = s.get("gripper")
+            self.gripper = float(g) if g is not None else self.gripper
+            row.append(self.gripper)
+        if self.times and s["time"] <= self.times[-1]:
+            return
+        self.times.append(float(s["time"]))
+        self.values.append(row)
+
+    def take(self) -> None:
+        samples, _, _ = self.sub.take()
+        for enc in samples:
+            self._add(enc)
+
+    @property
+    def last_time(self) -> float:
+        return self.times[-1] if self.times else -np.inf
+
+    def states_at(self, at: np.ndarray) -> np.ndarray:
+        """Resampled at `at` (all before `last_time`, or the episode's end); then the samples
+        older than the one just before `at[-1]` are dropped."""
+        out = resample(list(self.times), np.asarray(self.values), at)
+        while len(self.times) > 2 and self.times[1] <= at[-1]:
+            self.times.popleft()
+            self.values.popleft()
+        return out
+
+    def action(self) -> list[float]:
+        q = self.svc.setpoint()
+        if q is None:
+            q = np.asarray(self.values[-1][:len(self.layout.joints)]) if self.values else \
+                np.zeros(len(self.layout.joints))
+        out = [float(x) for x in q]
+        return out + ([self.gripper] if self.layout.gripper else [])
+
+    def close(self) -> None:
+        self.sub.close()
+
+
+class _Encoder:
+    """The worker thread that encodes every camera's frames of one episode."""
+
+    def __init__(self, videos: dict[str, EpisodeVideo]) -> None:
+        self.videos = videos
+        self.q: queue.Queue[tuple[str, np.ndarray] | None] = queue.Queue(QUEUE_FRAMES)
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="recording-encoder", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            item = self.q.get()
+            if item is None:
+                return
+            if self.error is not None:
+                continue
+            try:
+                self.videos[item[0]].add(item[1])
+            except Exception as exc:  # noqa: BLE001 - the episode reports it
+                self.error = exc
+
+    def put(self, cam: str, image: np.ndarray) -> None:
+        try:
+            self.q.put_nowait((cam, image))
+        except queue.Full:
+            raise RecordingError(f"the video encoder fell {QUEUE_FRAMES} frames behind") \
+                from None
+        if self.error is not None:
+            raise RecordingError(f"video encoding failed: {self.error}")
+
+    def finish(self) -> None:
+        """Blocking: wait for the queue, close every file (worker thread)."""
+        self.q.put(None)
+        self._thread.join()
+        if self.error is not None:
+            raise RecordingError(f"video encoding failed: {self.error}")
+        for v in self.videos.values():
+            v.close()
+
+    def abort(self) -> None:
+        self.error = self.error or RecordingError("discarded")
+        self.q.put(None)
+        self._thread.join()
+        for v in self.videos.values():
+            v.abort()
+
+
+class EpisodeRecorder:
+    """Records one episode from `start()` until `stop()` (or until it ends itself: `ended`)."""
+
+    def __init__(self, arms: list[tuple[ArmService, ArmLayout]], cameras: list[CameraFeed],
+                 fps: int, task: str, partial: Path, on_end: Callable[[str], None]) -> None:
+        self.fps, self.task = fps, task
+        self.cameras = cameras
+        self._arm_specs = arms
+        self._partial = partial
+        self._on_end = on_end
+        self.tracks: list[_ArmTrack] = []
+        self.t0 = 0.0
+        self.states: list[np.ndarray] = []  # (d,) per frame, resampled
+        self.actions: list[list[float]] = []
+        self.ticks = 0  # frames whose action is noted
+        self._seen: dict[str, deque[CameraFrame]] = {c.name: deque(maxlen=4) for c in cameras}
+        self._imaged = 0  # frames whose images went to the encoder
+        self._samples: dict[str, list[np.ndarray]] = {c.name: [] for c in cameras}
+        self._encoder: _Encoder | None = None
+        self._task: asyncio.Task[None] | None = None
+        #: Why the episode ended on its own (None: it records, or was stopped).
+        self.error: str | None = None
+        self.ended = False
+
+    # ------------------------------------------------------------ lifecycle
+
+    def start(self) -> None:
+        self._partial.mkdir(parents=True, exist_ok=True)
+        self.tracks = [_ArmTrack(svc, lay) for svc, lay in self._arm_specs]
+        stamp = f"{time.time_ns()}"
+        videos = {c.name: EpisodeVideo(self._partial / f"{stamp}-{c.name}.mp4", c.width,
+                                       c.height, self.fps) for c in self.cameras}
+        self._encoder = _Encoder(videos)
+        self.t0 = time.time()
+        self._task = asyncio.get_running_loop().create_task(self._run(), name="recording")
+
+    @property
+    def length_s(self) -> float:
+        return self.ticks / self.fps
+
+    async def _run(self) -> None:
+        try:
+            while True:
+                due = self.t0 + self.ticks / self.fps
+                delay = due - time.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                self._tick()
+        except RecordingError as exc:
+            self.error = str(exc)
+            self.ended = True
+            log.warning("recording: episode ended: %s", exc)
+            self._on_end(str(exc))
+
+    def _tick(self) -> None:
+        if self.ticks / self.fps >= MAX_EPISODE_S:
+            raise RecordingError(f"the episode reached {MAX_EPISODE_S:.0f} s")
+        now = time.time()
+        self.actions.append([x for t in self.tracks for x in t.action()])
+        self.ticks += 1
+        for t in self.tracks:
+            t.take()
+        self._resample(final=False)
+        for cam in self.cameras:
+            f = cam.latest()
+            seen = self._seen[cam.name]
+            if f is not None and (not seen or f.seq != seen[-1].seq):
+                seen.append(f)
+            if self.ticks * 1.0 / self.fps > CAMERA_LOST_S and (
+                    not seen or now - seen[-1].time > CAMERA_LOST_S):
+                raise RecordingError(f"camera {cam.name} lost: no new frame for "
+                                     f"{CAMERA_LOST_S:.0f} s")
+        # frame k's image one period after its grid time, when a later frame may be nearer
+        while self.cameras and self._imaged < self.ticks - 1 and self._image(self._imaged):
+            pass
+
+    def _image(self, k: int) -> bool:
+        """Frame k's images to the encoder, each camera's seen frame nearest its grid time;
+        False while a camera has given none yet (its first frame then stands in for the
+        frames before it)."""
+        if not all(self._seen[c.name] for c in self.cameras):
+            if k / self.fps > CAMERA_LOST_S:
+                missing = [c.name for c in self.cameras if not self._seen[c.name]]
+                raise RecordingError(f"camera {', '.join(missing)} gave no frame")
+            return False
+        at = self.t0 + k / self.fps
+        assert self._encoder is not None
+        for cam in self.cameras:
+            f = min(self._seen[cam.name], key=lambda fr: abs(fr.time - at))
+            self._encoder.put(cam.name, f.image)
+            if k % self.fps == 0 and len(self._samples[cam.name]) < STAT_IMAGES:
+                self._samples[cam.name].append(_small(f.image))
+        self._imaged = k + 1
+        return True
+
+    def _resample(self, final: bool) -> None:
+        done = len(self.states)
+        if done >= self.ticks:
+            return
+        at = self.t0 + np.arange(done, self.ticks) / self.fps
+        if not final:
+            upto = min(t.last_time for t in self.tracks)
+            at = at[at <= upto]
+        if len(at) == 0:
+            return
+        if any(not t.times for t in self.tracks):
+            raise RecordingError("no telemetry from "
+                                 + ", ".join(t.svc.name for t in self.tracks if not t.times))
+        parts = [t.states_at(at) for t in self.tracks]
+        self.states.extend(np.concatenate(parts, axis=1))
+
+    async def _halt(self) -> None:
+        task, self._task = self._task, None
+        if task is not None and not task.done():
+            task.cancel()
+            try:
+                await task
+            except asyncio.CancelledError:
+                pass
+        for t in self.tracks:
+            t.close()
+
+    async def finish(self) -> EpisodeFrames:
+        """Stop and hand over the episode (its videos closed: blocking work in a thread)."""
+        await self._halt()
+        encoder = self._encoder
+        assert encoder is not None
+        try:
+            self._complete()
+        except BaseException:
+            await asyncio.to_thread(encoder.abort)
+            raise
+        await asyncio.to_thread(encoder.finish)
+        videos = {c: v.path for c, v in encoder.videos.items()}
+        frames = {c: v.frames for c, v in encoder.videos.items()}
+        n = self.ticks
+        if any(f != n for f in frames.values()):
+            await asyncio.to_thread(encoder.abort)
+            raise RecordingError(f"video frames {frames} for {n} frames")
+        samples = {c: np.stack(s) for c, s in self._samples.items()}
+        return EpisodeFrames(np.asarray(self.states[:n]), np.asarray(self.actions[:n]),
+                             self.task, videos, samples)
+
+    def _complete(self) -> None:
+        """The last samples resampled, the last frames' images (nearest of what was seen)."""
+        for t in self.tracks:
+            t.take()
+        if self.ticks == 0:
+            raise RecordingError("the episode has no frame")
+        self._resample(final=True)
+        while self.cameras and self._imaged < self.ticks:
+            if not self._image(self._imaged):
+                raise RecordingError("no camera frame in the episode")
+
+    async def discard(self) -> None:
+        await self._halt()
+        if self._encoder is not None:
+            await asyncio.to_thread(self._encoder.abort)
+
+    def describe(self) -> dict[str, Any]:
+        return {"frames": self.ticks, "length_s": round(self.length_s, 3),
+                "started": self.t0, "task": self.task}
+
+
+def _small(image: np.ndarray) -> np.ndarray:
+    """An image for the stats: RGB, at most about 150 px a side (lerobot's
+    `auto_downsample_height_width`)."""
+    h, w = image.shape[:2]
+    step = max(1, max(h, w) // 150)
+    return np.ascontiguousarray(image[::step, ::step, ::-1])

@@ -1,0 +1,115 @@
+"""Recordings through the API (app/web/routes/recordings.py) on the simulated arms and their
+simulated cameras, in process: datasets created, episodes recorded, discarded, refused, and
+what was written read back by tests/_lerobot.py."""
+
+from __future__ import annotations
+
+import io
+import tarfile
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from tests._lerobot import check_dataset
+from tests._wait import wait_for
+from tests.conftest import running_client
+
+API = "/api/v1"
+FPS = 10
+
+
+async def _frames_at_least(client: httpx.AsyncClient, rid: str, n: int) -> None:
+    async def enough() -> bool:
+        cur = (await client.get(f"{API}/recordings/{rid}")).json()["current"]
+        return cur is not None and cur["frames"] >= n
+    await wait_for(enough, timeout=30, what=f"{n} frames recorded")
+
+
+async def test_record_episodes_discard_and_refusals() -> None:
+    async with running_client() as (_, client):
+        arms = [a["name"] for a in (await client.get(f"{API}/arms")).json()]
+        cams = [c["name"] for c in (await client.get(f"{API}/cameras")).json()]
+        body: dict[str, Any] = {"name": "demo", "arms": arms, "cameras": cams[:1], "fps": FPS,
+                                "task": "wave"}
+        r = await client.post(f"{API}/recordings", json=body)
+        assert r.status_code == 201, r.text
+        d = r.json()
+        assert d["episodes"] == 0 and d["current"] is None and d["recording"] is False
+        arm0 = arms[0]
+        assert d["names"][0].startswith(f"{arm0}.") and d["names"][-1].startswith(f"{arms[-1]}.")
+
+        # refusals: nothing is made
+        for bad, status, code in [
+            ({**body, "name": "other", "arms": ["nope"]}, 404, "unknown_arm"),
+            ({**body, "name": "other", "cameras": ["nope"]}, 404, "not_found"),
+            (body, 409, "conflict"),
+            ({**body, "name": "other", "fps": 0}, 422, "invalid_request"),
+            ({**body, "name": "../x"}, 422, "invalid_request"),
+        ]:
+            r = await client.post(f"{API}/recordings", json=bad)
+            assert (r.status_code, r.json()["code"]) == (status, code), r.text
+        r = await client.post(f"{API}/recordings/demo/episodes/stop")
+        assert (r.status_code, r.json()["code"]) == (409, "conflict")
+        r = await client.post(f"{API}/recordings/nope/episodes")
+        assert (r.status_code, r.json()["code"]) == (404, "not_found")
+
+        # episode 0, with a move of the first arm while it records
+        r = await client.post(f"{API}/recordings/demo/episodes", json={"task": "reach"})
+        assert r.status_code == 201 and r.json()["recording"] is True
+        r = await client.post(f"{API}/recordings/demo/episodes")
+        assert (r.status_code, r.json()["code"]) == (409, "busy")
+        detail = (await client.get(f"{API}/arms/{arm0}")).json()
+        q0 = [(j["min"] + j["max"]) / 2 for j in detail["joints"]]
+        target = [q + 0.1 * (j["max"] - j["min"]) for q, j in zip(q0, detail["joints"],
+                                                                   strict=True)]
+        r = await client.post(f"{API}/arms/{arm0}/move/joints",
+                              json={"positions": target, "speed": 0.5, "wait": True})
+        assert r.status_code == 200, r.text
+        await _frames_at_least(client, "demo", 25)
+        r = await client.post(f"{API}/recordings/demo/episodes/stop")
+        assert r.status_code == 200, r.text
+        assert r.json()["episodes"] == 1 and r.json()["current"] is None
+
+        # episode 1 discarded, episode 2 kept
+        assert (await client.post(f"{API}/recordings/demo/episodes")).status_code == 201
+        await _frames_at_least(client, "demo", 3)
+        r = await client.delete(f"{API}/recordings/demo/episodes/current")
+        assert r.status_code == 200 and r.json()["episodes"] == 1
+        r = await client.delete(f"{API}/recordings/demo/episodes/current")
+        assert (r.status_code, r.json()["code"]) == (409, "conflict")
+        assert (await client.post(f"{API}/recordings/demo/episodes")).status_code == 201
+        await _frames_at_least(client, "demo", 5)
+        r = await client.post(f"{API}/recordings/demo/episodes/stop")
+        d = r.json()
+        assert d["episodes"] == 2 and [e["tasks"] for e in d["episode_list"]] == [["reach"],
+                                                                                   ["wave"]]
+
+        listed = (await client.get(f"{API}/recordings")).json()
+        assert [(x["id"], x["episodes"], x["frames"]) for x in listed] == [
+            ("demo", 2, d["frames"])]
+
+        read = check_dataset(Path(d["path"]))
+        assert read.tasks == {0: "reach", 1: "wave"}
+        ep0 = read.episode(0)
+        n0 = len(ep0["index"])
+        assert n0 >= 25
+        cols = [i for i, n in enumerate(d["names"]) if n.startswith(f"{arm0}.")]
+        cols = cols[:len(target)]
+        # the action is the commanded setpoint: at the end, the move's target exactly
+        assert np.allclose(ep0["action"][-1, cols], target, atol=1e-5)
+        # the state is the measured joints: at the end, near the target
+        assert np.allclose(ep0["observation.state"][-1, cols], target, atol=0.02)
+        # the arms that did not move: state and action steady
+        assert np.ptp(ep0["observation.state"][:, len(target):], axis=0).max() < 0.01
+
+        r = await client.get(f"{API}/recordings/demo/archive")
+        assert r.status_code == 200 and r.headers["content-type"] == "application/x-tar"
+        with tarfile.open(fileobj=io.BytesIO(r.content)) as tar:
+            names = tar.getnames()
+            assert "demo/meta/info.json" in names
+            assert not any("/." in n for n in names)
+            info = tar.extractfile("demo/meta/info.json")
+            assert info is not None
+            assert info.read() == (Path(d["path"]) / "meta/info.json").read_bytes()
