@@ -148,7 +148,7 @@ class Camera:
         next_at = time.monotonic()
         gave = False
         while not self._stop.is_set():
-            if self._idle():
+            if gave and self._idle():  # an idle on-demand camera still shows its first frame
                 self._wake.clear()
                 if self._idle():
                     self._wake.wait(1.0)

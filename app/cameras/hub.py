@@ -175,8 +175,9 @@ class CameraHub:
             raise CameraDown(f"camera {name}: no frame yet")
         return got
 
-    def stream(self, name: str) -> AsyncIterator[bytes]:
-        self.up(name)
+    async def stream(self, name: str) -> AsyncIterator[bytes]:
+        """A client's MJPEG parts (503 `camera_down` first if the camera gives no frame)."""
+        await self.frame(name)
         return self._feeds[name].frames()
 
     def feed(self, name: str) -> MjpegFeed:

@@ -83,7 +83,7 @@ async def frame_jpg(_: ViewerRole, request: Request, cam: CamName) -> Response:
             responses={**errors(*FRAMES),
                        200: {"content": {f"multipart/x-mixed-replace; boundary={BOUNDARY}": {}}}})
 async def stream(_: ViewerRole, request: Request, cam: CamName) -> StreamingResponse:
-    parts = _hub(request).stream(cam)
+    parts = await _hub(request).stream(cam)
     return StreamingResponse(parts, media_type=f"multipart/x-mixed-replace; boundary={BOUNDARY}",
                              headers={"Cache-Control": "no-store"})
 
