@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 HOST   ?= 127.0.0.1
 PORT   ?= 8000
 
-.PHONY: run test test-run test-loaded test-deps install install-test browser mosquitto stress-ng run-lab bench bench-peers bench-lab fuzz soak lint clean
+.PHONY: run test test-run test-loaded test-deps install install-test browser mosquitto stress-ng run-lab bench bench-peers bench-lab fuzz soak lint check-lerobot clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -124,6 +124,21 @@ fuzz: install-test
 
 soak: install-test
 	$(BIN)/python bench/soak.py --seconds 300
+
+# A dataset recorded by armserver loaded by lerobot's own LeRobotDataset (issue 26): lerobot in
+# its own venv (it brings torch, several GB: not part of `make test`), tools/check_lerobot.py
+# records (a kill -9 mid-episode and a restart included) and compares every frame.
+LEROBOT_VENV ?= .venv-lerobot
+LEROBOT_OUT  ?= /tmp/armserver-check-lerobot
+$(LEROBOT_VENV)/.installed:
+	$(PYTHON) -m venv $(LEROBOT_VENV)
+	$(LEROBOT_VENV)/bin/python -m pip install --quiet lerobot
+	touch $@
+
+check-lerobot: install $(LEROBOT_VENV)/.installed
+	rm -rf $(LEROBOT_OUT)
+	$(BIN)/python tools/check_lerobot.py record $(LEROBOT_OUT)
+	$(LEROBOT_VENV)/bin/python tools/check_lerobot.py load $(LEROBOT_OUT)/recordings/check
 
 lint: install-test
 	$(BIN)/python -m pip install --quiet ruff mypy
