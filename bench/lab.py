@@ -7,9 +7,11 @@ simulated firmware or servo bus, out of the server's process; each arm's link is
 `socket://127.0.0.1:PORT`), then `armserver serve --workers W` over them (W = 1: today's single
 process), and while every arm runs at its poll rate prints:
 
-- server CPU: front and workers together, % of one core, in all and per arm;
-- samples/s per arm, min and mean over the arms (each arm's `seq` over its own sample clock);
-- REST `GET /state` p50/p99 through the front, round robin over the arms, one client; and the
+- server CPU: front and workers together, % of one core, in all and per arm, over `--seconds`
+  with no client asking anything (what the arms cost);
+- samples/s per arm over that window, min and mean over the arms (each arm's `seq` over its
+  own sample clock);
+- then REST `GET /state` p50/p99 through the front, round robin over the arms, one client; the
   same request straight to a worker's Unix socket (the front's own cost is the difference);
 - estop p99 through the front: presses (`POST /estop`, each released after) spread over the arms.
 
@@ -104,8 +106,12 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
     async with httpx.AsyncClient(base_url=url, timeout=10) as c:
         first = await _rates(c, arms)
         cpu0, t0 = _cpu_s(pids), time.monotonic()
+        await asyncio.sleep(seconds)  # the arms alone: their cost, no client's
+        cpu = (_cpu_s(pids) - cpu0) / (time.monotonic() - t0)
+        last = await _rates(c, arms)
         rest: list[float] = []
         k = 0
+        t0 = time.monotonic()
         while time.monotonic() - t0 < seconds:
             arm = arms[k % len(arms)]
             k += 1
@@ -113,8 +119,6 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
             r = await c.get(f"{API}/arms/{arm}/state")
             rest.append(time.perf_counter() - start)
             assert r.status_code == 200, r.text
-        cpu = (_cpu_s(pids) - cpu0) / (time.monotonic() - t0)
-        last = await _rates(c, arms)
         estop: list[float] = []
         for i in range(presses):
             arm = arms[i % len(arms)]
