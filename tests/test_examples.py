@@ -123,7 +123,12 @@ def test_pick_and_place(parallel: dict[str, object]) -> None:
 def test_angler_visit(parallel: dict[str, object]) -> None:
     out = str(parallel["angler_visit"])
     assert "ik_case dx_zero" in out and "ik_case dx_used" in out
-    assert out.count("arrived:") == 4
+    # as the design document (issue 24): the origin is every joint at 0, and dx_used takes
+    # theta3 = -90 deg for x > 0
+    assert "origin: every joint at 0" in out
+    assert "dx_used target ( +90.0,  +30.0,   +0.0) mm" in out
+    assert "theta3 -90 deg (design)" in out
+    assert out.count("origin   arrived:") == 3 and out.count("target   arrived:") == 2
     assert "angler visit done: 2 targets visited" in out
 
 
