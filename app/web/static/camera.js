@@ -9,6 +9,8 @@
 // marker in the picture (the tip's position is taken from the arm's latest sample), four or
 // more times, then Fit.
 
+import { leaseFor } from "./classroom.js";
+
 const API = "/api/v1";
 const TOKEN_KEY = "armserver.token";
 //: How high above the table a click-to-reach puts the tip, m.
@@ -203,11 +205,15 @@ class CameraPanel {
   }
 
   async fit() {
-    try {
-      const cal = await call("POST", `/cameras/${encodeURIComponent(this.cam.name)}/calibration`, { points: this.points });
-      this.toggleCalibration();
-      this.setCalibration(cal);
-    } catch (e) { this.error.textContent = `${e.code ? e.code + ": " : ""}${e.message}`; }
+    // the camera's arm's lease goes with it (api() sends a lease only on /arms/... paths)
+    const lease = leaseFor(`/arms/${encodeURIComponent(this.cam.arm)}/`);
+    const res = await fetch(`${API}/cameras/${encodeURIComponent(this.cam.name)}/calibration`, {
+      method: "POST", body: JSON.stringify({ points: this.points }),
+      headers: { ...authHeaders(), "Content-Type": "application/json", ...(lease ? { "X-Arm-Lease": lease } : {}) } });
+    const data = await res.json().catch(() => null);
+    if (!res.ok) { this.error.textContent = `${data?.code ? data.code + ": " : ""}${data?.detail || res.statusText}`; return; }
+    this.toggleCalibration();
+    this.setCalibration(data);
   }
 
   state() {
