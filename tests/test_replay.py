@@ -77,7 +77,7 @@ async def test_replay_follows_the_frames_tip_path(
               and (smp["motion"]["status"] == "running")]
     q = np.array([smp["positions"] for smp in moving], dtype=float)
     # the part of the motion after the soft start: from where the tip first reaches frame 0
-    path = np.asarray(arm.model.fk(_dense(targets)), dtype=float)
+    path = np.asarray(arm.model.fk(dense(targets)), dtype=float)
     tips = np.asarray(arm.model.fk(q), dtype=float)
     start = np.asarray(arm.model.fk(targets[0]), dtype=float)
     reached = int(np.argmax(np.linalg.norm(tips - start, axis=1) < 0.002))
@@ -88,7 +88,7 @@ async def test_replay_follows_the_frames_tip_path(
     np.testing.assert_allclose(final, targets[-1], atol=8 * 2 * np.pi / 4096)
 
 
-def _dense(targets: np.ndarray, k: int = 10) -> np.ndarray:
+def dense(targets: np.ndarray, k: int = 20) -> np.ndarray:
     """The frames linearly interpolated k times per interval (the executor's own path)."""
     s = np.linspace(0.0, 1.0, k, endpoint=False)
     parts = [a + s[:, None] * (b - a) for a, b in zip(targets[:-1], targets[1:], strict=True)]
@@ -96,7 +96,6 @@ def _dense(targets: np.ndarray, k: int = 10) -> np.ndarray:
 
 
 @pytest.mark.parametrize(("change", "code"), [
-    ("too_fast", "velocity_limit"),
     ("beyond_limit", "joint_limit"),
     ("nan", "invalid_request"),
     ("wrong_width", "invalid_request"),
@@ -159,3 +158,20 @@ async def test_replay_stops_like_any_motion(omx: tuple[FastAPI, httpx.AsyncClien
     if how == "estop":
         assert rec.reason == "emergency stop"
         assert (await c.delete(f"{API}/arms/leader/estop")).status_code == 200
+
+
+async def test_a_step_over_the_speed_limit_is_played_at_the_limit(
+        omx: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """A frame that jumps (a recording's grid jitter, a faster arm) keeps its path and takes
+    as long as the velocity limit times the tracking margin needs; the rest keeps its fps."""
+    app, _ = omx
+    arm = arm_of(app)
+    targets = np.repeat(wave(seconds=1.0)[:1], 30, axis=0)
+    targets[15:, 0] += 1.0  # 1 rad in one frame: 30 rad/s as recorded
+    cap = float(arm.model.vmax[0]) * arm.profile.tracking_margin
+    rec = await arm.replay(targets, FPS)
+    frames = rec.planned_duration
+    assert frames >= 28 / FPS + 1.0 / cap - 1e-6
+    await rec.wait()
+    assert rec.status == "done", (rec.reason, rec.code)
+    np.testing.assert_allclose(rec.final_positions, targets[-1], atol=8 * 2 * np.pi / 4096)

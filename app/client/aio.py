@@ -315,6 +315,13 @@ class AsyncArmClient:
                             tip_offset=None if tip_offset is None else list(tip_offset))
         return await self.send(Requests.start_teleop(req))
 
+    async def replay(self, arm: str, recording: str, episode: int, *,
+                     wait: bool = False) -> s.Motion:
+        """Play a recorded episode's actions back on `arm` (a soft start to the first, then
+        the dataset's fps) as one motion; 202 with it, or its final state if `wait`."""
+        req = s.ReplayRequest(recording=recording, episode=episode, wait=wait)
+        return await self.send(Requests.replay(arm, req))
+
     async def teleop_sessions(self) -> list[s.TeleopSession]:
         """Teleoperation sessions, running then recently ended, with their figures."""
         return await self.send(Requests.teleop_sessions())

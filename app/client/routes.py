@@ -257,6 +257,11 @@ class Requests:
                     arm=req.follower)
 
     @staticmethod
+    def replay(arm: str, req: s.ReplayRequest) -> Call[s.Motion]:
+        return Call("POST", url_path("arms", arm, "replay"), _model(s.Motion), _body(req),
+                    arm=arm, timeout=WAIT_TIMEOUT_S if req.wait else None)
+
+    @staticmethod
     def teleop_sessions() -> Call[list[s.TeleopSession]]:
         return Call("GET", url_path("teleop"), _teleop_sessions, safe=True)
 

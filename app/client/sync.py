@@ -201,6 +201,7 @@ class ArmClient:
     world = blocking(AsyncArmClient.world)
     set_world = blocking(AsyncArmClient.set_world)
     start_teleop = blocking(AsyncArmClient.start_teleop)
+    replay = blocking(AsyncArmClient.replay)
     teleop_sessions = blocking(AsyncArmClient.teleop_sessions)
     stop_teleop = blocking(AsyncArmClient.stop_teleop)
     take_lease = blocking(AsyncArmClient.take_lease)

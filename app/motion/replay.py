@@ -12,11 +12,14 @@ arm's executor (app/motion/executor.py, app/motion/stream.py). Its trajectory ha
    fps`, huggingface/lerobot `src/lerobot/datasets/lerobot_dataset.py`).
 
 Checked before anything moves (the same checks a planned move gets): every target within the
-joint limits (422 `joint_limit`), no frame-to-frame step faster than the velocity limit times
-the tracking margin and the speed override (422 `velocity_limit`), and every body point at
-every control period of the whole trajectory against the keep-out envelope (422
-`keep_out`). Acceleration between frames is not bounded here: a recording is what an arm
-did, and the step speed bound is the one a replay can honour without changing its timing.
+joint limits (422 `joint_limit`) and every body point at every control period of the whole
+trajectory against the keep-out envelope (422 `keep_out`). Speed: a frame-to-frame step that
+would go faster than the velocity limit times the tracking margin and the speed override
+(a recording's grid holds the setpoint last commanded before each frame's time, so one frame
+may carry a little more than a period's motion; a recording of a faster arm) takes as long as
+the limit needs: the path is kept, that step alone is slower than recorded, and the motion's
+`planned_duration` says so. Acceleration between frames is not bounded here: a recording is
+what an arm did.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from app.errors import InvalidRequest, JointLimit, VelocityLimit
+from app.errors import InvalidRequest, JointLimit
 from app.motion.history import Plan
 from app.motion.planner import Planner, State
 from kinematics.trajectory import SampledTrajectory, Samples, time_grid
@@ -78,22 +81,32 @@ class ReplayTrajectory:
         return (t, *self.sample(t))
 
 
-def frames_trajectory(targets: np.ndarray, fps: float) -> SampledTrajectory:
-    """The targets (T, n) at `fps` as a sampled trajectory: velocity and acceleration by
-    finite differences (what the executor's time rate reads after a late tick)."""
-    times = np.arange(len(targets), dtype=np.float64) / fps
+def frames_trajectory(targets: np.ndarray, fps: float, speed: np.ndarray) -> SampledTrajectory:
+    """The targets (T, n) at `fps` as a sampled trajectory, a step that would be faster than
+    `speed` (per joint, rad/s or m/s) lasting as long as `speed` needs; velocity and
+    acceleration by finite differences (what the executor's time rate reads after a late
+    tick)."""
     if len(targets) == 1:
         z = np.zeros_like(targets)
-        return SampledTrajectory(times, targets, z, z.copy())
+        return SampledTrajectory(np.zeros(1), targets, z, z.copy())
+    step = np.max(np.abs(np.diff(targets, axis=0)) / np.maximum(speed, 1e-12), axis=1)
+    times = np.concatenate([[0.0], np.cumsum(np.maximum(step * (1 + 1e-9), 1.0 / fps))])
     qd = np.gradient(targets, times, axis=0)
     qdd = np.gradient(qd, times, axis=0)
     return SampledTrajectory(times, targets, qd, qdd)
 
 
+def step_speed(planner: Planner) -> np.ndarray:
+    """The fastest a replay step may go, per joint: the velocity limit times the tracking
+    margin and the speed override (what the planner plans a joint move under)."""
+    m = planner.model
+    return np.asarray(planner.guard.scaled(m.vmax * m.profile.tracking_margin)[0], dtype=float)
+
+
 def check_targets(planner: Planner, targets: Any, fps: float) -> np.ndarray:
-    """The targets as a (T, n) float array, checked: shape, finite, the frame rate, the joint
-    limits and the frame-to-frame speed (see the module's docstring). 422 otherwise."""
-    model, guard = planner.model, planner.guard
+    """The targets as a (T, n) float array, checked: shape, finite, the frame rate and the
+    joint limits (see the module's docstring). 422 otherwise."""
+    model = planner.model
     if not (np.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):
         raise InvalidRequest(f"replay frame rate {fps!r} is outside {MIN_FPS:g}..{MAX_FPS:g} fps")
     q = np.asarray(targets, dtype=float)
@@ -104,20 +117,10 @@ def check_targets(planner: Planner, targets: Any, fps: float) -> np.ndarray:
     if not np.all(np.isfinite(q)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(q), axis=1))[0])
         raise InvalidRequest(f"replay frame {bad} is not finite: {q[bad].tolist()}")
-    for k, row in enumerate(q):
-        v = model.violations(row)
-        if v:
-            raise JointLimit(f"replay frame {k}: " + "; ".join(v))
-    if len(q) > 1:
-        speed = np.abs(np.diff(q, axis=0)) * fps
-        cap = np.asarray(guard.scaled(model.vmax * model.profile.tracking_margin)[0], float)
-        over = speed > cap * (1 + 1e-9)
-        if np.any(over):
-            k, j = (int(v) for v in np.argwhere(over)[0])
-            raise VelocityLimit(
-                f"replay frames {k} -> {k + 1}: {model.names[j]} moves at {speed[k, j]:.3g}/s, "
-                f"over its velocity limit times the tracking margin and the speed override "
-                f"({cap[j]:.3g}/s); replay at a lower frame rate, or re-record slower")
+    outside = np.any((q < model.lower) | (q > model.upper), axis=1)
+    for k in np.flatnonzero(outside)[:1]:  # the first frame outside, in the model's words
+        v = model.violations(q[k]) or [f"outside the joint limits: {q[k].tolist()}"]
+        raise JointLimit(f"replay frame {int(k)}: " + "; ".join(v))
     return q
 
 
@@ -125,11 +128,11 @@ def replay_planner(planner: Planner, targets: np.ndarray, fps: float
                    ) -> Callable[[State, np.ndarray, Any, bool], Plan]:
     """The executor's planner for a replay of checked `targets` at `fps` (check_targets): from
     a start state (the commanded state when it starts, the queue's end when queued), the
-    soft start to the first frame and then the frames, the whole checked against the
-    envelope at the control period."""
-    frames = frames_trajectory(targets, fps)
-
+    soft start to the first frame and then the frames (timed under the speed override as it
+    is then), the frames checked against the envelope at the control period (the soft start
+    by `Planner.joint`)."""
     def plan(start: State, _goal: np.ndarray, req: Any, at_rest: bool) -> Plan:
+        frames = frames_trajectory(targets, fps, step_speed(planner))  # the override now
         lead = planner.joint(start, targets[0], req, at_rest).traj
         traj = ReplayTrajectory(lead, frames)
         planner.guard.check_trajectory(frames, planner.dt)

@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
-from app.schemas.common import Finite, Int, Model
+from app.schemas.common import Bool, Finite, Int, Model
 
 ArmRef = Annotated[str, Field(min_length=1, max_length=64)]
 
@@ -68,5 +68,8 @@ class TeleopSession(Model):
 
 
 class ReplayRequest(Model):
-    recording: Annotated[str, Field(min_length=1, max_length=128)]
-    episode: Annotated[Int, Field(ge=0)]
+    recording: Annotated[str, Field(min_length=1, max_length=128,
+                                    description="the recording's id (its name)")]
+    episode: Annotated[Int, Field(ge=0, description="the episode's index")]
+    wait: Bool = Field(False, description="answer 200 when the replay ends (an addition to "
+                       "API.md's body, as the move routes have it)")

@@ -53,6 +53,7 @@ from app.web.routes import (
     lease,
     motion,
     recordings,
+    replay,
     safety,
     telemetry,
     teleop,
@@ -172,6 +173,7 @@ def create_app(settings: Settings | None = None,
     app.include_router(homing.router, prefix=API_PREFIX)  # faults and homing (v1.1)
     app.include_router(calibration.router, prefix=API_PREFIX)  # joint calibration (v1.2)
     app.include_router(teleop.router, prefix=API_PREFIX)  # teleoperation (v1.2)
+    app.include_router(replay.router, prefix=API_PREFIX)  # replay of recordings (v1.2)
     app.include_router(world.router, prefix=API_PREFIX)  # simulated world (v1.2)
     _document_websocket_messages(app)
     install_error_handlers(app)
