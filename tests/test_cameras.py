@@ -25,7 +25,7 @@ from _camera_scene import (
     write_folder,
 )
 from _wait import wait_for
-from conftest import make_settings, wait_ready
+from conftest import OPERATOR, VIEWER, make_settings, wait_ready
 from fastapi import FastAPI
 
 from app.arms.loading import load_arms
@@ -39,9 +39,9 @@ API = "/api/v1"
 
 
 @contextlib.asynccontextmanager
-async def serve(cameras: list[CameraConfig], data_dir: str | None = None
+async def serve(cameras: list[CameraConfig], data_dir: str | None = None, **over: Any
                 ) -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
-    settings = make_settings(**({"data_dir": data_dir} if data_dir else {}))
+    settings = make_settings(**({"data_dir": data_dir} if data_dir else {}), **over)
     app = create_app(settings, camera_configs=cameras)
     async with app.router.lifespan_context(app):
         await wait_ready(app)
@@ -216,6 +216,35 @@ async def test_sim_camera_true_homography_recovered_from_noisy_points() -> None:
             near = min(np.hypot(o.position[0] - pos["x"], o.position[1] - pos["y"])
                        for o in svc.world.scene().objects)
             assert near < 0.015  # the objects' tops, seen from above the table plane
+
+
+async def test_calibration_needs_an_operator_and_the_arms_lease(tmp_path: Path) -> None:
+    h = camera_homography()
+    folder = write_folder(tmp_path / "t", [render(scene(0), h)])
+    body = calibration_body(clicked(h))
+    path = f"{API}/cameras/t/calibration"
+    op, viewer = {"Authorization": f"Bearer {OPERATOR}"}, {"Authorization": f"Bearer {VIEWER}"}
+    async with serve([folder_camera("t", folder)], operator_tokens=OPERATOR,
+                     viewer_tokens=VIEWER) as (_, client):
+        assert (await client.post(path, json=body)).status_code == 401
+        r = await client.post(path, json=body, headers=viewer)
+        assert r.status_code == 403 and r.json()["code"] == "forbidden"
+        assert (await client.get(path, headers=viewer)).json()["calibrated"] is False
+        lease = (await client.post(f"{API}/arms/rbe3001/lease", headers=op)).json()["id"]
+        for extra in ({}, {"X-Arm-Lease": "not-the-lease"}):
+            r = await client.post(path, json=body, headers={**op, **extra})
+            assert r.status_code == 409 and r.json()["code"] == "leased"
+        assert (await client.get(path, headers=viewer)).json()["calibrated"] is False
+        r = await client.post(path, json=body, headers={**op, "X-Arm-Lease": lease})
+        assert r.status_code == 200 and r.json()["calibrated"] is True
+        # viewers read frames and detections
+        await wait_for(lambda: hub_of_client_ready(client, viewer))
+        r = await client.get(f"{API}/cameras/t/detections", headers=viewer)
+        assert r.status_code == 200 and all(d["position"] for d in r.json()["detections"])
+
+
+async def hub_of_client_ready(client: httpx.AsyncClient, headers: dict[str, str]) -> bool:
+    return bool((await client.get(f"{API}/cameras/t", headers=headers)).json()["up"])
 
 
 # ---------------------------------------------------------------- frames and stream
