@@ -16,7 +16,7 @@ import cv2
 import httpx
 import numpy as np
 from _camera_scene import MjpegServer, camera_homography, render, scene, write_folder
-from _wait import wait_for
+from _wait import wait_for, wait_until
 from conftest import make_settings, serve_live, wait_ready
 from fastapi import FastAPI
 
@@ -155,9 +155,7 @@ def test_mjpeg_stream_over_http_shared_by_clients(tmp_path: Path) -> None:
                    f'arm = "rbe3001"\nsource = "{folder}"\nfps = 20\n')
     with serve_live(make_settings(config=str(cfg))) as live:
         cam = live.app.state.cameras.get("m")
-        wait_for_sync = time.monotonic() + RECOVER_S
-        while not cam.up and time.monotonic() < wait_for_sync:
-            time.sleep(0.01)
+        wait_until(lambda: cam.up, timeout=RECOVER_S, what="camera m up")
         with ArmClient(live.url) as c:
             def watch(_: int) -> list[bytes]:
                 return c.camera_stream("m", frames=4)
@@ -171,6 +169,8 @@ def test_mjpeg_stream_over_http_shared_by_clients(tmp_path: Path) -> None:
         feed = live.app.state.cameras.feed("m")
         # one encoding per frame produced, whatever the number of clients
         assert cam.encodes <= feed.produced + 2
+        # the clients that left are gone from the feed (their slots with them)
+        wait_until(lambda: feed.clients == 0, what="the stream's clients gone from its feed")
         with httpx.stream("GET", f"{live.url}{API}/cameras/m/stream") as resp:
             assert resp.headers["content-type"] == "multipart/x-mixed-replace; boundary=frame"
             head = next(resp.iter_bytes())

@@ -43,6 +43,7 @@ class MjpegFeed:
         self._new = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._unlisten: Callable[[], None] | None = None
+        self._last: tuple[int, bytes] | None = None
         #: Parts produced (each encoded once) and parts a slow client never took.
         self.produced = 0
         self.dropped = 0
@@ -57,6 +58,8 @@ class MjpegFeed:
     async def frames(self) -> AsyncIterator[bytes]:
         """A client's parts, from now on, until it goes away."""
         slot: asyncio.Queue[bytes] = asyncio.Queue(maxsize=1)
+        if self._last is not None:  # the newest part at once, not at the next frame
+            slot.put_nowait(self._last[1])
         self._slots.add(slot)
         if self._task is None or self._task.done():
             self._unlisten = self.camera.add_listener(self._on_frame)
@@ -81,7 +84,7 @@ class MjpegFeed:
                 await task
 
     async def _run(self) -> None:
-        last = -1
+        last = self._last[0] if self._last is not None else -1
         while self._slots:
             self.camera.demand()
             with contextlib.suppress(TimeoutError):
@@ -92,6 +95,7 @@ class MjpegFeed:
                 continue
             last = got[0]
             data = part(*got)
+            self._last = (last, data)
             self.produced += 1
             for slot in self._slots:
                 if slot.full():
