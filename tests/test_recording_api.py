@@ -9,12 +9,16 @@ import tarfile
 from pathlib import Path
 from typing import Any
 
+import cv2
 import httpx
 import numpy as np
 
+from app.arms.loading import load_arms
+from app.cameras.config import CameraConfig
+from app.web.factory import create_app
 from tests._lerobot import check_dataset
 from tests._wait import wait_for
-from tests.conftest import running_client
+from tests.conftest import make_settings, running_client, wait_ready
 
 API = "/api/v1"
 FPS = 10
@@ -113,3 +117,63 @@ async def test_record_episodes_discard_and_refusals() -> None:
             info = tar.extractfile("demo/meta/info.json")
             assert info is not None
             assert info.read() == (Path(d["path"]) / "meta/info.json").read_bytes()
+
+
+async def test_disk_full_answers_503_and_keeps_the_dataset(tmp_path: Path) -> None:
+    async with running_client() as (_, client):
+        arms = [a["name"] for a in (await client.get(f"{API}/arms")).json()]
+        r = await client.post(f"{API}/recordings", json={"name": "full", "arms": arms[:1],
+                                                          "fps": FPS})
+        root = Path(r.json()["path"])
+        assert (await client.post(f"{API}/recordings/full/episodes")).status_code == 201
+        await _frames_at_least(client, "full", 3)
+        assert (await client.post(f"{API}/recordings/full/episodes/stop")).status_code == 200
+        # the kernel's ENOSPC: the frames' temporary file is /dev/full
+        (root / "data/chunk-000/.file-000.parquet.tmp").symlink_to("/dev/full")
+        assert (await client.post(f"{API}/recordings/full/episodes")).status_code == 201
+        await _frames_at_least(client, "full", 3)
+        r = await client.post(f"{API}/recordings/full/episodes/stop")
+        assert (r.status_code, r.json()["code"]) == (503, "recording_failed"), r.text
+        d = (await client.get(f"{API}/recordings/full")).json()
+        assert d["episodes"] == 1 and d["recording"] is False
+        assert "No space left" in d["last_error"]
+        assert check_dataset(root).info["total_episodes"] == 1
+        # and it records on
+        assert (await client.post(f"{API}/recordings/full/episodes")).status_code == 201
+        await _frames_at_least(client, "full", 3)
+        r = await client.post(f"{API}/recordings/full/episodes/stop")
+        assert r.json()["episodes"] == 2 and r.json()["last_error"] is None
+        check_dataset(root)
+
+
+async def test_a_camera_lost_mid_episode_ends_it_and_keeps_it(tmp_path: Path) -> None:
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for k in range(3):
+        cv2.imwrite(str(folder / f"{k}.png"), np.full((48, 64, 3), 60 * k, np.uint8))
+    settings = make_settings()
+    profiles = load_arms(None)
+    cams = [CameraConfig(name="desk", source=str(folder), arm=profiles[0].name, width=64,
+                         height=48, fps=10.0)]
+    app = create_app(settings, profiles=profiles, camera_configs=cams)
+    async with app.router.lifespan_context(app):
+        await wait_ready(app)
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
+                                     base_url="http://armserver.test", timeout=30) as client:
+            r = await client.post(f"{API}/recordings", json={
+                "name": "cam", "arms": [profiles[0].name], "cameras": ["desk"], "fps": FPS})
+            assert r.status_code == 201, r.text
+            assert (await client.post(f"{API}/recordings/cam/episodes")).status_code == 201
+            await _frames_at_least(client, "cam", 5)
+            for p in folder.iterdir():
+                p.unlink()
+
+            async def ended() -> bool:
+                d = (await client.get(f"{API}/recordings/cam")).json()
+                return not d["recording"] and d["episodes"] == 1
+            await wait_for(ended, timeout=30, what="the episode ended and written")
+            d = (await client.get(f"{API}/recordings/cam")).json()
+            assert "camera desk lost" in d["last_error"], d
+            read = check_dataset(Path(d["path"]))
+            assert read.episodes[0]["length"] >= 5
+    assert app.state.internal_errors == 0

@@ -3,6 +3,7 @@ generated frames and videos, read back by tests/_lerobot.py's independent reader
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 
 import numpy as np
@@ -134,3 +135,23 @@ def test_refuses_a_wrong_shape(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="names"):
         ds.append(EpisodeFrames(np.zeros((3, 2)), np.zeros((3, 2)), "t"))
     assert not (ds.root / "data").exists()
+
+
+def test_disk_full_loses_that_episode_only(tmp_path: Path) -> None:
+    """ENOSPC from the kernel (the frames' temporary file is /dev/full): the episode is not
+    written, the dataset keeps the earlier ones, and the next episode is written after them."""
+    ds = make(tmp_path)
+    ds.append(episode(ds, 10, 1))
+    tmp = ds.root / "data/chunk-000/.file-000.parquet.tmp"
+    tmp.symlink_to("/dev/full")
+    with pytest.raises(OSError) as info:
+        ds.append(episode(ds, 7, 2, "new task"))
+    assert info.value.errno == errno.ENOSPC
+    assert not tmp.is_symlink()  # no half file left
+    read = check_dataset(ds.root)  # the video file was joined before the failure: repaired
+    assert [e["length"] for e in read.episodes] == [10]
+    ds.append(episode(ds, 5, 3))
+    read = check_dataset(ds.root)
+    assert [e["length"] for e in read.episodes] == [10, 5]
+    assert [e["videos/observation.images.cam/file_index"] for e in read.episodes] == [0, 1]
+    assert Dataset.open(ds.root).episodes()[1].length == 5

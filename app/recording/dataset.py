@@ -136,6 +136,7 @@ class Dataset:
         if info.get("codebase_version") != L.CODEBASE_VERSION:
             raise ValueError(f"{root}: not a LeRobot {L.CODEBASE_VERSION} dataset")
         ds = cls(root, info)
+        shutil.rmtree(root / L.PARTIAL_DIR, ignore_errors=True)
         ds._repair()
         return ds
 
@@ -175,7 +176,7 @@ class Dataset:
 
     def _repair(self) -> None:
         """Make the files agree with the episodes table (see the module doc)."""
-        shutil.rmtree(self.root / L.PARTIAL_DIR, ignore_errors=True)
+        self.tasks = self._read_tasks()
         if self.rows:
             last = self.rows[-1]
             path = self._data_file(last["data/chunk_index"], last["data/file_index"])
@@ -194,7 +195,8 @@ class Dataset:
             if vpath.exists() and _duration(vpath) > last_row[f"videos/{key}/to_timestamp"] + 1e-6:
                 self._roll.add(key)
         n = len(self.rows)
-        if self.info["total_episodes"] != n or self.info["total_frames"] != self.total_frames:
+        if self.info["total_episodes"] != n or self.info["total_frames"] != self.total_frames \
+                or self.info["total_tasks"] != len(self.tasks):
             log.warning("%s: the metadata said %s episodes, the episodes table %s: rewritten",
                         self.root, self.info["total_episodes"], n)
             self._write_stats()
@@ -217,7 +219,18 @@ class Dataset:
 
     def append(self, ep: EpisodeFrames) -> EpisodeInfo:
         """Write one finished episode (blocking: run it in a worker thread). An OSError
-        (ENOSPC) leaves the dataset as it was: every file is replaced whole or not at all."""
+        (ENOSPC) leaves the dataset as it was: every file is replaced whole or not at all, and
+        what was written of this episode before the failure is set right as `open` would."""
+        try:
+            return self._append(ep)
+        except OSError:
+            try:
+                self._repair()
+            except OSError as exc:  # still failing: `open` repairs it next time
+                log.warning("%s: cannot repair after a failed write now: %s", self.root, exc)
+            raise
+
+    def _append(self, ep: EpisodeFrames) -> EpisodeInfo:
         n = len(ep.states)
         if n == 0:
             raise ValueError("an episode needs at least one frame")

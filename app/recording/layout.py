@@ -87,11 +87,15 @@ def write_atomic(path: Path, data: bytes) -> None:
     """`data` as `path`: temporary file, fsync, rename, fsync of the folder."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    replace_synced(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        replace_synced(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a disk full leaves no half file behind
+        raise
 
 
 def replace_synced(tmp: Path, path: Path) -> None:

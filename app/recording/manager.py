@@ -54,6 +54,13 @@ class Recording:
     last_error: str | None = None
     writing: bool = False
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    #: Episodes and frames written, as of the last finished write (the dataset's own lists
+    #: grow during a write, in a worker thread).
+    episodes: int = 0
+    frames: int = 0
+
+    def written(self) -> None:
+        self.episodes, self.frames = len(self.dataset.rows), self.dataset.total_frames
 
     @property
     def id(self) -> str:
@@ -89,7 +96,9 @@ class Recordings:
                 continue
             try:
                 config = RecordingConfig(**json.loads(cfg.read_text()))
-                self._all[sub.name] = Recording(config, Dataset.open(sub))
+                rec = Recording(config, Dataset.open(sub))
+                rec.written()
+                self._all[sub.name] = rec
             except (OSError, ValueError, TypeError, KeyError) as exc:
                 log.warning("recordings: %s cannot be opened: %s", sub, exc)
 
@@ -180,11 +189,13 @@ class Recordings:
         return rec
 
     async def _ended(self, rec: Recording, why: str) -> None:
+        """An episode that ended on its own: written up to there, `why` kept (a failed write
+        keeps its own reason instead)."""
+        rec.last_error = why
         try:
             await self.stop(rec.id)
         except Exception as exc:  # noqa: BLE001 - kept as the dataset's error
             log.warning("recording %s: the ended episode was not written: %s", rec.id, exc)
-        rec.last_error = why
 
     async def stop(self, rid: str) -> EpisodeInfo:
         """End the current episode and write it."""
@@ -209,6 +220,7 @@ class Recordings:
                                           f"({exc}); the dataset keeps its "
                                           f"{len(rec.dataset.rows)} earlier episodes") from exc
                 finally:
+                    rec.written()
                     for p in frames.videos.values():
                         _unlink(p)
             finally:
@@ -239,13 +251,13 @@ class Recordings:
         out: dict[str, Any] = {
             "id": rec.id, "name": rec.config.name, "arms": rec.config.arms,
             "cameras": rec.config.cameras, "fps": ds.fps, "task": rec.config.task,
-            "episodes": len(ds.rows), "frames": ds.total_frames, "path": str(ds.root),
+            "episodes": rec.episodes, "frames": rec.frames, "path": str(ds.root),
             "recording": rec.recorder is not None, "last_error": rec.last_error,
         }
         if detail:
             out["current"] = None if rec.recorder is None else rec.recorder.describe()
             out["names"] = ds.names
-            out["episode_list"] = [asdict(e) for e in ds.episodes()]
+            out["episode_list"] = [asdict(e) for e in ds.episodes()[:rec.episodes]]
         return out
 
 
