@@ -1,29 +1,55 @@
 """The server's teleoperation sessions: started, listed and stopped here (the routes call
-this), each run on its follower's control loop (app/teleop/session.py)."""
+this), each run on its follower's control loop (app/teleop/session.py).
+
+A session runs under the lease it was started with: a watcher on this (the HTTP) loop asks
+the lease manager every LEASE_CHECK_S whether that lease would still be let through on the
+follower, and stops the session when another client's lease (or the classroom's hand-off)
+holds the arm now."""
 
 from __future__ import annotations
 
+import asyncio
 import itertools
+import logging
 import uuid
 from collections import OrderedDict
+from dataclasses import dataclass
 
 from app import schemas as s
-from app.errors import Busy, InvalidRequest, NotFound, NotSupported
+from app.classroom.lease import LeaseManager
+from app.errors import Busy, InvalidRequest, Leased, NotFound, NotSupported
 from app.runtime.control_thread import on_home
+from app.runtime.tasks import cancel_and_wait
 from app.service import ArmService
 from app.teleop.mapping import Mapping, joint_map, tip_map
 from app.teleop.session import TeleopSession
 
+log = logging.getLogger(__name__)
+
 #: Ended sessions kept for GET (with their figures and why they ended).
 KEEP_ENDED = 16
+#: How often the watcher asks whether each session's lease still holds its follower, s.
+LEASE_CHECK_S = 0.25
+
+
+@dataclass(frozen=True)
+class LeaseRef:
+    """The lease a session was started under: its id (None: none was held) and whether the
+    classroom's hand-off gate applies (everyone but an instructor)."""
+
+    lease_id: str | None
+    gated: bool
 
 
 class TeleopSessions:
     """Every session of one server, by id; running and the last KEEP_ENDED ended ones."""
 
-    def __init__(self) -> None:
+    def __init__(self, leases: LeaseManager) -> None:
         self._sessions: OrderedDict[str, TeleopSession] = OrderedDict()
         self._ids = itertools.count(1)
+        self._leases = leases
+        self._held: dict[str, LeaseRef] = {}
+        self._watcher: asyncio.Task[None] | None = None
 
     def list(self) -> list[s.TeleopSession]:
         return [t.describe() for t in list(self._sessions.values())]
@@ -34,9 +60,9 @@ class TeleopSessions:
             raise NotFound(f"no teleoperation session {sid!r} (GET /api/v1/teleop lists them)")
         return t
 
-    async def start(self, req: s.TeleopStart, leader: ArmService,
-                    follower: ArmService) -> TeleopSession:
-        """Check and start a session (the caller checked the follower's lease). 422 for a
+    async def start(self, req: s.TeleopStart, leader: ArmService, follower: ArmService,
+                    lease: LeaseRef) -> TeleopSession:
+        """Check and start a session (the caller checked the follower's `lease`). 422 for a
         leader that is the follower or a mapping that does not fit the arms; 409 `busy` for
         a follower another session drives; 409 `not_supported` for a leader that is not
         simulated (turning a servo leader's torque off is not built yet); the follower's own
@@ -60,8 +86,27 @@ class TeleopSessions:
                                 req.deadman_s)
         await on_home(follower.home_loop, session.start)
         self._sessions[sid] = session
+        self._held[sid] = lease
         self._forget_ended()
+        if self._watcher is None or self._watcher.done():
+            self._watcher = asyncio.create_task(self._watch(), name="teleop:leases")
         return session
+
+    async def _watch(self) -> None:
+        """Stop each session whose follower another lease holds now; ends with the last."""
+        while True:
+            running = [t for t in self._sessions.values() if t.status == "running"]
+            if not running:
+                return
+            for t in running:
+                ref = self._held.get(t.id, LeaseRef(None, True))
+                try:
+                    await self._leases.check(t.follower.name, ref.lease_id, ref.gated)
+                except Leased:
+                    await self.stop(t.id, "the follower's lease is another client's now")
+                except Exception:  # a bug here must not leave sessions unwatched silently
+                    log.exception("teleop %s: lease check failed", t.id)
+            await asyncio.sleep(LEASE_CHECK_S)
 
     @staticmethod
     def _mapping(req: s.TeleopStart, leader: ArmService, follower: ArmService) -> Mapping:
@@ -78,6 +123,7 @@ class TeleopSessions:
 
     async def close(self) -> None:
         """Stop every running session (server shutdown), each follower holding."""
+        await cancel_and_wait(self._watcher)
         for t in list(self._sessions.values()):
             await self.stop(t.id, "server shutting down")
 
@@ -85,3 +131,4 @@ class TeleopSessions:
         ended = [k for k, t in self._sessions.items() if t.status != "running"]
         for k in ended[:max(0, len(ended) - KEEP_ENDED)]:
             del self._sessions[k]
+            self._held.pop(k, None)

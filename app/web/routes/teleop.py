@@ -10,7 +10,7 @@ from fastapi import APIRouter, Header, Path, Request, status
 
 from app import schemas as s
 from app.classroom.lease import LeaseManager
-from app.teleop.sessions import TeleopSessions
+from app.teleop.sessions import LeaseRef, TeleopSessions
 from app.web.deps import (
     CallerDep,
     OperatorCaller,
@@ -32,7 +32,7 @@ def sessions_of(request: Request) -> TeleopSessions:
     """The server's sessions (made with the app's state on first use)."""
     found: TeleopSessions | None = getattr(request.app.state, "teleop", None)
     if found is None:
-        found = request.app.state.teleop = TeleopSessions()
+        found = request.app.state.teleop = TeleopSessions(request.app.state.leases)
     return found
 
 
@@ -51,7 +51,7 @@ def sessions_of(request: Request) -> TeleopSessions:
     "token and the follower's lease (X-Arm-Lease). 404 `unknown_arm`; 422 when the leader "
     "is the follower or the mapping does not fit; 409 `busy` when the follower already "
     "follows; 409 `not_supported` for a real (not simulated) leader: turning its torque off "
-    "is not built yet.",
+    "is not built yet. The session ends when another client's lease holds the follower.",
     responses=errors(*DEVICE),
 )
 async def start_teleop(request: Request, req: s.TeleopStart, services: ServicesDep,
@@ -62,8 +62,10 @@ async def start_teleop(request: Request, req: s.TeleopStart, services: ServicesD
     leader = lookup_arm(services, req.leader)
     follower = lookup_arm(services, req.follower)
     leases: LeaseManager = request.app.state.leases
-    await leases.check(follower.name, x_arm_lease, gated=who.role < Role.INSTRUCTOR)
-    session = await sessions_of(request).start(req, leader, follower)
+    gated = who.role < Role.INSTRUCTOR
+    await leases.check(follower.name, x_arm_lease, gated=gated)
+    session = await sessions_of(request).start(req, leader, follower,
+                                               LeaseRef(x_arm_lease, gated))
     return session.describe()
 
 
