@@ -137,7 +137,9 @@ class ArmService:
                   for j in self.profile.joints]
         return s.ArmDetail(**self.summary().model_dump(), joints=joints,
                            geometry=dict(self.profile.geometry), estop=self.estop,
-                           poll_hz=self.profile.link.poll_hz,
+                           # the rate polled: a Dynamixel bus too slow for the profile's
+                           # polls at what it carries (app/arms/dynamixel/bus_rate.py)
+                           poll_hz=self.driver.profile.link.poll_hz,
                            faults=[s.Fault(**f) for f in self.driver.faults],
                            homed=list(self.driver.homed),
                            calibrated=list(self.driver.calibrated),

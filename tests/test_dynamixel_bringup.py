@@ -1,16 +1,25 @@
 """Issue 24's day-one items on the simulated hardware: the inverse-velocity route (design
 document section 4.2) checked against finite differences of the forward kinematics, and its
-422 near a singularity; stale queue entries dropped at start."""
+422 near a singularity; stale queue entries dropped at start; a bus at 57,600 bps polled at
+the rate it carries; a link at the wrong baud rate saying where the servos answer."""
 
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
+from _wait import wait_for
 
+from app.arms.dynamixel.bus_rate import poll_bytes, poll_cost_s, poll_rate
+from app.arms.dynamixel.sim_bus import DynamixelBus
+from app.arms.loading import load_profile
+from app.config import ArmProfile
+from app.sim.servers import serve_pty
+from app.web.factory import create_app
 from tests.conftest import make_settings, running_client
 
 API = "/api/v1"
@@ -105,3 +114,67 @@ async def test_queue_entries_of_names_no_token_has_are_dropped_at_start(
         r = await c.post(f"{API}/arms/{arm}/move/joints", json={"positions": here, "wait": True})
         assert r.status_code == 200, r.text
         assert r.json()["status"] == "done"
+
+
+# ------------------------------------------------------------------ the bus's rate (item 3)
+
+
+def _angler_at(baudrate: int, **link: object) -> ArmProfile:
+    p = load_profile("angler")
+    return p.model_copy(update={"link": p.link.model_copy(
+        update={"baudrate": baudrate, "homed_at_start": True, **link})})
+
+
+def test_poll_cost_at_57600_is_the_issue_figure() -> None:
+    # 4 servos: 18 bytes out, 4 x 25 back; 10 bits a byte; the e-manual's 500 us return delay
+    assert poll_bytes(4) == 118
+    assert poll_cost_s(4, 57_600, None) == pytest.approx(118 * 10 / 57_600 + 4 * 500e-6)
+    assert 0.020 < poll_cost_s(4, 57_600, 0.0) < 0.021  # "about 20 ms" (issue 24)
+    hz, warning = poll_rate(200.0, 4, 57_600, 0.0)
+    assert hz == 39.0 and warning is not None and "39 Hz" in warning
+    assert poll_rate(200.0, 4, 1_000_000, 0.0) == (200.0, None)  # 1 Mbps carries 200 Hz
+
+
+async def test_a_bus_at_57600_polls_at_the_rate_it_carries(
+        caplog: pytest.LogCaptureFixture) -> None:
+    profile = _angler_at(57_600)
+    expected, _ = poll_rate(profile.link.poll_hz, 4, 57_600, profile.link.return_delay_us)
+    with caplog.at_level(logging.WARNING, logger="app.arms.dynamixel.servos"):
+        async with running_client(profiles=[profile]) as (app, c):
+            svc = app.state.services["angler"]
+            await wait_for(lambda: svc.driver.profile.link.poll_hz == expected,
+                           what="the bus's poll rate")
+            detail = (await c.get(f"{API}/arms/angler")).json()
+            assert detail["poll_hz"] == expected == 39.0
+            polls0, t0 = svc.driver.stats["polls"], time.monotonic()
+            await wait_for(lambda: time.monotonic() - t0 >= 1.0, what="a second of polls")
+            rate = (svc.driver.stats["polls"] - polls0) / (time.monotonic() - t0)
+            # generous: a loaded two-core machine may fall behind, never run ahead
+            assert 0.5 * expected <= rate <= 1.1 * expected, rate
+    assert any("polling at 39 Hz, not the profile's 200 Hz" in r.getMessage()
+               for r in caplog.records)
+
+
+async def test_a_mismatched_baud_rate_says_what_answers(tmp_path: Path) -> None:
+    """Servos set up but left at 57,600 on a pty: the link at 1 Mbps hears nothing, scans the
+    other rates and says where they answer (the arm's detail and log)."""
+    bus = DynamixelBus(ids=(1, 2, 3, 4), baudrate=1_000_000, operating_modes={1: 4, 2: 4, 4: 4})
+    for s in bus.servos:
+        s.set("baud_rate", 1)  # 57,600
+    path = tmp_path / "ttyDXL"
+    server = await serve_pty(bus, path)
+    profile = _angler_at(1_000_000, kind="serial", address=str(path))
+    app = create_app(make_settings(), profiles=[profile])  # never ready: no wait_ready
+    try:
+        async with app.router.lifespan_context(app), httpx.AsyncClient(
+                transport=httpx.ASGITransport(app=app), base_url="http://armserver.test") as c:
+            svc = app.state.services["angler"]
+            await wait_for(lambda: "servos answer at" in (svc.driver.link.last_error or ""),
+                           what="the scan's finding")
+            detail = (await c.get(f"{API}/arms/angler")).json()
+            assert ("no servo answers at the profile's 1,000,000 bps; servos answer at 57,600 "
+                    "bps (ID 1, 2, 3, 4): run armserver setup-servos, or set link.baudrate = "
+                    "57600") in detail["link"]["last_error"], detail["link"]
+            assert detail["link"]["state"] != "up"
+    finally:
+        await server.close()

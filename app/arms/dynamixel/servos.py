@@ -29,6 +29,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from app.arms.dynamixel.bus_rate import OTHER_RATES, found_message, poll_rate
 from app.arms.dynamixel.exchange import DxlRequest, DynamixelBusDriver, check_len
 from app.arms.dynamixel.faults import decode_faults, fault_advice
 from app.config import JointConfig
@@ -170,8 +171,53 @@ class DynamixelChainDriver(DynamixelBusDriver):
         return min(raw, velocity_limit) if velocity_limit > 0 else int(raw)
 
     async def _on_connected(self) -> None:
-        for i in self.servo_ids:
-            await self._setup_servo(i)
+        try:
+            for i in self.servo_ids:
+                await self._setup_servo(i)
+        except DeviceTimeout:
+            await self._why_silent()
+            raise
+        self._follow_the_bus()
+
+    def _follow_the_bus(self) -> None:
+        """Poll no faster than the bus carries (bus_rate.py): at a low baud rate the driver's
+        copy of the profile takes the rate that fits, and the log names it."""
+        link = self.profile.link
+        hz, warning = poll_rate(link.poll_hz, len(self.servo_ids), link.baudrate,
+                                link.return_delay_us)
+        if warning is None:
+            return
+        log.warning("%s: %s", self.name, warning)
+        self.profile = self.profile.model_copy(
+            update={"link": link.model_copy(update={"poll_hz": hz})})
+
+    async def _why_silent(self) -> None:
+        """The first servo did not answer its set-up: if no servo answers a broadcast PING at
+        the profile's rate, try the other standard rates (a serial port whose rate can be
+        set) and raise what was found (the arm's detail shows it as the link's last error)."""
+        ping = DxlRequest(dxl.ping(dxl.BROADCAST_ID), (), True, "broadcast PING")
+        if await self._exchange(ping, self.timeout):
+            return  # some servo answers here: the set-up error stands as it is
+        rate = self.profile.link.baudrate
+        found: dict[int, list[int]] = {}
+        settable = hasattr(self.link, "baudrate") and not str(self.link.address).startswith(
+            ("socket://", "loop://"))
+        if settable:
+            try:
+                for other in (r for r in OTHER_RATES if r != rate):
+                    await self._reopen_at(other)
+                    got = await self._exchange(ping, self.timeout)
+                    if got:
+                        found[other] = sorted({p.id for p in got})
+            finally:
+                await self._reopen_at(rate)
+        raise DeviceTimeout(f"{self.name}: {found_message(found, rate)}")
+
+    async def _reopen_at(self, baudrate: int) -> None:
+        await self.link.close()
+        self.link.baudrate = baudrate  # type: ignore[attr-defined]
+        await self.link.open()
+        self._reset_reader()
 
     async def _setup_servo(self, i: int) -> None:
         """Operating mode from the profile, Profile Velocity from the joint's velocity limit
