@@ -79,8 +79,10 @@ def register_client_commands(subparsers: Any) -> None:
     if importlib.util.find_spec("app.client.cli") is None:
         return
     from app.client.cli import register_client_commands as register
+    from app.client.record_cli import add_record
 
     register(subparsers)
+    add_record(subparsers)
 
 
 def _settings(args: argparse.Namespace) -> Any:
