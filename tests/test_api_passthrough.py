@@ -64,7 +64,8 @@ async def test_rbe3001_set_pid_moves_within_limits(
 async def test_rbe3001_gain_and_claw(app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
     app, client = app_and_client
     r = await client.post(f"{RB}/set-gain", json={"axis": 1, "kp": 0.01, "ki": 0.0, "kd": 0.001})
-    assert r.status_code == 200 and r.json() == {"ok": True, "command": "SET_GAIN"}
+    assert r.status_code == 200 and r.json() == {"ok": True, "command": "SET_GAIN",
+                                                  "reply": "acknowledged"}
     r = await client.post(f"{RB}/set-claw", json={"value": 0.3})
     assert r.status_code == 200 and r.json()["command"] == "SET_CLAW"
     assert app.state.services["rbe3001"].driver.gripper == 0.3
