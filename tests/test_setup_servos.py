@@ -6,6 +6,7 @@ refusals reported with a non-zero exit and nothing written."""
 from __future__ import annotations
 
 import asyncio
+import math
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -172,5 +173,64 @@ def test_pty_baud_mismatch_is_silence(tmp_path: Path) -> None:
                 assert bool(port.read(14)) is answers, rate
             finally:
                 port.close()
+    finally:
+        served.close()
+
+
+async def test_factory_servos_to_a_first_move(tmp_path: Path) -> None:
+    """The day-one path: four factory servos set up one at a time by setup-servos, then the
+    angler served on that bus (a serial link, as hardware): not homed, theta3 not calibrated,
+    a move refused; homed and calibrated by declaring the pose; then it moves."""
+    import httpx
+    from _wait import wait_for
+
+    from app.arms.loading import load_profile
+    from app.web.factory import create_app
+    from tests.conftest import make_settings, wait_ready
+
+    served = Served(DynamixelBus.factory(1), tmp_path / "ttyDXL")
+    try:
+        bus = served.bus
+        for k, joint in enumerate(ANGLER):
+            if k:
+                served.call(bus.add_servo)  # the next servo, alone with the ones set up
+            assert await asyncio.to_thread(setup, served.url, joint) == 0
+        assert state(bus) == sorted((i, 1_000_000, 4) for i in ANGLER.values())
+        # the arm as assembled to the design's MATLAB, theta3 at -30 deg: its servo reads
+        # 4096 - 341 ticks at power-up (extended position mode restarts within one turn)
+        served.call(lambda: setattr(bus.servo(3), "pos", 4096.0 - 341.0))
+        p = load_profile("angler")
+        profile = p.model_copy(update={"link": p.link.model_copy(
+            update={"kind": "serial", "address": served.url})})
+        app = create_app(make_settings(), profiles=[profile])
+        async with app.router.lifespan_context(app), httpx.AsyncClient(
+                transport=httpx.ASGITransport(app=app), base_url="http://armserver.test",
+                timeout=30.0) as c:
+            await wait_ready(app)
+            api = "/api/v1/arms/angler"
+            detail = (await c.get(api)).json()
+            assert detail["homed"] == [False] * 4
+            assert detail["calibrated"] == [True, True, False, True]  # theta3's horn
+            q = app.state.services["angler"].driver.positions
+            assert float(q[2]) == pytest.approx((4096 - 341) / 4096 * 2 * math.pi, abs=1e-3)
+            r = await c.post(f"{api}/move/joints", json={"positions": [0.0, 0.0, 0.0, 0.05]})
+            assert r.status_code == 409 and r.json()["code"] in ("not_homed", "not_calibrated")
+            home = [0.0, 0.0, -0.5236, 0.05]  # where the arm is (measured by the student)
+            r = await c.post(f"{api}/home", json={"positions": home})
+            assert r.status_code == 200, r.text
+            r = await c.post(f"{api}/calibration", json={"positions": home})
+            assert r.status_code == 200, r.text
+            detail = (await c.get(api)).json()
+            assert detail["homed"] == [True] * 4 and detail["calibrated"] == [True] * 4
+            goal = [0.005, -0.005, 0.3, 0.06]
+            r = await c.post(f"{api}/move/joints", json={"positions": goal, "wait": True})
+            assert r.status_code == 200 and r.json()["status"] == "done", r.text
+            svc = app.state.services["angler"]
+            await wait_for(lambda: abs(float(svc.driver.positions[2]) - 0.3) < 0.01,
+                           what="theta3 at 0.3 rad")
+            # theta3 at 0.3 rad is 0.3 / (2 pi) * 4096 ticks from where it was declared 0
+            s3 = served.call(lambda: bus.servo(3))
+            assert s3.get("goal_position") - round(s3.get("present_position")) in range(-8, 9)
+        assert app.state.internal_errors == 0
     finally:
         served.close()
