@@ -1,0 +1,49 @@
+"""End to end: the dashboard's recording bar (app/web/static/recording.js) in headless Chromium
+against a real server on the simulated arms: Record starts an episode, the bar shows its
+length, Stop writes it and the episode count goes up."""
+
+from __future__ import annotations
+
+import re
+
+import _deps
+import httpx
+import pytest
+from _wait import wait_until
+from conftest import serve_live
+
+pytestmark = pytest.mark.browser
+
+CHROMIUM = _deps.CHROMIUM
+CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update"]
+if CHROMIUM is None:
+    pytest.skip(_deps.missing_message("chromium") + "; the dashboard test needs it",
+                allow_module_level=True)
+sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing")
+
+
+def test_record_and_stop_from_the_bar() -> None:
+    with serve_live() as live, sync_api.sync_playwright() as pw:
+        r = httpx.post(f"{live.url}/api/v1/recordings",
+                       json={"name": "bar", "arms": ["rbe3001"], "fps": 10})
+        assert r.status_code == 201, r.text
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        page = browser.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(live.url + "/")
+
+        def status() -> str:
+            return str(page.locator("#recording-status").text_content() or "")
+        wait_until(lambda: status() == "0 episodes", what="the bar with the dataset")
+        page.click("#recording-record")
+        wait_until(lambda: re.search(r"recording (\d+\.\d) s", status()) and
+                   float(re.search(r"recording (\d+\.\d) s", status()).group(1)) >= 0.5,
+                   what="the episode's length shown")
+        assert page.locator("#recording-record").text_content() == "■ Stop"
+        page.click("#recording-record")
+        wait_until(lambda: status() == "1 episode", what="the episode written")
+        assert httpx.get(f"{live.url}/api/v1/recordings/bar").json()["episodes"] == 1
+        assert errors == []
+        browser.close()
