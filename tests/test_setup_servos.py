@@ -234,3 +234,40 @@ async def test_factory_servos_to_a_first_move(tmp_path: Path) -> None:
         assert app.state.internal_errors == 0
     finally:
         served.close()
+
+
+def test_readme_commands(tmp_path: Path) -> None:
+    """README "From unboxed servos to a first move": the simulator in the factory state and
+    setup-servos as the commands are written there (`armserver ...`, as subprocesses)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from _wait import wait_until
+
+    pty = tmp_path / "ttyDXL"
+    arm = [sys.executable, "-m", "app.cli"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    sim = subprocess.Popen([*arm, "sim", "dynamixel", "--factory", "1", "--pty", str(pty)],
+                           stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        wait_until(lambda: pty.is_symlink(), what="the simulator's pty")
+        scan = subprocess.run([*arm, "setup-servos", "--port", str(pty), "--profile", "angler"],
+                              capture_output=True, text=True, timeout=60, env=env)
+        assert scan.returncode == 0, scan.stderr
+        assert "found ID 1 at 57,600 bps" in scan.stdout and "[factory state]" in scan.stdout
+        x = subprocess.run([*arm, "setup-servos", "--port", str(pty), "--profile", "angler",
+                            "--joint", "x"], capture_output=True, text=True, timeout=60, env=env)
+        assert x.returncode == 0, x.stderr
+        assert "joint x: set up and verified: ID 2 at 1,000,000 bps" in x.stdout
+        again = subprocess.run([*arm, "setup-servos", "--port", str(pty), "--profile", "angler",
+                                "--joint", "y"], capture_output=True, text=True, timeout=60,
+                               env=env)
+        assert again.returncode == EXIT_NONE  # the only servo is x's now
+        assert "no servo to set up: only ID 2 (x), already set up" in again.stderr
+    finally:
+        sim.send_signal(signal.SIGTERM)
+        sim.wait(10)
+    assert "dynamixel bus of 1 factory servo(s) (ID 1, 57,600 bps)" in (sim.stdout.read()
+                                                                          if sim.stdout else "")
