@@ -6,6 +6,7 @@ unknown arms, the rate's bounds, a follower already following)."""
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -151,10 +152,9 @@ async def test_estop_on_either_arm_ends_the_session(
     assert s["reason"] == f"emergency stop on {which}"
     assert s["achieved_hz"] == 0.0
     await held_still(lambda: follower.positions, TOL)
-    # a new session on a latched follower is refused
-    if which == "follower":
-        r = await c.post(f"{API}/teleop", json=START)
-        assert r.status_code == 409 and r.json()["code"] == "estop_latched", r.text
+    # a new session with either arm latched is refused
+    r = await c.post(f"{API}/teleop", json=START)
+    assert r.status_code == 409 and r.json()["code"] == "estop_latched", r.text
     assert (await c.delete(f"{API}/arms/{which}/estop")).status_code == 200
 
 
@@ -235,8 +235,12 @@ async def test_refusals(pair: tuple[FastAPI, httpx.AsyncClient]) -> None:
     r = await c.delete(f"{API}/teleop/t99-00000000")
     assert r.status_code == 404 and r.json()["code"] == "not_found", r.text
     assert (await c.get(f"{API}/teleop")).json() == []
-    # one session per follower
-    t = await start(c)
+    # one session per follower, even for two requests at once
+    both = await asyncio.gather(c.post(f"{API}/teleop", json=START),
+                                c.post(f"{API}/teleop", json=START))
+    assert sorted(r.status_code for r in both) == [201, 409], [r.text for r in both]
+    t = next(r.json() for r in both if r.status_code == 201)
+    assert next(r.json() for r in both if r.status_code == 409)["code"] == "busy"
     await refused(START, 409, "busy")
     assert (await c.delete(f"{API}/teleop/{t['id']}")).status_code == 200
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from app import schemas as s
 from app.classroom.lease import LeaseManager
-from app.errors import Busy, InvalidRequest, Leased, NotFound, NotSupported
+from app.errors import Busy, EstopLatched, InvalidRequest, Leased, NotFound, NotSupported
 from app.runtime.control_thread import on_home
 from app.runtime.tasks import cancel_and_wait
 from app.service import ArmService
@@ -50,6 +50,8 @@ class TeleopSessions:
         self._leases = leases
         self._held: dict[str, LeaseRef] = {}
         self._watcher: asyncio.Task[None] | None = None
+        #: One start at a time: two requests for one follower must not both pass the check.
+        self._starting = asyncio.Lock()
 
     def list(self) -> list[s.TeleopSession]:
         return [t.describe() for t in list(self._sessions.values())]
@@ -67,6 +69,11 @@ class TeleopSessions:
         a follower another session drives; 409 `not_supported` for a leader that is not
         simulated (turning a servo leader's torque off is not built yet); the follower's own
         refusals (estop, shutdown) as they are."""
+        async with self._starting:
+            return await self._start(req, leader, follower, lease)
+
+    async def _start(self, req: s.TeleopStart, leader: ArmService, follower: ArmService,
+                     lease: LeaseRef) -> TeleopSession:
         if leader is follower:
             raise InvalidRequest(f"the leader and the follower are both {leader.name}: an arm "
                                  "cannot follow itself")
@@ -80,6 +87,9 @@ class TeleopSessions:
                 "and turning their torque off from a teleoperation session is not built yet "
                 "(a simulated leader is moved by its own commands)")
         follower.require_motion_allowed()
+        if leader.estop:  # the session would end at its first tick
+            raise EstopLatched(f"{leader.name}'s emergency stop is latched: a leader under "
+                               f"estop drives nothing (DELETE /api/v1/arms/{leader.name}/estop)")
         mapping = self._mapping(req, leader, follower)
         sid = f"t{next(self._ids)}-{uuid.uuid4().hex[:8]}"
         session = TeleopSession(sid, leader, follower, req.rate_hz, req.mapping, mapping,
