@@ -64,6 +64,8 @@ class Driver(OwnerTask, abc.ABC):
         self.link = link
         self.hub = hub
         self.model = model_for(profile)
+        # tip, tip velocity and tip force at the readers' rate, batched (app/telemetry/hub.py)
+        hub.derive_with(lambda: self.model)
         self.timeout = profile.link.timeout_s
         self._queue: asyncio.Queue[_Request] = asyncio.Queue(maxsize=profile.link.queue_size)
         self._task: asyncio.Task[None] | None = None

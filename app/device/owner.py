@@ -3,7 +3,8 @@
 
 Requests from `Driver.submit` wait in a bounded queue; the owner task opens the link (capped
 exponential backoff), serves requests one at a time, polls at the profile's rate between them
-and publishes each sample (tip, tip velocity and tip force reused while readings repeat).
+and publishes each sample (tip, tip velocity and tip force reused while readings repeat, or,
+with a deriving hub, computed at the sample's first read: app/telemetry/hub.py).
 """
 
 from __future__ import annotations
@@ -305,11 +306,15 @@ class OwnerTask:
         positions = q.tolist()
         velocities = qd.tolist()
         torques = None if tau is None else tau.tolist()
+        lazy = self.hub.deriver is not None
         # An arm at rest reads the same values poll after poll: its tip, tip velocity and tip
         # force are then those of the last sample, not worth a forward kinematics, a Jacobian
-        # and a solve again (most of a sample's cost; the encoded bytes are the same).
+        # and a solve again (most of a sample's cost; the encoded bytes are the same). With a
+        # deriving hub they wait for the sample's first reader, batched (app/telemetry/hub.py).
         key = (positions, velocities, torques)
-        if key == self._derived_key and self._derived is not None:
+        if lazy:
+            tip = tip_v = force = None
+        elif key == self._derived_key and self._derived is not None:
             tip, tip_v, force = self._derived
         else:
             m = self.model
@@ -338,7 +343,12 @@ class OwnerTask:
             "homed": list(self.homed),
             "calibrated": list(self.calibrated),
         }
-        self.hub.publish(sample)  # the arm's hub adds the estop, motion, fault and homing fields
+        # the arm's hub adds the estop, motion, fault and homing fields
+        if lazy:
+            self.hub.publish(sample, (np.array(q, dtype=float), np.array(qd, dtype=float),
+                                      None if tau is None else np.array(tau, dtype=float)))
+        else:
+            self.hub.publish(sample)
 
     def publish_state(self) -> None:
         """Publish the latest reading again, at once, with the arm's state as it is now: for a

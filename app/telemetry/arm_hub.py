@@ -23,6 +23,6 @@ class ArmHub(TelemetryHub):
         super().__init__(arm, backlog)
         self._stamp = stamp
 
-    def publish(self, sample: dict[str, Any]) -> None:
+    def publish(self, sample: dict[str, Any], inputs: Any = None) -> None:
         self._stamp(sample)
-        super().publish(sample)
+        super().publish(sample, inputs)

@@ -15,6 +15,15 @@ their own bounded backlog per subscriber and are never batched away.
 Threads: `publish` and `event` may be called from another thread than the subscribers'
 (the control thread); the log is guarded by a lock held only for a few list operations, and a
 subscriber waiting in `wait()` is woken on its own loop.
+
+Derived fields at the readers' rate (issue 27). A publisher that gives `inputs` (the sample's
+joint readings) and a hub with a `deriver` (`derive_with(model)`: app/telemetry/derive.py)
+publishes the sample without its tip, tip velocity and tip force: they are computed, and the
+sample encoded, when it is first read (a subscriber's take, `latest`, `GET /state`), for every
+sample not yet read in one vectorised call, outside the lock. A sample nobody reads (no
+subscriber, a log entry that ages out) costs no kinematics at all; one read costs the same
+bytes as before. While a listener (`add_listener`: an estop's wait for its sample) is there,
+each sample is derived as it is published, so a listener sees whole samples.
 """
 
 from __future__ import annotations
@@ -38,6 +47,21 @@ EVENT_BACKLOG = 256
 MESSAGE_CACHE = 8
 
 _OPTIONS = orjson.OPT_SERIALIZE_NUMPY
+
+#: Fills the derived fields of (sample, readings) pairs in place (app/telemetry/derive.py).
+Deriver = Callable[[list[tuple[dict[str, Any], Any]]], None]
+
+
+class _Lazy:
+    """A published sample whose derived fields and encoding wait for its first reader."""
+
+    __slots__ = ("data", "encoded", "inputs", "sample")
+
+    def __init__(self, sample: dict[str, Any], inputs: Any) -> None:
+        self.sample = sample
+        self.inputs = inputs
+        self.encoded: str | None = None
+        self.data: bytes | None = None
 
 
 def dumps_bytes(obj: Any) -> bytes:
@@ -159,11 +183,16 @@ class TelemetryHub:
         self._listeners: list[Callable[[dict[str, Any]], None]] = []
         #: The shared log: encoded samples and their publish times (monotonic), oldest first;
         #: entry i of the deques is sample number `published - len(_log) + i`.
-        self._log: deque[str] = deque(maxlen=backlog)
+        self._log: deque[str | _Lazy] = deque(maxlen=backlog)
         self._stamps: deque[float] = deque(maxlen=backlog)
         self._cache: dict[tuple[int, int, int], str] = {}
         #: (sample dict, encoded str, encoded bytes) of the latest sample, replaced as a whole.
-        self._latest: tuple[dict[str, Any], str, bytes] | None = None
+        self._latest: tuple[dict[str, Any], str, bytes] | _Lazy | None = None
+        #: Computes published samples' derived fields at their first read (None: the
+        #: publisher gives whole samples). `derive_with` sets it.
+        self.deriver: Deriver | None = None
+        #: Lazy samples in the log not yet read, oldest first (bounded like the log).
+        self._unread: deque[_Lazy] = deque(maxlen=backlog)
         self.published = 0
         #: Samples subscribers have lost to their backlog bound, all of them together (what
         #: their `dropped` fields told them): 0 means every subscriber got every sample.
@@ -194,20 +223,59 @@ class TelemetryHub:
 
     # ---------------------------------------------------------------- latest sample
 
+    def derive_with(self, model: Callable[[], Any]) -> None:
+        """Publish samples with `inputs` lazily: their tip, tip velocity and tip force from
+        `model()` (the arm's `KinematicsModel` as it is then) at their first read (module
+        doc)."""
+        from app.telemetry.derive import Derivation
+
+        self.deriver = Derivation(model)
+
+    def _ready(self, entries: list[_Lazy]) -> None:
+        """Derive and encode the entries not done yet, in one batch. Outside the lock: two
+        readers racing on the same entries compute the same values twice, harmlessly."""
+        todo = [e for e in entries if e.encoded is None]
+        if not todo:
+            return
+        if self.deriver is not None:
+            self.deriver([(e.sample, e.inputs) for e in todo])
+        for e in todo:
+            data = orjson.dumps(e.sample, option=_OPTIONS)
+            e.data = data
+            e.encoded = data.decode()
+            e.inputs = None
+
+    def _ready_unread(self) -> None:
+        """Derive every sample in the log not read yet (before a take, outside the lock)."""
+        if not self._unread:
+            return
+        with self._lock:
+            entries = list(self._unread)
+            self._unread.clear()
+        self._ready(entries)
+
+    def _snapshot(self) -> tuple[dict[str, Any], str, bytes] | None:
+        snap = self._latest
+        if snap is None or isinstance(snap, tuple):
+            return snap
+        self._ready([snap])
+        assert snap.encoded is not None and snap.data is not None
+        return snap.sample, snap.encoded, snap.data
+
     @property
     def latest(self) -> dict[str, Any] | None:
-        snap = self._latest
+        snap = self._snapshot()
         return None if snap is None else snap[0]
 
     @property
     def latest_json(self) -> str | None:
-        snap = self._latest
+        snap = self._snapshot()
         return None if snap is None else snap[1]
 
     @property
     def latest_bytes(self) -> bytes | None:
         """The latest sample as encoded JSON bytes, ready for an HTTP body."""
-        snap = self._latest
+        snap = self._snapshot()
         return None if snap is None else snap[2]
 
     # ---------------------------------------------------------------- subscribers
@@ -218,11 +286,16 @@ class TelemetryHub:
 
     def subscribe(self, backlog: int | None = None) -> Subscription:
         backlog = backlog or self.backlog
+        self._snapshot()  # the latest sample derived before the lock is taken
         with self._lock:
             if backlog > (self._log.maxlen or 0):  # the shared log holds the longest backlog
                 self._log = deque(self._log, maxlen=backlog)
                 self._stamps = deque(self._stamps, maxlen=backlog)
-            sub = Subscription(self, backlog, self.published, self.latest_json)
+                self._unread = deque(self._unread, maxlen=backlog)
+            snap = self._latest
+            initial = (snap.encoded if isinstance(snap, _Lazy) else
+                       None if snap is None else snap[1])
+            sub = Subscription(self, backlog, self.published, initial)
             self._subs.add(sub)
         return sub
 
@@ -273,8 +346,24 @@ class TelemetryHub:
 
     # ---------------------------------------------------------------- publishing
 
-    def publish(self, sample: dict[str, Any]) -> None:
-        """Publish one sample (a dict in the `Sample` schema's shape). Never blocks."""
+    def publish(self, sample: dict[str, Any], inputs: Any = None) -> None:
+        """Publish one sample (a dict in the `Sample` schema's shape). Never blocks. With
+        `inputs` (its joint readings) and a `deriver`, its derived fields wait for its first
+        reader (module doc)."""
+        if inputs is not None and self.deriver is not None:
+            lazy = _Lazy(sample, inputs)
+            with self._lock:
+                self._latest = lazy
+                self._log.append(lazy)
+                if self._subs:  # a new subscriber starts after it: with none, none reads it
+                    self._unread.append(lazy)
+                self._stamps.append(time.monotonic())
+                self.published += 1
+                waiting = list(self._waiting) if self._waiting else None
+            if self._listeners:  # they see whole samples (rare: an estop's wait, a test's)
+                self._ready([lazy])
+            self._after_publish(sample, waiting)
+            return
         data = orjson.dumps(sample, option=_OPTIONS)
         encoded = data.decode()
         with self._lock:
@@ -283,6 +372,9 @@ class TelemetryHub:
             self._stamps.append(time.monotonic())
             self.published += 1
             waiting = list(self._waiting) if self._waiting else None
+        self._after_publish(sample, waiting)
+
+    def _after_publish(self, sample: dict[str, Any], waiting: list[Subscription] | None) -> None:
         for fn in list(self._listeners):
             fn(sample)
         if waiting:
@@ -308,6 +400,7 @@ class TelemetryHub:
     def _take(self, sub: Subscription, until: float | None) -> tuple[list[str], int]:
         """The encoded samples for `sub` since its cursor (published before `until`), and how
         many it lost to its backlog bound; advances its cursor."""
+        self._ready_unread()
         with self._lock:
             return self._take_locked(sub, until)
 
@@ -339,19 +432,25 @@ class TelemetryHub:
     def _slice_locked(self, first: int, end: int) -> list[str]:
         log = self._log
         start = first - (self.published - len(log))
-        return [log[i] for i in range(start, start + end - first)]
+        out = [log[i] for i in range(start, start + end - first)]
+        late = [e for e in out if isinstance(e, _Lazy) and e.encoded is None]
+        if late:  # published after `_ready_unread` (rare): derived here, under the lock
+            self._ready(late)
+        return [e if isinstance(e, str) else e.encoded for e in out]  # type: ignore[misc]
 
     def _take_locked(self, sub: Subscription, until: float | None) -> tuple[list[str], int]:
         first, end, lost = self._range_locked(sub, self._end_locked(until))
         return self._slice_locked(first, end), lost
 
     def _message(self, sub: Subscription, until: float | None) -> str | None:
+        self._ready_unread()
         with self._lock:
             return self._message_locked(sub, self._end_locked(until))
 
     def messages(self, subs: list[Subscription], until: float | None) -> list[str | None]:
         """`take_message(until)` for each of `subs`, under one acquisition of the lock (the
         broadcast fan-out: subscribers at the same cursor get the same str object)."""
+        self._ready_unread()
         with self._lock:
             end = self._end_locked(until)  # the same for every one of them
             return [self._message_locked(sub, end) for sub in subs]
