@@ -101,6 +101,22 @@ async def test_folder_removed_and_put_back(tmp_path: Path) -> None:
                                 lambda: away.rename(folder), "imgs")
 
 
+async def test_a_stream_ends_when_its_camera_goes_down(tmp_path: Path) -> None:
+    folder = write_folder(tmp_path / "imgs", [render(scene(0), camera_homography())])
+    cam = CameraConfig(name="f", source=str(folder), arm="rbe3001", fps=20)
+    async with serve([cam]) as (app, client):
+        await until(client, "f", True)
+        feed = app.state.cameras.feed("f")
+        parts = 0
+        async for _ in feed.frames():
+            parts += 1
+            if parts == 2:
+                folder.rename(tmp_path / "away")
+        assert parts >= 2 and feed.clients == 0
+        r = await client.get(f"{API}/cameras/f/stream")
+        assert r.status_code == 503 and r.json()["code"] == "camera_down"
+
+
 async def test_folder_emptied_and_filled(tmp_path: Path) -> None:
     img = render(scene(0), camera_homography())
     folder = write_folder(tmp_path / "imgs", [img])

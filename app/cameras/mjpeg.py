@@ -56,7 +56,8 @@ class MjpegFeed:
         self._loop.call_soon_threadsafe(self._new.set)
 
     async def frames(self) -> AsyncIterator[bytes]:
-        """A client's parts, from now on, until it goes away."""
+        """A client's parts, from now on, until it goes away or the camera goes down (the
+        response ends; asked again, the route answers 503 `camera_down` with the reason)."""
         slot: asyncio.Queue[bytes] = asyncio.Queue(maxsize=1)
         if self._last is not None:  # the newest part at once, not at the next frame
             slot.put_nowait(self._last[1])
@@ -67,7 +68,13 @@ class MjpegFeed:
         self._new.set()  # the latest frame at once
         try:
             while True:
-                yield await slot.get()
+                try:
+                    data = await asyncio.wait_for(slot.get(), DEMAND_EVERY_S)
+                except TimeoutError:
+                    if not self.camera.up:
+                        return
+                    continue
+                yield data
         finally:
             self._slots.discard(slot)
             if not self._slots:
