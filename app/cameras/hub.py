@@ -27,6 +27,7 @@ from app.cameras.sources import CaptureSource, FolderSource, RenderSource, Sourc
 from app.errors import Busy, CameraDown, InvalidRequest, NotFound
 from app.service import ArmService
 from app.sim.camera import SimView, render
+from app.store import StoreError
 
 __all__ = ["CALIBRATION_KEY", "CameraHub", "Store", "scope"]
 
@@ -225,7 +226,11 @@ class CameraHub:
         cal = fit(uv, xyz)
         self.calibrations[name] = cal
         if self._store is not None:
-            await self._store.put_setting(scope(name), CALIBRATION_KEY, cal.as_dict())
+            try:  # a store that cannot take it now keeps it and retries (app/store.py)
+                await self._store.put_setting(scope(name), CALIBRATION_KEY, cal.as_dict())
+            except StoreError as exc:
+                log.warning("camera %s: calibration not stored (in use until a restart): %s",
+                            name, exc)
         log.info("camera %s: calibrated from %d points, rms %.2f px", name, cal.points,
                  cal.rms_px)
         return cal
