@@ -136,6 +136,14 @@ def test_refusals_exit_non_zero_with_a_reason(tmp_path: Path,
         served.call(bus.add_servo)
         assert setup(served.url, "x") == EXIT_SEVERAL
         assert state(bus) == [(1, 57_600, 3), (1, 57_600, 3), (1, 1_000_000, 3)]
+        # a profile that gives joint x the ID of joint y: refused before anything is written
+        twin = tmp_path / "twin.toml"
+        text = (Path(__file__).parent.parent / "app/arms/angler/angler.toml").read_text()
+        twin.write_text(text.replace("motor_id = 2 ", "motor_id = 1 ", 1))
+        capsys.readouterr()
+        assert main(["setup-servos", "--port", served.url, "--profile", str(twin),
+                     "--joint", "x", "--baudrates", "57600,1000000"]) == 5
+        assert "ID 1 is in use by joint y" in capsys.readouterr().err
         # torque on (a servo holding a load): EEPROM untouched
         served.call(lambda: bus.remove_servo(bus.servos[-1]))
         served.call(lambda: bus.servos[-1].set("torque_enable", 1))

@@ -238,6 +238,11 @@ def wanted(profile: ArmProfile, name: str) -> dict[str, int]:
     k, j = _joint(profile, name)
     if j.motor_id is None:
         raise SetupError(f"joint {name} has no motor_id in profile {profile.name}", EXIT_REFUSED)
+    shared = [o.name for o in profile.joints if o.name != name and o.motor_id == j.motor_id]
+    if shared:
+        raise SetupError(f"ID {j.motor_id} is in use by joint {shared[0]} in profile "
+                         f"{profile.name}: two servos on one ID would collide; give joint "
+                         f"{name} its own motor_id", EXIT_REFUSED)
     codes = [c for c, r in BAUD_RATES.items() if r == profile.link.baudrate]
     if not codes:
         raise SetupError(f"profile {profile.name}: link.baudrate {profile.link.baudrate} is "
@@ -275,10 +280,11 @@ def others_in_place(profile: ArmProfile, joint: str, found: list[Found]) -> dict
 def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 0.1,
                  rates: Iterable[int] = SCAN_ORDER, say: Callable[[str], None] = print,
                  opener: Callable[..., Any] | None = None) -> Found:
-    """Find the one servo on the bus that is not another joint's, give it `joint`'s ID, baud
-    rate, operating mode and limits (EEPROM, torque off) and verify them. SetupError with
-    the reason and exit code when there is no such servo, several, a collision, a servo with
-    torque on, an ID in use, or a value that does not read back."""
+    """Find the one servo on the bus that is not another joint's (its ID at the profile's
+    rate: never touched), give it `joint`'s ID, baud rate, operating mode and limits (EEPROM,
+    torque off) and verify them. SetupError with the reason and exit code when there is no
+    such servo, several (two on the joint's ID among them), a collision (two on one ID at one
+    rate), a servo with torque on, or a value that does not read back."""
     want = wanted(profile, joint)
     bus = Bus(url, timeout=timeout, opener=opener)
     try:
@@ -300,13 +306,9 @@ def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 
             listed = "; ".join(f.describe() for f in todo)
             raise SetupError(f"{len(todo)} servos to set up ({listed}): connect only the one "
                              f"for joint {joint}", EXIT_SEVERAL)
+        # Another servo on the joint's ID at the profile's rate would be a second candidate
+        # (refused above as several); another joint's servo is never a candidate.
         servo = todo[0]
-        clash = [f for f in result.found if f is not servo and f.id == want["id"]
-                 and f.baudrate == profile.link.baudrate]
-        if clash:
-            owner = placed.get(want["id"], "another servo")
-            raise SetupError(f"ID {want['id']} is in use at {profile.link.baudrate:,} bps by "
-                             f"{owner}: two servos on one ID would collide", EXIT_REFUSED)
         if servo.torque:
             raise SetupError(f"servo ID {servo.id} has torque on: EEPROM items are written "
                              "only with torque off; power-cycle it (torque is off at power-up)",
