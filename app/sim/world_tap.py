@@ -11,7 +11,8 @@ What it reads is each simulator's own state, the same numbers the device would r
   into 0..1 as its driver does (finger travel from ``[gripper]``, e-manual: 4096 ticks a turn).
 
 It runs where the device runs (the control thread, inside the link's write and read): one
-reading and one deque append per period, nothing else.
+reading per period, and a deque append when it differs from the last (an arm at rest adds
+nothing), nothing else.
 """
 
 from __future__ import annotations
@@ -68,6 +69,7 @@ class WorldTap:
         self.packetized = device.packetized
         self._read = read
         self._next = float("-inf")
+        self._last: Reading | None = None
 
     def receive(self, data: bytes, now: float) -> list[tuple[float, bytes]]:
         out = self.device.receive(data, now)
@@ -83,7 +85,8 @@ class WorldTap:
             return
         self._next = now + TAP_PERIOD_S
         reading = self._read()
-        if reading is not None:
+        if reading is not None and reading != self._last:  # at rest: nothing to replay
+            self._last = reading
             self.world.observe(*reading)
 
 
