@@ -5,6 +5,7 @@ the rate it carries; a link at the wrong baud rate saying where the servos answe
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 from pathlib import Path
@@ -147,7 +148,7 @@ async def test_a_bus_at_57600_polls_at_the_rate_it_carries(
             detail = (await c.get(f"{API}/arms/angler")).json()
             assert detail["poll_hz"] == expected == 39.0
             polls0, t0 = svc.driver.stats["polls"], time.monotonic()
-            await wait_for(lambda: time.monotonic() - t0 >= 1.0, what="a second of polls")
+            await asyncio.sleep(1.0)  # a rate over a window: this sleep is the measurement
             rate = (svc.driver.stats["polls"] - polls0) / (time.monotonic() - t0)
             # generous: a loaded two-core machine may fall behind, never run ahead
             assert 0.5 * expected <= rate <= 1.1 * expected, rate
