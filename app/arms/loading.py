@@ -20,8 +20,9 @@ __all__ = ["MAX_COPIES", "TOP_LEVEL_KEYS", "ServerConfig", "check_profile", "loa
            "load_profile"]
 
 #: The top-level tables and keys a server config file may have; anything else is refused at
-#: start with its name. `cameras` is read by app/cameras/config.py (`load_cameras`).
-TOP_LEVEL_KEYS = frozenset({"arms", "cameras"})
+#: start with its name. `cameras` is read by app/cameras/config.py (`load_cameras`), `teleop`
+#: by app/teleop/config.py (`load_teleop`).
+TOP_LEVEL_KEYS = frozenset({"arms", "cameras", "teleop"})
 
 #: Most copies one `[[arms]]` entry may ask for (`count`).
 MAX_COPIES = 256
@@ -68,6 +69,7 @@ def check_profile(data: object, where: str = "profile") -> ArmProfile:
         raise ConfigError(f"{where}: model: {exc}") from None
     try:
         kind.validate(profile)
+        profile.check_calibration_poses()
     except ValueError as exc:
         raise ConfigError(f"{where}: {exc}") from None
     return profile

@@ -21,6 +21,7 @@ from app.errors import Busy, EstopLatched, InvalidRequest, Leased, NotFound, Not
 from app.runtime.control_thread import on_home
 from app.runtime.tasks import cancel_and_wait
 from app.service import ArmService
+from app.teleop.config import TeleopPair, with_pair
 from app.teleop.mapping import Mapping, joint_map, tip_map
 from app.teleop.session import TeleopSession
 
@@ -44,7 +45,9 @@ class LeaseRef:
 class TeleopSessions:
     """Every session of one server, by id; running and the last KEEP_ENDED ended ones."""
 
-    def __init__(self, leases: LeaseManager) -> None:
+    def __init__(self, leases: LeaseManager, pairs: list[TeleopPair] | None = None) -> None:
+        #: The config's per-pair defaults (`[[teleop]]`, app/teleop/config.py).
+        self._pairs = list(pairs or [])
         self._sessions: OrderedDict[str, TeleopSession] = OrderedDict()
         self._ids = itertools.count(1)
         self._leases = leases
@@ -70,7 +73,7 @@ class TeleopSessions:
         simulated (turning a servo leader's torque off is not built yet); the follower's own
         refusals (estop, shutdown) as they are."""
         async with self._starting:
-            return await self._start(req, leader, follower, lease)
+            return await self._start(with_pair(req, self._pairs), leader, follower, lease)
 
     async def _start(self, req: s.TeleopStart, leader: ArmService, follower: ArmService,
                      lease: LeaseRef) -> TeleopSession:

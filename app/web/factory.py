@@ -38,6 +38,7 @@ from app.runtime.gc_policy import Collector, moving
 from app.service import ArmService
 from app.store import Store
 from app.telemetry.mqtt import start_mqtt_bridge
+from app.teleop.config import load_teleop
 from app.web.error_responses import install_error_handlers
 from app.web.hostguard import HostOriginGuard, HostPolicy
 from app.web.middleware import API_PREFIX, BodyLimit, InternalErrors, TokenGate
@@ -77,6 +78,8 @@ def create_app(settings: Settings | None = None,
     profiles = profiles if profiles is not None else load_arms(settings.config)
     if camera_configs is None:
         camera_configs = load_cameras(settings.config if config_profiles else None, profiles)
+    # teleoperation's per-pair defaults ([[teleop]], app/teleop/config.py), checked at start
+    teleop_pairs = load_teleop(settings.config if config_profiles else None, profiles)
     install_log_redaction()
 
     @asynccontextmanager
@@ -159,6 +162,7 @@ def create_app(settings: Settings | None = None,
         lifespan=lifespan,
     )
     app.state.settings = settings
+    app.state.teleop_pairs = teleop_pairs
     app.state.access = Access(settings)
     app.state.services = {}
     app.state.internal_errors = 0

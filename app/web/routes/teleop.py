@@ -32,7 +32,8 @@ def sessions_of(request: Request) -> TeleopSessions:
     """The server's sessions (made with the app's state on first use)."""
     found: TeleopSessions | None = getattr(request.app.state, "teleop", None)
     if found is None:
-        found = request.app.state.teleop = TeleopSessions(request.app.state.leases)
+        found = request.app.state.teleop = TeleopSessions(
+            request.app.state.leases, getattr(request.app.state, "teleop_pairs", []))
     return found
 
 
