@@ -1,12 +1,22 @@
 """What one arm's sample costs the server (issue 27): CPU per sample and per arm at its poll rate.
 
-    python bench/sample_cost.py [--model rbe3001] [--seconds 10] [--profile 25]
+    python bench/sample_cost.py [--model rbe3001] [--seconds 10] [--moving] [--subscribe HZ]
+                                [--eager] [--profile 25]
 
 Serves the arm type's simulated hardware with `armserver sim MODEL --listen tcp://...` in
 another process, and in this one runs the arm as the server does (`ArmService` over a
 `socket://` serial link, on a plain asyncio loop like the control thread's), with nobody
 subscribed. Prints the samples it published, this process's CPU time per sample (µs) and per
 arm at the poll rate (% of a core; the issue's goal: 3 %, 60 µs a sample at 500 Hz).
+`--moving`: the arm moves back and forth all along (joint moves between a quarter and three
+quarters of each joint's range), so no two readings repeat; `--subscribe HZ`: one subscriber
+takes every sample, in messages at HZ (a dashboard); `--eager`: the tip, tip velocity and tip
+force computed at every poll as before issue 27 (the hub's deriver off), for a before/after
+ratio from one run.
+`--publish-only` measures instead, for each arm type, the publishing step alone (the driver's
+`_publish` of 2000 distinct readings, a moving arm's, on a simulated link; CPU time, so less
+sensitive to a loaded machine): eager as before issue 27, lazy with no reader, and lazy with a
+reader taking every 10 samples (a 50 Hz client of a 500 Hz arm).
 `--profile N` runs the window under cProfile and prints the N costliest functions (cProfile
 slows what it measures: read its shares, not its times).
 
@@ -27,6 +37,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from app.arms.loading import load_profile  # noqa: E402
@@ -42,20 +54,53 @@ def _port() -> int:
         return int(s.getsockname()[1])
 
 
-async def run(model: str, port: int, seconds: float, prof: cProfile.Profile | None) -> None:
+async def _move(svc: ArmService) -> None:
+    from app import schemas as s
+
+    lo, hi = svc.model.lower, svc.model.upper
+    targets = [lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo)]
+    k = 0
+    while True:
+        await svc.move_joints(s.MoveJoints(positions=targets[k % 2].tolist(), speed=0.5,
+                                           wait=True))
+        k += 1
+
+
+async def _read(svc: ArmService, hz: float) -> None:
+    sub = svc.hub.subscribe()
+    try:
+        while True:
+            await asyncio.sleep(1.0 / hz)
+            sub.take_message()
+    finally:
+        sub.close()
+
+
+async def run(model: str, port: int, seconds: float, prof: cProfile.Profile | None,
+              moving: bool, subscribe: float, eager: bool) -> None:
     base = load_profile(model).model_dump()
     base["link"].update(kind="serial", address=f"socket://127.0.0.1:{port}")
+    for joint in base["joints"]:  # the simulator powers on at its known zero: no calibration
+        if "zero_known" in joint:
+            joint["zero_known"] = True
     from app.arms.loading import check_profile
 
     profile = homed_at_start(check_profile(base))
     svc = ArmService(profile)
+    if eager:
+        svc.hub.deriver = None
     await svc.start()
+    tasks: list[asyncio.Task[None]] = []
     try:
         deadline = time.monotonic() + 30
         while svc.hub.published < 100:  # noqa: ASYNC110 - a bench, polling its own arm
             if time.monotonic() > deadline:
                 raise RuntimeError("the arm did not come up")
             await asyncio.sleep(0.05)
+        if moving:
+            tasks.append(asyncio.create_task(_move(svc)))
+        if subscribe:
+            tasks.append(asyncio.create_task(_read(svc, subscribe)))
         await asyncio.sleep(1.0)  # past the set-up
         n0, c0, t0 = svc.hub.published, os.times(), time.monotonic()
         if prof is not None:
@@ -68,13 +113,52 @@ async def run(model: str, port: int, seconds: float, prof: cProfile.Profile | No
         user, system = c1.user - c0.user, c1.system - c0.system
         cpu = user + system
     finally:
+        for t in tasks:
+            t.cancel()
+        for r in await asyncio.gather(*tasks, return_exceptions=True):
+            if isinstance(r, Exception):
+                print(f"(the arm's task failed: {r!r})")
         await svc.close()
     rate = n / wall
     per = cpu / n
-    print(f"{model}: {n} samples in {wall:.1f} s ({rate:.0f}/s, poll_hz "
+    how = ", ".join(w for w, on in (("moving", moving), (f"a reader at {subscribe:g} Hz",
+                                                          bool(subscribe)),
+                                     ("eager (before issue 27)", eager)) if on) or "at rest"
+    print(f"{model} ({how}): {n} samples in {wall:.1f} s ({rate:.0f}/s, poll_hz "
           f"{profile.link.poll_hz:.0f}); CPU {1e6 * per:.0f} µs a sample, "
           f"({1e6 * user / n:.0f} user, {1e6 * system / n:.0f} system), "
           f"{100 * cpu / wall:.1f} % of a core for this arm")
+
+
+async def publish_only() -> None:
+    for name in ("rbe3001", "angler", "openmanipulator_x"):
+        figures = []
+        for mode in ("eager", "unread", "read"):
+            svc = ArmService(homed_at_start(load_profile(name)))
+            if mode == "eager":
+                svc.hub.deriver = None
+            await svc.start()
+            try:
+                while svc.hub.published < 5:  # noqa: ASYNC110 - a bench, polling its own arm
+                    await asyncio.sleep(0.01)
+                drv = svc.driver
+                q0 = (svc.model.lower + svc.model.upper) / 2
+                qd = np.full(svc.model.n, 0.1)
+                tau = None if drv.torques_raw is None else np.full(svc.model.n, 0.05)
+                sub = svc.hub.subscribe() if mode == "read" else None
+                n = 2000
+                c0 = time.process_time()
+                for i in range(n):
+                    drv._publish(q0 + 1e-5 * i, qd, tau, False)
+                    if sub is not None and i % 10 == 9:
+                        sub.take_message()
+                figures.append(1e6 * (time.process_time() - c0) / n)
+                if sub is not None:
+                    sub.close()
+            finally:
+                await svc.close()
+        print(f"{name}: publishing a moving arm's sample: eager {figures[0]:.0f} µs, lazy and "
+              f"unread {figures[1]:.0f} µs, lazy read in tens {figures[2]:.0f} µs")
 
 
 def main() -> int:
@@ -82,7 +166,14 @@ def main() -> int:
     p.add_argument("--model", default="rbe3001")
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--profile", type=int, default=0, metavar="N")
+    p.add_argument("--moving", action="store_true")
+    p.add_argument("--subscribe", type=float, default=0.0, metavar="HZ")
+    p.add_argument("--eager", action="store_true")
+    p.add_argument("--publish-only", action="store_true")
     args = p.parse_args()
+    if args.publish_only:
+        asyncio.run(publish_only())
+        return 0
     port = _port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
     sim = subprocess.Popen([sys.executable, "-m", "app.cli", "sim", args.model, "--listen",
@@ -91,7 +182,8 @@ def main() -> int:
     try:
         time.sleep(1.0)  # the simulator listens (the link retries with backoff if not yet)
         prof = cProfile.Profile() if args.profile else None
-        asyncio.run(run(args.model, port, args.seconds, prof))
+        asyncio.run(run(args.model, port, args.seconds, prof, args.moving, args.subscribe,
+                        args.eager))
         if prof is not None:
             pstats.Stats(prof).sort_stats("tottime").print_stats(args.profile)
     finally:

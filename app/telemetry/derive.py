@@ -46,10 +46,6 @@ def _jacobians(model: Kinematics, q: np.ndarray) -> np.ndarray:
     return np.stack([np.asarray(model.jacobian(q[i]), dtype=float) for i in range(k)])
 
 
-def _vec(v: np.ndarray) -> dict[str, float]:
-    return {"x": float(v[0]), "y": float(v[1]), "z": float(v[2])}
-
-
 def tip_forces(J: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """(k, m) tip forces (N, and N m about a wrist's pitch axis) from (k, m, n) Jacobians and
     (k, n) joint torques; NaN rows where the singularity rule refuses one."""
@@ -103,24 +99,31 @@ def derive(model: Kinematics, items: list[tuple[dict[str, Any], Readings]]) -> N
     A stale sample (velocities zero) gets them like any other, as before."""
     if not items:
         return
-    q = np.stack([r[0] for _, r in items]).astype(float, copy=False)
-    qd = np.stack([r[1] for _, r in items]).astype(float, copy=False)
-    tips = np.asarray(model.fk(q), dtype=float).reshape(len(items), 3)
+    k = len(items)
+    q = np.array([r[0] for _, r in items], dtype=float)
+    qd = np.array([r[1] for _, r in items], dtype=float)
+    tips = np.asarray(model.fk(q), dtype=float).reshape(k, 3).tolist()
     pitch = model.pitch(q)
+    pitches = None if pitch is None else np.asarray(pitch, dtype=float).reshape(k).tolist()
     J = _jacobians(model, q)
-    v = np.einsum("kmn,kn->km", J, qd)
+    v = np.einsum("kmn,kn->km", J, qd)[:, :3].tolist()
+    forces: list[list[float] | None] = [None] * k
     sensed = [i for i, (_, r) in enumerate(items) if r[2] is not None]
-    forces: dict[int, np.ndarray] = {}
     if sensed:
-        tau = np.stack([items[i][1][2] for i in sensed]).astype(float, copy=False)  # type: ignore[misc]
+        tau = np.array([items[i][1][2] for i in sensed], dtype=float)
         f = tip_forces(J[sensed], tau)
-        forces = {i: f[j] for j, i in enumerate(sensed)}
-    pitches = None if pitch is None else np.asarray(pitch, dtype=float).reshape(len(items))
+        finite = np.all(np.isfinite(f), axis=1).tolist()
+        rows = f[:, :3].tolist()
+        for j, i in enumerate(sensed):
+            if finite[j]:
+                forces[i] = rows[j]
     for i, (sample, _) in enumerate(items):
-        tip = _vec(tips[i])
+        x, y, z = tips[i]
+        tip = {"x": x, "y": y, "z": z}
         if pitches is not None:
-            tip["pitch"] = float(pitches[i])
+            tip["pitch"] = pitches[i]
         sample["tip"] = tip
-        sample["tip_velocity"] = _vec(v[i])
-        f_i = forces.get(i)
-        sample["tip_force"] = _vec(f_i) if f_i is not None and np.all(np.isfinite(f_i)) else None
+        vx, vy, vz = v[i]
+        sample["tip_velocity"] = {"x": vx, "y": vy, "z": vz}
+        f_i = forces[i]
+        sample["tip_force"] = None if f_i is None else {"x": f_i[0], "y": f_i[1], "z": f_i[2]}
