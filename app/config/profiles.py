@@ -285,10 +285,9 @@ class ArmProfile(_Strict):
 
     @model_validator(mode="after")
     def _calibration_and_geometry(self) -> ArmProfile:
-        n = len(self.joints)
         for name, pose in self.calibration_poses.items():
-            if len(pose) != n or not all(math.isfinite(v) for v in pose):
-                raise ValueError(f"calibration pose {name}: give {n} finite joint values")
+            if not all(math.isfinite(v) for v in pose):
+                raise ValueError(f"calibration pose {name}: joint values must be finite")
         sim_pose = self.link.sim_power_on_pose
         if sim_pose is not None and sim_pose not in self.calibration_poses:
             raise ValueError(f"link.sim_power_on_pose {sim_pose!r} is not one of "
@@ -306,6 +305,15 @@ class ArmProfile(_Strict):
                                  f"geometry_sets {sorted(self.geometry_sets)}")
             self.geometry = {**self.geometry, **chosen}
         return self
+
+    def check_calibration_poses(self) -> None:
+        """ValueError unless every calibration pose has a value per joint (checked where
+        profiles are read, after the arm type's joint count)."""
+        n = len(self.joints)
+        for name, pose in self.calibration_poses.items():
+            if len(pose) != n:
+                raise ValueError(f"calibration pose {name}: give {n} joint values, not "
+                                 f"{len(pose)}")
 
     @property
     def calibration_joints(self) -> list[int]:
