@@ -217,7 +217,8 @@ class CameraPanel {
   }
 
   state() {
-    return { name: this.cam.name, calibrated: !!this.calibration, detections: this.detections, points: this.points.length };
+    return { name: this.cam.name, calibrated: !!this.calibration, detections: this.detections, points: this.points.length,
+      tip: this.tip, status: this.status.textContent, error: this.error.textContent };
   }
 }
 
