@@ -39,7 +39,8 @@ _HSV_MAX = (179, 255, 255)
 
 def source_kind(source: str) -> SourceKind:
     """Which kind of source `source` names: `sim:<arm>`, a URL (stream), a V4L2 device (a
-    `/dev/video*` path or an index), a folder of images, else a video file."""
+    `/dev/` path or an index), a folder of images (an existing folder, or any path ending in
+    `/`, so that a folder missing at start is still one), else a video file."""
     if source.startswith("sim:"):
         return "sim"
     if _STREAM.match(source):
