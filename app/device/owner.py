@@ -40,6 +40,8 @@ POLL_EARLY_S = 0.001
 #: Polls a stalled loop may catch up on back to back (10 periods: 20 ms at 500 Hz) before
 #: it skips ahead instead; a short stall then costs no sample, a long one no burst.
 POLL_CATCH_UP = 10
+#: The shortest idle wait, s: uvloop's clock resolution (`_idle_until`); POLL_EARLY_S covers it.
+LOOP_TICK_S = 0.001
 #: Consecutive failed polls before samples are marked stale and an event is sent.
 STALE_AFTER = 3
 
@@ -209,7 +211,11 @@ class OwnerTask:
         at every poll that was most of an idle arm's cost). `submit` resolves the future."""
         fut = loop.create_future()
         self._idle = fut
-        timer = loop.call_at(when, resolve, fut)
+        # uvloop (the HTTP loop, which runs the arms with ARMSERVER_CONTROL_THREAD=false) keeps
+        # time in whole milliseconds and runs a timer due in under half of one at once: the
+        # wait would spin until its clock ticks (24 % of a core for one idle 500 Hz arm). At
+        # least LOOP_TICK_S: the poll is then at most that after its early slot, never late.
+        timer = loop.call_at(max(when, loop.time() + LOOP_TICK_S), resolve, fut)
         try:
             await fut
         finally:
