@@ -60,16 +60,32 @@ def reader_for(profile: ArmProfile, device: Any) -> Callable[[], Reading | None]
 
 
 class WorldTap:
-    """A SimDevice: `device` with its `world` watching. Bytes and timing are the device's."""
+    """A SimDevice: `device` with its `world` watching. Bytes and timing are the device's.
+
+    Transparent to whoever reaches the device through the link (tests inject faults into the
+    simulated firmware or bus as `link.device.<attribute>`): an attribute the tap does not have
+    is the device's, read and written."""
+
+    _OWN = frozenset({"device", "world", "packetized", "_read", "_next", "_last"})
+    device: SimDevice
 
     def __init__(self, device: SimDevice, world: World,
                  read: Callable[[], Reading | None]) -> None:
-        self.device = device
+        object.__setattr__(self, "device", device)
         self.world = world
         self.packetized = device.packetized
         self._read = read
         self._next = float("-inf")
         self._last: Reading | None = None
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(object.__getattribute__(self, "device"), name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name in self._OWN:
+            object.__setattr__(self, name, value)
+        else:
+            setattr(self.device, name, value)
 
     def receive(self, data: bytes, now: float) -> list[tuple[float, bytes]]:
         out = self.device.receive(data, now)
