@@ -6,18 +6,20 @@ of the server with the same board, not with another one on the same port."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
 import pytest
 
-from app.arms.loading import load_profile
+from app.arms.loading import load_arms, load_profile
 from app.config import ArmProfile
 from tests._wait import wait_for
 from tests.conftest import make_settings, running_client
 
 API = "/api/v1/arms/rbe3001"
+ROOT = Path(__file__).resolve().parent.parent
 JIG = [0.0, 1.5708, 0.0]
 
 
@@ -159,3 +161,29 @@ async def test_link_lengths_follow_the_profile_set(chosen: str, l2: float, l3: f
         # q = 0: link 2 level, link 3 hanging straight down
         assert tip["x"] == pytest.approx(l2, abs=1e-6)
         assert tip["z"] == pytest.approx(0.2032 - l3, abs=1e-6)
+
+
+async def test_readme_rbe3001_day_one() -> None:
+    """README "From a freshly flashed board to a first move (rbe3001)", command by command,
+    on the config it names."""
+    profiles = load_arms(str(ROOT / "config" / "rbe3001-day-one.example.toml"))
+    async with running_client(profiles=profiles) as (_app, client):
+        cal = (await client.get(f"{API}/calibration")).json()
+        assert "jig" in cal["poses"] and not any(j["calibrated"] for j in cal["joints"])
+        r = await client.post(f"{API}/move/joints", json={"positions": [0, 1.2, 0.3]})
+        assert r.status_code == 409 and r.json()["code"] == "not_calibrated"
+        r = await client.post(f"{API}/calibration", json={"pose": "jig"})
+        assert r.status_code == 200 and r.json()["stored"] is True, r.text
+        r = await client.post(f"{API}/move/joints", json={"positions": [0, 1.2, 0.3],
+                                                          "wait": True})
+        assert r.status_code == 200 and r.json()["status"] == "done", r.text
+        r = await client.post(f"{API}/calibration/gravity", json={"wait": True})
+        assert r.status_code == 202 and r.json()["status"] == "done", r.text
+        state = await wait_for(lambda: _rest_with_force(client), what="a sample at rest")
+        f = state["tip_force"]
+        assert np.linalg.norm([f["x"], f["y"], f["z"]]) < 0.1
+
+
+async def _rest_with_force(client: httpx.AsyncClient) -> dict[str, Any] | None:
+    s: dict[str, Any] = (await client.get(f"{API}/state")).json()
+    return s if s["tip_force"] is not None and not any(s["velocities"]) else None

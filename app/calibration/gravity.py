@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from app.arms.model import KinematicsModel
+from kinematics.singular import condition_number
 
 #: Central-difference step, rad or m: far above float64 rounding at these lengths, far below
 #: any curvature that matters (the error is O(h^2), about 1e-9 of the lever).
@@ -90,12 +91,18 @@ def fit(model: KinematicsModel, poses: np.ndarray, torques: np.ndarray) -> Gravi
                       worst=float(np.max(np.abs(resid))))
 
 
+#: A default pose's Jacobian condition number stays under this: near a singularity a torque
+#: error of one ADC step is a large tip force, and the fit is meant for the working poses.
+POSE_COND_MAX = 8.0
+
+
 def default_poses(model: KinematicsModel, home: np.ndarray, lower: np.ndarray,
                   upper: np.ndarray) -> np.ndarray:
     """A few poses that tell the terms apart: home, and each joint gravity acts on (one whose
     motion lifts some body point) at a quarter of its range from either end, the others at
-    home. A joint about a vertical axis (the rbe3001's base) lifts nothing and is left at
-    home."""
+    home; a pose whose Jacobian's condition number is over POSE_COND_MAX comes back halfway
+    towards home (up to four times). A joint about a vertical axis (the rbe3001's base) lifts
+    nothing and is left at home."""
     home = np.asarray(home, dtype=float)
     b = basis(model, home)
     poses = [home]
@@ -106,5 +113,9 @@ def default_poses(model: KinematicsModel, home: np.ndarray, lower: np.ndarray,
         for v in (lower[j] + 0.25 * span, upper[j] - 0.25 * span):
             q = home.copy()
             q[j] = v
+            for _ in range(4):
+                if condition_number(model.jacobian(q)) <= POSE_COND_MAX:
+                    break
+                q[j] = (q[j] + home[j]) / 2.0
             poses.append(q)
     return np.array(poses)
