@@ -71,7 +71,8 @@ async def test_record_episodes_discard_and_refusals() -> None:
         r = await client.post(f"{API}/arms/{arm0}/move/joints",
                               json={"positions": target, "speed": 0.5, "wait": True})
         assert r.status_code == 200, r.text
-        await _frames_at_least(client, "demo", 25)
+        there = (await client.get(f"{API}/recordings/demo")).json()["current"]["frames"]
+        await _frames_at_least(client, "demo", max(25, there + 3))  # some with the arm there
         r = await client.post(f"{API}/recordings/demo/episodes/stop")
         assert r.status_code == 200, r.text
         assert r.json()["episodes"] == 1 and r.json()["current"] is None
