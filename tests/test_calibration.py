@@ -187,3 +187,23 @@ async def test_readme_rbe3001_day_one() -> None:
 async def _rest_with_force(client: httpx.AsyncClient) -> dict[str, Any] | None:
     s: dict[str, Any] = (await client.get(f"{API}/state")).json()
     return s if s["tip_force"] is not None and not any(s["velocities"]) else None
+
+
+def test_a_real_link_starts_not_calibrated_where_the_profile_cannot_know_the_zero() -> None:
+    """Built, not started: a serial or HID link's joints marked zero_known = false start not
+    calibrated; with power_on_pose the profile knows them (the firmware's power-on zero)."""
+    from app.service import ArmService
+
+    p = load_profile("rbe3001")
+    serial = p.model_copy(update={"link": p.link.model_copy(
+        update={"kind": "serial", "address": "socket://127.0.0.1:9"})})
+    svc = ArmService(serial)
+    assert svc.driver.calibrated == [False, False, False]
+    assert svc.detail().calibrated == [False, False, False]
+    powered = serial.model_copy(update={"power_on_pose": "jig"})
+    svc = ArmService(powered)
+    assert svc.driver.calibrated == [True, True, True]
+    # the firmware reads 0 ticks at the jig pose
+    np.testing.assert_allclose(svc.calibration.offsets(), JIG, atol=1e-9)
+    view = svc.calibration_view()
+    assert [j.source for j in view.joints] == ["profile"] * 3 and view.power_on_pose == "jig"

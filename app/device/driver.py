@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import logging
 import time
 from collections.abc import Awaitable, Callable
 from typing import Any
@@ -46,6 +47,8 @@ from app.links.base import Link, LinkState
 from app.runtime.control_thread import on_home
 from app.runtime.tasks import cancel_and_wait, retrieve
 from app.telemetry.hub import TelemetryHub
+
+log = logging.getLogger(__name__)
 
 #: A poll's readings in joint units: positions, velocities, torques (None: not sensed).
 Readings = tuple[np.ndarray, np.ndarray, np.ndarray | None]
@@ -272,6 +275,13 @@ class Driver(OwnerTask, abc.ABC):
         """Reboot one actuator of the arm, where the device can (base: it cannot)."""
         raise NotSupported(f"{self.name} cannot reboot servo {dxl_id}: its device has no reboot")
 
+    async def set_torque(self, on: bool) -> None:
+        """Switch the joints' torque off (the arm is free to be moved by hand: a teleoperation
+        leader) or on again, holding where the joints are, where the device can (base: it
+        cannot)."""
+        raise NotSupported(f"{self.name} cannot switch its joints' torque off: its device "
+                           "has no such command")
+
     def converted(self, raw: Any) -> Readings | None:
         """The readings `remember_converted` kept for an equal `raw` reading (an arm at rest
         reads the same, poll after poll), while homing has not changed the units; else None."""
@@ -332,8 +342,14 @@ class Driver(OwnerTask, abc.ABC):
         return f"{self.profile.model}:{ident}"
 
     async def _link_ready(self) -> None:
-        if self.on_link_ready is not None:
+        """`on_link_ready`, in the owner task; a bug in it is logged, not the end of the link
+        task (the calibration then stays as it was)."""
+        if self.on_link_ready is None:
+            return
+        try:
             await self.on_link_ready()
+        except Exception:
+            log.exception("%s: on link ready", self.name)
 
     # ------------------------------------------------------------ for subclasses
 
