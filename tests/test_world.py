@@ -202,3 +202,24 @@ def test_magnet_picks_what_it_touches_and_a_bin_rim_strips_it() -> None:
                                                       abs=1e-6)
     go(cx, cy, bin_.lo[2] + TARGET_T + 0.001)  # touching it inside the bin: stays
     assert not world.scene().objects[0].held
+
+
+async def test_the_openmanipulator_grippers_servo_grasps_too() -> None:
+    """The OpenManipulator-X's gripper is its own XM430: the world reads that servo's Present
+    Position as the driver converts it (0 open .. 1 closed)."""
+    async with clients([load_profile("openmanipulator_x")]) as (op, _, _raw):
+        arm = "omx"
+        w = await op.world(arm)
+        assert w.gripper == pytest.approx(0.5, abs=0.02)  # fingers half open at power-up
+        async with op.hold_lease(arm):
+            await op.set_world(arm, {"objects": [ball("r", "red", 0.2, 0.0)],
+                                     "bins": [b.model_dump(mode="json") for b in w.bins]})
+            await op.gripper(arm, 0.0)
+            await op.move_pose(arm, 0.2, 0.0, BALL_D / 2 + 0.05, wait=True)
+            await wait_for(lambda: _gripper_below(op, arm, 0.05), what="the gripper open")
+            await op.move_pose(arm, 0.2, 0.0, BALL_D / 2, wait=True)
+            await op.gripper(arm, 1.0)
+            await wait_for(lambda: _gripper_above(op, arm, 0.95), what="the gripper closed")
+            await op.move_pose(arm, 0.2, 0.0, 0.08, wait=True)
+            r = await _held(op, arm, "r")
+            assert r.held and r.position.z == pytest.approx(0.08, abs=0.005)

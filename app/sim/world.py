@@ -280,7 +280,9 @@ class World:
         was = fx.gripper
         fx.tip, fx.gripper = tip, gripper
         if self.effector == "claw" and gripper is not None:
-            closing = gripper >= CLOSED and (was is None or was < CLOSED)
+            # the first reading only says where the claw is (a half-open gripper at power-up
+            # is not a claw closing on what happens to lie there)
+            closing = gripper >= CLOSED and was is not None and was < CLOSED
             opening = gripper < CLOSED and was is not None and was >= CLOSED
             if fx.held is not None and opening:
                 self._release()
