@@ -31,7 +31,8 @@ APP = Path(__file__).resolve().parents[1] / "app"
 
 #: The Sample schema's field order on the wire (API.md "Telemetry").
 SAMPLE_KEYS = ["seq", "time", "positions", "velocities", "torques", "tip", "tip_velocity",
-               "tip_force", "gripper", "motion", "estop", "link", "stale", "faults", "homed"]
+               "tip_force", "gripper", "motion", "estop", "link", "stale", "faults", "homed",
+               "calibrated"]
 
 
 def _imports(path: Path, top_level_only: bool) -> set[str]:
