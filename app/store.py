@@ -519,6 +519,11 @@ class Store:
             version = db.execute("PRAGMA user_version").fetchone()[0]
             for i, sql in enumerate(MIGRATIONS[version:], start=version + 1):
                 db.execute("BEGIN IMMEDIATE")
+                # another process on the same file (a lab's workers, app/lab) may have run it
+                # between our read of user_version and this lock
+                if db.execute("PRAGMA user_version").fetchone()[0] >= i:
+                    db.execute("COMMIT")
+                    continue
                 db.execute(sql)
                 db.execute(f"PRAGMA user_version={i}")
                 db.execute("COMMIT")

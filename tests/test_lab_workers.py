@@ -258,3 +258,36 @@ def _is(fn: Any, value: Any) -> Any:
     async def check() -> bool:
         return bool(await fn() == value)
     return check
+
+
+def test_workers_opening_one_fresh_store_at_once_all_migrate_it(
+        tmp_path_factory: pytest.TempPathFactory) -> None:
+    """A lab's workers start together on one ARMSERVER_DATA_DIR: the first to take the
+    database's lock runs each migration, the others find it done (the race left one worker's
+    store failed with "table settings already exists")."""
+    import threading
+
+    from app.store import Store
+
+    for attempt in range(20):
+        folder = tmp_path_factory.mktemp(f"store{attempt}")
+        stores = [Store(folder) for _ in range(4)]
+        barrier = threading.Barrier(len(stores))
+
+        def open_one(store: Store) -> None:
+            barrier.wait()
+            store.open()
+
+        threads = [threading.Thread(target=open_one, args=(s,)) for s in stores]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        try:
+            for s in stores:
+                wait_until(lambda s=s: s.health().ok or s.health().error,  # type: ignore[misc]
+                           what="the store opened or failed")
+                assert s.health().ok, s.health().error
+        finally:
+            for s in stores:
+                s.close()
