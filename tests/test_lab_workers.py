@@ -135,7 +135,9 @@ def test_each_arm_answers_from_its_own_worker(lab: Lab) -> None:
         assert c.get("/api/v1/me").json()["role"] == "viewer"
         assert c.get("/").status_code == 200  # the dashboard
         # the workers are separate processes: one arm's latch is not another's
-        latched = c.post("/api/v1/arms/right/estop")
+        # the front names the client's address to the worker (a client's own claim dropped)
+        latched = c.post("/api/v1/arms/right/estop",
+                         headers={"X-Armserver-Lab-Client": "203.0.113.9:1"})
         assert latched.status_code == 200 and latched.json() == {"estop": True}
         assert c.get("/api/v1/arms/right/state").json()["estop"] is True
         assert c.get("/api/v1/arms/left/state").json()["estop"] is False
@@ -146,14 +148,15 @@ def test_each_arm_answers_from_its_own_worker(lab: Lab) -> None:
         # shows the right arm's requests wherever it is read
         instructor = {"Authorization": f"Bearer {INSTRUCTOR}"}
 
-        def routes() -> list[tuple[str, str]]:
+        def routes() -> dict[tuple[str, str], Any]:
             audit = c.get("/api/v1/audit", headers=instructor)
             assert audit.status_code == 200, audit.text
-            return [(a["method"], a["route"]) for a in audit.json()]
+            return {(a["method"], a["route"]): a for a in audit.json()}
 
         wait_until(lambda: ("DELETE", "/api/v1/arms/right/estop") in routes(),
                    what="the right arm's worker's records in the audit log")
-        assert ("POST", "/api/v1/arms/right/estop") in routes()
+        press = routes()[("POST", "/api/v1/arms/right/estop")]
+        assert press["address"] == "127.0.0.1" and press["status"] == 200
 
 
 def test_tokens_and_leases_as_today(lab: Lab) -> None:

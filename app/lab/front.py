@@ -32,6 +32,7 @@ import httpx
 from starlette.types import Receive, Scope, Send
 
 from app.config import Settings
+from app.lab.headers import HOP, forwarded_headers
 from app.lab.placement import LabPlan
 from app.lab.supervisor import Supervisor, Worker
 from app.lab.ws_relay import relay_websocket
@@ -41,9 +42,6 @@ log = logging.getLogger("armserver.lab")
 
 ARMS = API_PREFIX + "/arms"
 HEALTH = API_PREFIX + "/health"
-#: Request headers the front does not pass on (hop by hop, or recomputed by httpx).
-HOP = frozenset({b"connection", b"keep-alive", b"transfer-encoding", b"te", b"trailer",
-                 b"upgrade", b"proxy-authorization", b"proxy-connection", b"content-length"})
 #: Response headers the front does not pass back (it frames the body itself).
 HOP_BACK = HOP | {b"content-encoding"}
 
@@ -144,7 +142,7 @@ class LabFront:
         url = scope.get("raw_path") or scope["path"].encode()
         if scope.get("query_string"):
             url += b"?" + scope["query_string"]
-        headers = [(k, v) for k, v in scope["headers"] if k not in HOP]
+        headers = forwarded_headers(scope)
         try:
             r = await worker.client.request(scope["method"], url.decode("latin-1"),
                                             headers=headers, content=body)
@@ -172,7 +170,7 @@ class LabFront:
                        path: str) -> tuple[dict[int, httpx.Response], Answer | None]:
         """`GET path` of every ready worker with the caller's headers: the answers by worker,
         or the first refusal (401, 403, 400 ...) to answer as is."""
-        headers = [(k, v) for k, v in scope["headers"] if k not in HOP]
+        headers = forwarded_headers(scope)
         ready = [w for w in self.workers if w.ready]
         got = await asyncio.gather(*(w.client.get(path, headers=headers) for w in ready),
                                    return_exceptions=True)

@@ -26,6 +26,7 @@ from typing import Any
 import uvicorn
 
 from app.config import Settings
+from app.lab.headers import CLIENT_HEADER
 from app.lab.placement import plan_lab
 from app.web.factory import create_app
 from app.web.serving import ArmHttpToolsProtocol, ArmServer
@@ -34,6 +35,24 @@ log = logging.getLogger("armserver.lab")
 
 #: How often a worker looks whether its front still runs, s.
 PARENT_CHECK_S = 0.5
+
+
+class FrontClient:
+    """The client's address as the front saw it, for the audit log and the gates' messages:
+    over the Unix socket uvicorn has none (`scope["client"]` is None)."""
+
+    def __init__(self, app: Any) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] in ("http", "websocket") and scope.get("client") is None:
+            for key, value in scope["headers"]:
+                if key == CLIENT_HEADER:
+                    host, _, port = value.decode("latin-1").rpartition(":")
+                    if host and port.isdigit():
+                        scope = {**scope, "client": (host, int(port))}
+                    break
+        await self.app(scope, receive, send)
 
 
 def watch_parent(parent: int) -> threading.Thread:
@@ -80,7 +99,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     watch_parent(args.parent)
     app = create_app(settings, profiles)
     Path(args.uds).unlink(missing_ok=True)
-    ArmServer(uvicorn_config(app, settings, uds=args.uds), app).run()
+    ArmServer(uvicorn_config(FrontClient(app), settings, uds=args.uds), app).run()
     return 0
 
 

@@ -21,6 +21,8 @@ from starlette.types import Receive, Scope, Send
 from websockets.asyncio.client import ClientConnection, unix_connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
 
+from app.lab.headers import forwarded_headers
+
 if TYPE_CHECKING:
     from app.lab.supervisor import Worker
 
@@ -52,7 +54,7 @@ async def relay_websocket(scope: Scope, receive: Receive, send: Send,
     uri = f"ws://{host}{scope.get('raw_path', scope['path'].encode()).decode('latin-1')}"
     if scope.get("query_string"):
         uri += "?" + scope["query_string"].decode("latin-1")
-    headers = [(k.decode("latin-1"), v.decode("latin-1")) for k, v in scope["headers"]
+    headers = [(k.decode("latin-1"), v.decode("latin-1")) for k, v in forwarded_headers(scope)
                if k not in SKIP]
     try:
         upstream = await unix_connect(str(worker.uds), uri, additional_headers=headers,
