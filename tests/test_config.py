@@ -24,7 +24,8 @@ def test_builtin_profiles_carry_the_design_values():
     assert rbe.geometry == pytest.approx({"l1": 8 * inch, "l2": 6.5 * inch, "l3": 8.125 * inch})
     ang = load_profile("angler")
     assert [j.lead_m for j in ang.joints] == [0.008, 0.008, None, 0.1257]
-    assert [j.operating_mode for j in ang.joints] == [4, 4, 3, 4]
+    # theta3 in extended position mode: the MATLAB's -90 deg is tick -1024 (issue 24)
+    assert [j.operating_mode for j in ang.joints] == [4, 4, 4, 4]
     assert ang.joints[2].min == pytest.approx(-1.5708) and ang.link.poll_hz == 200.0
 
 

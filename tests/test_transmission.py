@@ -31,9 +31,11 @@ def test_known_ticks() -> None:
 def test_profile_offsets_and_kinds() -> None:
     t = angler()
     np.testing.assert_allclose(t.per_rev, [0.008, 0.008, 2 * np.pi, 0.1257])
-    # theta3 centred at 2048 ticks; x 1 mm = 512 ticks, negated (the design's MATLAB wiring)
-    np.testing.assert_allclose(t.to_ticks([0.001, 0.0, 0.0, 0.0]), [-512, 0, 2048, 0], atol=1e-9)
-    np.testing.assert_array_equal(t.to_ticks_int([0.001, 0.0, np.pi / 2, 0.0]), [-512, 0, 3072, 0])
+    # theta3 0 at tick 0, 45 deg at 512 (the design's MATLAB, issue 24); x 1 mm = 512 ticks,
+    # negated (the design's MATLAB wiring)
+    np.testing.assert_allclose(t.to_ticks([0.001, 0.0, 0.0, 0.0]), [-512, 0, 0, 0], atol=1e-9)
+    np.testing.assert_array_equal(t.to_ticks_int([0.001, 0.0, np.pi / 4, 0.0]), [-512, 0, 512, 0])
+    np.testing.assert_array_equal(t.to_ticks_int([0.0, 0.0, -np.pi / 2, 0.0]), [0, 0, -1024, 0])
 
 
 def test_sign_reverses_about_the_offset() -> None:
