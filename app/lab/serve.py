@@ -59,6 +59,9 @@ def serve_lab(settings: Settings, count: int, access_log: bool = False) -> int:
     logging.getLogger("httpx").setLevel(logging.WARNING)  # a line per forwarded request
     try:
         front = build_front(settings, count, folder)
+        if settings.host not in ("127.0.0.1", "::1", "localhost") and not settings.auth_enabled:
+            log.warning("binding %s with no tokens: anyone who can reach this port may move "
+                        "the arms (set ARMSERVER_OPERATOR_TOKENS)", settings.host)
         for w in front.workers:
             log.info("worker %d will host %s", w.index, ", ".join(w.arms))
         config = uvicorn_config(front, settings, access_log, host=settings.host,
