@@ -174,8 +174,11 @@ def _rbe_calls(driver):
     return [
         (driver.status, lambda v: isinstance(v, rb.StatusReply)
          and np.all(np.abs(v.position_ticks) < 4096)),
-        (lambda: driver.set_gain(1, 0.005, 0.0, 0.0), lambda v: v is None),
-        (lambda: driver.set_claw(0.25), lambda v: v is None),
+        # SET_GAIN / SET_CLAW carry no return value (issue 24): a lost reply is "sent", a
+        # changed one "other"; either way the firmware acted
+        (lambda: driver.set_gain(1, 0.005, 0.0, 0.0),
+         lambda v: v in ("acknowledged", "sent", "other")),
+        (lambda: driver.set_claw(0.25), lambda v: v in ("acknowledged", "sent", "other")),
     ]
 
 
@@ -223,7 +226,10 @@ async def test_late_replies_never_answer_a_later_request(name):
         # A request may still get its own reply when a loaded event loop notices the reply
         # before its own deadline; what must never happen is a reply to another request.
         assert outcomes["wrong"] == 0
-        assert set(errors) == {"device_timeout"} and errors["device_timeout"] >= 6
+        # (the rbe3001's SET_GAIN / SET_CLAW without a reply in time are "sent", issue 24:
+        # only its STATUS calls time out)
+        least = 6 if name == "angler" else 3
+        assert set(errors) == {"device_timeout"} and errors["device_timeout"] >= least
         link.set_faults(FaultConfig(latency_s=driver.timeout * 0.1))  # late but in time
         outcomes, errors = await _hammer(calls, n_tasks=2, per_task=6)
         assert outcomes["wrong"] == 0 and outcomes["ok"] == 12, (outcomes, errors)
