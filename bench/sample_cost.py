@@ -17,6 +17,10 @@ ratio from one run.
 `_publish` of 2000 distinct readings, a moving arm's, on a simulated link; CPU time, so less
 sensitive to a loaded machine): eager as before issue 27, lazy with no reader, and lazy with a
 reader taking every 10 samples (a 50 Hz client of a 500 Hz arm).
+`--floor` measures what any server pays for the round trip alone against the same simulator
+(rbe3001 only): a STATUS request written and its 64-byte reply read at 500 Hz, once with
+asyncio streams and a timer (what the owner task's machinery cannot go below) and once with a
+blocking socket on one thread.
 `--profile N` runs the window under cProfile and prints the N costliest functions (cProfile
 slows what it measures: read its shares, not its times).
 
@@ -161,6 +165,64 @@ async def publish_only() -> None:
               f"unread {figures[1]:.0f} µs, lazy read in tens {figures[2]:.0f} µs")
 
 
+async def _floor_asyncio(port: int, n: int) -> tuple[float, float]:
+    from protocol import rbe3001 as rb
+
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    packet = rb.ReplyMatcher().request(rb.Status())
+    loop = asyncio.get_running_loop()
+    slot, c0 = loop.time(), os.times()
+    for _ in range(n):
+        slot += 0.002
+        if (wait := slot - loop.time()) > 0:
+            await asyncio.sleep(wait)
+        writer.write(packet)
+        await reader.readexactly(64)
+    c1 = os.times()
+    writer.close()
+    return (c1.user - c0.user) / n, (c1.system - c0.system) / n
+
+
+def _floor_blocking(port: int, n: int) -> tuple[float, float]:
+    from protocol import rbe3001 as rb
+
+    packet = rb.ReplyMatcher().request(rb.Status())
+    with socket.create_connection(("127.0.0.1", port)) as sock:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        slot, c0 = time.monotonic(), os.times()
+        for _ in range(n):
+            slot += 0.002
+            if (wait := slot - time.monotonic()) > 0:
+                time.sleep(wait)
+            sock.sendall(packet)
+            got = b""
+            while len(got) < 64:
+                got += sock.recv(64 - len(got))
+        c1 = os.times()
+    return (c1.user - c0.user) / n, (c1.system - c0.system) / n
+
+
+def _wait_listening(port: int, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=1):
+                return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+def floor(port: int, seconds: float) -> None:
+    n = int(500 * seconds)
+    for how, (user, system) in (("asyncio streams", asyncio.run(_floor_asyncio(port, n))),
+                                ("blocking socket", _floor_blocking(port, n))):
+        print(f"round trip alone, {how}: {1e6 * (user + system):.0f} µs a poll ({1e6 * user:.0f}"
+              f" user, {1e6 * system:.0f} system), {5e4 * (user + system):.1f} % of a "
+              "core at 500 Hz")
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--model", default="rbe3001")
@@ -170,6 +232,7 @@ def main() -> int:
     p.add_argument("--subscribe", type=float, default=0.0, metavar="HZ")
     p.add_argument("--eager", action="store_true")
     p.add_argument("--publish-only", action="store_true")
+    p.add_argument("--floor", action="store_true")
     args = p.parse_args()
     if args.publish_only:
         asyncio.run(publish_only())
@@ -180,7 +243,10 @@ def main() -> int:
                             f"tcp://127.0.0.1:{port}"], cwd=ROOT, env=env,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        time.sleep(1.0)  # the simulator listens (the link retries with backoff if not yet)
+        _wait_listening(port)
+        if args.floor:
+            floor(port, args.seconds)
+            return 0
         prof = cProfile.Profile() if args.profile else None
         asyncio.run(run(args.model, port, args.seconds, prof, args.moving, args.subscribe,
                         args.eager))
