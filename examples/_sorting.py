@@ -67,6 +67,7 @@ class Lab:
     approach: float = APPROACH_DZ
     given_up: list[tuple[float, float]] = field(default_factory=list)
     tries: dict[tuple[int, int], int] = field(default_factory=dict)
+    dropped: dict[str, int] = field(default_factory=dict)
 
     # --- the design document's two functions -------------------------------------------------
 
@@ -150,7 +151,13 @@ class Lab:
             self.move((x, y, z + self.approach))
 
     def place(self, b: Bin) -> None:
-        x, y = b.centre
+        """Over the bin, at one of four spots a quarter of its size from its centre in turn
+        (so that what it holds does not pile up in one place), release."""
+        k = self.dropped.get(b.name, 0)
+        self.dropped[b.name] = k + 1
+        sx, sy = ((-1, -1), (1, 1), (-1, 1), (1, -1))[k % 4]
+        x = b.centre[0] + sx * (b.hi[0] - b.lo[0]) / 4
+        y = b.centre[1] + sy * (b.hi[1] - b.lo[1]) / 4
         if self.effector == "claw":
             self.move((x, y, b.hi[2] + self.approach / 2))
             self.c.gripper(self.arm, 0.0)
