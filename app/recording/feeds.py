@@ -22,7 +22,10 @@ def feed(cam: Camera) -> CameraFeed:
         cam.demand()
         f = cam.latest
         return None if f is None else CameraFrame(f.seq, f.time, f.image)
-    return CameraFeed(cam.name, cam.config.width, cam.config.height, latest)
+
+    def listen(fn: Callable[[CameraFrame], None]) -> Callable[[], None]:
+        return cam.add_listener(lambda f: fn(CameraFrame(f.seq, f.time, f.image)))
+    return CameraFeed(cam.name, cam.config.width, cam.config.height, latest, listen)
 
 
 def hub_feeds(hub: CameraHub | None) -> Callable[[str], CameraFeed | None]:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import queue
 import threading
 import time
@@ -68,11 +69,14 @@ class CameraFrame:
 
 @dataclass
 class CameraFeed:
-    """What a recording needs of a camera: its size and its latest frame (None before any)."""
+    """What a recording needs of a camera: its size, its latest frame (None before any) and,
+    where the camera offers it, a call for every new frame (`listen(fn)` -> the unsubscribe;
+    `fn` runs on the camera's thread)."""
     name: str
     width: int
     height: int
     latest: Callable[[], CameraFrame | None]
+    listen: Callable[[Callable[[CameraFrame], None]], Callable[[], None]] | None = None
 
 
 class RecordingError(Exception):
@@ -133,6 +137,59 @@ class _ArmTrack:
 
     def close(self) -> None:
         self.sub.close()
+
+
+class _CameraTrack:
+    """One camera's frames during an episode: for each grid point not yet imaged, the frame
+    nearest it of all the camera gave (every frame, where it can be listened to; else those
+    seen at the ticks)."""
+
+    def __init__(self, feed: CameraFeed, t0: float, fps: int) -> None:
+        self.feed, self.t0, self.fps = feed, t0, fps
+        #: Filled by the camera's thread (deque appends are atomic), drained at each tick.
+        self.incoming: deque[CameraFrame] = deque(maxlen=256)
+        self.recent: deque[CameraFrame] = deque(maxlen=4)
+        self.best: dict[int, CameraFrame] = {}
+        self.last_seq = -1
+        self._unlisten = feed.listen(self.incoming.append) if feed.listen is not None else None
+
+    def at(self, k: int) -> float:
+        return self.t0 + k / self.fps
+
+    def poll(self, imaged: int) -> None:
+        f = self.feed.latest()
+        if f is not None:
+            self.incoming.append(f)
+        while self.incoming:
+            f = self.incoming.popleft()
+            if f.seq <= self.last_seq:
+                continue
+            self.last_seq = f.seq
+            self.recent.append(f)
+            below = math.floor((f.time - self.t0) * self.fps)
+            for k in (below, below + 1):
+                cur = self.best.get(k)
+                if k >= imaged and (cur is None or
+                                    abs(f.time - self.at(k)) < abs(cur.time - self.at(k))):
+                    self.best[k] = f
+
+    @property
+    def last_time(self) -> float | None:
+        return self.recent[-1].time if self.recent else None
+
+    def frame_for(self, k: int) -> CameraFrame:
+        """Frame k's image (a frame must have been seen)."""
+        f = self.best.pop(k, None)
+        for j in [j for j in self.best if j < k]:
+            del self.best[j]
+        if f is None:
+            f = min(self.recent, key=lambda fr: abs(fr.time - self.at(k)))
+        return f
+
+    def close(self) -> None:
+        if self._unlisten is not None:
+            self._unlisten()
+            self._unlisten = None
 
 
 class _Encoder:
@@ -198,7 +255,7 @@ class EpisodeRecorder:
         self.states: list[np.ndarray] = []  # (d,) per frame, resampled
         self.actions: list[list[float]] = []
         self.ticks = 0  # frames whose action is noted
-        self._seen: dict[str, deque[CameraFrame]] = {c.name: deque(maxlen=4) for c in cameras}
+        self._cams: list[_CameraTrack] = []
         self._imaged = 0  # frames whose images went to the encoder
         self._samples: dict[str, list[np.ndarray]] = {c.name: [] for c in cameras}
         self._encoder: _Encoder | None = None
@@ -217,6 +274,7 @@ class EpisodeRecorder:
                                        c.height, self.fps) for c in self.cameras}
         self._encoder = _Encoder(videos)
         self.t0 = time.time()
+        self._cams = [_CameraTrack(c, self.t0, self.fps) for c in self.cameras]
         self._task = asyncio.get_running_loop().create_task(self._run(), name="recording")
 
     @property
@@ -246,14 +304,12 @@ class EpisodeRecorder:
         for t in self.tracks:
             t.take()
         self._resample(final=False)
-        for cam in self.cameras:
-            f = cam.latest()
-            seen = self._seen[cam.name]
-            if f is not None and (not seen or f.seq != seen[-1].seq):
-                seen.append(f)
+        for cam in self._cams:
+            cam.poll(self._imaged)
+            last = cam.last_time
             if self.ticks * 1.0 / self.fps > CAMERA_LOST_S and (
-                    not seen or now - seen[-1].time > CAMERA_LOST_S):
-                raise RecordingError(f"camera {cam.name} lost: no new frame for "
+                    last is None or now - last > CAMERA_LOST_S):
+                raise RecordingError(f"camera {cam.feed.name} lost: no new frame for "
                                      f"{CAMERA_LOST_S:.0f} s")
         # frame k's image one period after its grid time, when a later frame may be nearer
         while self.cameras and self._imaged < self.ticks - 1 and self._image(self._imaged):
@@ -263,18 +319,18 @@ class EpisodeRecorder:
         """Frame k's images to the encoder, each camera's seen frame nearest its grid time;
         False while a camera has given none yet (its first frame then stands in for the
         frames before it)."""
-        if not all(self._seen[c.name] for c in self.cameras):
+        if not all(c.recent for c in self._cams):
             if k / self.fps > CAMERA_LOST_S:
-                missing = [c.name for c in self.cameras if not self._seen[c.name]]
+                missing = [c.feed.name for c in self._cams if not c.recent]
                 raise RecordingError(f"camera {', '.join(missing)} gave no frame")
             return False
-        at = self.t0 + k / self.fps
         assert self._encoder is not None
-        for cam in self.cameras:
-            f = min(self._seen[cam.name], key=lambda fr: abs(fr.time - at))
-            self._encoder.put(cam.name, f.image)
-            if k % self.fps == 0 and len(self._samples[cam.name]) < STAT_IMAGES:
-                self._samples[cam.name].append(_small(f.image))
+        for cam in self._cams:
+            f = cam.frame_for(k)
+            name = cam.feed.name
+            self._encoder.put(name, f.image)
+            if k % self.fps == 0 and len(self._samples[name]) < STAT_IMAGES:
+                self._samples[name].append(_small(f.image))
         self._imaged = k + 1
         return True
 
@@ -294,7 +350,9 @@ class EpisodeRecorder:
         parts = [t.states_at(at) for t in self.tracks]
         self.states.extend(np.concatenate(parts, axis=1))
 
-    async def _halt(self) -> None:
+    async def _halt(self, settle: bool = False) -> None:
+        """No more ticks; `settle`: then, wait until half a period after the last grid time,
+        so that the last frame may get a camera frame taken after it, as every other does."""
         task, self._task = self._task, None
         if task is not None and not task.done():
             task.cancel()
@@ -302,12 +360,18 @@ class EpisodeRecorder:
                 await task
             except asyncio.CancelledError:
                 pass
+        if settle and self.cameras and self.ticks:
+            delay = self.t0 + (self.ticks - 0.5) / self.fps - time.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
         for t in self.tracks:
             t.close()
+        for c in self._cams:
+            c.close()
 
     async def finish(self) -> EpisodeFrames:
         """Stop and hand over the episode (its videos closed: blocking work in a thread)."""
-        await self._halt()
+        await self._halt(settle=True)
         encoder = self._encoder
         assert encoder is not None
         try:
@@ -330,6 +394,8 @@ class EpisodeRecorder:
         """The last samples resampled, the last frames' images (nearest of what was seen)."""
         for t in self.tracks:
             t.take()
+        for c in self._cams:
+            c.poll(self._imaged)
         if self.ticks == 0:
             raise RecordingError("the episode has no frame")
         self._resample(final=True)
