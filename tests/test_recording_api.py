@@ -178,3 +178,15 @@ async def test_a_camera_lost_mid_episode_ends_it_and_keeps_it(tmp_path: Path) ->
             read = check_dataset(Path(d["path"]))
             assert read.episodes[0]["length"] >= 5
     assert app.state.internal_errors == 0
+
+
+async def test_shutdown_writes_the_episode_that_records() -> None:
+    async with running_client() as (app, client):
+        arms = [a["name"] for a in (await client.get(f"{API}/arms")).json()]
+        r = await client.post(f"{API}/recordings", json={"name": "bye", "arms": arms[:1],
+                                                          "fps": FPS})
+        root = Path(r.json()["path"])
+        assert (await client.post(f"{API}/recordings/bye/episodes")).status_code == 201
+        await _frames_at_least(client, "bye", 4)
+    read = check_dataset(root)  # the lifespan's end wrote it
+    assert read.info["total_episodes"] == 1 and read.episodes[0]["length"] >= 4
