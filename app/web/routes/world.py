@@ -8,6 +8,7 @@ no joint, and nothing here reaches the device.
 
 from __future__ import annotations
 
+import asyncio
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, Request
@@ -77,7 +78,8 @@ def to_body(scene: Scene) -> s.WorldScene:
     responses=errors(*READ),
 )
 async def get_world(svc: ViewerArm) -> s.WorldScene:
-    return to_body(world_of(svc).scene())
+    # the world replays the device's readings since the last read: off the HTTP loop
+    return to_body(await asyncio.to_thread(world_of(svc).scene))
 
 
 @router.put(
@@ -99,6 +101,6 @@ async def put_world(svc: EditorArm, body: s.WorldScene) -> s.WorldScene:
     bins = [Bin(b.name, b.color, (b.min.x, b.min.y, b.min.z), (b.max.x, b.max.y, b.max.z))
             for b in body.bins]
     try:
-        return to_body(world.set_scene(objects, bins))
+        return to_body(await asyncio.to_thread(world.set_scene, objects, bins))
     except SceneError as exc:
         raise InvalidRequest(str(exc)) from None
