@@ -23,6 +23,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import av
+
 from app.errors import Busy, Conflict, InvalidRequest, NotFound, RecordingFailed, UnknownArm
 from app.recording.dataset import ArmLayout, Dataset, EpisodeInfo
 from app.recording.layout import PARTIAL_DIR, write_json
@@ -182,9 +184,14 @@ class Recordings:
             task_ = asyncio.get_running_loop().create_task(self._ended(rec, why))
             self._ends.add(task_)
             task_.add_done_callback(self._ends.discard)
-        rec.recorder = EpisodeRecorder(arms, feeds, rec.dataset.fps, task or rec.config.task,
-                                       rec.dataset.root / PARTIAL_DIR, ended)
-        rec.recorder.start()
+        recorder = EpisodeRecorder(arms, feeds, rec.dataset.fps, task or rec.config.task,
+                                   rec.dataset.root / PARTIAL_DIR, ended)
+        try:
+            recorder.start()
+        except (OSError, av.FFmpegError) as exc:
+            raise RecordingFailed(f"recording {rid!r}: the episode cannot start: {exc}") \
+                from exc
+        rec.recorder = recorder
         rec.last_error = None
         return rec
 
@@ -203,20 +210,24 @@ class Recordings:
         recorder = rec.recorder
         if recorder is None:
             raise Conflict(f"recording {rid!r}: no episode is recording")
+        rec.recorder, rec.writing = None, True  # a second stop now finds none
+        # shielded: a caller that goes away does not leave the episode half handled
+        return await asyncio.shield(self._write(rec, recorder))
+
+    async def _write(self, rec: Recording, recorder: EpisodeRecorder) -> EpisodeInfo:
         async with rec.lock:
-            rec.recorder, rec.writing = None, True
             try:
                 try:
                     frames = await recorder.finish()
                 except RecordingError as exc:
                     rec.last_error = str(exc)
-                    raise Conflict(f"recording {rid!r}: the episode cannot be kept: {exc}") \
-                        from exc
+                    raise Conflict(f"recording {rec.id!r}: the episode cannot be kept: "
+                                   f"{exc}") from exc
                 try:
-                    info = await asyncio.to_thread(rec.dataset.append, frames)
+                    return await asyncio.to_thread(rec.dataset.append, frames)
                 except OSError as exc:
                     rec.last_error = f"the episode was not written: {exc}"
-                    raise RecordingFailed(f"recording {rid!r}: the episode was not written "
+                    raise RecordingFailed(f"recording {rec.id!r}: the episode was not written "
                                           f"({exc}); the dataset keeps its "
                                           f"{len(rec.dataset.rows)} earlier episodes") from exc
                 finally:
@@ -225,7 +236,6 @@ class Recordings:
                         _unlink(p)
             finally:
                 rec.writing = False
-        return info
 
     async def discard(self, rid: str) -> None:
         rec = self.get(rid)

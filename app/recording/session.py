@@ -37,6 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import av
 import numpy as np
 import orjson
 
@@ -267,11 +268,19 @@ class EpisodeRecorder:
     # ------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
+        """Open the episode's video files (OSError: nothing is left open), then record."""
         self._partial.mkdir(parents=True, exist_ok=True)
-        self.tracks = [_ArmTrack(svc, lay) for svc, lay in self._arm_specs]
         stamp = f"{time.time_ns()}"
-        videos = {c.name: EpisodeVideo(self._partial / f"{stamp}-{c.name}.mp4", c.width,
-                                       c.height, self.fps) for c in self.cameras}
+        videos: dict[str, EpisodeVideo] = {}
+        try:
+            for c in self.cameras:
+                videos[c.name] = EpisodeVideo(self._partial / f"{stamp}-{c.name}.mp4", c.width,
+                                              c.height, self.fps)
+        except (OSError, av.FFmpegError):
+            for v in videos.values():
+                v.abort()
+            raise
+        self.tracks = [_ArmTrack(svc, lay) for svc, lay in self._arm_specs]
         self._encoder = _Encoder(videos)
         self.t0 = time.time()
         self._cams = [_CameraTrack(c, self.t0, self.fps) for c in self.cameras]
