@@ -42,6 +42,16 @@ worker = 1
 [[arms]]
 profile = "angler"
 name = "rails"
+
+[[cameras]]
+name = "table-left"
+arm = "left"
+source = "sim:left"
+
+[[cameras]]
+name = "table-right"
+arm = "right"
+source = "sim:right"
 """
 ARMS = ["left", "right", "rails"]
 AUTH = {"Authorization": f"Bearer {VIEWER}"}
@@ -133,6 +143,14 @@ def test_each_arm_answers_from_its_own_worker(lab: Lab) -> None:
         assert missing.json() == {"detail": "no arm 'nobody'; this server hosts left, right, "
                                   "rails", "code": "unknown_arm"}
         assert c.get("/api/v1/me").json()["role"] == "viewer"
+        # each camera from the worker of its arm, the list merged
+        cameras = c.get("/api/v1/cameras")
+        assert cameras.status_code == 200, cameras.text
+        assert [(cam["name"], cam["arm"]) for cam in cameras.json()] == [
+            ("table-left", "left"), ("table-right", "right")]
+        for name in ("table-left", "table-right"):
+            one = c.get(f"/api/v1/cameras/{name}")
+            assert one.status_code == 200 and one.json()["name"] == name, one.text
         assert c.get("/").status_code == 200  # the dashboard
         # the workers are separate processes: one arm's latch is not another's
         # the front names the client's address to the worker (a client's own claim dropped)

@@ -9,6 +9,8 @@ process owning its arm (app/lab/supervisor.py) and answers the lab-wide endpoint
   headers) and merge their answers in config order; an arm whose worker is down or restarting
   shows in health as link `down` with the reason (and health says `degraded`), and in the
   list with its last known summary, link `down`.
+- `/api/v1/cameras/{cam}/...` goes to the worker of the camera's arm, and `GET
+  /api/v1/cameras` is merged like the arms.
 - Everything else (`/api/v1/me`, the audit log, which every worker reads from the one store in
   ARMSERVER_DATA_DIR, the dashboard, `/openapi.json`, an unknown arm's 404) goes to the first
   ready worker: each serves the same routes and tokens.
@@ -41,6 +43,7 @@ from app.web.middleware import API_PREFIX
 log = logging.getLogger("armserver.lab")
 
 ARMS = API_PREFIX + "/arms"
+CAMERAS = API_PREFIX + "/cameras"
 HEALTH = API_PREFIX + "/health"
 #: Response headers the front does not pass back (it frames the body itself).
 HOP_BACK = HOP | {b"content-encoding"}
@@ -75,6 +78,10 @@ class LabFront:
         self.grace = settings.shutdown_timeout_s
         self._by_index = {w.index: w for w in self.workers}
         self._by_arm = {name: self._by_index[k] for name, k in plan.worker_of.items()}
+        self._by_camera = {name: self._by_index[k] for name, k in plan.camera_worker.items()
+                           if k in self._by_index}
+        #: The last entry each camera's worker gave (`GET /cameras`), shown while it is down.
+        self._cameras: dict[str, dict[str, Any]] = {}
         #: The last summary each arm's worker gave (`GET /arms`), shown while it is down.
         self._summaries: dict[str, dict[str, Any]] = {}
 
@@ -86,8 +93,9 @@ class LabFront:
         if kind == "websocket":
             return await relay_websocket(scope, receive, send, worker)
         path, method = scope["path"], scope["method"]
-        if method == "GET" and path in (ARMS, HEALTH):
+        if method == "GET" and path in (ARMS, HEALTH, CAMERAS):
             status, headers, body = await (self._arms(scope) if path == ARMS
+                                           else self._cameras_list(scope) if path == CAMERAS
                                            else self._health(scope))
         else:
             status, headers, body = await self._forward(scope, receive, worker)
@@ -114,6 +122,10 @@ class LabFront:
             arm = path[len(ARMS) + 1:].split("/", 1)[0]
             if arm in self._by_arm:
                 return self._by_arm[arm]
+        elif path.startswith(CAMERAS + "/"):
+            camera = path[len(CAMERAS) + 1:].split("/", 1)[0]
+            if camera in self._by_camera:
+                return self._by_camera[camera]
         return next((w for w in self.workers if w.ready), None)
 
     async def _read_body(self, receive: Receive) -> bytes | None:
@@ -204,6 +216,28 @@ class LabFront:
                 w = self._by_index[k]
                 out.append({**self._summaries[name],
                             "link": down_link(self.plan, name, w.last_error or "worker down")})
+        return _json_response(200, out)
+
+    async def _cameras_list(self, scope: Scope) -> Answer:
+        """Every worker's cameras in config order; a down worker's with their last entry and
+        `up` false."""
+        answers, refusal = await self._ask_all(scope, CAMERAS)
+        if refusal is not None:
+            return refusal
+        if not answers and not any(w.ready for w in self.workers):
+            return self._down(None)
+        for r in answers.values():
+            for entry in r.json():
+                self._cameras[entry["name"]] = entry
+        out = []
+        where = self.plan.camera_worker
+        for cam in self.plan.cameras:
+            k = where.get(cam.name)
+            if k in answers:
+                if cam.name in self._cameras:
+                    out.append(self._cameras[cam.name])
+            elif cam.name in self._cameras:
+                out.append({**self._cameras[cam.name], "up": False})
         return _json_response(200, out)
 
     async def _health(self, scope: Scope) -> Answer:

@@ -2,8 +2,8 @@
 
 An `[[arms]]` entry may name its worker (`worker = K`, 0-based, app/arms/loading.py); the other
 arms go, in config order, each to the worker that has the fewest arms so far (the lowest index
-on a tie). The front and every worker compute the same plan from the same config, so a worker
-needs only its index to know its arms.
+on a tie). A camera goes with its arm. The front and every worker compute the same plan from
+the same config, so a worker needs only its index to know its arms and cameras.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from app.arms.loading import load_arms
+from app.cameras.config import CameraConfig, load_cameras
 from app.config import ArmProfile, ConfigError, Settings
 
 
@@ -21,10 +22,23 @@ class LabPlan:
     workers: tuple[tuple[ArmProfile, ...], ...]
     #: Every arm's name, in config order.
     names: tuple[str, ...]
+    #: Every camera (the config's `[[cameras]]`, else one per simulated arm), in order; a
+    #: camera lives in the worker of its `arm`.
+    cameras: tuple[CameraConfig, ...] = ()
 
     @property
     def worker_of(self) -> dict[str, int]:
         return {p.name: k for k, arms in enumerate(self.workers) for p in arms}
+
+    @property
+    def camera_worker(self) -> dict[str, int]:
+        """Camera name -> the worker of its arm."""
+        worker_of = self.worker_of
+        return {c.name: worker_of[c.arm] for c in self.cameras if c.arm in worker_of}
+
+    def cameras_of(self, k: int) -> list[CameraConfig]:
+        names = {p.name for p in self.workers[k]}
+        return [c for c in self.cameras if c.arm in names]
 
     def profile(self, name: str) -> ArmProfile:
         return next(p for arms in self.workers for p in arms if p.name == name)
@@ -58,4 +72,5 @@ def plan_lab(settings: Settings, workers: int) -> LabPlan:
             min(bins, key=len).append(p)
     order = {p.name: i for i, p in enumerate(profiles)}
     return LabPlan(tuple(tuple(sorted(b, key=lambda p: order[p.name])) for b in bins),
-                   tuple(p.name for p in profiles))
+                   tuple(p.name for p in profiles),
+                   tuple(load_cameras(settings.config, profiles)))

@@ -95,9 +95,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=settings.log_level.upper(),
                         format=f"%(asctime)s %(levelname)s worker {args.index} %(name)s: "
                                "%(message)s")
-    profiles = list(plan_lab(settings, args.workers).workers[args.index])
+    plan = plan_lab(settings, args.workers)
+    profiles = list(plan.workers[args.index])
     watch_parent(args.parent)
-    app = create_app(settings, profiles)
+    app = create_app(settings, profiles, plan.cameras_of(args.index))
     Path(args.uds).unlink(missing_ok=True)
     ArmServer(uvicorn_config(FrontClient(app), settings, uds=args.uds), app).run()
     return 0
