@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from app.recording.inputs import CameraFeed, CameraFrame
 from app.recording.manager import Recordings
-from app.recording.session import CameraFeed, CameraFrame
 from tests._lerobot import check_dataset, decode
 from tests._wait import wait_for
 from tests.conftest import running_client

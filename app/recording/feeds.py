@@ -9,8 +9,8 @@ from pathlib import Path
 
 from app.cameras.camera import Camera
 from app.cameras.hub import CameraHub
+from app.recording.inputs import CameraFeed, CameraFrame
 from app.recording.manager import Recordings
-from app.recording.session import CameraFeed, CameraFrame
 from app.service import ArmService
 
 #: The datasets' folder under the data folder (`Settings.data_dir`).

@@ -27,8 +27,10 @@ import av
 
 from app.errors import Busy, Conflict, InvalidRequest, NotFound, RecordingFailed, UnknownArm
 from app.recording.dataset import ArmLayout, Dataset, EpisodeInfo
+from app.recording.encoder import RecordingError
+from app.recording.inputs import CameraFeed
 from app.recording.layout import PARTIAL_DIR, write_json
-from app.recording.session import CameraFeed, EpisodeRecorder, RecordingError
+from app.recording.session import EpisodeRecorder
 from app.service import ArmService
 
 log = logging.getLogger(__name__)

@@ -12,37 +12,32 @@ loop wakes at each grid time and:
 - notes the action of frame k: where each joint was last told to go (`ArmService.setpoint`,
   the arm's one commanded record; during teleoperation the follower's setpoint is the
   leader's mapped joints), then the gripper as last measured (no commanded gripper is kept);
-- looks at each camera's latest frame and, one period later, gives frame k the one nearest
-  its grid time among those seen; the image goes to a worker thread that encodes it
-  (app/recording/video.py) through a bounded queue.
+- takes each camera's new frames (every frame, through the camera's listener) and, one period
+  later, gives frame k the one nearest its grid time (app/recording/inputs.py); the image goes
+  to a worker thread that encodes it (app/recording/encoder.py) through a bounded queue.
 
 What is held per episode is bounded: the samples not yet resampled (a period's worth), one
 state and action per frame, a few sampled images per camera for the stats, and at most
 `MAX_EPISODE_S` of recording (the episode then ends and is written). A camera that gives no
 new frame for `CAMERA_LOST_S` ends the episode with an error, as does an encoder that falls
-`QUEUE_FRAMES` behind.
+`QUEUE_FRAMES` behind (app/recording/encoder.py).
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import math
-import queue
-import threading
 import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import av
 import numpy as np
-import orjson
 
 from app.recording.dataset import ArmLayout, EpisodeFrames
-from app.recording.grid import resample
+from app.recording.encoder import Encoder, RecordingError
+from app.recording.inputs import ArmTrack, CameraFeed, CameraTrack
 from app.recording.video import EpisodeVideo
 from app.service import ArmService
 
@@ -52,193 +47,8 @@ log = logging.getLogger(__name__)
 MAX_EPISODE_S = 1800.0
 #: A camera whose newest frame is older than this is lost, s.
 CAMERA_LOST_S = 2.0
-#: Frames an encoder may fall behind (per episode, all cameras) before the episode ends.
-QUEUE_FRAMES = 120
 #: Images kept per camera for its stats (lerobot samples about this many).
 STAT_IMAGES = 50
-#: Telemetry samples a recording may fall behind before the oldest are dropped (the hub's
-#: backlog for this subscriber: 8 s at 500 Hz).
-SAMPLE_BACKLOG = 4000
-
-
-@dataclass(frozen=True)
-class CameraFrame:
-    seq: int
-    time: float  # wall clock, s
-    image: np.ndarray  # (H, W, 3) uint8 BGR
-
-
-@dataclass
-class CameraFeed:
-    """What a recording needs of a camera: its size, its latest frame (None before any) and,
-    where the camera offers it, a call for every new frame (`listen(fn)` -> the unsubscribe;
-    `fn` runs on the camera's thread)."""
-    name: str
-    width: int
-    height: int
-    latest: Callable[[], CameraFrame | None]
-    listen: Callable[[Callable[[CameraFrame], None]], Callable[[], None]] | None = None
-
-
-class RecordingError(Exception):
-    """An episode ended on its own (camera lost, encoder behind, too long)."""
-
-
-class _ArmTrack:
-    """One arm's samples not yet resampled, and its states and actions so far."""
-
-    def __init__(self, svc: ArmService, layout: ArmLayout) -> None:
-        self.svc, self.layout = svc, layout
-        self.sub = svc.subscribe(SAMPLE_BACKLOG)
-        self.times: deque[float] = deque()
-        self.values: deque[list[float]] = deque()
-        self.gripper: float = 0.0
-        if self.sub.initial is not None:
-            self._add(self.sub.initial)
-
-    def _add(self, encoded: str) -> None:
-        s = orjson.loads(encoded)
-        if s.get("positions") is None or s.get("time") is None:
-            return
-        row = [float(x) for x in s["positions"]]
-        if self.layout.gripper:
-            g = s.get("gripper")
-            self.gripper = float(g) if g is not None else self.gripper
-            row.append(self.gripper)
-        if self.times and s["time"] <= self.times[-1]:
-            return
-        self.times.append(float(s["time"]))
-        self.values.append(row)
-
-    def take(self) -> None:
-        samples, _, _ = self.sub.take()
-        for enc in samples:
-            self._add(enc)
-
-    @property
-    def last_time(self) -> float:
-        return self.times[-1] if self.times else -np.inf
-
-    def states_at(self, at: np.ndarray) -> np.ndarray:
-        """Resampled at `at` (all before `last_time`, or the episode's end); then the samples
-        older than the one just before `at[-1]` are dropped."""
-        out = resample(list(self.times), np.asarray(self.values), at)
-        while len(self.times) > 2 and self.times[1] <= at[-1]:
-            self.times.popleft()
-            self.values.popleft()
-        return out
-
-    def action(self) -> list[float]:
-        q = self.svc.setpoint()
-        if q is None:
-            q = np.asarray(self.values[-1][:len(self.layout.joints)]) if self.values else \
-                np.zeros(len(self.layout.joints))
-        out = [float(x) for x in q]
-        return out + ([self.gripper] if self.layout.gripper else [])
-
-    def close(self) -> None:
-        self.sub.close()
-
-
-class _CameraTrack:
-    """One camera's frames during an episode: for each grid point not yet imaged, the frame
-    nearest it of all the camera gave (every frame, where it can be listened to; else those
-    seen at the ticks)."""
-
-    def __init__(self, feed: CameraFeed, t0: float, fps: int) -> None:
-        self.feed, self.t0, self.fps = feed, t0, fps
-        #: Filled by the camera's thread (deque appends are atomic), drained at each tick.
-        self.incoming: deque[CameraFrame] = deque(maxlen=256)
-        self.recent: deque[CameraFrame] = deque(maxlen=4)
-        self.best: dict[int, CameraFrame] = {}
-        self.last_seq = -1
-        self._unlisten = feed.listen(self.incoming.append) if feed.listen is not None else None
-
-    def at(self, k: int) -> float:
-        return self.t0 + k / self.fps
-
-    def poll(self, imaged: int) -> None:
-        f = self.feed.latest()
-        if f is not None:
-            self.incoming.append(f)
-        while self.incoming:
-            f = self.incoming.popleft()
-            if f.seq <= self.last_seq:
-                continue
-            self.last_seq = f.seq
-            self.recent.append(f)
-            below = math.floor((f.time - self.t0) * self.fps)
-            for k in (below, below + 1):
-                cur = self.best.get(k)
-                if k >= imaged and (cur is None or
-                                    abs(f.time - self.at(k)) < abs(cur.time - self.at(k))):
-                    self.best[k] = f
-
-    @property
-    def last_time(self) -> float | None:
-        return self.recent[-1].time if self.recent else None
-
-    def frame_for(self, k: int) -> CameraFrame:
-        """Frame k's image (a frame must have been seen)."""
-        f = self.best.pop(k, None)
-        for j in [j for j in self.best if j < k]:
-            del self.best[j]
-        if f is None:
-            f = min(self.recent, key=lambda fr: abs(fr.time - self.at(k)))
-        return f
-
-    def close(self) -> None:
-        if self._unlisten is not None:
-            self._unlisten()
-            self._unlisten = None
-
-
-class _Encoder:
-    """The worker thread that encodes every camera's frames of one episode."""
-
-    def __init__(self, videos: dict[str, EpisodeVideo]) -> None:
-        self.videos = videos
-        self.q: queue.Queue[tuple[str, np.ndarray] | None] = queue.Queue(QUEUE_FRAMES)
-        self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="recording-encoder", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while True:
-            item = self.q.get()
-            if item is None:
-                return
-            if self.error is not None:
-                continue
-            try:
-                self.videos[item[0]].add(item[1])
-            except Exception as exc:  # noqa: BLE001 - the episode reports it
-                self.error = exc
-
-    def put(self, cam: str, image: np.ndarray) -> None:
-        try:
-            self.q.put_nowait((cam, image))
-        except queue.Full:
-            raise RecordingError(f"the video encoder fell {QUEUE_FRAMES} frames behind") \
-                from None
-        if self.error is not None:
-            raise RecordingError(f"video encoding failed: {self.error}")
-
-    def finish(self) -> None:
-        """Blocking: wait for the queue, close every file (worker thread)."""
-        self.q.put(None)
-        self._thread.join()
-        if self.error is not None:
-            raise RecordingError(f"video encoding failed: {self.error}")
-        for v in self.videos.values():
-            v.close()
-
-    def abort(self) -> None:
-        self.error = self.error or RecordingError("discarded")
-        self.q.put(None)
-        self._thread.join()
-        for v in self.videos.values():
-            v.abort()
 
 
 class EpisodeRecorder:
@@ -251,15 +61,15 @@ class EpisodeRecorder:
         self._arm_specs = arms
         self._partial = partial
         self._on_end = on_end
-        self.tracks: list[_ArmTrack] = []
+        self.tracks: list[ArmTrack] = []
         self.t0 = 0.0
         self.states: list[np.ndarray] = []  # (d,) per frame, resampled
         self.actions: list[list[float]] = []
         self.ticks = 0  # frames whose action is noted
-        self._cams: list[_CameraTrack] = []
+        self._cams: list[CameraTrack] = []
         self._imaged = 0  # frames whose images went to the encoder
         self._samples: dict[str, list[np.ndarray]] = {c.name: [] for c in cameras}
-        self._encoder: _Encoder | None = None
+        self._encoder: Encoder | None = None
         self._task: asyncio.Task[None] | None = None
         #: Why the episode ended on its own (None: it records, or was stopped).
         self.error: str | None = None
@@ -280,10 +90,10 @@ class EpisodeRecorder:
             for v in videos.values():
                 v.abort()
             raise
-        self.tracks = [_ArmTrack(svc, lay) for svc, lay in self._arm_specs]
-        self._encoder = _Encoder(videos)
+        self.tracks = [ArmTrack(svc, lay) for svc, lay in self._arm_specs]
+        self._encoder = Encoder(videos)
         self.t0 = time.time()
-        self._cams = [_CameraTrack(c, self.t0, self.fps) for c in self.cameras]
+        self._cams = [CameraTrack(c, self.t0, self.fps) for c in self.cameras]
         self._task = asyncio.get_running_loop().create_task(self._run(), name="recording")
 
     @property
