@@ -190,3 +190,17 @@ async def test_shutdown_writes_the_episode_that_records() -> None:
         await _frames_at_least(client, "bye", 4)
     read = check_dataset(root)  # the lifespan's end wrote it
     assert read.info["total_episodes"] == 1 and read.episodes[0]["length"] >= 4
+
+
+async def test_a_broken_dataset_folder_is_left_out_at_start(tmp_path: Path) -> None:
+    bad = tmp_path / "recordings" / "bad"
+    (bad / "meta").mkdir(parents=True)
+    (bad / "armserver.json").write_text('{"name": "bad"}')
+    (bad / "meta" / "info.json").write_text("{not json")
+    async with running_client(make_settings(data_dir=str(tmp_path))) as (_, client):
+        assert (await client.get(f"{API}/recordings")).json() == []
+        arms = [a["name"] for a in (await client.get(f"{API}/arms")).json()]
+        r = await client.post(f"{API}/recordings", json={"name": "bad", "arms": arms[:1]})
+        assert (r.status_code, r.json()["code"]) == (409, "conflict")  # its folder is there
+        r = await client.post(f"{API}/recordings", json={"name": "good", "arms": arms[:1]})
+        assert r.status_code == 201, r.text

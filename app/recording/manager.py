@@ -103,7 +103,7 @@ class Recordings:
                 rec = Recording(config, Dataset.open(sub))
                 rec.written()
                 self._all[sub.name] = rec
-            except (OSError, ValueError, TypeError, KeyError) as exc:
+            except (OSError, ValueError, TypeError, KeyError, av.FFmpegError) as exc:
                 log.warning("recordings: %s cannot be opened: %s", sub, exc)
 
     def __iter__(self) -> Iterator[Recording]:
