@@ -155,3 +155,27 @@ def test_disk_full_loses_that_episode_only(tmp_path: Path) -> None:
     assert [e["length"] for e in read.episodes] == [10, 5]
     assert [e["videos/observation.images.cam/file_index"] for e in read.episodes] == [0, 1]
     assert Dataset.open(ds.root).episodes()[1].length == 5
+
+
+def test_two_cameras_each_their_own_video(tmp_path: Path) -> None:
+    ds = Dataset.create(tmp_path / "two", FPS, ARMS, {"a": (W, H), "b": (32, 32)}, "t")
+    for n, seed in ((6, 1), (9, 2)):
+        videos, samples = {}, {}
+        for cam, (w, h), shift in (("a", (W, H), 0), ("b", (32, 32), 5)):
+            v = EpisodeVideo(ds.partial_dir() / f"{seed}-{cam}.mp4", w, h, FPS)
+            for k in range(n):
+                v.add(image(k + shift)[:h, :w])
+            v.close()
+            videos[cam], samples[cam] = v.path, np.zeros((1, h, w, 3), np.uint8)
+        states = np.full((n, 4), float(seed))
+        ds.append(EpisodeFrames(states, states, "t", videos, samples))
+    read = check_dataset(ds.root)
+    assert read.info["features"]["observation.images.b"]["shape"] == [32, 32, 3]
+    for cam, shift in (("a", 0), ("b", 5)):
+        key = f"observation.images.{cam}"
+        t0 = read.episodes[1][f"videos/{key}/from_timestamp"]
+        assert t0 == pytest.approx(6 / FPS)
+        frames = decode(ds.root / "videos" / key / "chunk-000/file-000.mp4",
+                        [t0 + k / FPS for k in range(9)], FPS)
+        for k, f in enumerate(frames):
+            assert np.allclose(colour_of(f), colour(k + shift), atol=5), (cam, k)
