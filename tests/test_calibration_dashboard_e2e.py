@@ -1,0 +1,71 @@
+"""End to end: the dashboard's Calibration panel (app/web/static/calibration.js) leads a student
+through the rbe3001's day-one calibration, in Debian's headless Chromium against a real server
+on the simulated board as it ships (not calibrated, powered on in its jig)."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import _deps
+import httpx
+import pytest
+from conftest import serve_live
+
+from app.arms.loading import load_arms
+
+pytestmark = pytest.mark.browser
+
+CHROMIUM = _deps.CHROMIUM
+ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "rbe3001-day-one.example.toml"
+
+if CHROMIUM is None:
+    pytest.skip(_deps.missing_message("chromium") + "; the dashboard test needs it",
+                allow_module_level=True)
+sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing")
+
+
+def wait_for(fn: Callable[[], Any], what: str, timeout: float = 15.0) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            value = fn()
+        except Exception:  # noqa: BLE001 - retried until the deadline
+            value = None
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out: {what}")
+
+
+def test_the_panel_leads_through_declaring_the_jig_pose() -> None:
+    with serve_live(profiles=load_arms(str(CONFIG))) as live, \
+            sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        page = browser.new_page(viewport={"width": 1440, "height": 1000})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(live.url + "/")
+        joints = page.locator("#rbe3001-cal-joints")
+        wait_for(lambda: joints.get_attribute("data-calibrated") == "[false,false,false]",
+                 "the panel shows no joint calibrated")
+        steps = page.locator("#rbe3001-cal-steps").inner_text()
+        assert "Not calibrated on this hardware: base, shoulder, elbow" in steps
+        assert "jig" in steps
+        assert page.locator("#rbe3001-cal-pose").input_value() == "jig"
+
+        page.click("#rbe3001-cal-declare")
+        wait_for(lambda: joints.get_attribute("data-calibrated") == "[true,true,true]",
+                 "the panel shows every joint calibrated")
+        assert "calibrated" in page.locator("#rbe3001-cal-note").inner_text()
+        cal = httpx.get(f"{live.url}/api/v1/arms/rbe3001/calibration", timeout=5).json()
+        assert [j["source"] for j in cal["joints"]] == ["declared"] * 3 and cal["stored"]
+        state = page.evaluate("() => window.armCalibration.state('rbe3001')")
+        assert json.dumps(state["calibrated"]) == "[true, true, true]"
+        browser.close()
+        assert not errors, f"uncaught errors in the page: {errors}"
