@@ -83,6 +83,8 @@ class ArmService:
         #: whether a press has been told how it went.
         self._hold: asyncio.Future[None] | None = None
         self._hold_told = True
+        #: The gripper's last command (0 open .. 1 closed), None before any (control thread).
+        self._gripper_told: float | None = None
 
     async def start(self) -> None:
         await self.driver.start()
@@ -620,6 +622,7 @@ class ArmService:
                             "not an actuated gripper")
         self.guard.require_motion_allowed()
         await self.driver.set_gripper(value)
+        self._gripper_told = value
         return s.GripperState(value=value)
 
     # --------------------------------------------------------- the facade: motion
@@ -676,6 +679,11 @@ class ArmService:
         (`Driver.told`), the measured position for a joint told nothing since the link came
         up; None before any reading. A plain read, from any thread (a recording's action)."""
         return self.driver.told()
+
+    def gripper_setpoint(self) -> float | None:
+        """The gripper's last command (0 open .. 1 closed) since the server started, None before
+        any. A plain read, from any thread (a recording's action)."""
+        return self._gripper_told
 
     # --------------------------------------------------------- the facade: telemetry
 
