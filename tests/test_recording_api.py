@@ -12,6 +12,7 @@ from typing import Any
 import cv2
 import httpx
 import numpy as np
+import pytest
 
 from app.arms.loading import load_arms
 from app.cameras.config import CameraConfig
@@ -68,6 +69,8 @@ async def test_record_episodes_discard_and_refusals() -> None:
         q0 = [(j["min"] + j["max"]) / 2 for j in detail["joints"]]
         target = [q + 0.1 * (j["max"] - j["min"]) for q, j in zip(q0, detail["joints"],
                                                                    strict=True)]
+        r = await client.post(f"{API}/arms/{arm0}/gripper", json={"value": 0.7})
+        assert r.status_code == 200, r.text
         r = await client.post(f"{API}/arms/{arm0}/move/joints",
                               json={"positions": target, "speed": 0.5, "wait": True})
         assert r.status_code == 200, r.text
@@ -106,8 +109,12 @@ async def test_record_episodes_discard_and_refusals() -> None:
         assert np.allclose(ep0["action"][-1, cols], target, atol=1e-5)
         # the state is the measured joints: at the end, near the target
         assert np.allclose(ep0["observation.state"][-1, cols], target, atol=0.02)
+        # the gripper's action is its command
+        assert d["names"][len(target)] == f"{arm0}.gripper.pos"
+        assert ep0["action"][-1, len(target)] == np.float32(0.7)
+        assert ep0["observation.state"][-1, len(target)] == pytest.approx(0.7, abs=0.01)
         # the arms that did not move: state and action steady
-        assert np.ptp(ep0["observation.state"][:, len(target):], axis=0).max() < 0.01
+        assert np.ptp(ep0["observation.state"][:, len(target) + 1:], axis=0).max() < 0.01
 
         r = await client.get(f"{API}/recordings/demo/archive")
         assert r.status_code == 200 and r.headers["content-type"] == "application/x-tar"

@@ -89,7 +89,10 @@ class ArmTrack:
             q = np.asarray(self.values[-1][:len(self.layout.joints)]) if self.values else \
                 np.zeros(len(self.layout.joints))
         out = [float(x) for x in q]
-        return out + ([self.gripper] if self.layout.gripper else [])
+        if not self.layout.gripper:
+            return out
+        g = self.svc.gripper_setpoint()
+        return out + [self.gripper if g is None else float(g)]  # measured until commanded
 
     def close(self) -> None:
         self.sub.close()

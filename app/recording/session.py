@@ -11,7 +11,8 @@ loop wakes at each grid time and:
   every grid time the samples already pass (app/recording/grid.py);
 - notes the action of frame k: where each joint was last told to go (`ArmService.setpoint`,
   the arm's one commanded record; during teleoperation the follower's setpoint is the
-  leader's mapped joints), then the gripper as last measured (no commanded gripper is kept);
+  leader's mapped joints), then the gripper's last command (`ArmService.gripper_setpoint`;
+  as measured before any);
 - takes each camera's new frames (every frame, through the camera's listener) and, one period
   later, gives frame k the one nearest its grid time (app/recording/inputs.py); the image goes
   to a worker thread that encodes it (app/recording/encoder.py) through a bounded queue.
