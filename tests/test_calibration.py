@@ -207,3 +207,19 @@ def test_a_real_link_starts_not_calibrated_where_the_profile_cannot_know_the_zer
     np.testing.assert_allclose(svc.calibration.offsets(), JIG, atol=1e-9)
     view = svc.calibration_view()
     assert [j.source for j in view.joints] == ["profile"] * 3 and view.power_on_pose == "jig"
+
+
+def test_the_hardware_identity_names_the_board_or_the_bus_and_its_ids() -> None:
+    """What the calibration is stored under: a simulated board's serial number; for a
+    Dynamixel arm on a serial port (which reports no serial number of its own), the port and
+    the servo IDs."""
+    from app.service import ArmService
+
+    svc = ArmService(as_shipped("BOARD-7"))
+    svc.driver.link.identity = "sim-serial:BOARD-7"  # (what the link says once open)
+    assert svc.driver.hardware_identity() == "rbe3001:sim-serial:BOARD-7"
+    p = load_profile("angler")
+    p = p.model_copy(update={"link": p.link.model_copy(
+        update={"kind": "serial", "address": "/dev/ttyUSB0"})})
+    ids = ",".join(str(j.motor_id) for j in p.joints)
+    assert ArmService(p).driver.hardware_identity() == f"angler:serial:/dev/ttyUSB0:ids={ids}"
