@@ -539,6 +539,23 @@ class ArmService:
         self.motion.forget_command()
         self.hub.event("rebooted", servo=dxl_id, homed=list(self.driver.homed))
 
+    async def set_torque(self, on: bool) -> None:
+        """Runs `_set_torque` on the arm's control loop (its state changes only there)."""
+        return await on_home(self.home_loop, lambda: self._set_torque(on))
+
+    async def _set_torque(self, on: bool) -> None:
+        """The joints' torque off (the arm free to be moved by hand: a teleoperation leader) or
+        on again holding where it is (the driver's `set_torque`; 409 `not_supported` where
+        the device cannot). 409 `busy` while a motion runs or is queued. The executor's last
+        setpoint is forgotten: the arm is wherever the hand leaves it."""
+        if self.motion.current is not None or self.motion.queued():
+            raise Busy(f"{self.name}: a motion is running or queued; stop it before switching "
+                       "the torque")
+        await self.driver.set_torque(on)
+        self.motion.forget_command()
+        log.info("%s: torque %s", self.name, "on" if on else "off")
+        self.hub.event("torque", on=on)
+
     # --------------------------------------------------------- stop, estop, gripper
 
     async def stop(self, reason: str = "stopped by request") -> s.StopResult:

@@ -5,6 +5,9 @@ latch, the one commanded state). It runs as a task on the follower's control loo
 that owns the follower's commands, and reads the leader through its telemetry subscription
 (`ArmService.subscribe`; the hub's log is locked, no crossing needed).
 
+A real leader (not simulated) is moved by hand: its torque is off for the session
+(`ArmService.set_torque`) and on again, holding where it is, when the session ends.
+
 A tick sends nothing, and counts a hold, when the leader's newest sample is older than the
 deadman time or stale, when its pose has no follower target, or when the follower refuses the
 setpoint (a keep-out zone, a joint limit, a planned motion running on it, a lost link): the
@@ -50,7 +53,7 @@ class TeleopSession:
 
     def __init__(self, sid: str, leader: ArmService, follower: ArmService, rate_hz: float,
                  mapping_name: Literal["joints", "tip"], mapping: Mapping,
-                 deadman_s: float) -> None:
+                 deadman_s: float, free_leader: bool = False) -> None:
         self.id = sid
         self.leader = leader
         self.follower = follower
@@ -58,6 +61,9 @@ class TeleopSession:
         self.mapping_name = mapping_name
         self.mapping = mapping
         self.deadman_s = deadman_s
+        #: The leader's torque was switched off for the session (a real arm moved by hand):
+        #: on again, holding where it is, when the session ends.
+        self.free_leader = free_leader
         self.stats = TeleopStats()
         self.status: Literal["running", "ended"] = "running"
         self.reason: str | None = None
@@ -84,6 +90,15 @@ class TeleopSession:
         await self._hold()
 
     async def _hold(self) -> None:
+        """At the end: the follower holds where it is, and a leader freed for the session has
+        its torque again, holding where the hand left it."""
+        if self.free_leader:
+            self.free_leader = False
+            try:
+                await self.leader.set_torque(True)
+            except ArmError as exc:
+                log.warning("teleop %s: could not switch %s's torque on again: %s", self.id,
+                            self.leader.name, exc.detail)
         if self.follower.estop or self.follower.moving:
             return
         try:

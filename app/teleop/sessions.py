@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from app import schemas as s
 from app.classroom.lease import LeaseManager
-from app.errors import Busy, EstopLatched, InvalidRequest, Leased, NotFound, NotSupported
+from app.errors import Busy, EstopLatched, InvalidRequest, Leased, NotFound
 from app.runtime.control_thread import on_home
 from app.runtime.tasks import cancel_and_wait
 from app.service import ArmService
@@ -69,9 +69,10 @@ class TeleopSessions:
                     lease: LeaseRef) -> TeleopSession:
         """Check and start a session (the caller checked the follower's `lease`). 422 for a
         leader that is the follower or a mapping that does not fit the arms; 409 `busy` for
-        a follower another session drives; 409 `not_supported` for a leader that is not
-        simulated (turning a servo leader's torque off is not built yet); the follower's own
-        refusals (estop, shutdown) as they are."""
+        a follower another session drives; 409 `estop_latched` for either arm latched; 409
+        `not_supported` for a real leader whose device cannot switch its torque off (a
+        real leader's torque is off for the session, on again when it ends); the
+        follower's own refusals (shutdown) as they are."""
         async with self._starting:
             return await self._start(with_pair(req, self._pairs), leader, follower, lease)
 
@@ -84,20 +85,25 @@ class TeleopSessions:
             if t.status == "running" and t.follower is follower:
                 raise Busy(f"{follower.name} already follows {t.leader.name} (teleoperation "
                            f"session {t.id}): stop it first (DELETE /api/v1/teleop/{t.id})")
-        if leader.link_status().kind != "sim":
-            raise NotSupported(
-                f"{leader.name} is a real arm: a leader's servos must be free to move by hand, "
-                "and turning their torque off from a teleoperation session is not built yet "
-                "(a simulated leader is moved by its own commands)")
         follower.require_motion_allowed()
         if leader.estop:  # the session would end at its first tick
             raise EstopLatched(f"{leader.name}'s emergency stop is latched: a leader under "
                                f"estop drives nothing (DELETE /api/v1/arms/{leader.name}/estop)")
         mapping = self._mapping(req, leader, follower)
+        # a real leader is moved by hand: its torque off for the session (409 not_supported
+        # where its device cannot); a simulated one is moved by its own commands
+        free = leader.link_status().kind != "sim"
+        if free:
+            await leader.set_torque(False)
         sid = f"t{next(self._ids)}-{uuid.uuid4().hex[:8]}"
         session = TeleopSession(sid, leader, follower, req.rate_hz, req.mapping, mapping,
-                                req.deadman_s)
-        await on_home(follower.home_loop, session.start)
+                                req.deadman_s, free_leader=free)
+        try:
+            await on_home(follower.home_loop, session.start)
+        except BaseException:
+            if free:
+                await leader.set_torque(True)
+            raise
         self._sessions[sid] = session
         self._held[sid] = lease
         self._forget_ended()

@@ -41,6 +41,10 @@ from protocol.mx28 import ControlItem
 
 log = logging.getLogger(__name__)
 
+#: Tries at reading Present Position before torque goes on again (`set_torque`): a reply that
+#: came late for a timed-out poll fails a read as corrupt; after these, the last poll's.
+TORQUE_ON_READS = 3
+
 #: Moving (1) + Moving Status (1) + Present PWM (2) + Load/Current (2) + Velocity (4) + Position.
 _POLL_ADDR = mx28.TABLE["moving"].address
 _POLL_LEN = 14
@@ -149,6 +153,36 @@ class DynamixelChainDriver(DynamixelBusDriver):
         await self.sync_write(mx28.TABLE["goal_position"],
                               {i: int(round(t)) for i, t in zip(self.ids, ticks, strict=True)},
                               gated=not hold)
+
+    async def set_torque(self, on: bool) -> None:
+        """Torque Enable (64) of every joint servo. Off: the arm moves freely by hand, its
+        positions still polled (the e-manual's Torque Enable: 0 turns the motor's torque off).
+        On again: Goal Position first written as each servo's Present Position, so that it
+        holds where the hand left it instead of going back to an older goal (the position
+        modes drive to Goal Position as soon as torque is on), and noted as the commanded
+        state. Neither write is gated by the estop latch: torque off is the safe write, and a
+        goal at the present position moves nothing."""
+        enable = mx28.TABLE["torque_enable"]
+        if not on:
+            await self.sync_write(enable, {i: 0 for i in self.ids}, gated=False)
+            return
+        here: dict[int, int] | None = None
+        for _ in range(TORQUE_ON_READS):  # a late reply to a timed-out poll fails one read
+            try:
+                here = await self.sync_read(mx28.TABLE["present_position"], list(self.ids))
+                break
+            except (CorruptReply, DeviceTimeout):
+                continue
+        if here is None:  # the bus is struggling: the last polled positions, if any
+            q = self.positions
+            if q is None:
+                raise DeviceTimeout(f"{self.name}: no present position to hold at: torque "
+                                    "stays off")
+            ticks = self.model.transmission.to_ticks(np.asarray(q, dtype=float))
+            here = {i: int(round(t)) for i, t in zip(self.ids, ticks, strict=True)}
+        await self.sync_write(mx28.TABLE["goal_position"], {i: here[i] for i in self.ids},
+                              gated=False)
+        await self.sync_write(enable, {i: 1 for i in self.ids}, gated=False)
 
     async def settle_state(self) -> SettleState:
         """Torque Enable read now from every servo; Moving / Moving Status from the last poll
