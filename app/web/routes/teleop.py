@@ -51,8 +51,10 @@ def sessions_of(request: Request) -> TeleopSessions:
     "hold, counted); the emergency stop on either arm ends the session. Needs an operator "
     "token and the follower's lease (X-Arm-Lease). 404 `unknown_arm`; 422 when the leader "
     "is the follower or the mapping does not fit; 409 `busy` when the follower already "
-    "follows; 409 `not_supported` for a real (not simulated) leader: turning its torque off "
-    "is not built yet. The session ends when another client's lease holds the follower.",
+    "follows; 409 `estop_latched` when either arm is latched. A real (not simulated) leader "
+    "has its torque off for the session (moved by hand) and on again, holding, when it ends; "
+    "409 `not_supported` where its device cannot. The session ends when another client's "
+    "lease holds the follower.",
     responses=errors(*DEVICE),
 )
 async def start_teleop(request: Request, req: s.TeleopStart, services: ServicesDep,
