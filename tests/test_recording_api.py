@@ -109,6 +109,12 @@ async def test_record_episodes_discard_and_refusals() -> None:
         assert np.allclose(ep0["action"][-1, cols], target, atol=1e-5)
         # the state is the measured joints: at the end, near the target
         assert np.allclose(ep0["observation.state"][-1, cols], target, atol=0.02)
+        # the joints' velocities: moving during the move, still at the end
+        vnames = read.info["features"]["observation.velocity"]["names"]
+        assert vnames[:len(target)] == [n.replace(".pos", ".vel") for n in
+                                        d["names"][:len(target)]]
+        vel = ep0["observation.velocity"][:, :len(target)]
+        assert np.abs(vel).max() > 0.05 and np.abs(vel[-1]).max() < 0.05
         # the gripper's action is its command
         assert d["names"][len(target)] == f"{arm0}.gripper.pos"
         assert ep0["action"][-1, len(target)] == np.float32(0.7)

@@ -179,3 +179,19 @@ def test_two_cameras_each_their_own_video(tmp_path: Path) -> None:
                         [t0 + k / FPS for k in range(9)], FPS)
         for k, f in enumerate(frames):
             assert np.allclose(colour_of(f), colour(k + shift), atol=5), (cam, k)
+
+
+def test_velocities_read_back(tmp_path: Path) -> None:
+    ds = Dataset.create(tmp_path / "v", FPS, ARMS, {}, "t", velocity=True)
+    n = 7
+    states = np.arange(n * 4, dtype=float).reshape(n, 4) / 10
+    vel = -np.arange(n * 3, dtype=float).reshape(n, 3) / 100
+    ds.append(EpisodeFrames(states, states, "t", velocities=vel))
+    read = check_dataset(ds.root)
+    assert read.info["features"]["observation.velocity"]["names"] == [
+        "left.base.vel", "left.elbow.vel", "right.z.vel"]
+    assert np.allclose(read.frames["observation.velocity"], vel)
+    ep = Dataset.open(ds.root).load_episode(0)
+    assert ep.velocities is not None and np.allclose(ep.velocities, vel)
+    with pytest.raises(ValueError, match="velocities"):
+        ds.append(EpisodeFrames(states, states, "t", velocities=vel[:, :2]))

@@ -13,8 +13,8 @@ records three episodes while the first arm moves, starts a fourth and kills the 
 SIGKILL in its middle, then starts it again and records one more (the killed one absent, the
 others kept, the restart appending). `load` opens the folder with
 `LeRobotDataset(repo_id, root=..., video_backend="pyav")`, iterates every frame and compares its
-state, action, timestamp, indices and image with the parquet files and MP4s read by pyarrow
-and PyAV; it exits non-zero on the first difference.
+state, action, velocity, timestamp, indices and image with the parquet files and MP4s read by
+pyarrow and PyAV; it exits non-zero on the first difference.
 """
 
 from __future__ import annotations
@@ -147,7 +147,9 @@ def load(root: Path) -> None:
     worst = 0.0
     for i in range(n):
         item = ds[i]
-        for name in ("observation.state", "action"):
+        vectors = [k for k, f in info["features"].items()
+                   if f["dtype"] == "float32" and f["shape"] != [1]]
+        for name in vectors:  # observation.state, action, observation.velocity
             got = item[name].numpy()
             want = np.asarray(cols[name][i], dtype=np.float32)
             assert np.array_equal(got, want), (i, name, got, want)
@@ -162,8 +164,8 @@ def load(root: Path) -> None:
             assert diff <= 1.0, (i, key, diff)
     print(f"LeRobotDataset loaded {root}: {ds.num_episodes} episodes, {n} frames, "
           f"fps {ds.fps}, features {list(ds.features)}; every frame's state, action, "
-          f"indices and image ({len(video_keys)} camera(s), largest difference {worst:.3f} of "
-          f"255) as written: OK")
+          f"velocity, indices and image ({len(video_keys)} camera(s), largest difference "
+          f"{worst:.3f} of 255) as written: OK")
 
 
 if __name__ == "__main__":

@@ -60,16 +60,22 @@ class ArmLayout:
         out = [f"{self.arm}.{j}.pos" for j in self.joints]
         return out + ([f"{self.arm}.gripper.pos"] if self.gripper else [])
 
+    @property
+    def velocity_names(self) -> list[str]:
+        return [f"{self.arm}.{j}.vel" for j in self.joints]
+
 
 @dataclass
 class EpisodeFrames:
-    """A finished episode to write: `states` and `actions` (frames, d), one task, and per
-    camera its encoded MP4 (as many frames) and a few frames (RGB) for its stats."""
+    """A finished episode to write: `states` and `actions` (frames, d), one task, per camera
+    its encoded MP4 (as many frames) and a few frames (RGB) for its stats, and the joints'
+    velocities (frames, joints) where the dataset has them."""
     states: np.ndarray
     actions: np.ndarray
     task: str
     videos: dict[str, Path] = field(default_factory=dict)
     samples: dict[str, np.ndarray] = field(default_factory=dict)
+    velocities: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -92,16 +98,22 @@ class Episode:
     states: np.ndarray
     actions: np.ndarray
     names: list[str]
+    #: (frames, joints) rad/s or m/s, None where the dataset has no `observation.velocity`.
+    velocities: np.ndarray | None = None
 
     def arm_columns(self, arm: str) -> list[int]:
         """The columns of `states` / `actions` that are `arm`'s (its joints, then gripper)."""
         return [i for i, n in enumerate(self.names) if n.split(".", 1)[0] == arm]
 
 
-def _features(arms: list[ArmLayout], cameras: dict[str, tuple[int, int]]) -> dict[str, Any]:
+def _features(arms: list[ArmLayout], cameras: dict[str, tuple[int, int]],
+              velocity: bool) -> dict[str, Any]:
     names = [n for a in arms for n in a.names]
     vec = {"dtype": "float32", "shape": [len(names)], "names": names}
     feats: dict[str, Any] = {L.STATE: dict(vec), L.ACTION: dict(vec)}
+    if velocity:
+        vnames = [n for a in arms for n in a.velocity_names]
+        feats[L.VELOCITY] = {"dtype": "float32", "shape": [len(vnames)], "names": vnames}
     for cam, (w, h) in cameras.items():
         feats[L.video_key(cam)] = {"dtype": "video", "shape": [h, w, 3],
                                    "names": ["height", "width", "channels"], "info": None}
@@ -124,9 +136,11 @@ class Dataset:
 
     @classmethod
     def create(cls, root: Path, fps: int, arms: list[ArmLayout],
-               cameras: dict[str, tuple[int, int]], robot_type: str | None) -> Dataset:
+               cameras: dict[str, tuple[int, int]], robot_type: str | None,
+               velocity: bool = False) -> Dataset:
+        """A new dataset; `velocity`: with `observation.velocity` (the joints' rad/s, m/s)."""
         root.mkdir(parents=True, exist_ok=False)
-        info = L.new_info(fps, _features(arms, cameras), robot_type, bool(cameras))
+        info = L.new_info(fps, _features(arms, cameras, velocity), robot_type, bool(cameras))
         L.write_json(root / L.INFO_PATH, info)
         return cls(root, info)
 
@@ -155,6 +169,10 @@ class Dataset:
     @property
     def names(self) -> list[str]:
         return list(self.info["features"][L.STATE]["names"])
+
+    @property
+    def has_velocity(self) -> bool:
+        return L.VELOCITY in self.info["features"]
 
     @property
     def total_frames(self) -> int:
@@ -237,6 +255,11 @@ class Dataset:
         if ep.states.shape != ep.actions.shape or ep.states.shape[1] != len(self.names):
             raise ValueError(f"states {ep.states.shape} / actions {ep.actions.shape} do not "
                              f"match the dataset's {len(self.names)} names")
+        if self.has_velocity and ep.velocities is not None:
+            nv = self.info["features"][L.VELOCITY]["shape"][0]
+            if ep.velocities.shape != (n, nv):
+                raise ValueError(f"velocities {ep.velocities.shape}: the dataset has {nv} "
+                                 "per frame")
         index = len(self.rows)
         prev = self.rows[-1] if self.rows else None
         row: dict[str, Any] = {"episode_index": index, "tasks": [ep.task], "length": n}
@@ -252,6 +275,10 @@ class Dataset:
         row.update(data_at)
         stats[L.STATE] = S.feature_stats(np.asarray(ep.states, np.float32))
         stats[L.ACTION] = S.feature_stats(np.asarray(ep.actions, np.float32))
+        if self.has_velocity:
+            stats[L.VELOCITY] = S.feature_stats(np.asarray(table.column(L.VELOCITY)
+                                                           .combine_chunks().flatten())
+                                                .reshape(n, -1))
         for name in ("timestamp", *INT_COLUMNS):
             stats[name] = S.feature_stats(np.asarray(table.column(name)))
         if new_task:
@@ -310,6 +337,12 @@ class Dataset:
             "index": pa.array(np.arange(start, start + n, dtype=np.int64)),
             "task_index": pa.array(np.full(n, task_index, np.int64)),
         }
+        if self.has_velocity:
+            nv = self.info["features"][L.VELOCITY]["shape"][0]
+            vel = ep.velocities if ep.velocities is not None else np.zeros((n, nv))
+            cols = {L.STATE: cols[L.STATE], L.ACTION: cols[L.ACTION],
+                    L.VELOCITY: _vectors(vel, nv),
+                    **{k: v for k, v in cols.items() if k not in (L.STATE, L.ACTION)}}
         table = pa.table(cols)
         chunk, file = 0, 0
         old: pa.Table | None = None
@@ -391,10 +424,14 @@ class Dataset:
         d = len(self.names)
         states = np.asarray(t.column(L.STATE).combine_chunks().flatten()).reshape(-1, d)
         actions = np.asarray(t.column(L.ACTION).combine_chunks().flatten()).reshape(-1, d)
+        vel = None
+        if self.has_velocity:
+            vel = np.asarray(t.column(L.VELOCITY).combine_chunks().flatten(),
+                             dtype=np.float64).reshape(len(states), -1)
         return Episode(index=index, fps=self.fps, task=list(row["tasks"])[0],
                        timestamps=np.asarray(t.column("timestamp"), dtype=np.float64),
                        states=states.astype(np.float64), actions=actions.astype(np.float64),
-                       names=self.names)
+                       names=self.names, velocities=vel)
 
 
 def _vectors(values: np.ndarray, d: int) -> pa.Array:

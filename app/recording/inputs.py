@@ -40,7 +40,8 @@ class CameraFeed:
 
 
 class ArmTrack:
-    """One arm's samples not yet resampled, and its states and actions so far."""
+    """One arm's samples not yet resampled: per sample its state (joints, then gripper) and
+    its joints' velocities, in one row."""
 
     def __init__(self, svc: ArmService, layout: ArmLayout) -> None:
         self.svc, self.layout = svc, layout
@@ -60,6 +61,8 @@ class ArmTrack:
             g = s.get("gripper")
             self.gripper = float(g) if g is not None else self.gripper
             row.append(self.gripper)
+        v = s.get("velocities")
+        row.extend([float(x) for x in v] if v is not None else [0.0] * len(self.layout.joints))
         if self.times and s["time"] <= self.times[-1]:
             return
         self.times.append(float(s["time"]))
@@ -74,14 +77,15 @@ class ArmTrack:
     def last_time(self) -> float:
         return self.times[-1] if self.times else -np.inf
 
-    def states_at(self, at: np.ndarray) -> np.ndarray:
-        """Resampled at `at` (all before `last_time`, or the episode's end); then the samples
-        older than the one just before `at[-1]` are dropped."""
+    def states_at(self, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """States and velocities resampled at `at` (all before `last_time`, or the episode's
+        end); then the samples older than the one just before `at[-1]` are dropped."""
         out = resample(list(self.times), np.asarray(self.values), at)
         while len(self.times) > 2 and self.times[1] <= at[-1]:
             self.times.popleft()
             self.values.popleft()
-        return out
+        d = len(self.layout.names)
+        return out[:, :d], out[:, d:]
 
     def action(self) -> list[float]:
         q = self.svc.setpoint()

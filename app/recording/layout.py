@@ -46,6 +46,9 @@ DEFAULT_FEATURES: dict[str, dict[str, Any]] = {
 
 STATE = "observation.state"
 ACTION = "action"
+#: The joints' velocities (rad/s, m/s), resampled like the state (lerobot's name for it in
+#: e.g. the ALOHA datasets).
+VELOCITY = "observation.velocity"
 IMAGE_PREFIX = "observation.images."
 #: Where an episode's video is encoded before it joins the dataset's file (not part of the
 #: format: the loader never looks there; cleared when a dataset is opened).

@@ -156,7 +156,8 @@ class Recordings:
         def make() -> Dataset:
             self.folder.mkdir(mode=0o700, parents=True, exist_ok=True)
             ds = Dataset.create(root, fps, layouts,
-                                {f.name: (f.width, f.height) for f in feeds}, robot_type)
+                                {f.name: (f.width, f.height) for f in feeds}, robot_type,
+                                velocity=True)
             write_json(root / CONFIG, asdict(config))
             return ds
         try:

@@ -7,8 +7,9 @@ loop wakes at each grid time and:
 
 - takes the arms' telemetry samples since the last wake (`ArmService.subscribe`: a cursor in
   the hub's shared log, bounded backlog; the control thread is never waited for or slowed)
-  and resamples their joint positions (then the gripper, where the arm has one) linearly at
-  every grid time the samples already pass (app/recording/grid.py);
+  and resamples their joint positions (then the gripper, where the arm has one) and their
+  joints' velocities linearly at every grid time the samples already pass
+  (app/recording/grid.py);
 - notes the action of frame k: where each joint was last told to go (`ArmService.setpoint`,
   the arm's one commanded record; during teleoperation the follower's setpoint is the
   leader's mapped joints), then the gripper's last command (`ArmService.gripper_setpoint`;
@@ -65,6 +66,7 @@ class EpisodeRecorder:
         self.tracks: list[ArmTrack] = []
         self.t0 = 0.0
         self.states: list[np.ndarray] = []  # (d,) per frame, resampled
+        self.velocities: list[np.ndarray] = []  # (joints,) per frame, resampled
         self.actions: list[list[float]] = []
         self.ticks = 0  # frames whose action is noted
         self._cams: list[CameraTrack] = []
@@ -168,7 +170,8 @@ class EpisodeRecorder:
             raise RecordingError("no telemetry from "
                                  + ", ".join(t.svc.name for t in self.tracks if not t.times))
         parts = [t.states_at(at) for t in self.tracks]
-        self.states.extend(np.concatenate(parts, axis=1))
+        self.states.extend(np.concatenate([p[0] for p in parts], axis=1))
+        self.velocities.extend(np.concatenate([p[1] for p in parts], axis=1))
 
     async def _halt(self, settle: bool = False) -> None:
         """No more ticks; `settle`: then, wait until half a period after the last grid time,
@@ -208,7 +211,7 @@ class EpisodeRecorder:
             raise RecordingError(f"video frames {frames} for {n} frames")
         samples = {c: np.stack(s) for c, s in self._samples.items()}
         return EpisodeFrames(np.asarray(self.states[:n]), np.asarray(self.actions[:n]),
-                             self.task, videos, samples)
+                             self.task, videos, samples, np.asarray(self.velocities[:n]))
 
     def _complete(self) -> None:
         """The last samples resampled, the last frames' images (nearest of what was seen)."""
