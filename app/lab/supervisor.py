@@ -35,6 +35,8 @@ YOUNG_S = 10.0
 #: How often a starting worker's health is asked, s, and how long one answer may take.
 READY_POLL_S = 0.05
 READY_ASK_S = 1.0
+#: How long the other workers wait for the first one at start-up, s (then they start anyway).
+FIRST_READY_S = 60.0
 #: How long a stopping worker gets after its SIGTERM (beyond the server's own graceful
 #: shutdown) before it is killed, s.
 STOP_GRACE_S = 5.0
@@ -67,11 +69,16 @@ class Supervisor:
         self._count = count
         self._stopping = False
         self._tasks: list[asyncio.Task[None]] = []
+        #: Set once the first worker answered: it has opened (made, migrated) the store, which
+        #: the others then open as it is (SQLite's journal-mode switch and the migrations of
+        #: a fresh database are not safe to race from several processes).
+        self._first_ready = asyncio.Event()
 
     def start(self) -> None:
-        """Start every worker's watcher (it starts the worker, and again when it dies). The
-        front serves at once: until a worker is ready its arms are `down` in health and 503
-        `link_down` (a client waits for health `ok`)."""
+        """Start every worker's watcher (it starts the worker, and again when it dies): the
+        first worker, then the others once it answers (`_first_ready`). The front serves at
+        once: until a worker is ready its arms are `down` in health and 503 `link_down` (a
+        client waits for health `ok`)."""
         self._tasks = [asyncio.create_task(self._watch(w), name=f"lab-worker-{w.index}")
                        for w in self.workers]
 
@@ -84,6 +91,10 @@ class Supervisor:
 
     async def _watch(self, w: Worker) -> None:
         backoff = RESTART_BACKOFF_S
+        if w is not self.workers[0]:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(FIRST_READY_S):
+                    await self._first_ready.wait()
         while not self._stopping:
             started = time.monotonic()
             w.proc = await self._spawn(w)
@@ -110,6 +121,7 @@ class Supervisor:
                 r = await w.client.get("/api/v1/health", timeout=READY_ASK_S)
                 if r.status_code == 200:
                     w.ready, w.last_error = True, None
+                    self._first_ready.set()
                     log.info("worker %d ready", w.index)
                     return
             await asyncio.sleep(READY_POLL_S)
@@ -138,3 +150,7 @@ class Supervisor:
         for w in self.workers:
             await w.client.aclose()
             w.uds.unlink(missing_ok=True)
+        # here, not after uvicorn returns: after a signal it re-raises it and the process ends
+        self._settings_file.unlink(missing_ok=True)  # it holds the tokens
+        with contextlib.suppress(OSError):
+            self._settings_file.parent.rmdir()
