@@ -156,6 +156,16 @@ def test_each_arm_answers_from_its_own_worker(lab: Lab) -> None:
         for name in ("table-left", "table-right"):
             one = c.get(f"/api/v1/cameras/{name}")
             assert one.status_code == 200 and one.json()["name"] == name, one.text
+        # an answer that never ends (MJPEG) is relayed as it comes, until the client goes
+        with c.stream("GET", "/api/v1/cameras/table-right/stream") as stream:
+            assert stream.status_code == 200
+            assert stream.headers["content-type"].startswith("multipart/x-mixed-replace")
+            seen = b""
+            for chunk in stream.iter_raw():
+                seen += chunk
+                if b"\xff\xd8" in seen:  # a JPEG's start: a frame came through
+                    break
+        assert b"\xff\xd8" in seen
         assert c.get("/").status_code == 200  # the dashboard
         # the workers are separate processes: one arm's latch is not another's
         # the front names the client's address to the worker (a client's own claim dropped)

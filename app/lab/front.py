@@ -45,6 +45,9 @@ log = logging.getLogger("armserver.lab")
 ARMS = API_PREFIX + "/arms"
 CAMERAS = API_PREFIX + "/cameras"
 HEALTH = API_PREFIX + "/health"
+#: Response headers a relayed answer keeps but these (its bytes pass as they came, framing too).
+HOP_STREAM = frozenset({b"connection", b"keep-alive", b"transfer-encoding", b"te", b"trailer",
+                        b"upgrade"})
 #: Response headers the front does not pass back (it frames the body itself).
 HOP_BACK = HOP | {b"content-encoding"}
 
@@ -57,6 +60,21 @@ def _json_response(status: int, body: Any,
                    headers: list[tuple[bytes, bytes]] | None = None) -> Answer:
     data = json.dumps(body, separators=(",", ":")).encode()
     return status, [(b"content-type", b"application/json"), *(headers or [])], data
+
+
+async def _relay_body(r: httpx.Response, send: Send) -> None:
+    try:
+        async for chunk in r.aiter_raw():
+            await send({"type": "http.response.body", "body": chunk, "more_body": True})
+    except httpx.TransportError as exc:  # the worker went away mid-answer: end what was sent
+        log.warning("a relayed answer broke off: %r", exc)
+    await send({"type": "http.response.body", "body": b"", "more_body": False})
+
+
+async def _disconnected(receive: Receive) -> None:
+    """Until the client goes (after the body, `receive` waits for exactly that)."""
+    while (await receive())["type"] != "http.disconnect":
+        pass
 
 
 def down_link(plan: LabPlan, arm: str, reason: str) -> dict[str, Any]:
@@ -98,9 +116,10 @@ class LabFront:
                                            else self._cameras_list(scope) if path == CAMERAS
                                            else self._health(scope))
         else:
-            status, headers, body = await self._forward(scope, receive, worker)
-            if status == 404:
-                body = self._all_arms_named(path, body)
+            answer = await self._forward(scope, receive, send, worker)
+            if answer is None:  # relayed as it came (a stream)
+                return
+            status, headers, body = answer
         await send({"type": "http.response.start", "status": status,
                     "headers": [*headers, (b"content-length", str(len(body)).encode())]})
         await send({"type": "http.response.body", "body": body})
@@ -143,8 +162,11 @@ class LabFront:
             if not message.get("more_body", False):
                 return b"".join(chunks)
 
-    async def _forward(self, scope: Scope, receive: Receive,
-                       worker: Worker | None) -> Answer:
+    async def _forward(self, scope: Scope, receive: Receive, send: Send,
+                       worker: Worker | None) -> Answer | None:
+        """Pass the request to `worker` and its answer back as it comes, chunk by chunk (an
+        MJPEG stream never ends: it ends when the client goes). None once relayed; else the
+        answer to send (a refusal of the front's, or a 404 to rename)."""
         body = await self._read_body(receive)
         if body is None:
             return _json_response(413, {"detail": f"the request body is over {self.max_body} "
@@ -154,15 +176,30 @@ class LabFront:
         url = scope.get("raw_path") or scope["path"].encode()
         if scope.get("query_string"):
             url += b"?" + scope["query_string"]
-        headers = forwarded_headers(scope)
+        request = worker.client.build_request(scope["method"], url.decode("latin-1"),
+                                              headers=forwarded_headers(scope), content=body)
         try:
-            r = await worker.client.request(scope["method"], url.decode("latin-1"),
-                                            headers=headers, content=body)
+            r = await worker.client.send(request, stream=True)
         except httpx.TransportError as exc:
             log.warning("worker %d: %r", worker.index, exc)
             return self._down(worker)
-        return r.status_code, [(k, v) for k, v in r.headers.raw if k.lower() not in HOP_BACK], \
-            r.content
+        try:
+            if r.status_code == 404:  # small: read whole, maybe renamed
+                data = self._all_arms_named(scope["path"], await r.aread())
+                return r.status_code, [(k, v) for k, v in r.headers.raw
+                                       if k.lower() not in HOP_BACK], data
+            await send({"type": "http.response.start", "status": r.status_code,
+                        "headers": [(k, v) for k, v in r.headers.raw
+                                    if k.lower() not in HOP_STREAM]})
+            relay = asyncio.ensure_future(_relay_body(r, send))
+            gone = asyncio.ensure_future(_disconnected(receive))
+            await asyncio.wait([relay, gone], return_when=asyncio.FIRST_COMPLETED)
+            for t in (relay, gone):
+                t.cancel()
+            await asyncio.gather(relay, gone, return_exceptions=True)
+            return None
+        finally:
+            await r.aclose()
 
     def _all_arms_named(self, path: str, body: bytes) -> bytes:
         """A worker's 404 `unknown_arm` names its own arms: the lab's names them all."""
