@@ -20,7 +20,8 @@ process owning its arm (app/lab/supervisor.py) and answers the lab-wide endpoint
 Why a front in the project and not nginx or Caddy: the two lab-wide lists are merges of the
 workers' answers, which a reverse proxy cannot make without a program of its own beside it;
 and a proxy's health checks would not know which arm lives where. The front costs one more hop
-on loopback, over a Unix socket with kept-alive connections (httpx): bench/lab.py measures it.
+on loopback, over a Unix socket with kept-alive connections (app/lab/upstream.py: a general
+HTTP client cost about 1 ms of Python a request there); bench/lab.py measures it.
 """
 
 from __future__ import annotations
@@ -30,13 +31,13 @@ import json
 import logging
 from typing import Any
 
-import httpx
 from starlette.types import Receive, Scope, Send
 
 from app.config import Settings
 from app.lab.headers import HOP, forwarded_headers
 from app.lab.placement import LabPlan
 from app.lab.supervisor import Supervisor, Worker
+from app.lab.upstream import UpstreamError, UpstreamResponse
 from app.lab.ws_relay import relay_websocket
 from app.web.middleware import API_PREFIX
 
@@ -62,11 +63,18 @@ def _json_response(status: int, body: Any,
     return status, [(b"content-type", b"application/json"), *(headers or [])], data
 
 
-async def _relay_body(r: httpx.Response, send: Send) -> None:
+#: How long a forwarded request may wait for its answer's head, s: a `wait: true` move answers
+#: when the motion ends.
+REQUEST_TIMEOUT_S = 600.0
+#: How long a lab-wide list waits for each worker, s.
+ASK_TIMEOUT_S = 10.0
+
+
+async def _relay_body(r: UpstreamResponse, send: Send) -> None:
     try:
-        async for chunk in r.aiter_raw():
+        async for chunk in r.chunks():
             await send({"type": "http.response.body", "body": chunk, "more_body": True})
-    except httpx.TransportError as exc:  # the worker went away mid-answer: end what was sent
+    except UpstreamError as exc:  # the worker went away mid-answer: end what was sent
         log.warning("a relayed answer broke off: %r", exc)
     await send({"type": "http.response.body", "body": b"", "more_body": False})
 
@@ -176,21 +184,18 @@ class LabFront:
         url = scope.get("raw_path") or scope["path"].encode()
         if scope.get("query_string"):
             url += b"?" + scope["query_string"]
-        request = worker.client.build_request(scope["method"], url.decode("latin-1"),
-                                              headers=forwarded_headers(scope), content=body)
         try:
-            r = await worker.client.send(request, stream=True)
-        except httpx.TransportError as exc:
+            r = await worker.client.request(scope["method"], url.decode("latin-1"),
+                                            forwarded_headers(scope), body, REQUEST_TIMEOUT_S)
+        except (UpstreamError, TimeoutError) as exc:
             log.warning("worker %d: %r", worker.index, exc)
             return self._down(worker)
         try:
             if r.status_code == 404:  # small: read whole, maybe renamed
-                data = self._all_arms_named(scope["path"], await r.aread())
-                return r.status_code, [(k, v) for k, v in r.headers.raw
-                                       if k.lower() not in HOP_BACK], data
+                data = self._all_arms_named(scope["path"], await r.read())
+                return r.status_code, [(k, v) for k, v in r.headers if k not in HOP_BACK], data
             await send({"type": "http.response.start", "status": r.status_code,
-                        "headers": [(k, v) for k, v in r.headers.raw
-                                    if k.lower() not in HOP_STREAM]})
+                        "headers": [(k, v) for k, v in r.headers if k not in HOP_STREAM]})
             relay = asyncio.ensure_future(_relay_body(r, send))
             gone = asyncio.ensure_future(_disconnected(receive))
             await asyncio.wait([relay, gone], return_when=asyncio.FIRST_COMPLETED)
@@ -215,24 +220,27 @@ class LabFront:
         return _json_response(503, {"detail": f"{what}: retry shortly", "code": "link_down"},
                               [(b"retry-after", b"1")])
 
-    async def _ask_all(self, scope: Scope,
-                       path: str) -> tuple[dict[int, httpx.Response], Answer | None]:
-        """`GET path` of every ready worker with the caller's headers: the answers by worker,
-        or the first refusal (401, 403, 400 ...) to answer as is."""
+    async def _ask_all(self, scope: Scope, path: str) -> tuple[dict[int, Any], Answer | None]:
+        """`GET path` of every ready worker with the caller's headers: the parsed answers by
+        worker, or the first refusal (401, 403, 400 ...) to answer as is."""
         headers = forwarded_headers(scope)
+
+        async def ask(w: Worker) -> Answer:
+            r = await w.client.request("GET", path, headers, timeout=ASK_TIMEOUT_S)
+            data = await r.read()
+            return r.status_code, [(k, v) for k, v in r.headers if k not in HOP_BACK], data
+
         ready = [w for w in self.workers if w.ready]
-        got = await asyncio.gather(*(w.client.get(path, headers=headers) for w in ready),
-                                   return_exceptions=True)
-        answers: dict[int, httpx.Response] = {}
+        got = await asyncio.gather(*(ask(w) for w in ready), return_exceptions=True)
+        answers: dict[int, Any] = {}
         for w, r in zip(ready, got, strict=True):
-            if isinstance(r, httpx.TransportError):
+            if isinstance(r, UpstreamError | TimeoutError):
                 continue
             if isinstance(r, BaseException):
                 raise r
-            if r.status_code != 200:
-                return answers, (r.status_code, [(k, v) for k, v in r.headers.raw
-                                                 if k.lower() not in HOP_BACK], r.content)
-            answers[w.index] = r
+            if r[0] != 200:
+                return answers, r
+            answers[w.index] = json.loads(r[2])
         return answers, None
 
     async def _arms(self, scope: Scope) -> Answer:
@@ -241,8 +249,8 @@ class LabFront:
             return refusal
         if not answers and not any(w.ready for w in self.workers):
             return self._down(None)
-        for r in answers.values():
-            for summary in r.json():
+        for listed in answers.values():
+            for summary in listed:
                 self._summaries[summary["name"]] = summary
         out = []
         for name in self.plan.names:
@@ -263,8 +271,8 @@ class LabFront:
             return refusal
         if not answers and not any(w.ready for w in self.workers):
             return self._down(None)
-        for r in answers.values():
-            for entry in r.json():
+        for listed in answers.values():
+            for entry in listed:
                 self._cameras[entry["name"]] = entry
         out = []
         where = self.plan.camera_worker
@@ -281,7 +289,7 @@ class LabFront:
         answers, refusal = await self._ask_all(scope, HEALTH)
         if refusal is not None:
             return refusal
-        bodies = {k: r.json() for k, r in answers.items()}
+        bodies = answers
         first: dict[str, Any] = next(iter(bodies.values()), {})
         arms: dict[str, Any] = {}
         ok = True

@@ -9,9 +9,11 @@ from starlette.types import Scope
 #: The header in which the front names the client's address (host:port); the front drops any
 #: a client sends, and only the front can reach a worker's socket (the lab's 0700 folder).
 CLIENT_HEADER = b"x-armserver-lab-client"
-#: Request headers the front does not pass on (hop by hop, or recomputed by httpx).
+#: Request headers the front does not pass on: hop by hop, the length (recomputed: the front
+#: has read the body) and Expect (the front answered the 100-continue itself).
 HOP = frozenset({b"connection", b"keep-alive", b"transfer-encoding", b"te", b"trailer",
-                 b"upgrade", b"proxy-authorization", b"proxy-connection", b"content-length"})
+                 b"upgrade", b"proxy-authorization", b"proxy-connection", b"content-length",
+                 b"expect"})
 
 
 def forwarded_headers(scope: Scope) -> list[tuple[bytes, bytes]]:

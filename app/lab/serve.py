@@ -15,29 +15,24 @@ import shutil
 import tempfile
 from pathlib import Path
 
-import httpx
 import uvicorn
 
 from app.config import Settings
 from app.lab.front import LabFront
 from app.lab.placement import plan_lab
 from app.lab.supervisor import Supervisor, Worker
+from app.lab.upstream import Upstream
 from app.lab.worker import uvicorn_config
 
 log = logging.getLogger("armserver.lab")
 
-#: How long a forwarded request may take, s: a `wait: true` move answers when it ends.
-REQUEST_TIMEOUT_S = 600.0
 #: Kept-alive connections from the front to each worker.
 KEEPALIVE = 64
 
 
-def worker_client(uds: Path, max_connections: int) -> httpx.AsyncClient:
+def worker_client(uds: Path) -> Upstream:
     """The front's connection pool to one worker, over its Unix socket."""
-    transport = httpx.AsyncHTTPTransport(uds=str(uds), limits=httpx.Limits(
-        max_connections=max_connections, max_keepalive_connections=KEEPALIVE))
-    return httpx.AsyncClient(transport=transport, base_url="http://localhost",
-                             timeout=httpx.Timeout(REQUEST_TIMEOUT_S, connect=1.0))
+    return Upstream(uds, KEEPALIVE)
 
 
 def build_front(settings: Settings, count: int, folder: Path) -> LabFront:
@@ -48,7 +43,7 @@ def build_front(settings: Settings, count: int, folder: Path) -> LabFront:
     with os.fdopen(fd, "w", encoding="utf-8") as f:
         f.write(settings.model_dump_json())
     workers = [Worker(k, tuple(p.name for p in arms), folder / f"worker-{k}.sock",
-                      worker_client(folder / f"worker-{k}.sock", settings.max_connections))
+                      worker_client(folder / f"worker-{k}.sock"))
                for k, arms in enumerate(plan.workers) if arms]
     return LabFront(plan, Supervisor(workers, settings_file, count), settings)
 
@@ -56,7 +51,6 @@ def build_front(settings: Settings, count: int, folder: Path) -> LabFront:
 def serve_lab(settings: Settings, count: int, access_log: bool = False) -> int:
     """Run the lab until a signal: the front on settings.host:port, `count` workers."""
     folder = Path(tempfile.mkdtemp(prefix="armserver-lab-"))  # 0700
-    logging.getLogger("httpx").setLevel(logging.WARNING)  # a line per forwarded request
     try:
         front = build_front(settings, count, folder)
         if settings.host not in ("127.0.0.1", "::1", "localhost") and not settings.auth_enabled:

@@ -23,7 +23,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import httpx
+from app.lab.upstream import Upstream, UpstreamError
 
 log = logging.getLogger("armserver.lab")
 
@@ -49,7 +49,7 @@ class Worker:
     index: int
     arms: tuple[str, ...]
     uds: Path
-    client: httpx.AsyncClient
+    client: Upstream
     proc: asyncio.subprocess.Process | None = None
     ready: bool = False
     starts: int = 0
@@ -106,6 +106,7 @@ class Supervisor:
             with contextlib.suppress(asyncio.CancelledError):
                 await ready
             w.ready = False
+            w.client.reset()  # its kept-alive connections lead nowhere now
             if self._stopping:
                 return
             w.last_error = f"worker {w.index} exited with {code}; restarting"
@@ -117,8 +118,10 @@ class Supervisor:
 
     async def _until_ready(self, w: Worker) -> None:
         while True:
-            with contextlib.suppress(httpx.HTTPError):
-                r = await w.client.get("/api/v1/health", timeout=READY_ASK_S)
+            with contextlib.suppress(UpstreamError, TimeoutError):
+                r = await w.client.request("GET", "/api/v1/health",
+                                           [(b"host", b"localhost")], timeout=READY_ASK_S)
+                await r.read()
                 if r.status_code == 200:
                     w.ready, w.last_error = True, None
                     self._first_ready.set()
