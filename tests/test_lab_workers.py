@@ -299,3 +299,27 @@ def _is(fn: Any, value: Any) -> Any:
         return bool(await fn() == value)
     return check
 
+
+
+def test_placement_follows_the_config_and_refuses_what_cannot_be(tmp_path: Path) -> None:
+    from conftest import make_settings
+
+    from app.config import ConfigError
+    from app.lab.placement import lab_workers, plan_lab
+
+    config = tmp_path / "lab.toml"
+    config.write_text(CONFIG + '\n[[arms]]\nprofile = "rbe3001"\nname = "spare"\ncount = 3\n')
+    settings = make_settings(config=str(config))
+    assert lab_workers(settings, None) == 2  # the config names workers 0 and 1
+    assert lab_workers(settings, 1) == 1  # --workers 1: one process, as ever
+    plan = plan_lab(settings, 3)
+    # named ones where named, the others each to the emptiest worker, in config order
+    assert [[p.name for p in arms] for arms in plan.workers] == [
+        ["left", "spare-1"], ["right", "spare-2"], ["rails", "spare-3"]]
+    assert plan.camera_worker == {"table-left": 0, "table-right": 1}
+    with pytest.raises(ConfigError, match="names worker 1, but the server runs 1"):
+        plan_lab(settings, 1)
+    for bad in ("-1", "true", '"0"', "64"):
+        config.write_text(f'[[arms]]\nprofile = "rbe3001"\nworker = {bad}\n')
+        with pytest.raises(ConfigError, match="worker must be an integer 0..63"):
+            plan_lab(make_settings(config=str(config)), 2)
