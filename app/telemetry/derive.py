@@ -70,23 +70,25 @@ class Derivation:
 
     def __init__(self, model: Callable[[], Kinematics]) -> None:
         self.model = model
-        self._key: bytes | None = None
-        self._values: tuple[Any, Any, Any] | None = None
+        #: (model, readings' key, (tip, tip velocity, tip force)) of the last sample derived,
+        #: replaced whole: two readers deriving at once never pair one's key with the other's
+        #: values.
+        self._last: tuple[Kinematics, bytes, tuple[Any, Any, Any]] | None = None
 
     def __call__(self, items: list[tuple[dict[str, Any], Readings]]) -> None:
+        model = self.model()
+        last = self._last
         todo = []
         for sample, r in items:
-            key = _key(r)
-            if key == self._key and self._values is not None:
-                tip, tip_v, force = self._values
-                sample["tip"], sample["tip_velocity"], sample["tip_force"] = tip, tip_v, force
+            if last is not None and last[0] is model and last[1] == _key(r):
+                sample["tip"], sample["tip_velocity"], sample["tip_force"] = last[2]
             else:
                 todo.append((sample, r))
-        derive(self.model(), todo)
+        derive(model, todo)
         if todo:
             sample, r = todo[-1]
-            self._key = _key(r)
-            self._values = (sample["tip"], sample["tip_velocity"], sample["tip_force"])
+            self._last = (model, _key(r),
+                          (sample["tip"], sample["tip_velocity"], sample["tip_force"]))
 
 
 def _key(r: Readings) -> bytes:
