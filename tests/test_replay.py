@@ -80,7 +80,9 @@ async def test_replay_follows_the_frames_tip_path(
     path = np.asarray(arm.model.fk(dense(targets)), dtype=float)
     tips = np.asarray(arm.model.fk(q), dtype=float)
     start = np.asarray(arm.model.fk(targets[0]), dtype=float)
-    reached = int(np.argmax(np.linalg.norm(tips - start, axis=1) < 0.002))
+    # the soft start ends at rest on the first frame: from the first sample there (its
+    # approach, from elsewhere, is not the recording's path)
+    reached = int(np.argmax(np.linalg.norm(tips - start, axis=1) < 0.0005))
     d = path_distance(tips[reached:], path)
     assert len(d) > 30
     assert float(np.max(d)) < 0.002, f"tip {np.max(d) * 1e3:.2f} mm off the frames' path"

@@ -83,14 +83,18 @@ async def test_an_episode_replays_on_its_path(
     # line the executor plays (a 30 fps chord of a fast move is centimetres of tip travel)
     path = np.asarray(model.fk(dense(states)), dtype=float)
     first = np.asarray(model.fk(actions[0]), dtype=float)
-    reached = int(np.argmax(np.linalg.norm(tips - first, axis=1) < 0.002))
+    # the soft start ends at rest on the first frame: from the first sample there (its
+    # approach, from elsewhere, is not the recording's path)
+    reached = int(np.argmax(np.linalg.norm(tips - first, axis=1) < 0.0005))
     played = tips[reached:]
     assert len(played) > 30
     off = path_distance(played, path)
-    assert float(np.max(off)) < 0.002, f"replay {np.max(off) * 1e3:.2f} mm off the recording"
+    # the bound is for the arm the episode was recorded on; another arm of the type
+    # has servos of its own (each lags its goal on its own): 3 mm there
+    bound = 0.002 if arm == "leader" else 0.003
+    assert float(np.max(off)) < bound, f"replay {np.max(off) * 1e3:.2f} mm off the recording"
     back = path_distance(np.asarray(model.fk(states), dtype=float), played)  # all of it
-
-    assert float(np.max(back)) < 0.002, f"recording {np.max(back) * 1e3:.2f} mm off the replay"
+    assert float(np.max(back)) < bound, f"recording {np.max(back) * 1e3:.2f} mm off the replay"
 
 
 async def test_replay_refusals(recorded: tuple[FastAPI, httpx.AsyncClient]) -> None:
