@@ -234,11 +234,14 @@ class TelemetryHub:
     def _ready(self, entries: list[_Lazy]) -> None:
         """Derive and encode the entries not done yet, in one batch. Outside the lock: two
         readers racing on the same entries compute the same values twice, harmlessly."""
-        todo = [e for e in entries if e.encoded is None]
+        # inputs taken once: another reader that finished an entry has encoded it first and
+        # then let its inputs go (None)
+        pairs = [(e, e.inputs) for e in entries if e.encoded is None]
+        todo = [e for e, inputs in pairs if inputs is not None]
         if not todo:
             return
         if self.deriver is not None:
-            self.deriver([(e.sample, e.inputs) for e in todo])
+            self.deriver([(e.sample, inputs) for e, inputs in pairs if inputs is not None])
         for e in todo:
             data = orjson.dumps(e.sample, option=_OPTIONS)
             e.data = data
