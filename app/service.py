@@ -83,6 +83,9 @@ class ArmService:
         #: whether a press has been told how it went.
         self._hold: asyncio.Future[None] | None = None
         self._hold_told = True
+        #: Stop requests served (`stop`, POST /stop): a teleoperation session driving this
+        #: arm ends at the next one (app/teleop/session.py). Counted on the control loop.
+        self.stops = 0
         #: The gripper's last command (0 open .. 1 closed), None before any (control thread).
         self._gripper_told: float | None = None
 
@@ -563,7 +566,9 @@ class ArmService:
         return await on_home(self.home_loop, lambda: self._stop(reason))
 
     async def _stop(self, reason: str = "stopped by request") -> s.StopResult:
-        """Stop all motion; `reason` (who or what stopped it) goes into each motion's record."""
+        """Stop all motion; `reason` (who or what stopped it) goes into each motion's record.
+        Counted in `stops`: a teleoperation session driving the arm ends too."""
+        self.stops += 1
         stopped = await self.motion.stop_all(reason=reason)
         return s.StopResult(stopped=stopped, estop=self.estop)
 

@@ -271,3 +271,23 @@ async def test_the_followers_lease_is_needed(pair: tuple[FastAPI, httpx.AsyncCli
         return s if s["status"] == "ended" else None
     s = await wait_for(ended, what="the session ended by the new lease")
     assert s["reason"] == "the follower's lease is another client's now"
+
+
+async def test_a_stop_on_the_follower_ends_the_session(
+        pair: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    app, c = pair
+    follower = arm_of(app, "follower")
+    t = await start(c)
+    r = await c.post(f"{API}/arms/follower/stop")
+    assert r.status_code == 200, r.text
+
+    async def ended() -> dict[str, Any] | None:
+        s = await session(c, t["id"])
+        return s if s["status"] == "ended" else None
+    s = await wait_for(ended, what="the session ended by the follower's stop")
+    assert s["reason"] == "follower stopped (POST /stop)"
+    here = await held_still(lambda: follower.positions, TOL)
+    r = await c.post(f"{API}/arms/leader/move/joints", json={"positions": [0.4, -0.3, 0.2, 0.5],
+                                                             "wait": True})
+    assert r.status_code == 200, r.text
+    np.testing.assert_allclose(follower.positions, here, atol=TOL)

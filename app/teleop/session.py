@@ -13,7 +13,8 @@ deadman time or stale, when its pose has no follower target, or when the followe
 setpoint (a keep-out zone, a joint limit, a planned motion running on it, a lost link): the
 follower holds its last command, and the session goes on. The emergency stop on either arm
 ends the session (the follower's estop holds it; after the leader's, the follower is told to
-hold where it is), as does `stop` (DELETE): the follower holds where it is.
+hold where it is), as do a stop request on the follower (POST /arms/{arm}/stop) and `stop`
+(DELETE): the follower holds where it is.
 """
 
 from __future__ import annotations
@@ -131,6 +132,7 @@ class TeleopSession:
         loop = asyncio.get_running_loop()
         period = 1.0 / self.rate_hz
         due = loop.time()
+        stops = self.follower.stops
         latest: dict[str, Any] | None = (None if sub.initial is None
                                           else orjson.loads(sub.initial))
         last: np.ndarray | None = None
@@ -139,6 +141,10 @@ class TeleopSession:
             which = [a.name for a in (self.leader, self.follower) if a.estop]
             if which:
                 self._end(f"emergency stop on {' and '.join(which)}")
+                await self._hold()
+                return
+            if self.follower.stops != stops:  # POST /arms/{follower}/stop
+                self._end(f"{self.follower.name} stopped (POST /stop)")
                 await self._hold()
                 return
             samples, _events, _dropped = sub.take()
