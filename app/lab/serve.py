@@ -3,8 +3,8 @@
 The front process writes its settings (tokens included) to a 0700 folder of its own for the
 workers to read, starts them (app/lab/supervisor.py) and serves app/lab/front.py with uvicorn
 on `host:port`, with the same limits as a single server (header bytes, connections, body, the
-WebSocket message size). A first SIGINT/SIGTERM stops the front, which stops each worker once
-(its arms stop as `POST /stop` does).
+WebSocket message size). A SIGINT/SIGTERM goes on to every worker at once (`LabServer`: the
+first stops their arms as `POST /stop` does, a second holds them), then the front shuts down.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from pathlib import Path
 import uvicorn
 
 from app.config import Settings
+from app.doors.uvicorn import SignalServer
 from app.lab.front import LabFront
 from app.lab.placement import plan_lab
 from app.lab.supervisor import Supervisor, Worker
@@ -28,6 +29,24 @@ log = logging.getLogger("armserver.lab")
 
 #: Kept-alive connections from the front to each worker.
 KEEPALIVE = 64
+
+
+class LabServer(SignalServer):
+    """The front's uvicorn server: each signal it takes goes to the workers at once (the
+    first: every arm stops as `POST /stop` does; a second: they hold), then uvicorn's own
+    shutdown, whose lifespan end waits for the workers."""
+
+    def __init__(self, config: uvicorn.Config, supervisor: Supervisor) -> None:
+        super().__init__(config)
+        self.supervisor = supervisor
+
+    def first_signal(self, sig: int) -> None:
+        log.warning("signal %d: stopping every worker's arms, then shutting down", sig)
+        self.supervisor.signal_all(sig)
+
+    def again(self, sig: int) -> None:
+        log.warning("signal %d again: every worker holds its arms and exits now", sig)
+        self.supervisor.signal_all(sig)
 
 
 def worker_client(uds: Path) -> Upstream:
@@ -60,7 +79,7 @@ def serve_lab(settings: Settings, count: int, access_log: bool = False) -> int:
             log.info("worker %d will host %s", w.index, ", ".join(w.arms))
         config = uvicorn_config(front, settings, access_log, host=settings.host,
                                 port=settings.port, lifespan="on")
-        uvicorn.Server(config).run()
+        LabServer(config, front.supervisor).run()
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     return 0

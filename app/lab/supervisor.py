@@ -129,12 +129,23 @@ class Supervisor:
                     return
             await asyncio.sleep(READY_POLL_S)
 
+    def signal_all(self, sig: int) -> None:
+        """Send `sig` to every running worker now (from a signal handler: no awaiting). The
+        front relays its own signals so: the first stops every arm as `POST /stop` does at
+        once, not after the front's graceful wait for its connections; a second holds them."""
+        self._stopping = True  # a worker that exits now is not restarted
+        for w in self.workers:
+            if w.proc is not None and w.proc.returncode is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(w.proc.pid, sig)
+
     async def stop(self, grace: float) -> None:
         """SIGTERM every worker once (its arms stop as `POST /stop` does, then it exits);
         SIGKILL one still running after `grace` + STOP_GRACE_S s."""
+        already = self._stopping  # the first signal went to the workers already
         self._stopping = True
         procs = [w.proc for w in self.workers if w.proc is not None and w.proc.returncode is None]
-        for proc in procs:
+        for proc in procs if not already else []:
             with contextlib.suppress(ProcessLookupError):
                 proc.send_signal(signal.SIGTERM)
         if procs:
