@@ -5,8 +5,8 @@ the plan gives worker `--index`, served on a Unix socket that only the front tal
 The worker reads its settings from the JSON file the front wrote (`--settings`, in the lab's
 0700 folder: it holds the tokens), so the front and every worker check the same tokens, hosts
 and limits. It runs in its own session (a Ctrl-C at the terminal reaches the front only, which
-passes each signal on once: the first stops the arms as `POST /stop` does, a second holds) and stops itself if
-the front goes away without telling it (`watch_parent`).
+passes each signal on once: the first stops the arms as `POST /stop` does, a second holds) and
+stops itself if the front goes away without telling it (`watch_parent`).
 """
 
 from __future__ import annotations
