@@ -82,6 +82,30 @@ async def test_a_real_leader_is_moved_by_hand(
     np.testing.assert_allclose(await held_still(lambda: leader.positions, TOL), hand, atol=TOL)
 
 
+async def test_a_real_leader_held_by_a_lease_needs_that_lease(
+        real_leader: tuple[FastAPI, httpx.AsyncClient, Any]) -> None:
+    """Switching a real leader's torque off makes it limp: a command to it. While its lease is
+    held, a session needs that lease (X-Leader-Lease) as a move would, and a refusal leaves
+    its torque on."""
+    app, c, bus = real_leader
+    leader: ArmService = app.state.services["leader"]
+    servos = joint_servos(bus, leader)
+    r = await c.post(f"{API}/arms/leader/lease")
+    assert r.status_code in (200, 201), r.text
+    lease = r.json()["id"]
+    r = await c.post(f"{API}/teleop", json=START)
+    assert r.status_code == 409 and r.json()["code"] == "leased", r.text
+    r = await c.post(f"{API}/teleop", json=START, headers={"X-Leader-Lease": "not-it"})
+    assert r.status_code == 409 and r.json()["code"] == "leased", r.text
+    assert all(sv.torque for sv in servos), "a refused session switched the leader's torque"
+    assert (await c.get(f"{API}/teleop")).json() == []
+    r = await c.post(f"{API}/teleop", json=START, headers={"X-Leader-Lease": lease})
+    assert r.status_code == 201, r.text
+    assert not any(sv.torque for sv in servos)
+    assert (await c.delete(f"{API}/teleop/{r.json()['id']}")).status_code == 200
+    await wait_for(lambda: all(sv.torque for sv in servos), what="the leader's torque on")
+
+
 async def test_estop_on_a_real_leader_gives_it_its_torque_back(
         real_leader: tuple[FastAPI, httpx.AsyncClient, Any]) -> None:
     app, c, bus = real_leader

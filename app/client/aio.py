@@ -313,7 +313,7 @@ class AsyncArmClient:
                             scale=None if scale is None else list(scale),
                             offset=None if offset is None else list(offset),
                             tip_offset=None if tip_offset is None else list(tip_offset))
-        return await self.send(Requests.start_teleop(req))
+        return await self.send(Requests.start_teleop(req, self.leases.get(leader)))
 
     async def replay(self, arm: str, recording: str, episode: int, *,
                      wait: bool = False) -> s.Motion:

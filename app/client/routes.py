@@ -251,10 +251,13 @@ class Requests:
                     _body(scene), arm=arm, safe=True)
 
     @staticmethod
-    def start_teleop(req: s.TeleopStart) -> Call[s.TeleopSession]:
-        # the lease header is the follower's: the session moves it
+    def start_teleop(req: s.TeleopStart, leader_lease: str | None = None
+                     ) -> Call[s.TeleopSession]:
+        # the lease header is the follower's: the session moves it; a real leader's torque
+        # goes off, so its lease (where one is held) goes in X-Leader-Lease
+        headers = {"X-Leader-Lease": leader_lease} if leader_lease else {}
         return Call("POST", url_path("teleop"), _model(s.TeleopSession), _body(req),
-                    arm=req.follower)
+                    arm=req.follower, headers=headers)
 
     @staticmethod
     def replay(arm: str, req: s.ReplayRequest) -> Call[s.Motion]:

@@ -19,23 +19,23 @@ class TeleopStart(Model):
 
     leader: ArmRef
     follower: ArmRef
-    rate_hz: Annotated[float, Field(ge=30.0, le=100.0, allow_inf_nan=False, strict=False)] = 50.0
+    rate_hz: Annotated[float, Field(ge=30.0, le=100.0, allow_inf_nan=False, strict=True)] = 50.0
     mapping: Literal["joints", "tip"] = Field(
         "joints", description="`joints`: one to one, for like arms (scaled, offset, clamped); "
         "`tip`: the leader's tip (forward kinematics), the follower's IK solution nearest "
         "where it is")
-    deadman_s: Annotated[float, Field(ge=0.02, le=2.0, allow_inf_nan=False)] = Field(
+    deadman_s: Annotated[float, Field(ge=0.02, le=2.0, allow_inf_nan=False, strict=True)] = Field(
         0.2, description="a leader sample older than this (s) holds the follower")
     scale: list[Finite] | None = Field(None, min_length=1, max_length=16,
                                        description="joints: per follower joint, default 1")
     offset: list[Finite] | None = Field(None, min_length=1, max_length=16,
                                         description="joints: per follower joint (rad or m), "
                                         "default 0")
-    tip_scale: Annotated[float, Field(gt=0.0, le=10.0, allow_inf_nan=False)] = Field(
+    tip_scale: Annotated[float, Field(gt=0.0, le=10.0, allow_inf_nan=False, strict=True)] = Field(
         1.0, description="tip: the leader's tip position times this, about its base origin")
     tip_offset: list[Finite] | None = Field(None, min_length=3, max_length=3,
                                             description="tip: x, y, z m added after scaling")
-    clamp_margin: Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)] = Field(
+    clamp_margin: Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False, strict=True)] = Field(
         0.0, description="the follower's targets are clamped this far (rad or m) inside its "
         "joint limits")
 

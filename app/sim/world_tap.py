@@ -64,9 +64,12 @@ class WorldTap:
 
     Transparent to whoever reaches the device through the link (tests inject faults into the
     simulated firmware or bus as `link.device.<attribute>`): an attribute the tap does not have
-    is the device's, read and written."""
+    is the device's, read and written. The tap's own `receive` and `advance` stay the tap's
+    when replaced (a test that wraps `link.device.receive` wraps the tap's, which calls the
+    device's: writing the wrapper into the device would make it call itself)."""
 
-    _OWN = frozenset({"device", "world", "packetized", "_read", "_next", "_last"})
+    _OWN = frozenset({"device", "world", "packetized", "_read", "_next", "_last", "receive",
+                      "advance"})
     device: SimDevice
 
     def __init__(self, device: SimDevice, world: World,

@@ -52,6 +52,8 @@ async def create(_: OperatorRole, request: Request,
 
 
 @router.get("", response_model=list[s.RecordingSummary], summary="List the datasets",
+            description="Every dataset under `<data_dir>/recordings/`: its id, episodes, "
+            "frames, path, and whether an episode is recording now. Viewer token.",
             responses=errors(401))
 async def list_all(_: ViewerRole, request: Request) -> list[s.RecordingSummary]:
     recs = _recs(request)
@@ -60,7 +62,7 @@ async def list_all(_: ViewerRole, request: Request) -> list[s.RecordingSummary]:
 
 @router.get("/{rid}", response_model=s.RecordingDetail, summary="One dataset",
             description="With its episodes and the episode recording now, if any.",
-            responses=errors(401, 404))
+            responses=errors(401, 404, 422))
 async def detail(_: ViewerRole, request: Request, rid: RecId) -> s.RecordingDetail:
     recs = _recs(request)
     return _detail(recs, recs.get(rid))
@@ -82,7 +84,7 @@ async def start(_: OperatorRole, request: Request, rid: RecId,
              description="Operator token. Answers when the episode is written. 409 `conflict` "
              "when none records; 503 `recording_failed` when it cannot be written (disk full: "
              "the dataset keeps its earlier episodes).",
-             responses=errors(401, 403, 404, 409, 503))
+             responses=errors(401, 403, 404, 409, 422, 503))
 async def stop(_: OperatorRole, request: Request, rid: RecId) -> s.RecordingDetail:
     recs = _recs(request)
     await recs.stop(rid)
@@ -92,7 +94,7 @@ async def stop(_: OperatorRole, request: Request, rid: RecId) -> s.RecordingDeta
 @router.delete("/{rid}/episodes/current", response_model=s.RecordingDetail,
                summary="Discard the episode", description="Operator token. Nothing of it is "
                "written. 409 `conflict` when none records.",
-               responses=errors(401, 403, 404, 409))
+               responses=errors(401, 403, 404, 409, 422))
 async def discard(_: OperatorRole, request: Request, rid: RecId) -> s.RecordingDetail:
     recs = _recs(request)
     await recs.discard(rid)
@@ -103,7 +105,7 @@ async def discard(_: OperatorRole, request: Request, rid: RecId) -> s.RecordingD
             description="The dataset's folder, `<name>/...`, as an uncompressed tar streamed "
             "file by file (MP4 and parquet are compressed already). An episode being written "
             "meanwhile is in it whole or not at all per file.",
-            responses={**errors(401, 404),
+            responses={**errors(401, 404, 422),
                        200: {"content": {"application/x-tar": {}}, "description": "tar"}})
 async def archive(_: ViewerRole, request: Request, rid: RecId) -> StreamingResponse:
     rec = _recs(request).get(rid)

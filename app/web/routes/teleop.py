@@ -49,7 +49,8 @@ def sessions_of(request: Request) -> TeleopSessions:
     "most at its velocity limit. A leader sample older than `deadman_s` (default 0.2 s), a "
     "target the guard refuses, or a planned motion on the follower holds the follower (a "
     "hold, counted); the emergency stop on either arm ends the session. Needs an operator "
-    "token and the follower's lease (X-Arm-Lease). 404 `unknown_arm`; 422 when the leader "
+    "token and the follower's lease (X-Arm-Lease), and a real leader's lease where one is "
+    "held (X-Leader-Lease: its torque goes off). 404 `unknown_arm`; 422 when the leader "
     "is the follower or the mapping does not fit; 409 `busy` when the follower already "
     "follows; 409 `estop_latched` when either arm is latched. A real (not simulated) leader "
     "has its torque off for the session (moved by hand) and on again, holding, when it ends; "
@@ -61,12 +62,19 @@ async def start_teleop(request: Request, req: s.TeleopStart, services: ServicesD
                        who: OperatorCaller,
                        x_arm_lease: Annotated[str | None, Header(
                            description="the follower's lease id", max_length=128)] = None,
+                       x_leader_lease: Annotated[str | None, Header(
+                           description="a real leader's lease id, where one is held (its "
+                           "torque goes off for the session)", max_length=128)] = None,
                        ) -> s.TeleopSession:
     leader = lookup_arm(services, req.leader)
     follower = lookup_arm(services, req.follower)
     leases: LeaseManager = request.app.state.leases
     gated = who.role < Role.INSTRUCTOR
     await leases.check(follower.name, x_arm_lease, gated=gated)
+    if leader.link_status().kind != "sim":
+        # its torque goes off: the arm goes limp, which is a command to it like a move, so
+        # whoever holds its lease must be the one asking (X-Leader-Lease)
+        await leases.check(leader.name, x_leader_lease, gated=gated)
     session = await sessions_of(request).start(req, leader, follower,
                                                LeaseRef(x_arm_lease, gated))
     return session.describe()
