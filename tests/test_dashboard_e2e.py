@@ -176,6 +176,10 @@ def tip_error(drawn: dict[str, float], tip: dict[str, float]) -> float:
 
 def assert_page_matches_server(pg: Any, server: Server) -> None:
     """At rest: the drawn tip and the newest plotted positions equal the server's state."""
+    # an arm card out of sight is not drawn: the rbe3001's in view (a click on another arm's
+    # card scrolls the page, and the cards are taller since the camera and calibration panels)
+    pg.locator("#rbe3001-card").scroll_into_view_if_needed()
+    wait_for(lambda: dash(pg, "rbe3001")["visible"], 5, "the rbe3001 card in sight")
     st = at_rest(server)
     frames = dash(pg, "rbe3001")["frames"]
     # wait for telemetry newer than the state read, then for a frame drawn from it
