@@ -82,7 +82,7 @@ test: install-test test-deps
 test-run:
 	rc=0; \
 	  $(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial" --durations=15 || rc=$$?; \
-	  ARMSERVER_SAFETY_BUDGET_S=$${ARMSERVER_SAFETY_BUDGET_S:-35} \
+	  ARMSERVER_SAFETY_BUDGET_S=$${ARMSERVER_SAFETY_BUDGET_S:-25} \
 	    $(BIN)/python -m pytest -q -m serial --durations=5 || rc=$$?; \
 	  exit $$rc
 
