@@ -77,7 +77,7 @@ test: install-test test-deps
 	$(MAKE) --no-print-directory test-run
 
 # (the serial part runs even if the parallel one failed: one run shows every failure)
-# The safety state machine (tests/test_safety_machine.py) gets 35 s per arm here; more with
+# The safety state machine (tests/test_safety_machine.py) gets 25 s per arm here; more with
 # ARMSERVER_SAFETY_BUDGET_S (and ARMSERVER_SAFETY_EXAMPLES, ARMSERVER_SAFETY_RANDOM=1).
 test-run:
 	rc=0; \
