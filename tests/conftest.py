@@ -184,8 +184,7 @@ def live_server() -> Iterator[LiveServer]:
 SERIAL_FILES = frozenset({
     "test_dashboard_e2e.py", "test_dashboard_classroom_e2e.py", "test_lab_view_e2e.py",
     "test_omx_dashboard_e2e.py", "test_shutdown.py", "test_control.py", "test_tracking.py",
-    "test_soak.py", "test_replan.py", "test_camera_dashboard_e2e.py",
-    "test_recording_dashboard_e2e.py",
+    "test_soak.py", "test_replan.py",
 })
 
 
