@@ -7,8 +7,11 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+from fastapi import Response, status
+
 from app.errors import InvalidRequest, describe
-from app.schemas import ErrorBody
+from app.motion.executor import MotionRecord
+from app.schemas import ErrorBody, Motion
 from app.service import ArmService
 
 #: Errors any authenticated arm route may answer.
@@ -24,6 +27,15 @@ def errors(*statuses: int, extra: dict[int, str] | None = None) -> dict[int | st
     for st in sorted(set(statuses) | set(extra or {})):
         out[st] = {"model": ErrorBody, "description": (extra or {}).get(st) or describe(st)}
     return out
+
+
+async def motion_answer(record: MotionRecord, wait: bool, response: Response) -> Motion:
+    """A route that starts a motion: 202 with it now, or (`wait`) 200 with its final state when
+    it ends."""
+    if wait:
+        await record.wait()
+        response.status_code = status.HTTP_200_OK
+    return record.to_schema()
 
 
 def check_joint_count(svc: ArmService, positions: Sequence[float]) -> None:

@@ -9,9 +9,8 @@ from typing import Annotated
 from fastapi import APIRouter, Path, Response, status
 
 from app import schemas as s
-from app.motion.executor import MotionRecord
 from app.web.deps import CallerDep, ControlArm, OperatorArm, ViewerArm
-from app.web.routes.common import DEVICE, READ, check_joint_count, errors
+from app.web.routes.common import DEVICE, READ, check_joint_count, errors, motion_answer
 
 router = APIRouter(tags=["motion"])
 
@@ -28,14 +27,6 @@ _MOVE_DOC = (
 )
 
 
-async def _answer(record: MotionRecord, wait: bool, response: Response) -> s.Motion:
-    """202 with the motion now, or (wait) 200 with its final state when it ends."""
-    if wait:
-        await record.wait()
-        response.status_code = status.HTTP_200_OK
-    return record.to_schema()
-
-
 @router.post(
     "/arms/{arm}/move/joints",
     response_model=s.Motion,
@@ -50,7 +41,7 @@ async def _answer(record: MotionRecord, wait: bool, response: Response) -> s.Mot
 async def move_joints(svc: ControlArm, req: s.MoveJoints, response: Response) -> s.Motion:
     check_joint_count(svc, req.positions)
     record = await svc.move_joints(req)
-    return await _answer(record, req.wait, response)
+    return await motion_answer(record, req.wait, response)
 
 
 @router.post(
@@ -66,7 +57,7 @@ async def move_joints(svc: ControlArm, req: s.MoveJoints, response: Response) ->
 )
 async def move_pose(svc: ControlArm, req: s.MovePose, response: Response) -> s.Motion:
     record = await svc.move_pose(req)
-    return await _answer(record, req.wait, response)
+    return await motion_answer(record, req.wait, response)
 
 
 @router.post(

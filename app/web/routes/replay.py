@@ -17,7 +17,7 @@ from app.recording.dataset import Episode
 from app.recording.manager import Recordings
 from app.service import ArmService
 from app.web.deps import ControlArm
-from app.web.routes.common import DEVICE, errors
+from app.web.routes.common import DEVICE, errors, motion_answer
 
 router = APIRouter(tags=["motion"])
 
@@ -67,7 +67,4 @@ async def replay(svc: ControlArm, req: s.ReplayRequest, request: Request,
     except IndexError as exc:
         raise NotFound(f"recording {req.recording!r}: {exc}") from None
     record = await svc.replay(episode_targets(episode, svc), float(episode.fps))
-    if req.wait:
-        await record.wait()
-        response.status_code = status.HTTP_200_OK
-    return record.to_schema()
+    return await motion_answer(record, req.wait, response)
