@@ -14,7 +14,13 @@ from typing import Any
 from pydantic import Field, ValidationError
 
 from app.arms import arm_type, builtin_profiles
-from app.config.profiles import ArmProfile, ConfigError, _Strict, homed_at_start
+from app.config.profiles import (
+    ArmProfile,
+    ConfigError,
+    _Strict,
+    homed_at_start,
+    invalid_config,
+)
 
 __all__ = ["MAX_COPIES", "TOP_LEVEL_KEYS", "ServerConfig", "check_profile", "load_arms",
            "load_profile"]
@@ -47,14 +53,6 @@ def _read_toml(path: Path, what: str) -> dict[str, Any]:
         raise ConfigError(f"{what} {path}: malformed TOML: {exc}") from None
 
 
-def _invalid(exc: ValidationError, where: str) -> ConfigError:
-    lines = [f"{where}: {exc.error_count()} invalid value(s):"]
-    for e in exc.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
-        lines.append(f"  {loc}: {e['msg']}")
-    return ConfigError("\n".join(lines))
-
-
 def check_profile(data: object, where: str = "profile") -> ArmProfile:
     """`data` (a mapping, as read from TOML) as a profile that its arm type accepts: the
     models' own checks, then the type named by `model` (known, its geometry keys, its joint
@@ -62,7 +60,7 @@ def check_profile(data: object, where: str = "profile") -> ArmProfile:
     try:
         profile = ArmProfile.model_validate(data)
     except ValidationError as exc:
-        raise _invalid(exc, where) from None
+        raise invalid_config(exc, where) from None
     try:
         kind = arm_type(profile.model)
     except ValueError as exc:  # names the known arm types

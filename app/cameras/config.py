@@ -15,7 +15,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from app.config.profiles import ArmProfile, ConfigError
+from app.config.profiles import ArmProfile, ConfigError, invalid_config
 
 __all__ = ["DEFAULT_COLORS", "CameraConfig", "SourceKind", "Band", "default_cameras",
            "load_cameras", "parse_cameras", "source_kind"]
@@ -125,13 +125,7 @@ def parse_cameras(tables: object, arms: list[str], where: str) -> list[CameraCon
         try:
             cam = CameraConfig.model_validate(table)
         except ValidationError as exc:
-            lines = [f"{at}: {exc.error_count()} invalid value(s):"]
-            for e in exc.errors():
-                loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
-                what = "unknown key (not a camera setting)" if e["type"] == "extra_forbidden" \
-                    else e["msg"]
-                lines.append(f"  {loc}: {what}")
-            raise ConfigError("\n".join(lines)) from None
+            raise invalid_config(exc, at, "not a camera setting") from None
         if cam.arm not in arms:
             raise ConfigError(f"{at}: arm = {cam.arm!r} is not a hosted arm ({', '.join(arms)})")
         if cam.kind == "sim" and cam.source[4:] not in arms:

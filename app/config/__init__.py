@@ -27,6 +27,7 @@ from app.config.profiles import (
     SafetyConfig,
     SafetySettings,
     homed_at_start,
+    invalid_config,
 )
 from app.config.settings import (
     LOG_LEVELS,
@@ -54,5 +55,6 @@ __all__ = [
     "Settings",
     "env_name",
     "homed_at_start",
+    "invalid_config",
     "settings_error",
 ]

@@ -12,6 +12,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    ValidationError,
     field_validator,
     model_validator,
 )
@@ -21,6 +22,19 @@ class ConfigError(ValueError):
     """A config file or profile that cannot be used; the message says what is wrong, where,
     and (for an unknown profile) which profiles are built in. `armserver serve` prints it and
     exits 2, no traceback."""
+
+
+def invalid_config(exc: ValidationError, where: str, unknown: str | None = None) -> ConfigError:
+    """A `ConfigError` listing each invalid value of `exc` by its place, under `where` (the
+    file and table). `unknown`, where given, says what an unknown key is not (e.g. "not a
+    camera setting") instead of pydantic's "Extra inputs are not permitted"."""
+    lines = [f"{where}: {exc.error_count()} invalid value(s):"]
+    for e in exc.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        what = (f"unknown key ({unknown})" if unknown is not None
+                and e["type"] == "extra_forbidden" else e["msg"])
+        lines.append(f"  {loc}: {what}")
+    return ConfigError("\n".join(lines))
 
 
 class _Strict(BaseModel):

@@ -18,7 +18,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from app import schemas as s
-from app.config.profiles import ArmProfile, ConfigError
+from app.config.profiles import ArmProfile, ConfigError, invalid_config
 
 __all__ = ["TeleopPair", "load_teleop", "parse_teleop", "with_pair"]
 
@@ -70,13 +70,7 @@ def parse_teleop(tables: object, arms: list[str], where: str) -> list[TeleopPair
         try:
             pair = TeleopPair.model_validate(table)
         except ValidationError as exc:
-            lines = [f"{at}: {exc.error_count()} invalid value(s):"]
-            for e in exc.errors():
-                loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
-                what = ("unknown key (not a teleoperation setting)"
-                        if e["type"] == "extra_forbidden" else e["msg"])
-                lines.append(f"  {loc}: {what}")
-            raise ConfigError("\n".join(lines)) from None
+            raise invalid_config(exc, at, "not a teleoperation setting") from None
         for role, name in (("leader", pair.leader), ("follower", pair.follower)):
             if name not in arms:
                 raise ConfigError(f"{at}: {role} = {name!r} is not a hosted arm "
