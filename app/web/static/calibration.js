@@ -7,29 +7,9 @@
 // residual. The firmware note of the arm's detail (a board without STATUS) is shown first.
 // Calls go through app.js's `api` (window.armDashboard.api), so tokens and leases work as
 // everywhere.
+import { call, el } from "./panel.js";
 
-const API = "/api/v1";
 const panels = new Map();   // arm name -> Panel
-
-function el(tag, attrs = {}, ...children) {
-  const e = document.createElement(tag);
-  for (const [k, v] of Object.entries(attrs)) {
-    if (k.startsWith("on")) e.addEventListener(k.slice(2), v);
-    else if (v !== null && v !== undefined && v !== false) e.setAttribute(k, v === true ? "" : v);
-  }
-  for (const c of children) if (c !== null && c !== undefined) e.append(c);
-  return e;
-}
-
-async function call(method, path, body) {
-  const api = window.armDashboard?.api;
-  if (api) return api(method, path, body);
-  const res = await fetch(API + path, { method, headers: body ? { "Content-Type": "application/json" } : {},
-    body: body ? JSON.stringify(body) : undefined });
-  const data = await res.json().catch(() => null);
-  if (!res.ok) throw Object.assign(new Error(data?.detail || res.statusText), { code: data?.code, detail: data?.detail });
-  return data;
-}
 
 const fmt = (v) => (Math.abs(v) < 1e-9 ? "0" : v.toFixed(3));
 

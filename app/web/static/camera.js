@@ -8,42 +8,16 @@
 // lease apply; a viewer sees the refusal). Calibrate: jog the tip onto a marker, click the
 // marker in the picture (the tip's position is taken from the arm's latest sample), four or
 // more times, then Fit.
+import { API, authHeaders, call, el } from "./panel.js";
 
 import { leaseFor } from "./classroom.js";
 
-const API = "/api/v1";
-const TOKEN_KEY = "armserver.token";
 //: How high above the table a click-to-reach puts the tip, m.
 const HOVER_M = 0.05;
 const DETECT_MS = 500;
 const DRAW = { red: "#e53935", green: "#43a047", blue: "#1e88e5", yellow: "#fdd835" };
 let cameras = null;   // GET /cameras, once
 const panels = new Map();   // camera name -> CameraPanel
-
-function el(tag, attrs = {}, ...children) {
-  const e = document.createElement(tag);
-  for (const [k, v] of Object.entries(attrs)) {
-    if (k.startsWith("on")) e.addEventListener(k.slice(2), v);
-    else if (v !== null && v !== undefined && v !== false) e.setAttribute(k, v === true ? "" : v);
-  }
-  for (const c of children) if (c !== null && c !== undefined) e.append(c);
-  return e;
-}
-
-function authHeaders() {
-  const t = sessionStorage.getItem(TOKEN_KEY);
-  return t ? { Authorization: `Bearer ${t}` } : {};
-}
-
-async function call(method, path, body) {
-  const api = window.armDashboard?.api;
-  if (api) return api(method, path, body);
-  const res = await fetch(API + path, { method, headers: { ...authHeaders(), ...(body ? { "Content-Type": "application/json" } : {}) },
-    body: body ? JSON.stringify(body) : undefined });
-  const data = await res.json().catch(() => null);
-  if (!res.ok) throw Object.assign(new Error(data?.detail || res.statusText), { code: data?.code });
-  return data;
-}
 
 // table (x, y) -> pixel with H; pixel -> table with its inverse
 function apply(h, a, b) {

@@ -4,35 +4,12 @@
 // shows the dataset's episode count and, while an episode records, its length (polled twice a
 // second). Discard throws the current episode away. Recording moves nothing; an operator token
 // is needed to start and stop, any viewer sees the bar.
+import { call, el } from "./panel.js";
 
-const API = "/api/v1";
-const TOKEN_KEY = "armserver.token";
 const POLL_MS = 500;
 
 let current = null;   // the chosen dataset's id
 let timer = null;
-
-function el(tag, attrs = {}, ...children) {
-  const e = document.createElement(tag);
-  for (const [k, v] of Object.entries(attrs)) {
-    if (k.startsWith("on")) e.addEventListener(k.slice(2), v);
-    else if (v !== null && v !== undefined && v !== false) e.setAttribute(k, v === true ? "" : v);
-  }
-  for (const c of children) if (c !== null && c !== undefined) e.append(c);
-  return e;
-}
-
-async function call(method, path, body) {
-  const api = window.armDashboard?.api;
-  if (api) return api(method, path, body);
-  const t = sessionStorage.getItem(TOKEN_KEY);
-  const headers = { ...(t ? { Authorization: `Bearer ${t}` } : {}),
-    ...(body ? { "Content-Type": "application/json" } : {}) };
-  const res = await fetch(API + path, { method, headers, body: body ? JSON.stringify(body) : undefined });
-  const data = await res.json().catch(() => null);
-  if (!res.ok) throw Object.assign(new Error(data?.detail || res.statusText), { code: data?.code });
-  return data;
-}
 
 const bar = el("section", { id: "recording-bar", class: "recording-bar", "aria-label": "Recording",
   style: "display:flex;flex-wrap:wrap;gap:0.5rem;align-items:center;padding:0.4rem 1rem" });
