@@ -9,6 +9,8 @@ restarted and its arm comes back while the other worker's samples go on without 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import itertools
 import json
 import os
 import signal
@@ -236,8 +238,20 @@ async def test_telemetry_websocket_through_the_front(lab: Lab) -> None:
             assert closed.value.rcvd.code == (code or 4404)
 
 
-@pytest.mark.serial  # reads a sample rate while a process dies: alone, not beside other tests
-async def test_a_killed_worker_comes_back_and_the_other_never_notices(lab: Lab) -> None:
+#: The longest a sample of the other worker's arm may come after the one before it, s, on its
+#: own clock, while a worker dies or hangs. The simulated rbe3001 polls at 500 Hz (2 ms); the
+#: bound catches the other worker stalled on the harmed one (a shared lock, a blocked loop:
+#: seconds), with room for a loaded shared two-core machine, where the CPU a restarting
+#: worker's start takes and other tests made gaps of up to 0.3 s (the rate check below is
+#: the "no dip" figure).
+MAX_SAMPLE_GAP_S = 1.0
+
+
+async def _outage(lab: Lab, harm: Any) -> float:
+    """Read the left arm (worker 0) throughout; `harm(pid)` worker 1; wait (bounded) until its
+    right arm is down, then back on a new worker process. Checks that the left arm never
+    noticed (no sample lost or dropped, no gap over MAX_SAMPLE_GAP_S on its own clock, its
+    rate as before) and returns the seconds from the harm to the right arm's return."""
     before = lab.workers()
     assert set(before) == {0, 1}
     samples: list[dict[str, Any]] = []
@@ -257,41 +271,65 @@ async def test_a_killed_worker_comes_back_and_the_other_never_notices(lab: Lab) 
     try:
         await wait_for(lambda: len(samples) > 500, what="the left arm's samples (a baseline)")
         first = len(samples)
-        os.kill(before[1], signal.SIGKILL)
-        killed = time.monotonic()
+        harm(before[1])
+        harmed = time.monotonic()
         async with httpx.AsyncClient(base_url=lab.url, headers=AUTH) as c:
             async def right_state() -> int:
-                return (await c.get("/api/v1/arms/right/state")).status_code
+                return (await c.get("/api/v1/arms/right/state", timeout=30)).status_code
 
             async def right_down() -> bool:
-                r = await c.get("/api/v1/health")
+                r = await c.get("/api/v1/health", timeout=30)
                 return r.json()["arms"]["right"]["connected"] is False
 
-            down = await wait_for(right_down, timeout=5, what="the right arm down", every=0.005)
-            assert down
+            assert await wait_for(right_down, timeout=BACK_WITHIN_S, what="the right arm down",
+                                  every=0.005)
+            await wait_for(lambda: lab.workers().get(1) not in (None, before[1]),
+                           timeout=BACK_WITHIN_S, what="worker 1 on a new process")
             await wait_for(_is(right_state, 200), timeout=BACK_WITHIN_S,
                            what="the right arm back")
-            back_after = time.monotonic() - killed
+            back_after = time.monotonic() - harmed
             health = (await c.get("/api/v1/health")).json()
             assert health["status"] == "ok"
-            assert lab.workers()[1] != before[1] and lab.workers()[0] == before[0]
+            assert lab.workers()[0] == before[0]
         await wait_for(lambda: len(samples) > first + 100, what="more left samples")
     finally:
         reader.cancel()
         await asyncio.gather(reader, return_exceptions=True)
-    print(f"the right arm was back {back_after:.2f} s after its worker's SIGKILL")
+        with contextlib.suppress(ProcessLookupError):  # a failed test leaves no stopped one
+            os.kill(before[1], signal.SIGKILL)
     window = samples[first - 10:]
     seqs = [s["seq"] for s in window]
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "the left arm lost samples"
     assert dropped == 0
     assert all(s["link"] == "up" and not s.get("stale") for s in window)
-    # on its own clock, the rate over the kill and the restart against the rate before it in
+    gaps = [b["time"] - a["time"] for a, b in itertools.pairwise(window)]
+    assert max(gaps) < MAX_SAMPLE_GAP_S, max(gaps)
+    # on its own clock, the rate over the harm and the restart against the rate before it in
     # the same run (the machine's load, shared with other tests, sets both alike)
     def rate(part: list[dict[str, Any]]) -> float:
         return (len(part) - 1) / (part[-1]["time"] - part[0]["time"])
 
-    before_kill = rate(samples[:first])
-    assert rate(window) > 0.75 * before_kill, (rate(window), before_kill)
+    before_harm = rate(samples[:first])
+    assert rate(window) > 0.75 * before_harm, (rate(window), before_harm)
+    return back_after
+
+
+@pytest.mark.serial  # reads a sample rate while a process dies: alone, not beside other tests
+async def test_a_killed_worker_comes_back_and_the_other_never_notices(lab: Lab) -> None:
+    back_after = await _outage(lab, lambda pid: os.kill(pid, signal.SIGKILL))
+    print(f"the right arm was back {back_after:.2f} s after its worker's SIGKILL")
+
+
+@pytest.mark.serial  # as above
+async def test_a_hung_worker_is_killed_and_restarted(lab: Lab) -> None:
+    """SIGSTOP: the worker neither exits nor answers; the supervisor's prober finds it out
+    (PROBE_MISSES health probes of PROBE_DEADLINE_S), kills it and starts it again."""
+    back_after = await _outage(lab, lambda pid: os.kill(pid, signal.SIGSTOP))
+    print(f"the right arm was back {back_after:.2f} s after its worker's SIGSTOP")
+    async with httpx.AsyncClient(base_url=lab.url, headers=AUTH) as c:
+        arms = (await c.get("/api/v1/arms")).json()
+        assert [a["name"] for a in arms] == ARMS
+        assert all(a["link"]["connected"] for a in arms)
 
 
 def _is(fn: Any, value: Any) -> Any:

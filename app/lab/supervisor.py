@@ -8,7 +8,19 @@ arms: about 2 s here). The other workers are separate processes with their own c
 and links: a death elsewhere costs them nothing (tests/test_lab_workers.py kills one with
 SIGKILL and reads the other's samples throughout).
 
-`ready` is the front's one question: has the worker answered its health since it last started.
+A worker that hangs without exiting (a deadlock, SIGSTOP) is found by its prober: once ready,
+the worker's `GET /api/v1/health` is asked every PROBE_EVERY_S over its socket and must answer
+within PROBE_DEADLINE_S. At the first miss the worker is not `ready` (its arms are 503
+`link_down`, the lab-wide lists leave it out instead of waiting for it) and is asked again at
+once; an answer makes it ready again; PROBE_MISSES misses in a row and it is stopped
+(SIGTERM, then SIGKILL after KILL_GRACE_S: a stopped or deadlocked process runs no handler)
+and restarted as a dead one is (tests/test_lab_workers.py stops one with SIGSTOP). The
+figures put a hung worker's arms back within about 5 s (at most 2.5 s to be sure it
+hangs, 0.5 s of grace, then its start: 1.5-2 s), while a loaded worker, whose health answers
+in milliseconds, would have to miss a whole second twice in a row to be taken for hung.
+
+`ready` is the front's one question: has the worker answered its health since it last started
+(and its last probe).
 """
 
 from __future__ import annotations
@@ -37,6 +49,13 @@ READY_POLL_S = 0.05
 READY_ASK_S = 1.0
 #: How long the other workers wait for the first one at start-up, s (then they start anyway).
 FIRST_READY_S = 60.0
+#: A ready worker's health is asked this often, s, and must answer within PROBE_DEADLINE_S;
+#: PROBE_MISSES misses in a row and it is killed and restarted (a hung worker).
+PROBE_EVERY_S = 0.5
+PROBE_DEADLINE_S = 1.0
+PROBE_MISSES = 2
+#: How long a hung worker gets after its SIGTERM before its SIGKILL, s.
+KILL_GRACE_S = 0.5
 #: How long a stopping worker gets after its SIGTERM (beyond the server's own graceful
 #: shutdown) before it is killed, s.
 STOP_GRACE_S = 5.0
@@ -54,6 +73,8 @@ class Worker:
     ready: bool = False
     starts: int = 0
     last_error: str | None = None
+    #: Times it was killed for not answering its health (a hung worker).
+    hangs: int = 0
 
     @property
     def pid(self) -> int | None:
@@ -100,21 +121,74 @@ class Supervisor:
             w.proc = await self._spawn(w)
             w.starts += 1
             log.info("worker %d (pid %d): %s", w.index, w.proc.pid, ", ".join(w.arms))
-            ready = asyncio.create_task(self._until_ready(w))
+            hangs = w.hangs
+            prober = asyncio.create_task(self._probe(w, w.proc))
             code = await w.proc.wait()
-            ready.cancel()
+            prober.cancel()
             with contextlib.suppress(asyncio.CancelledError):
-                await ready
+                await prober
             w.ready = False
             w.client.reset()  # its kept-alive connections lead nowhere now
             if self._stopping:
                 return
-            w.last_error = f"worker {w.index} exited with {code}; restarting"
+            w.last_error = (f"worker {w.index} " + ("stopped answering its health: killed"
+                            if w.hangs != hangs else f"exited with {code}") + "; restarting")
             log.error("worker %d (pid %d) exited with %s: restarting its arms (%s)", w.index,
                       w.proc.pid, code, ", ".join(w.arms))
             backoff = backoff * 2 if time.monotonic() - started < YOUNG_S else RESTART_BACKOFF_S
             backoff = min(backoff, RESTART_MAX_S)
             await asyncio.sleep(backoff)
+
+    async def _probe(self, w: Worker, proc: asyncio.subprocess.Process) -> None:
+        """Until `proc` exits: see it ready, then ask its health every PROBE_EVERY_S; kill it
+        after PROBE_MISSES misses in a row (the watcher restarts it)."""
+        await self._until_ready(w)
+        misses = 0
+        while True:
+            if not misses:  # after a miss, ask again at once
+                await asyncio.sleep(PROBE_EVERY_S)
+            if await self._answers(w):
+                misses = 0
+                w.ready, w.last_error = True, None
+                continue
+            misses += 1
+            w.ready = False
+            w.last_error = (f"worker {w.index} is not answering its health ({misses} "
+                            f"probe(s) of {PROBE_DEADLINE_S:g} s)")
+            log.warning("worker %d (pid %d): no health answer within %g s (%d in a row)",
+                        w.index, proc.pid, PROBE_DEADLINE_S, misses)
+            if misses >= PROBE_MISSES:
+                w.hangs += 1
+                log.error("worker %d (pid %d) stopped answering: killing it to restart its "
+                          "arms (%s)", w.index, proc.pid, ", ".join(w.arms))
+                await self._kill(proc)
+                return
+
+    async def _answers(self, w: Worker) -> bool:
+        """Whether the worker's health answers 200 within PROBE_DEADLINE_S."""
+        try:
+            async with asyncio.timeout(PROBE_DEADLINE_S):
+                r = await w.client.request("GET", "/api/v1/health", [(b"host", b"localhost")])
+                try:
+                    await r.read()
+                finally:
+                    await r.aclose()
+        except (UpstreamError, TimeoutError):
+            return False
+        return r.status_code == 200
+
+    @staticmethod
+    async def _kill(proc: asyncio.subprocess.Process) -> None:
+        """SIGTERM, then SIGKILL after KILL_GRACE_S (a stopped or deadlocked process runs no
+        handler; one that does stops its arms as `POST /stop` does)."""
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGTERM)
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(KILL_GRACE_S):
+                await proc.wait()
+                return
+        with contextlib.suppress(ProcessLookupError):
+            proc.kill()
 
     async def _until_ready(self, w: Worker) -> None:
         while True:
