@@ -36,6 +36,7 @@ from app.errors import (
     NotSupported,
 )
 from app.links.base import LinkState
+from app.motion import replay
 from app.motion.executor import MotionExecutor, MotionRecord
 from app.motion.stream import AT_REST
 from app.runtime.control_thread import on_home, running_loop, start_now
@@ -88,6 +89,8 @@ class ArmService:
         self.stops = 0
         #: The gripper's last command (0 open .. 1 closed), None before any (control thread).
         self._gripper_told: float | None = None
+        #: Replays' gripper followers (app/motion/replay.py `follow_gripper`), control loop.
+        self._grippers: set[asyncio.Task[None]] = set()
 
     async def start(self) -> None:
         await self.driver.start()
@@ -655,10 +658,31 @@ class ArmService:
     async def move_pose(self, req: s.MovePose) -> MotionRecord:
         return await self.motion.move_pose(req)
 
-    async def replay(self, targets: np.ndarray, fps: float) -> MotionRecord:
+    async def replay(self, targets: np.ndarray, fps: float,
+                     gripper: np.ndarray | None = None) -> MotionRecord:
         """Play joint targets (T, n) back at `fps` as one motion: a soft start to the first,
-        then the frames, checked and streamed like a move (app/motion/replay.py)."""
-        return await self.motion.replay(targets, fps)
+        then the frames, checked and streamed like a move (app/motion/replay.py). `gripper`
+        (T,), 0 open .. 1 closed: each frame's gripper action sent as the motion reaches the
+        frame, through `set_gripper` (409 `no_gripper` on an arm without an actuated one)."""
+        return await on_home(self.home_loop, lambda: self._replay(targets, fps, gripper))
+
+    async def _replay(self, targets: np.ndarray, fps: float,
+                      gripper: np.ndarray | None) -> MotionRecord:
+        g = None
+        if gripper is not None:
+            if not self.profile.gripper.actuated:
+                raise NoGripper(f"{self.name} has a {self.profile.gripper.kind} end effector: "
+                                "a gripper's actions cannot be replayed on it")
+            g = replay.check_gripper(gripper, len(targets))
+        rec = await self.motion.replay(targets, fps)
+        if g is not None and isinstance(rec.planner, replay.ReplayPlanner):
+            task = asyncio.create_task(replay.follow_gripper(rec, rec.planner, g,
+                                                             self.set_gripper),
+                                       name=f"replay-gripper:{self.name}")
+            self._grippers.add(task)
+            task.add_done_callback(self._grippers.discard)
+            task.add_done_callback(retrieve)
+        return rec
 
     async def preview_joints(self, req: s.MoveJoints) -> s.Motion:
         """A joint move's plan, nothing sent (planned on the control loop, from its queue)."""

@@ -20,19 +20,28 @@ may carry a little more than a period's motion; a recording of a faster arm) tak
 the limit needs: the path is kept, that step alone is slower than recorded, and the motion's
 `planned_duration` says so. Acceleration between frames is not bounded here: a recording is
 what an arm did.
+
+The gripper (where the episode has its column and the arm an actuated gripper) is no joint of
+the trajectory: `follow_gripper` runs beside the motion on the control loop and, as the motion
+reaches each frame's time (the motion's progress times the duration of the plan it runs,
+`ReplayPlanner.last`), sends that frame's gripper action through the arm's facade
+(`ArmService.set_gripper`: the checks of POST /gripper) when it differs from the last one
+sent. It ends with the motion; a motion stopped or estopped sends no more.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import asyncio
+import logging
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from app.errors import InvalidRequest, JointLimit
-from app.motion.history import Plan
+from app.errors import ArmError, InvalidRequest, JointLimit
+from app.motion.history import MotionRecord, Plan
 from app.motion.planner import Planner, State
 from kinematics.trajectory import SampledTrajectory, Samples, time_grid
 
@@ -40,6 +49,13 @@ from kinematics.trajectory import SampledTrajectory, Samples, time_grid
 MIN_FPS, MAX_FPS = 1.0, 1000.0
 #: Most frames one replay may hold: 10 min at 100 fps (the planner's longest line, too).
 MAX_FRAMES = 60_000
+#: How often the gripper's follower looks at the motion's progress, s: a period of the
+#: executor's usual 100 Hz control rate (a frame at 30 fps lasts 33 ms).
+GRIPPER_LOOK_S = 0.01
+#: A gripper action closer than this to the last one sent is not sent again (0..1 scale).
+GRIPPER_STEP = 1e-3
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -124,18 +140,80 @@ def check_targets(planner: Planner, targets: Any, fps: float) -> np.ndarray:
     return q
 
 
-def replay_planner(planner: Planner, targets: np.ndarray, fps: float
-                   ) -> Callable[[State, np.ndarray, Any, bool], Plan]:
+class ReplayPlanner:
     """The executor's planner for a replay of checked `targets` at `fps` (check_targets): from
     a start state (the commanded state when it starts, the queue's end when queued), the
     soft start to the first frame and then the frames (timed under the speed override as it
     is then), the frames checked against the envelope at the control period (the soft start
-    by `Planner.joint`)."""
-    def plan(start: State, _goal: np.ndarray, req: Any, at_rest: bool) -> Plan:
-        frames = frames_trajectory(targets, fps, step_speed(planner))  # the override now
+    by `Planner.joint`). `last` is the trajectory it planned last: the one the motion runs
+    once it has started (the executor plans again as it starts it)."""
+
+    def __init__(self, planner: Planner, targets: np.ndarray, fps: float) -> None:
+        self.planner, self.targets, self.fps = planner, targets, fps
+        self.last: ReplayTrajectory | None = None
+
+    def __call__(self, start: State, _goal: np.ndarray, req: Any, at_rest: bool) -> Plan:
+        planner, targets = self.planner, self.targets
+        frames = frames_trajectory(targets, self.fps, step_speed(planner))  # the override now
         lead = planner.joint(start, targets[0], req, at_rest).traj
         traj = ReplayTrajectory(lead, frames)
         planner.guard.check_trajectory(frames, planner.dt)
+        self.last = traj
         return Plan(traj, np.asarray(start[0], dtype=float), targets[-1].copy(), "joint")
 
-    return plan
+
+def replay_planner(planner: Planner, targets: np.ndarray, fps: float) -> ReplayPlanner:
+    """The executor's planner for a replay (ReplayPlanner)."""
+    return ReplayPlanner(planner, targets, fps)
+
+
+def frame_at(traj: ReplayTrajectory, progress: float) -> int | None:
+    """The frame a motion running `traj` has reached at `progress` (0..1 of its duration):
+    the last frame whose time has come, None during the soft start."""
+    t = progress * traj.duration - float(traj.lead.duration)
+    if t < 0.0:
+        return None
+    times = np.asarray(traj.frames.times, dtype=float)
+    return int(np.clip(np.searchsorted(times, t + 1e-9, side="right") - 1, 0, len(times) - 1))
+
+
+def check_gripper(values: Any, frames: int) -> np.ndarray:
+    """A gripper action per frame (0 open .. 1 closed), checked: 422 otherwise."""
+    g = np.asarray(values, dtype=float)
+    if g.shape != (frames,) or not np.all(np.isfinite(g)) or np.any((g < 0.0) | (g > 1.0)):
+        raise InvalidRequest(f"a replay's gripper takes one action in 0..1 per frame ({frames}),"
+                             f" got shape {list(g.shape)}")
+    return g
+
+
+async def follow_gripper(rec: MotionRecord, plan: ReplayPlanner, gripper: np.ndarray,
+                         set_gripper: Callable[[float], Awaitable[Any]]) -> None:
+    """On the control loop, beside the replay `rec` planned by `plan`: each frame's gripper
+    action (`gripper`, one per frame) sent by `set_gripper` as the motion reaches the frame,
+    when it differs from the last one sent; the last frame's once the motion is done. Ends
+    with the motion, or at the first refusal (an estop latched meanwhile: logged)."""
+    sent: float | None = None
+
+    async def send(k: int) -> bool:
+        nonlocal sent
+        g = float(gripper[k])
+        if sent is not None and abs(g - sent) < GRIPPER_STEP:
+            return True
+        try:
+            await set_gripper(g)
+        except ArmError as exc:
+            log.info("%s: replay %s: gripper action of frame %d refused (%s): no more",
+                     rec.arm, rec.id, k, exc.code)
+            return False
+        sent = g
+        return True
+
+    while not rec.done.is_set():
+        traj = plan.last
+        if rec.status == "running" and traj is not None:
+            k = frame_at(traj, rec.progress)
+            if k is not None and not await send(k):
+                return
+        await asyncio.sleep(GRIPPER_LOOK_S)
+    if rec.status == "done":
+        await send(len(gripper) - 1)

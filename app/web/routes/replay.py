@@ -22,11 +22,13 @@ from app.web.routes.common import DEVICE, errors, motion_answer
 router = APIRouter(tags=["motion"])
 
 
-def episode_targets(episode: Episode, arm: ArmService) -> np.ndarray:
-    """The episode's actions for `arm`'s joints (T, n), in its joint order: the columns named
+def episode_targets(episode: Episode, arm: ArmService) -> tuple[np.ndarray, np.ndarray | None]:
+    """The episode's actions for `arm` (T, n), in its joint order: the columns named
     `<arm>.<joint>.pos`; on another arm, those of the one recorded arm with the same joint
-    names (an episode recorded on `leader` replays on `follower`). A gripper column is not
-    replayed. 422 `invalid_request` when no recorded arm, or more than one, matches."""
+    names (an episode recorded on `leader` replays on `follower`). Then that arm's gripper
+    actions (T,), `<arm>.gripper.pos`, where the episode has them and `arm` has an actuated
+    gripper, else None. 422 `invalid_request` when no recorded arm, or more than one,
+    matches."""
     joints = [j.name for j in arm.profile.joints]
     recorded = sorted({n.split(".", 1)[0] for n in episode.names})
     candidates = [arm.name] if arm.name in recorded else recorded
@@ -34,7 +36,10 @@ def episode_targets(episode: Episode, arm: ArmService) -> np.ndarray:
             if all(f"{who}.{j}.pos" in episode.names for j in joints)]
     if len(fits) == 1:
         cols = [episode.names.index(f"{fits[0]}.{j}.pos") for j in joints]
-        return np.asarray(episode.actions[:, cols], dtype=float)
+        grip = f"{fits[0]}.gripper.pos"
+        gripper = (np.asarray(episode.actions[:, episode.names.index(grip)], dtype=float)
+                   if grip in episode.names and arm.profile.gripper.actuated else None)
+        return np.asarray(episode.actions[:, cols], dtype=float), gripper
     raise InvalidRequest(
         f"episode {episode.index} has no actions for {arm.name}'s joints ({', '.join(joints)}): "
         f"it was recorded on {', '.join(recorded)}"
@@ -47,7 +52,9 @@ def episode_targets(episode: Episode, arm: ArmService) -> np.ndarray:
     status_code=status.HTTP_202_ACCEPTED,
     summary="Replay a recorded episode's actions on the arm",
     description="A soft start (a planned joint move at the planner's limits) to the episode's "
-    "first action, then its actions at the dataset's fps, as one motion of the arm: checked "
+    "first action, then its actions at the dataset's fps, as one motion of the arm (the "
+    "gripper's actions too, where the episode and the arm have one, each sent as the motion "
+    "reaches its frame, with POST /gripper's checks): checked "
     "first (joint limits 422 `joint_limit`, speed between frames 422 `velocity_limit`, the "
     "keep-out envelope 422 `keep_out`), stopped by POST /stop or DELETE /motions/{id}, held "
     "by the estop, like any move. Answers 202 with the motion, or with `wait: true` 200 when "
@@ -66,5 +73,6 @@ async def replay(svc: ControlArm, req: s.ReplayRequest, request: Request,
         episode = await asyncio.to_thread(dataset.load_episode, req.episode)
     except IndexError as exc:
         raise NotFound(f"recording {req.recording!r}: {exc}") from None
-    record = await svc.replay(episode_targets(episode, svc), float(episode.fps))
+    targets, gripper = episode_targets(episode, svc)
+    record = await svc.replay(targets, float(episode.fps), gripper)
     return await motion_answer(record, req.wait, response)
