@@ -34,6 +34,7 @@ from typing import Any
 from starlette.types import Receive, Scope, Send
 
 from app.config import Settings
+from app.lab.across import RECORDINGS, TELEOP, Across, Refusal, handles
 from app.lab.headers import HOP, forwarded_headers
 from app.lab.placement import LabPlan
 from app.lab.supervisor import Supervisor, Worker
@@ -85,6 +86,14 @@ async def _disconnected(receive: Receive) -> None:
         pass
 
 
+def _target(scope: Scope) -> str:
+    """The request's target (path and query) as the client sent it."""
+    url = scope.get("raw_path") or scope["path"].encode()
+    if scope.get("query_string"):
+        url += b"?" + scope["query_string"]
+    return str(url.decode("latin-1"))
+
+
 def down_link(plan: LabPlan, arm: str, reason: str) -> dict[str, Any]:
     """The health entry (`LinkStatus`) of an arm whose worker is not answering."""
     link = plan.profile(arm).link
@@ -103,6 +112,7 @@ class LabFront:
         self.auth = settings.auth_enabled
         self.grace = settings.shutdown_timeout_s
         self._by_index = {w.index: w for w in self.workers}
+        self.across = Across(plan, settings.data_dir)
         self._by_arm = {name: self._by_index[k] for name, k in plan.worker_of.items()}
         self._by_camera = {name: self._by_index[k] for name, k in plan.camera_worker.items()
                            if k in self._by_index}
@@ -119,7 +129,12 @@ class LabFront:
         if kind == "websocket":
             return await relay_websocket(scope, receive, send, worker)
         path, method = scope["path"], scope["method"]
-        if method == "GET" and path in (ARMS, HEALTH, CAMERAS):
+        if handles(path):
+            answer = await self._across(scope, receive, send)
+            if answer is None:
+                return
+            status, headers, body = answer
+        elif method == "GET" and path in (ARMS, HEALTH, CAMERAS):
             status, headers, body = await (self._arms(scope) if path == ARMS
                                            else self._cameras_list(scope) if path == CAMERAS
                                            else self._health(scope))
@@ -170,22 +185,63 @@ class LabFront:
             if not message.get("more_body", False):
                 return b"".join(chunks)
 
-    async def _forward(self, scope: Scope, receive: Receive, send: Send,
-                       worker: Worker | None) -> Answer | None:
-        """Pass the request to `worker` and its answer back as it comes, chunk by chunk (an
-        MJPEG stream never ends: it ends when the client goes). None once relayed; else the
-        answer to send (a refusal of the front's, or a 404 to rename)."""
+    def _too_large(self) -> Answer:
+        return _json_response(413, {"detail": f"the request body is over {self.max_body} "
+                                    "bytes (max_body_bytes)", "code": "too_large"})
+
+    async def _across(self, scope: Scope, receive: Receive, send: Send) -> Answer | None:
+        """Teleoperation and recordings, placed by the arms they name (app/lab/across.py)."""
+        path, method = scope["path"], scope["method"]
+        if method == "GET" and path in (TELEOP, RECORDINGS):
+            answers, refusal = await self._ask_all(scope, path)
+            if refusal is not None:
+                return refusal
+            if not answers:
+                return self._down(None)
+            merged = (self.across.merge_teleop(answers) if path == TELEOP
+                      else self.across.merge_recordings(answers))
+            return _json_response(200, merged)
         body = await self._read_body(receive)
         if body is None:
-            return _json_response(413, {"detail": f"the request body is over {self.max_body} "
-                                        "bytes (max_body_bytes)", "code": "too_large"})
+            return self._too_large()
+        if method == "DELETE" and path.startswith(TELEOP + "/"):
+            return await self._first_that_knows(scope, body)
+        try:
+            k = await self.across.place(method, path, body)
+        except Refusal as exc:
+            return _json_response(exc.status, {"detail": exc.detail, "code": exc.code})
+        worker = self._worker_for(path) if k is None else self._by_index.get(k)
+        return await self._forward(scope, receive, send, worker, body)
+
+    async def _first_that_knows(self, scope: Scope, body: bytes) -> Answer:
+        """The request to each ready worker in turn until one answers other than 404 (a
+        teleoperation session lives in its follower's worker); else the last 404."""
+        last: Answer | None = None
+        for w in [w for w in self.workers if w.ready]:
+            try:
+                r = await w.client.request(scope["method"], _target(scope),
+                                           forwarded_headers(scope), body, ASK_TIMEOUT_S)
+                data = await r.read()
+            except (UpstreamError, TimeoutError) as exc:
+                log.warning("worker %d: %r", w.index, exc)
+                continue
+            last = r.status_code, [(k, v) for k, v in r.headers if k not in HOP_BACK], data
+            if r.status_code != 404:
+                return last
+        return last if last is not None else self._down(None)
+
+    async def _forward(self, scope: Scope, receive: Receive, send: Send,
+                       worker: Worker | None, body: bytes | None = None) -> Answer | None:
+        """Pass the request to `worker` and its answer back as it comes, chunk by chunk (an
+        MJPEG stream never ends: it ends when the client goes). None once relayed; else the
+        answer to send (a refusal of the front's, or a 404 to rename). `body`: already read."""
+        body = await self._read_body(receive) if body is None else body
+        if body is None:
+            return self._too_large()
         if worker is None or not worker.ready:
             return self._down(worker)
-        url = scope.get("raw_path") or scope["path"].encode()
-        if scope.get("query_string"):
-            url += b"?" + scope["query_string"]
         try:
-            r = await worker.client.request(scope["method"], url.decode("latin-1"),
+            r = await worker.client.request(scope["method"], _target(scope),
                                             forwarded_headers(scope), body, REQUEST_TIMEOUT_S)
         except (UpstreamError, TimeoutError) as exc:
             log.warning("worker %d: %r", worker.index, exc)

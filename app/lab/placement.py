@@ -9,6 +9,7 @@ the same config, so a worker needs only its index to know its arms and cameras.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 from app.arms.loading import load_arms
 from app.cameras.config import CameraConfig, load_cameras
@@ -42,6 +43,12 @@ class LabPlan:
 
     def profile(self, name: str) -> ArmProfile:
         return next(p for arms in self.workers for p in arms if p.name == name)
+
+
+def worker_socket(folder: Path, k: int) -> Path:
+    """Worker `k`'s Unix socket in the lab's folder (the front's and the other workers' way to
+    it)."""
+    return folder / f"worker-{k}.sock"
 
 
 def lab_workers(settings: Settings, workers: int | None) -> int:

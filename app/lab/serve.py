@@ -20,7 +20,7 @@ import uvicorn
 from app.config import Settings
 from app.doors.uvicorn import SignalServer
 from app.lab.front import LabFront
-from app.lab.placement import plan_lab
+from app.lab.placement import plan_lab, worker_socket
 from app.lab.supervisor import Supervisor, Worker
 from app.lab.upstream import Upstream
 from app.lab.worker import uvicorn_config
@@ -61,8 +61,8 @@ def build_front(settings: Settings, count: int, folder: Path) -> LabFront:
     fd = os.open(settings_file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     with os.fdopen(fd, "w", encoding="utf-8") as f:
         f.write(settings.model_dump_json())
-    workers = [Worker(k, tuple(p.name for p in arms), folder / f"worker-{k}.sock",
-                      worker_client(folder / f"worker-{k}.sock"))
+    workers = [Worker(k, tuple(p.name for p in arms), worker_socket(folder, k),
+                      worker_client(worker_socket(folder, k)))
                for k, arms in enumerate(plan.workers) if arms]
     return LabFront(plan, Supervisor(workers, settings_file, count), settings)
 

@@ -27,7 +27,9 @@ import uvicorn
 
 from app.config import Settings
 from app.lab.headers import CLIENT_HEADER
-from app.lab.placement import plan_lab
+from app.lab.placement import plan_lab, worker_socket
+from app.teleop.config import load_teleop
+from app.teleop.remote import Peer
 from app.web.factory import create_app
 from app.web.serving import ArmHttpToolsProtocol, ArmServer
 
@@ -99,6 +101,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     profiles = list(plan.workers[args.index])
     watch_parent(args.parent)
     app = create_app(settings, profiles, plan.cameras_of(args.index))
+    # the other workers' arms: a teleoperation leader may be one (app/teleop/remote.py), and
+    # the config's [[teleop]] defaults name them (checked against every arm of the lab)
+    folder = Path(args.uds).parent
+    app.state.lab_peers = {p.name: Peer(p, worker_socket(folder, k))
+                           for k, arms in enumerate(plan.workers) if k != args.index
+                           for p in arms}
+    app.state.teleop_pairs = load_teleop(settings.config, [p for arms in plan.workers
+                                                           for p in arms])
     Path(args.uds).unlink(missing_ok=True)
     ArmServer(uvicorn_config(FrontClient(app), settings, uds=args.uds), app).run()
     return 0

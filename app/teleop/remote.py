@@ -1,0 +1,208 @@
+"""A teleoperation leader on another worker process of a lab (`armserver serve --workers N`,
+app/lab): its samples read over that worker's telemetry WebSocket, on its Unix socket.
+
+The session runs where it always does, on the follower's control loop in the follower's worker
+(app/teleop/session.py), and reads the leader through `subscribe()` as it reads a local one. A
+reader task on this worker's HTTP loop holds the WebSocket (`?rate=RATE_HZ`: each batch as
+soon as it is due, API.md "Telemetry") and keeps the newest sample of each message; the
+session takes them under a lock, from its own thread. Only the newest sample counts for a tick,
+so the others of a batch are not kept. The latency the session reports (leader sample time to
+follower command) then includes the hop: the leader worker's sender, the socket, this reader.
+
+The leader's estop latch is its samples' `estop` stamp (app/telemetry/arm_hub.py). A lost
+socket (the leader's worker restarting: close 1012) is opened again with a backoff; meanwhile
+no sample comes, and the session's deadman holds the follower. Only a simulated leader may be
+remote: a real one has its torque off for the session, a command to it that needs its lease,
+both in its own worker (409 `not_supported`: put the pair on one worker).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import threading
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import orjson
+from websockets.asyncio.client import unix_connect
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
+
+from app import schemas as s
+from app.arms import model_for
+from app.arms.model import KinematicsModel
+from app.config import ArmProfile
+from app.errors import LinkDown, NotSupported
+from app.teleop.leader import Leader
+
+if TYPE_CHECKING:
+    from app.service import ArmService
+
+log = logging.getLogger(__name__)
+
+#: The leader's telemetry rate asked of its worker, Hz: at 100 Hz and up a batch goes as soon
+#: as it is due, so a sample waits at most 1/RATE_HZ (5 ms) for its message.
+RATE_HZ = 200.0
+#: How long opening the leader's socket and its first sample may take, s.
+OPEN_TIMEOUT_S = 5.0
+#: Wait before opening a lost socket again, s; doubles to RECONNECT_MAX_S.
+RECONNECT_S = 0.1
+RECONNECT_MAX_S = 2.0
+#: Newest samples kept between two takes (the session reads only the last).
+KEEP = 8
+
+
+@dataclass(frozen=True)
+class Peer:
+    """An arm on another worker: its profile and that worker's Unix socket."""
+
+    profile: ArmProfile
+    uds: Path
+
+
+class RemoteFeed:
+    """The session's view of the remote leader's samples (`LeaderFeed`)."""
+
+    def __init__(self, leader: RemoteLeader, initial: str | None) -> None:
+        self._leader = leader
+        self._initial = initial
+
+    @property
+    def initial(self) -> str | None:
+        return self._initial
+
+    def take(self) -> tuple[list[str], list[str], int]:
+        return self._leader._take(), [], 0
+
+    def close(self) -> None:
+        self._leader.close()
+
+
+class RemoteLeader:
+    """An arm of another worker as a teleoperation leader (`Leader`); `open()` it first (on the
+    HTTP loop), `close()` it from any thread."""
+
+    def __init__(self, peer: Peer, headers: list[tuple[str, str]]) -> None:
+        self.profile = peer.profile
+        self._uds = peer.uds
+        self._headers = headers
+        self._model = model_for(peer.profile)
+        self._lock = threading.Lock()
+        self._pending: deque[str] = deque(maxlen=KEEP)
+        self._latest: dict[str, Any] | None = None
+        self._latest_raw: str | None = None
+        self._connected = False
+        self.last_error: str | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._first = asyncio.Event()
+
+    @property
+    def name(self) -> str:
+        return self.profile.name
+
+    @property
+    def model(self) -> KinematicsModel:
+        return self._model
+
+    @property
+    def estop(self) -> bool:
+        latest = self._latest
+        return bool(latest is not None and latest.get("estop"))
+
+    def link_status(self) -> s.LinkStatus:
+        up = self._connected and self._latest is not None and not self._latest.get("stale")
+        return s.LinkStatus(kind=self.profile.link.kind, address=self.profile.link.address,
+                            state="up" if up else "down", connected=up,
+                            last_error=None if up else self.last_error)
+
+    async def set_torque(self, on: bool) -> None:
+        raise NotSupported(f"{self.name} is on another worker process: its torque is switched "
+                           "there (put the leader and the follower on one worker)")
+
+    def subscribe(self, backlog: int | None = None) -> RemoteFeed:
+        with self._lock:
+            self._pending.clear()
+            return RemoteFeed(self, self._latest_raw)
+
+    def _take(self) -> list[str]:
+        with self._lock:
+            out = list(self._pending)
+            self._pending.clear()
+        return out
+
+    async def open(self) -> None:
+        """Start reading; answers once the first sample came. 503 `link_down` when the leader's
+        worker does not answer within OPEN_TIMEOUT_S or refuses the socket."""
+        self._loop = asyncio.get_running_loop()
+        self._task = asyncio.create_task(self._run(), name=f"teleop-leader:{self.name}")
+        try:
+            async with asyncio.timeout(OPEN_TIMEOUT_S):
+                await self._first.wait()
+        except TimeoutError:
+            self.close()
+            raise LinkDown(f"{self.name}'s worker sent no sample within {OPEN_TIMEOUT_S:g} s "
+                           f"({self.last_error or 'no answer'})") from None
+
+    def close(self) -> None:
+        """Stop reading (from any thread; again is nothing)."""
+        task, loop = self._task, self._loop
+        if task is None or loop is None or task.done():
+            return
+        try:
+            running = asyncio.get_running_loop()
+        except RuntimeError:
+            running = None
+        if running is loop:
+            task.cancel()
+        else:
+            with contextlib.suppress(RuntimeError):  # its loop closed: the task is gone
+                loop.call_soon_threadsafe(task.cancel)
+
+    async def _run(self) -> None:
+        uri = f"ws://localhost/api/v1/arms/{self.name}/telemetry?rate={RATE_HZ:g}"
+        wait = RECONNECT_S
+        while True:
+            try:
+                async with unix_connect(str(self._uds), uri, additional_headers=self._headers,
+                                        compression=None, max_size=None, ping_interval=None,
+                                        open_timeout=OPEN_TIMEOUT_S) as ws:
+                    self._connected, wait = True, RECONNECT_S
+                    async for message in ws:
+                        self._received(message)
+                    self.last_error = f"the leader's socket closed ({ws.close_code})"
+            except InvalidStatus as exc:
+                self.last_error = f"the leader's worker refused: {exc.response.status_code}"
+            except (OSError, InvalidHandshake, TimeoutError, ConnectionClosed) as exc:
+                self.last_error = f"the leader's worker: {exc!r}"
+            self._connected = False
+            log.warning("teleop leader %s: %s; again in %g s", self.name, self.last_error, wait)
+            await asyncio.sleep(wait)
+            wait = min(wait * 2, RECONNECT_MAX_S)
+
+    def _received(self, message: str | bytes) -> None:
+        data = orjson.loads(message)
+        if data.get("type") != "telemetry" or not data.get("samples"):
+            return
+        latest = data["samples"][-1]
+        raw = orjson.dumps(latest).decode()
+        with self._lock:
+            self._latest, self._latest_raw = latest, raw
+            self._pending.append(raw)
+        self._first.set()
+
+
+def peer_of(peers: Mapping[str, Peer] | None, name: str) -> Peer | None:
+    """`name`'s peer, where the lab gave this worker the arms of the others."""
+    return None if peers is None else peers.get(name)
+
+
+if TYPE_CHECKING:
+    def _both_lead(remote: RemoteLeader, local: ArmService) -> list[Leader]:
+        """Type-checked only: an arm of this server and a remote one are both a `Leader`
+        (what app/web/routes/teleop.py hands a session as its leader)."""
+        return [remote, local]

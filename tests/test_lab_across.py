@@ -1,0 +1,112 @@
+"""What spans workers in a lab (issue 27): a real front with two real workers (the lab of
+tests/test_lab_workers.py: left on worker 0, right on worker 1, rails on worker 0).
+
+- Teleoperation whose leader and follower live on different workers runs in the follower's
+  worker, reading the leader over its worker's telemetry socket: the follower follows.
+- A recording of arms (or cameras) on different workers is refused, 409 `different_workers`;
+  one of the second worker's arm and camera records through the front.
+- The simulated world of an arm on the second worker is that arm's.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import httpx
+from _wait import wait_until
+from test_lab_workers import AUTH, INSTRUCTOR, OP, Lab, lab  # noqa: F401 - the fixture
+
+INSTR = {"Authorization": f"Bearer {INSTRUCTOR}"}
+
+
+def _positions(c: httpx.Client, arm: str) -> list[float]:
+    r = c.get(f"/api/v1/arms/{arm}/state")
+    assert r.status_code == 200, r.text
+    return list(r.json()["positions"])
+
+
+def test_teleoperation_across_workers(lab: Lab) -> None:  # noqa: F811 - the fixture
+    with httpx.Client(base_url=lab.url, headers=OP, timeout=30) as c:
+        lease = c.post("/api/v1/arms/right/lease")
+        assert lease.status_code in (200, 201), lease.text
+        held = {"X-Arm-Lease": lease.json()["id"]}
+        try:
+            started = c.post("/api/v1/teleop", headers=held, json={
+                "leader": "left", "follower": "right", "rate_hz": 50})
+            assert started.status_code == 201, started.text
+            session = started.json()
+            assert (session["leader"], session["follower"]) == ("left", "right")
+            target = [0.3, 0.2, 0.1]
+            move = c.post("/api/v1/arms/left/move/joints", json={"positions": target})
+            assert move.status_code in (200, 202), move.text
+
+            def follows() -> bool:
+                return all(math.isclose(a, b, abs_tol=0.02)
+                           for a, b in zip(_positions(c, "right"), target, strict=True))
+
+            wait_until(follows, timeout=20, what="the right arm (worker 1) follows the left "
+                       "(worker 0)")
+            # the lab-wide list has it (from the follower's worker), with its figures
+            listed = c.get("/api/v1/teleop", headers=AUTH)
+            assert listed.status_code == 200, listed.text
+            mine = [t for t in listed.json() if t["id"] == session["id"]]
+            assert len(mine) == 1 and mine[0]["status"] == "running"
+            assert mine[0]["commands"] > 0 and mine[0]["latency_ms"] is not None
+            print("cross-worker teleop latency, ms:", mine[0]["latency_ms"])
+            # a second session for the follower is its worker's refusal, as on one server
+            again = c.post("/api/v1/teleop", headers=held, json={
+                "leader": "rails", "follower": "right"})
+            assert again.status_code in (409, 422), again.text
+            stopped = c.delete(f"/api/v1/teleop/{session['id']}")
+            assert stopped.status_code == 200, stopped.text
+            assert stopped.json()["status"] == "ended"
+            unknown = c.delete("/api/v1/teleop/t999-nobody")
+            assert unknown.status_code == 404 and unknown.json()["code"] == "not_found"
+        finally:
+            c.delete(f"/api/v1/arms/right/lease/{held['X-Arm-Lease']}")
+
+
+def test_a_recording_across_workers_is_refused_one_worker_records(lab: Lab) -> None:  # noqa: F811
+    with httpx.Client(base_url=lab.url, headers=OP, timeout=60) as c:
+        for arms, cameras in ((["left", "right"], []), (["right"], ["table-left"])):
+            r = c.post("/api/v1/recordings", json={"name": "split", "arms": arms,
+                                                   "cameras": cameras, "fps": 10})
+            assert r.status_code == 409, r.text
+            assert r.json()["code"] == "different_workers"
+            assert "worker 0" in r.json()["detail"] and "worker 1" in r.json()["detail"]
+        assert c.get("/api/v1/recordings/split").status_code == 404  # nothing was made
+        made = c.post("/api/v1/recordings", json={"name": "right-demo", "arms": ["right"],
+                                                  "cameras": ["table-right"], "fps": 10})
+        assert made.status_code == 201, made.text
+        assert made.json()["arms"] == ["right"]
+        assert c.post("/api/v1/recordings/right-demo/episodes").status_code == 201
+
+        def frames() -> Any:
+            current = c.get("/api/v1/recordings/right-demo").json()["current"]
+            return current is not None and current.get("frames", 0) >= 5
+
+        wait_until(frames, timeout=20, what="the episode's first frames")
+        stopped = c.post("/api/v1/recordings/right-demo/episodes/stop")
+        assert stopped.status_code == 200, stopped.text
+        assert stopped.json()["episodes"] == 1
+        listed = c.get("/api/v1/recordings", headers=AUTH)
+        assert listed.status_code == 200
+        ours = [r for r in listed.json() if r["id"] == "right-demo"]
+        assert len(ours) == 1 and ours[0]["episodes"] == 1 and not ours[0]["recording"]
+
+
+def test_the_world_of_an_arm_on_the_second_worker(lab: Lab) -> None:  # noqa: F811
+    with httpx.Client(base_url=lab.url, headers=INSTR, timeout=30) as c:
+        left = c.get("/api/v1/arms/left/world")
+        right = c.get("/api/v1/arms/right/world")
+        assert left.status_code == 200 and right.status_code == 200, right.text
+        scene = {"objects": [{"id": "only-right", "kind": "ball", "color": "red",
+                              "position": {"x": 0.15, "y": 0.0, "z": 0.0}}],
+                 "bins": right.json()["bins"]}
+        put = c.put("/api/v1/arms/right/world", json=scene)
+        assert put.status_code == 200, put.text
+        assert [o["id"] for o in c.get("/api/v1/arms/right/world").json()["objects"]] == [
+            "only-right"]
+        assert c.get("/api/v1/arms/left/world").json()["objects"] == left.json()["objects"]
+        assert "only-right" not in [o["id"] for o in left.json()["objects"]]
