@@ -43,8 +43,9 @@ from app.runtime.control_thread import on_home, running_loop, start_now
 from app.runtime.tasks import retrieve
 from app.safety.envelope import ArmSafety
 from app.safety.guard import SafetyGuard
+from app.sim.hand import Hand
 from app.sim.world import World
-from app.sim.world_tap import world_of
+from app.sim.world_tap import hand_of, world_of
 from app.store import Store
 from app.telemetry.arm_hub import ArmHub
 from app.telemetry.hub import Subscription, TelemetryHub
@@ -111,6 +112,12 @@ class ArmService:
         """The arm's simulated world (app/sim/world.py) when its link is simulated in this
         process, else None (a real arm, or a simulator on a pty or socket)."""
         return world_of(getattr(self.driver.link, "device", None))
+
+    @property
+    def hand(self) -> Hand | None:
+        """The hand in the arm's simulated world (app/sim/hand.py: it moves the simulated
+        servos whose torque is off), else None (a real arm, no world, no servos)."""
+        return hand_of(getattr(self.driver.link, "device", None))
 
     # --------------------------------------------------------- descriptions
 

@@ -14,8 +14,8 @@ ArmRef = Annotated[str, Field(min_length=1, max_length=64)]
 
 class TeleopStart(Model):
     """Start a session: `leader` drives `follower` at `rate_hz`. The mapping's parameters
-    (`scale`, `offset`, `tip_scale`, `tip_offset`, `clamp_margin`) and `deadman_s` are
-    additions to API.md's body, all optional."""
+    (`scale`, `offset`, `tip_scale`, `tip_offset`, `clamp_margin`), `deadman_s` and
+    `free_leader` are additions to API.md's body, all optional."""
 
     leader: ArmRef
     follower: ArmRef
@@ -38,6 +38,11 @@ class TeleopStart(Model):
     clamp_margin: Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False, strict=True)] = Field(
         0.0, description="the follower's targets are clamped this far (rad or m) inside its "
         "joint limits")
+    free_leader: Bool | None = Field(
+        None, description="the leader's torque off for the session, to be moved by hand (on "
+        "again, holding, when it ends): default true for a real leader, false for a simulated "
+        "one (moved by its own commands); true for a simulated leader moved through its world "
+        "(PUT /api/v1/arms/{leader}/world/hand)")
 
 
 class TeleopLatency(Model):
@@ -52,6 +57,8 @@ class TeleopSession(Model):
     rate_hz: float = Field(description="as asked")
     mapping: Literal["joints", "tip"]
     deadman_s: float
+    free_leader: bool = Field(False, description="the leader's torque is off for the session "
+                              "(moved by hand)")
     achieved_hz: float = Field(description="ticks per second over the last 2 s (0 once ended)")
     latency_ms: TeleopLatency | None = Field(
         description="leader sample to follower command, over the last 3000 commands; null "

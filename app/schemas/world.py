@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 from pydantic import Field
 
 from app.schemas.arms import Vec3
-from app.schemas.common import Bool, Model
+from app.schemas.common import Bool, Finite, Model
 
 Name = Annotated[str, Field(min_length=1, max_length=64)]
 Color = Annotated[str, Field(min_length=1, max_length=32,
@@ -51,3 +51,22 @@ class WorldScene(Model):
     gripper: float | None = Field(None, description="the claw's opening as the simulated "
                                   "hardware holds it, 0 open .. 1 closed; null for a magnet "
                                   "(answers only)")
+
+
+class HandMoveRequest(Model):
+    """Move a simulated arm's joints as a hand moves an arm whose servos' torque is off (an
+    addition to API.md's "Simulated world")."""
+
+    positions: list[Finite] = Field(min_length=1, max_length=16, description="the joints' goal "
+                                    "(rad or m, the arm's joint order), within its joint limits")
+    speed: Annotated[float, Field(gt=0.0, le=4.0, allow_inf_nan=False, strict=True)] = Field(
+        0.5, description="rad/s or m/s on the joint with the longest way; every joint arrives "
+        "together")
+    wait: Bool = Field(False, description="answer when the hand has arrived (or let go)")
+
+
+class HandState(Model):
+    positions: list[float] = Field(description="the goal asked (rad or m)")
+    speed: float
+    moving: bool = Field(description="the hand is still on its way (false once arrived, or let "
+                         "go: a joint's torque came on)")

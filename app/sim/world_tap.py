@@ -13,6 +13,10 @@ What it reads is each simulator's own state, the same numbers the device would r
 It runs where the device runs (the control thread, inside the link's write and read): one
 reading per period, and a deque append when it differs from the last (an arm at rest adds
 nothing), nothing else.
+
+The tap also carries the world's hand (app/sim/hand.py) where the device has servos: while it
+moves, the device is run up to the link's time and the hand sets its free joints before the
+device answers, so a reply carries where the hand has the arm.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from typing import Any
 
 from app.config import ArmProfile
 from app.sim.base import SimDevice
+from app.sim.hand import Hand
 from app.sim.world import TAP_PERIOD_S, World
 
 Reading = tuple[tuple[float, ...], float | None]
@@ -68,14 +73,16 @@ class WorldTap:
     when replaced (a test that wraps `link.device.receive` wraps the tap's, which calls the
     device's: writing the wrapper into the device would make it call itself)."""
 
-    _OWN = frozenset({"device", "world", "packetized", "_read", "_next", "_last", "receive",
-                      "advance"})
+    _OWN = frozenset({"device", "world", "hand", "packetized", "_read", "_next", "_last",
+                      "receive", "advance"})
     device: SimDevice
 
     def __init__(self, device: SimDevice, world: World,
                  read: Callable[[], Reading | None]) -> None:
         object.__setattr__(self, "device", device)
         self.world = world
+        #: The hand in the world (None: the device has no servos a hand could move).
+        self.hand: Hand | None = Hand(world, device) if hasattr(device, "servo") else None
         self.packetized = device.packetized
         self._read = read
         self._next = float("-inf")
@@ -91,13 +98,21 @@ class WorldTap:
             setattr(self.device, name, value)
 
     def receive(self, data: bytes, now: float) -> list[tuple[float, bytes]]:
+        self._hand(now)
         out = self.device.receive(data, now)
         self._tap(now)
         return out
 
     def advance(self, now: float) -> None:
         self.device.advance(now)
+        self._hand(now)
         self._tap(now)
+
+    def _hand(self, now: float) -> None:
+        hand = self.hand
+        if hand is not None and hand.active:
+            self.device.advance(now)  # the servos up to now first (torque off: at rest) ...
+            hand.apply(now)  # ... then where the hand has them
 
     def _tap(self, now: float) -> None:
         if now < self._next:
@@ -122,3 +137,9 @@ def with_world(profile: ArmProfile, device: SimDevice) -> SimDevice:
 def world_of(device: object) -> World | None:
     """The world watching a link's simulated device, or None (a real link, or no world)."""
     return device.world if isinstance(device, WorldTap) else None
+
+
+def hand_of(device: object) -> Hand | None:
+    """The hand in the world of a link's simulated device, or None (a real link, no world, or
+    a device without servos)."""
+    return device.hand if isinstance(device, WorldTap) else None

@@ -6,7 +6,8 @@ that owns the follower's commands, and reads the leader through its telemetry su
 (`ArmService.subscribe`; the hub's log is locked, no crossing needed).
 
 A real leader (not simulated) is moved by hand: its torque is off for the session
-(`ArmService.set_torque`) and on again, holding where it is, when the session ends.
+(`ArmService.set_torque`) and on again, holding where it is, when the session ends; so is a
+simulated one started with `free_leader`, moved by the hand in its world (app/sim/hand.py).
 
 A tick sends nothing, and counts a hold, when the leader's newest sample is older than the
 deadman time or stale, when its pose has no follower target, or when the follower refuses the
@@ -65,6 +66,7 @@ class TeleopSession:
         #: The leader's torque was switched off for the session (a real arm moved by hand):
         #: on again, holding where it is, when the session ends.
         self.free_leader = free_leader
+        self._freed = free_leader  # as started (free_leader is cleared when given back)
         self.stats = TeleopStats()
         self.status: Literal["running", "ended"] = "running"
         self.reason: str | None = None
@@ -200,6 +202,7 @@ class TeleopSession:
             id=self.id, leader=self.leader.name, follower=self.follower.name,
             rate_hz=self.rate_hz, mapping=self.mapping_name,
             deadman_s=self.deadman_s,
+            free_leader=self.free_leader or self._freed,
             achieved_hz=round(self.stats.achieved_hz(), 3) if self.status == "running" else 0.0,
             latency_ms=None if lat is None else s.TeleopLatency(p50=round(lat[0], 3),
                                                                 p99=round(lat[1], 3)),

@@ -42,6 +42,14 @@ class LeaseRef:
     gated: bool
 
 
+def frees_leader(req: s.TeleopStart, leader: ArmService) -> bool:
+    """Whether the session switches the leader's torque off (to be moved by hand): as asked,
+    else for a real leader (not simulated)."""
+    if req.free_leader is not None:
+        return req.free_leader
+    return leader.link_status().kind != "sim"
+
+
 class TeleopSessions:
     """Every session of one server, by id; running and the last KEEP_ENDED ended ones."""
 
@@ -91,8 +99,9 @@ class TeleopSessions:
                                f"estop drives nothing (DELETE /api/v1/arms/{leader.name}/estop)")
         mapping = self._mapping(req, leader, follower)
         # a real leader is moved by hand: its torque off for the session (409 not_supported
-        # where its device cannot); a simulated one is moved by its own commands
-        free = leader.link_status().kind != "sim"
+        # where its device cannot); a simulated one is moved by its own commands, or by a
+        # hand in its world when asked (free_leader)
+        free = frees_leader(req, leader)
         if free:
             await leader.set_torque(False)
         sid = f"t{next(self._ids)}-{uuid.uuid4().hex[:8]}"

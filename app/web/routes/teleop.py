@@ -10,7 +10,8 @@ from fastapi import APIRouter, Header, Path, Request, status
 
 from app import schemas as s
 from app.classroom.lease import LeaseManager
-from app.teleop.sessions import LeaseRef, TeleopSessions
+from app.teleop.config import TeleopPair, with_pair
+from app.teleop.sessions import LeaseRef, TeleopSessions, frees_leader
 from app.web.deps import (
     CallerDep,
     OperatorCaller,
@@ -28,12 +29,17 @@ SessionId = Annotated[str, Path(description="session id, as answered by POST /te
                                 max_length=64)]
 
 
+def pairs_of(request: Request) -> list[TeleopPair]:
+    """The config's `[[teleop]]` defaults."""
+    return list(getattr(request.app.state, "teleop_pairs", []))
+
+
 def sessions_of(request: Request) -> TeleopSessions:
     """The server's sessions (made with the app's state on first use)."""
     found: TeleopSessions | None = getattr(request.app.state, "teleop", None)
     if found is None:
-        found = request.app.state.teleop = TeleopSessions(
-            request.app.state.leases, getattr(request.app.state, "teleop_pairs", []))
+        found = request.app.state.teleop = TeleopSessions(request.app.state.leases,
+                                                          pairs_of(request))
     return found
 
 
@@ -53,7 +59,9 @@ def sessions_of(request: Request) -> TeleopSessions:
     "held (X-Leader-Lease: its torque goes off). 404 `unknown_arm`; 422 when the leader "
     "is the follower or the mapping does not fit; 409 `busy` when the follower already "
     "follows; 409 `estop_latched` when either arm is latched. A real (not simulated) leader "
-    "has its torque off for the session (moved by hand) and on again, holding, when it ends; "
+    "has its torque off for the session (moved by hand) and on again, holding, when it ends, "
+    "as has a simulated one with `free_leader: true` (moved by PUT "
+    "/api/v1/arms/{leader}/world/hand); "
     "409 `not_supported` where its device cannot. The session ends when another client's "
     "lease holds the follower.",
     responses=errors(*DEVICE),
@@ -71,7 +79,7 @@ async def start_teleop(request: Request, req: s.TeleopStart, services: ServicesD
     leases: LeaseManager = request.app.state.leases
     gated = who.role < Role.INSTRUCTOR
     await leases.check(follower.name, x_arm_lease, gated=gated)
-    if leader.link_status().kind != "sim":
+    if frees_leader(with_pair(req, pairs_of(request)), leader):
         # its torque goes off: the arm goes limp, which is a command to it like a move, so
         # whoever holds its lease must be the one asking (X-Leader-Lease)
         await leases.check(leader.name, x_leader_lease, gated=gated)

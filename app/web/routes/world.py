@@ -3,7 +3,9 @@ new one. Any viewer reads; the arm's lease holder or an instructor replaces it. 
 a simulator on a pty or socket) has no world here: 404 `not_found`.
 
 The world is the simulator's surroundings (app/sim/world.py), not the arm: a new scene moves
-no joint, and nothing here reaches the device.
+no joint. The hand (PUT .../world/hand, app/sim/hand.py) is the one part of the world that
+touches the arm, as a person's hand does: it moves the simulated servos whose torque is off,
+on the device's side of the link; the server reads where they went as it reads hardware.
 """
 
 from __future__ import annotations
@@ -14,8 +16,10 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Header, Request
 
 from app import schemas as s
-from app.errors import InvalidRequest, NotFound
+from app.errors import InvalidRequest, NotFound, NotSupported
+from app.schemas.world import HandMoveRequest, HandState
 from app.service import ArmService
+from app.sim.hand import Hand
 from app.sim.world import Bin, Scene, SceneError, World, WorldObject
 from app.web.deps import ArmName, Credentials, ViewerArm, get_access, lookup_arm
 from app.web.routes.common import READ, errors
@@ -104,3 +108,51 @@ async def put_world(svc: EditorArm, body: s.WorldScene) -> s.WorldScene:
         return to_body(await asyncio.to_thread(world.set_scene, objects, bins))
     except SceneError as exc:
         raise InvalidRequest(str(exc)) from None
+
+
+#: The longest a PUT of the hand with `wait` waits beyond the move's own time, s.
+HAND_WAIT_S = 2.0
+#: How often it looks whether the hand has arrived, s.
+HAND_LOOK_S = 0.02
+
+
+def hand_of(svc: ArmService) -> Hand:
+    world_of(svc)  # 404 on a real arm
+    hand = svc.hand
+    if hand is None:
+        raise NotSupported(f"{svc.name}'s simulated device has no servos a hand could move "
+                           "(its joints have no torque switch)")
+    return hand
+
+
+@router.put(
+    "/hand",
+    response_model=HandState,
+    summary="Move the simulated arm by hand (its servos' torque off)",
+    description="A hand in the world moves the arm's joints, as a person moves an arm whose "
+    "servos' torque is off (a teleoperation leader): in a straight line in joint space from "
+    "where they are to `positions`, at `speed` on the joint with the longest way. It acts on "
+    "the simulated servos (their Present Position and Velocity), never on the server: the "
+    "server reads them over the link as from hardware. Only while the arm's torque is off "
+    "(POST /api/v1/teleop with `free_leader`): a servo with torque on keeps its goal, so 409 "
+    "`conflict` while any joint holds torque, and a joint whose torque comes on during a "
+    "move is let go. A new move replaces one under way. 422 `invalid_request` (width, "
+    "speed), 422 `joint_limit` (beyond the arm's joint limits); 409 `not_supported` for a "
+    "simulated device without servos (the rbe3001's firmware); lease holder or instructor. "
+    "Simulated arms only: 404 `not_found` on a real arm. With `wait: true` it answers when "
+    "the hand has arrived or let go.",
+    responses=errors(401, 403, 404, 409, 422),
+)
+async def put_hand(svc: EditorArm, body: HandMoveRequest) -> HandState:
+    hand = hand_of(svc)
+    move = hand.move_to(body.positions, body.speed)
+    if body.wait:
+        here = svc.positions
+        way = (0.0 if here is None else
+               float(max(abs(a - b) for a, b in zip(here, move.goal, strict=False))))
+        for _ in range(int((way / move.speed + HAND_WAIT_S) / HAND_LOOK_S)):
+            if not hand.busy(move.serial):  # the device's thread moves it: nothing to await
+                break
+            await asyncio.sleep(HAND_LOOK_S)
+    return HandState(positions=list(move.goal), speed=move.speed,
+                     moving=hand.busy(move.serial))

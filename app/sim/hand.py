@@ -1,0 +1,167 @@
+"""A hand in a simulated arm's world: it moves the arm's joints as a person moves an arm whose
+servos' torque is off (a teleoperation leader, API.md "Teleoperation"; the issue's "a
+simulated arm moved through its world").
+
+It acts on the simulated device, never on the server: each joint servo of a simulated
+Dynamixel bus (app/arms/dynamixel/sim_bus.py) whose Torque Enable (64) is 0 has its Present
+Position and Present Velocity set to where the hand has it, and the server reads them over the
+link as it reads hardware. A servo with torque on holds its goal (e-manual, Torque Enable: "the
+servo keeps its position") and the hand does not move it: a move is refused at the start with
+409 `conflict` when any joint holds torque, and a joint whose torque comes on during a move
+(the session that freed it has ended) is let go.
+
+The hand goes in a straight line in joint space from where the joints are when the device
+next runs (the simulated clock of its link) to the goal, at `speed` (rad/s or m/s) on the
+joint with the longest way, every joint arriving together. Units: joint units at this
+module's surface (rad, m), ticks only where the servo's registers are set (through the
+world's model's transmission, as the world reads them back).
+
+Threads: `move_to` is called on a request's thread, `apply` by the device's tap on the
+control thread; a move crosses as one attribute assignment (`_asked`), the tap's progress as
+another (`_done`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from app.errors import Conflict, InvalidRequest, JointLimit
+from app.sim.world import World
+
+#: The hand's default speed on the joint with the longest way (rad/s or m/s): unhurried.
+DEFAULT_SPEED = 0.5
+#: The fastest the hand goes (rad/s or m/s): an XM430's no-load speed is about 4.8 rad/s.
+MAX_SPEED = 4.0
+
+
+@dataclass(frozen=True)
+class HandMove:
+    """A move asked for: the goal (rad, m) and the speed; `serial` counts the moves."""
+
+    goal: tuple[float, ...]
+    speed: float
+    serial: int
+
+
+@dataclass(frozen=True)
+class _Under:
+    """A move under way on the device's clock: from `start` at `t0`, `duration` s long."""
+
+    move: HandMove
+    start: np.ndarray
+    t0: float
+    duration: float
+
+
+class Hand:
+    """The hand on `device`'s joint servos (by the profile's `motor_id`), in `world`'s
+    joint units."""
+
+    def __init__(self, world: World, device: Any) -> None:
+        if not hasattr(device, "servo"):
+            raise TypeError(f"a {type(device).__name__} has no servos a hand could move")
+        self.world = world
+        self.device = device
+        self.ids = [int(j.motor_id or 0) for j in world.profile.joints]
+        self._asked: HandMove | None = None
+        self._under: _Under | None = None
+        self._done = 0  # the serial of the last move ended (arrived, or let go)
+        self._serial = 0
+
+    # --- a request's side --------------------------------------------------------------
+
+    def holding(self) -> list[str]:
+        """The joints whose servo holds torque now (or does not answer: a hand cannot move
+        what is not there)."""
+        names = [j.name for j in self.world.profile.joints]
+        out = []
+        for name, i in zip(names, self.ids, strict=True):
+            s = self.device.servo(i)
+            if s is None or s.torque:
+                out.append(name)
+        return out
+
+    def move_to(self, goal: list[float], speed: float = DEFAULT_SPEED) -> HandMove:
+        """Ask for a move to `goal` (rad, m, the arm's joint order) at `speed`. 422
+        `invalid_request` for a goal of the wrong width or a speed out of (0, MAX_SPEED];
+        422 `joint_limit` for a goal beyond the arm's joint limits (the hand moves the arm
+        within its mechanical range); 409 `conflict` while a joint's servo holds torque.
+        A new move replaces one under way, from where the joints are then."""
+        m = self.world.model
+        q = np.asarray(goal, dtype=float)
+        if q.shape != (m.n,) or not np.all(np.isfinite(q)):
+            raise InvalidRequest(f"{self.world.profile.name}: the hand takes {m.n} joint "
+                                 f"positions ({', '.join(m.names)}), got {goal!r}")
+        if not (np.isfinite(speed) and 0.0 < speed <= MAX_SPEED):
+            raise InvalidRequest(f"the hand's speed {speed!r} is outside (0, {MAX_SPEED:g}]")
+        if np.any((q < m.lower) | (q > m.upper)):
+            raise JointLimit(f"the hand cannot take {self.world.profile.name} there: "
+                             + "; ".join(m.violations(q) or [f"outside {q.tolist()}"]))
+        held = self.holding()
+        if held:
+            raise Conflict(f"{self.world.profile.name}: {', '.join(held)} hold torque: a servo "
+                           "with torque on keeps its goal against a hand (switch it off: a "
+                           "teleoperation session with free_leader, or Torque Enable 0)")
+        self._serial += 1
+        move = HandMove(tuple(float(x) for x in q), float(speed), self._serial)
+        self._asked = move
+        return move
+
+    @property
+    def active(self) -> bool:
+        """A move is asked for or under way (the tap then runs the device up to now first)."""
+        return self._asked is not None or self._under is not None
+
+    def busy(self, serial: int) -> bool:
+        """Move `serial` has not ended yet (neither arrived nor let go)."""
+        return self._done < serial
+
+    # --- the device's side (the tap, on the control thread) -----------------------------
+
+    def apply(self, now: float) -> None:
+        """Set each free joint servo where the hand has it at `now` (device clock, s)."""
+        asked = self._asked
+        under = self._under
+        if asked is not None and (under is None or under.move is not asked):
+            under = self._begin(asked, now)
+        if under is None:
+            return
+        tr = self.world.model.transmission
+        t = min(max(now - under.t0, 0.0), under.duration)
+        frac = t / under.duration if under.duration > 0 else 1.0
+        goal = np.asarray(under.move.goal, dtype=float)
+        q = under.start + frac * (goal - under.start)
+        qd = ((goal - under.start) / under.duration if 0 < t < under.duration
+              else np.zeros_like(q))
+        ticks, tps = tr.to_ticks(q), tr.velocity_to_ticks(qd)
+        free = 0
+        for k, i in enumerate(self.ids):
+            s = self.device.servo(i)
+            if s is None or s.torque:
+                continue  # holds its goal: the hand lets this joint go
+            free += 1
+            s.pos = float(ticks[k])  # at rest there (the motor model's own state) ...
+            s.motion.vel = float(tps[k])  # ... turning as the hand turns it
+            s.advance(0.0, now)  # Present Position and Velocity published, no time passed
+        if t >= under.duration or free == 0:
+            self._under = None
+            self._done = under.move.serial
+            if self._asked is under.move:
+                self._asked = None
+
+    def _begin(self, move: HandMove, now: float) -> _Under | None:
+        tr = self.world.model.transmission
+        ticks = []
+        for i in self.ids:
+            s = self.device.servo(i)
+            if s is None:
+                self._done, self._asked = move.serial, None
+                return None
+            ticks.append(float(s.get("present_position")))
+        start = np.asarray(tr.from_ticks(ticks), dtype=float)
+        way = float(np.max(np.abs(np.asarray(move.goal) - start)))
+        self._under = _Under(move, start, now, way / move.speed)
+        return self._under

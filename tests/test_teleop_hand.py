@@ -1,0 +1,150 @@
+"""A simulated leader moved through its world (issue 26: "the leader is a simulated arm moved
+through its world"): `PUT /arms/{arm}/world/hand` moves the simulated servos whose torque is
+off, on the device's side of the link, and the server reads them as it reads hardware.
+Teleoperation between two simulated OpenManipulator-X arms (config/teleop_omx.toml) with
+`free_leader`: the leader's torque goes off, a hand drives it along a path, the follower
+follows, and a recording made meanwhile holds the leader's joints as the action and the
+follower's as the state. The hand's refusals: torque on (409 `conflict`, nothing moved), a
+goal beyond the limits, a wrong width, a device without servos, a real arm."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import orjson
+import pytest
+from _wait import held_still, wait_for
+from fastapi import FastAPI
+
+from app.service import ArmService
+from tests._lerobot import check_dataset
+from tests.conftest import make_settings, running_client
+from tests.test_recording_teleop import path_distance
+
+API = "/api/v1"
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "teleop_omx.toml"
+TOL = 8 * 2 * np.pi / 4096  # rad: the XM430's settle tolerance (8 ticks)
+START = {"leader": "leader", "follower": "follower", "rate_hz": 50, "free_leader": True}
+PATH = [[0.4, -0.3, 0.2, 0.5], [0.6, -0.5, 0.4, 0.7], [-0.2, -0.1, 0.1, 0.3]]
+SPEED = 0.8  # rad/s on the joint with the longest way
+
+
+@pytest.fixture()
+async def pair() -> AsyncIterator[tuple[FastAPI, httpx.AsyncClient]]:
+    async with running_client(make_settings(config=str(CONFIG))) as p:
+        yield p
+
+
+def servos(arm: ArmService) -> list[Any]:
+    """The simulated joint servos behind the arm's link (the device side)."""
+    bus = arm.driver.link.device
+    return [bus.servo(j.motor_id) for j in arm.profile.joints]
+
+
+async def hand(c: httpx.AsyncClient, arm: str, q: list[float], **more: Any) -> httpx.Response:
+    return await c.put(f"{API}/arms/{arm}/world/hand", json={"positions": q, **more})
+
+
+async def test_a_torque_on_arm_resists_the_hand(pair: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    app, c = pair
+    leader: ArmService = app.state.services["leader"]
+    here = await held_still(lambda: leader.positions, TOL)
+    assert all(sv.torque for sv in servos(leader))
+    r = await hand(c, "leader", PATH[0])
+    assert r.status_code == 409 and r.json()["code"] == "conflict", r.text
+    assert "torque" in r.json()["detail"]
+    np.testing.assert_allclose(await held_still(lambda: leader.positions, TOL), here, atol=TOL)
+    for body, status, code in (
+            ({"positions": [0.1, 0.2]}, 422, "invalid_request"),
+            ({"positions": [3.5, 0.0, 0.0, 0.0]}, 422, "joint_limit"),
+            ({"positions": PATH[0], "speed": 0}, 422, "invalid_request"),
+            ({"positions": PATH[0], "speed": "1"}, 422, "invalid_request")):
+        r = await c.put(f"{API}/arms/leader/world/hand", json=body)
+        assert r.status_code == status and r.json()["code"] == code, (body, r.text)
+
+
+async def test_the_follower_follows_a_leader_moved_by_hand(
+        pair: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    app, c = pair
+    leader: ArmService = app.state.services["leader"]
+    follower: ArmService = app.state.services["follower"]
+    r = await c.post(f"{API}/teleop", json=START)
+    assert r.status_code == 201, r.text
+    t = r.json()
+    assert t["free_leader"] is True
+    assert not any(sv.torque for sv in servos(leader)), "the leader's torque is still on"
+    await wait_for(lambda: np.allclose(follower.positions, leader.positions, atol=TOL),
+                   what="the follower where the leader is")
+    r = await c.post(f"{API}/recordings", json={"name": "byhand", "arms": ["follower"],
+                                                "fps": 25, "task": "follow the hand"})
+    assert r.status_code == 201, r.text
+    lsub, fsub = leader.subscribe(4000), follower.subscribe(4000)
+    try:
+        assert (await c.post(f"{API}/recordings/byhand/episodes")).status_code == 201
+        for q in PATH:
+            r = await hand(c, "leader", q, speed=SPEED, wait=True)
+            assert r.status_code == 200, r.text
+            assert r.json() == {"positions": q, "speed": SPEED, "moving": False}
+            # the server reads the simulated servos where the hand left them
+            await wait_for(lambda q=q: np.allclose(leader.positions, q, atol=TOL),
+                           what=f"the leader's samples at {q}")
+            await wait_for(lambda q=q: np.allclose(follower.positions, q, atol=TOL),
+                           what=f"the follower at {q}")
+        there = (await c.get(f"{API}/recordings/byhand")).json()["current"]["frames"]
+
+        async def later() -> bool:
+            cur = (await c.get(f"{API}/recordings/byhand")).json()["current"]
+            return bool(cur["frames"] >= there + 3)
+        await wait_for(later, what="three more frames")
+        r = await c.post(f"{API}/recordings/byhand/episodes/stop")
+        assert r.status_code == 200, r.text
+        lsamples = [orjson.loads(x) for x in lsub.take()[0]]
+        fq = np.array([orjson.loads(x)["positions"] for x in fsub.take()[0]])
+    finally:
+        lsub.close()
+        fsub.close()
+    lq = np.array([smp["positions"] for smp in lsamples])
+    # read as hardware is read: the hand's speed in the servos' Present Velocity
+    speeds = np.max(np.abs(np.array([smp["velocities"] for smp in lsamples])), axis=1)
+    assert 0.5 * SPEED < float(np.max(speeds)) <= SPEED * 1.05
+    # the leader went the hand's way, and the follower the leader's: within one period's
+    # motion at the hand's speed (and the follower's servos' own lag) of its joint path
+    hand_path = np.array([lq[0], *PATH])
+    assert float(np.max(path_distance(lq, hand_path))) < 2 * TOL
+    bound = SPEED / 50 + 2 * TOL
+    off = path_distance(fq, lq)
+    assert float(np.max(off)) < bound, f"the follower {np.max(off):.4f} rad off the leader"
+    figures = [x for x in (await c.get(f"{API}/teleop")).json() if x["id"] == t["id"]][0]
+    assert figures["status"] == "running" and figures["commands"] > 50
+    # the recording: the action is the leader's joints (mapped one to one), the state the
+    # follower's measured joints
+    d = r.json()
+    assert d["names"][:4] == [f"follower.{j.name}.pos" for j in follower.profile.joints]
+    read = check_dataset(Path(d["path"]))
+    action = read.frames["action"][:, :4].astype(float)
+    state = read.frames["observation.state"][:, :4].astype(float)
+    assert float(np.max(path_distance(action, lq))) < bound
+    np.testing.assert_allclose(action[-1], PATH[-1], atol=TOL)
+    assert float(np.max(path_distance(state[:-1], np.vstack([state[:1], fq])))) < 1e-5
+    np.testing.assert_allclose(state[-1], PATH[-1], atol=TOL)
+    # the session ends: the leader's torque on again, holding where the hand left it, and the
+    # hand refused from then on
+    r = await c.delete(f"{API}/teleop/{t['id']}")
+    assert r.status_code == 200, r.text
+    await wait_for(lambda: all(sv.torque for sv in servos(leader)), what="the torque on")
+    r = await hand(c, "leader", PATH[0])
+    assert r.status_code == 409 and r.json()["code"] == "conflict", r.text
+    np.testing.assert_allclose(await held_still(lambda: leader.positions, TOL), PATH[-1],
+                               atol=2 * TOL)
+
+
+async def test_a_hand_on_a_device_without_servos_or_a_real_arm() -> None:
+    async with running_client(make_settings()) as (app, c):
+        r = await hand(c, "rbe3001", [0.0, 0.0, 0.0])
+        assert r.status_code == 409 and r.json()["code"] == "not_supported", r.text
+        r = await hand(c, "nope", [0.0])
+        assert r.status_code == 404 and r.json()["code"] == "unknown_arm", r.text
