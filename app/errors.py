@@ -76,6 +76,15 @@ _ROWS: tuple[tuple[str, int | None, str, str, str], ...] = (
      "the driver relies on this register: pass-through may not write it"),
     ("already_queued", 409, "AlreadyQueued", "Conflict",
      "the caller is in the arm's queue already"),
+    ("port_in_use", 409, "PortInUse", "Conflict",
+     "the port is the link of an arm this server owns (the detail names it): nothing else "
+     "touches it"),
+    ("no_servo", 409, "NoServo", "Conflict",
+     "servo set-up: no servo to set up answers on the port (power, cable, adapter?)"),
+    ("several_servos", 409, "SeveralServos", "Conflict",
+     "servo set-up: more than one servo to set up, or two on one ID: connect one at a time"),
+    ("id_in_use", 409, "IdInUse", "Conflict",
+     "servo set-up: the profile gives that joint's ID to another joint too"),
     ("gone", 410, "Gone", "Gone", "the resource existed but is no longer kept"),
     ("motion_expired", 410, "MotionExpired", "Gone",
      "a motion id this server issued but no longer keeps"),
@@ -295,6 +304,22 @@ class TorqueOff(Conflict):
 
 class InUse(Conflict):
     code = "in_use"
+
+
+class PortInUse(Conflict):
+    code = "port_in_use"
+
+
+class NoServo(Conflict):
+    code = "no_servo"
+
+
+class SeveralServos(Conflict):
+    code = "several_servos"
+
+
+class IdInUse(Conflict):
+    code = "id_in_use"
 
 
 class AlreadyQueued(Conflict):

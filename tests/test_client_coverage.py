@@ -90,6 +90,12 @@ ROUTES: dict[tuple[str, str], str] = {
     ("GET", "/api/v1/cameras/{cam}/detections"): "detections",
     ("GET", "/api/v1/cameras/{cam}/calibration"): "camera_calibration",
     ("POST", "/api/v1/cameras/{cam}/calibration"): "calibrate_camera",
+    ("GET", "/api/v1/setup-servos"): "servo_setup",
+    ("POST", "/api/v1/setup-servos/scan"): "scan_servos",
+    ("POST", "/api/v1/setup-servos/assign"): "assign_servo",
+    ("POST", "/api/v1/setup-servos/practice"): "start_practice_bus",
+    ("POST", "/api/v1/setup-servos/practice/servos"): "plug_practice_servo",
+    ("DELETE", "/api/v1/setup-servos/practice"): "stop_practice_bus",
 }
 
 #: Routes outside OpenAPI (WebSocket) and helpers built on routes: method -> what it uses.
@@ -135,6 +141,9 @@ ARGS: dict[str, tuple[Any, ...]] = {
     "cameras": (), "camera": ("c1",), "camera_frame": ("c1",), "camera_stream": ("c1",),
     "detections": ("c1",), "camera_calibration": ("c1",),
     "calibrate_camera": ("c1", [((0, 0), (0.1, 0, 0))] * 4),
+    "servo_setup": (), "scan_servos": ("socket://127.0.0.1:1", "p1"),
+    "assign_servo": ("socket://127.0.0.1:1", "p1", "j1"), "start_practice_bus": (),
+    "plug_practice_servo": (), "stop_practice_bus": (),
 }
 
 

@@ -277,6 +277,32 @@ class AsyncArmClient:
         """The gravity fit's motion through `poses` (default: the server's choice)."""
         return await self.send(Requests.calibrate_gravity(arm, poses, wait))
 
+    async def servo_setup(self) -> s.ServoSetupInfo:
+        """What servo set-up can do on this server: profiles, ports in use, the practice bus."""
+        return await self.send(Requests.servo_setup())
+
+    async def scan_servos(self, port: str, profile: str,
+                          baudrates: Sequence[int] | None = None) -> s.ServoScan:
+        """The servos answering on `port` and whose each is against `profile` (instructor)."""
+        return await self.send(Requests.scan_servos(port, profile, baudrates))
+
+    async def assign_servo(self, port: str, profile: str, joint: str,
+                           baudrates: Sequence[int] | None = None) -> s.ServoAssigned:
+        """Set up the one new servo on `port` as `joint`'s, EEPROM (instructor)."""
+        return await self.send(Requests.assign_servo(port, profile, joint, baudrates))
+
+    async def start_practice_bus(self, servos: int = 1) -> s.PracticeBus:
+        """Start a simulated factory-state bus on a loopback port (instructor)."""
+        return await self.send(Requests.start_practice_bus(servos))
+
+    async def plug_practice_servo(self) -> s.PracticeBus:
+        """Plug one more factory servo into the practice bus (instructor)."""
+        return await self.send(Requests.plug_practice_servo())
+
+    async def stop_practice_bus(self) -> s.PracticeBus:
+        """Stop the practice bus (instructor)."""
+        return await self.send(Requests.stop_practice_bus())
+
     # --------------------------------------------------------- lease
 
     async def safety(self, arm: str) -> s.Safety:

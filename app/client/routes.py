@@ -21,6 +21,8 @@ WAIT_TIMEOUT_S = 660.0
 #: How long writing an episode (or sending a dataset's archive) may take: a long episode's
 #: videos are joined to the dataset's files before the answer.
 RECORDING_WRITE_S = 300.0
+#: How long a servo scan or set-up may take: a scan of every standard rate on a real port.
+SETUP_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -307,6 +309,43 @@ class Requests:
             poses=None if poses is None else [list(p) for p in poses], wait=wait))
         return Call("POST", url_path("arms", arm, "calibration", "gravity"),
                     _model(s.GravityRun), body, arm=arm)
+
+    @staticmethod
+    def servo_setup() -> Call[s.ServoSetupInfo]:
+        return Call("GET", url_path("setup-servos"), _model(s.ServoSetupInfo), safe=True)
+
+    @staticmethod
+    def scan_servos(port: str, profile: str,
+                    baudrates: Sequence[int] | None = None) -> Call[s.ServoScan]:
+        body: dict[str, Any] = {"port": port, "profile": profile}
+        if baudrates is not None:
+            body["baudrates"] = list(baudrates)
+        return Call("POST", url_path("setup-servos", "scan"), _model(s.ServoScan), body,
+                    safe=True, timeout=SETUP_S)
+
+    @staticmethod
+    def assign_servo(port: str, profile: str, joint: str,
+                     baudrates: Sequence[int] | None = None) -> Call[s.ServoAssigned]:
+        body: dict[str, Any] = {"port": port, "profile": profile, "joint": joint}
+        if baudrates is not None:
+            body["baudrates"] = list(baudrates)
+        return Call("POST", url_path("setup-servos", "assign"), _model(s.ServoAssigned), body,
+                    timeout=SETUP_S)
+
+    @staticmethod
+    def start_practice_bus(servos: int = 1) -> Call[s.PracticeBus]:
+        return Call("POST", url_path("setup-servos", "practice"), _model(s.PracticeBus),
+                    _body(s.PracticeBusRequest(servos=servos)))
+
+    @staticmethod
+    def plug_practice_servo() -> Call[s.PracticeBus]:
+        return Call("POST", url_path("setup-servos", "practice", "servos"),
+                    _model(s.PracticeBus))
+
+    @staticmethod
+    def stop_practice_bus() -> Call[s.PracticeBus]:
+        return Call("DELETE", url_path("setup-servos", "practice"), _model(s.PracticeBus),
+                    safe=True)
 
     @staticmethod
     def take_lease(arm: str) -> Call[s.Lease]:

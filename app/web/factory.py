@@ -56,6 +56,7 @@ from app.web.routes import (
     recordings,
     replay,
     safety,
+    setup_servos,
     telemetry,
     teleop,
     world,
@@ -145,6 +146,8 @@ def create_app(settings: Settings | None = None,
                 except Exception:  # close the other arms all the same
                     log.exception("%s: close failed", svc.name)
             store.close()
+            if getattr(app.state, "practice_bus", None) is not None:  # servo set-up's
+                await asyncio.to_thread(app.state.practice_bus.close)
             if control is not None:
                 control.stop()
 
@@ -179,6 +182,7 @@ def create_app(settings: Settings | None = None,
     app.include_router(teleop.router, prefix=API_PREFIX)  # teleoperation (v1.2)
     app.include_router(replay.router, prefix=API_PREFIX)  # replay of recordings (v1.2)
     app.include_router(world.router, prefix=API_PREFIX)  # simulated world (v1.2)
+    app.include_router(setup_servos.router, prefix=API_PREFIX)  # servo set-up (issue 24)
     _document_websocket_messages(app)
     install_error_handlers(app)
 

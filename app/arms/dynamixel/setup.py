@@ -46,6 +46,8 @@ if TYPE_CHECKING:
 #: Baud Rate (8) codes of the MX-28(2.0) and X series (e-manual, "Baud Rate(8)").
 BAUD_RATES = {0: 9_600, 1: 57_600, 2: 115_200, 3: 1_000_000, 4: 2_000_000, 5: 3_000_000,
               6: 4_000_000, 7: 4_500_000}
+#: The rate a servo ships at (e-manual: Baud Rate (8) initial value 1).
+FACTORY_RATE = 57_600
 #: The order a scan tries them: the factory rate first, then the project's, then the rest.
 SCAN_ORDER = (57_600, 1_000_000, 115_200, 9_600, 2_000_000, 3_000_000, 4_000_000, 4_500_000)
 #: Replies a broadcast PING waits for, at most (a bus of more: raise --timeout).
@@ -58,13 +60,22 @@ EXIT_OK, EXIT_NONE, EXIT_SEVERAL, EXIT_REFUSED, EXIT_VERIFY = 0, 3, 4, 5, 6
 _T = mx28.TABLE
 
 
-class SetupError(Exception):
-    """Set-up refused or failed: `reason` for the user, `exit_code` for the shell."""
+#: What a SetupError is, for a caller that answers it (the dashboard's routes map each to an
+#: error code of app/errors.py), by exit code unless the raise site says otherwise.
+KIND_BY_EXIT = {EXIT_NONE: "no_servo", EXIT_SEVERAL: "several_servos", EXIT_REFUSED: "invalid",
+                EXIT_VERIFY: "device"}
 
-    def __init__(self, reason: str, exit_code: int) -> None:
+
+class SetupError(Exception):
+    """Set-up refused or failed: `reason` for the user, `exit_code` for the shell, `kind` for a
+    program: no_servo, several_servos, id_in_use, torque_on, invalid (the profile or the
+    request), device (an error status or a value that does not read back), no_reply."""
+
+    def __init__(self, reason: str, exit_code: int, kind: str | None = None) -> None:
         super().__init__(reason)
         self.reason = reason
         self.exit_code = exit_code
+        self.kind = kind or KIND_BY_EXIT.get(exit_code, "device")
 
 
 @dataclass(frozen=True)
@@ -168,11 +179,12 @@ class Bus:
         if not got:
             why = (f"garbled replies ({errors[0].kind}): two servos on ID {dxl_id}?"
                    if errors else "no reply")
-            raise SetupError(f"{what}: servo {dxl_id}: {why}", EXIT_VERIFY)
+            raise SetupError(f"{what}: servo {dxl_id}: {why}", EXIT_VERIFY,
+                             "device" if errors else "no_reply")
         p = got[0]
         if (p.error or 0) & ~dxl.ALERT_BIT:
             raise SetupError(f"{what}: servo {dxl_id}: {dxl.describe_error(p.error or 0)}",
-                             EXIT_REFUSED)
+                             EXIT_REFUSED, "device")
         return p
 
     def read(self, dxl_id: int, item: ControlItem) -> int:
@@ -242,7 +254,7 @@ def wanted(profile: ArmProfile, name: str) -> dict[str, int]:
     if shared:
         raise SetupError(f"ID {j.motor_id} is in use by joint {shared[0]} in profile "
                          f"{profile.name}: two servos on one ID would collide; give joint "
-                         f"{name} its own motor_id", EXIT_REFUSED)
+                         f"{name} its own motor_id", EXIT_REFUSED, "id_in_use")
     codes = [c for c, r in BAUD_RATES.items() if r == profile.link.baudrate]
     if not codes:
         raise SetupError(f"profile {profile.name}: link.baudrate {profile.link.baudrate} is "
@@ -312,7 +324,7 @@ def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 
         if servo.torque:
             raise SetupError(f"servo ID {servo.id} has torque on: EEPROM items are written "
                              "only with torque off; power-cycle it (torque is off at power-up)",
-                             EXIT_REFUSED)
+                             EXIT_REFUSED, "torque_on")
         if carries_baud(url):
             bus.set_rate(servo.baudrate)
         for name in ("operating_mode", "return_delay_time", "min_position_limit",
@@ -341,26 +353,42 @@ def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 
         bus.close()
 
 
+def scan_port(url: str, *, timeout: float = 0.1, rates: Iterable[int] = SCAN_ORDER,
+              opener: Callable[..., Any] | None = None) -> Scan:
+    """Open `url`, scan it (`scan`) and close it."""
+    bus = Bus(url, timeout=timeout, opener=opener)
+    try:
+        return scan(bus, rates)
+    finally:
+        bus.close()
+
+
+def placement(profile: ArmProfile | None, f: Found) -> tuple[str | None, str]:
+    """Whose a found servo is against the profile: (the joint whose ID and rate it has, or
+    None; a note for the user: "= joint y", "joint y's ID, but not the profile's ...",
+    "[factory state]")."""
+    joints = {} if profile is None else {int(j.motor_id): j.name for j in profile.joints
+                                         if j.motor_id is not None}
+    joint, note = None, ""
+    if profile is not None and f.id in joints:
+        if f.baudrate == profile.link.baudrate:
+            joint, note = joints[f.id], f"= joint {joints[f.id]}"
+        else:
+            note = (f"(joint {joints[f.id]}'s ID, but not the profile's "
+                    f"{profile.link.baudrate:,} bps)")
+    if f.id == 1 and f.baudrate == FACTORY_RATE:
+        note = f"{note} [factory state]".strip()
+    return joint, note
+
+
 def report(url: str, profile: ArmProfile | None, *, timeout: float = 0.1,
            rates: Iterable[int] = SCAN_ORDER, say: Callable[[str], None] = print,
            opener: Callable[..., Any] | None = None) -> Scan:
     """Scan and print what answered, and against the profile, whose each servo is."""
-    bus = Bus(url, timeout=timeout, opener=opener)
-    try:
-        result = scan(bus, rates)
-    finally:
-        bus.close()
-    joints = {} if profile is None else {int(j.motor_id): j.name for j in profile.joints
-                                         if j.motor_id is not None}
+    result = scan_port(url, timeout=timeout, rates=rates, opener=opener)
     for f in result.found:
-        note = ""
-        if profile is not None and f.id in joints:
-            note = (f" = joint {joints[f.id]}" if f.baudrate == profile.link.baudrate else
-                    f" (joint {joints[f.id]}'s ID, but not the profile's "
-                    f"{profile.link.baudrate:,} bps)")
-        if f.id == 1 and f.baudrate == 57_600:
-            note += " [factory state]"
-        say(f"found {f.describe()}{note}")
+        note = placement(profile, f)[1]
+        say(f"found {f.describe()}{' ' + note if note else ''}")
     for c in result.collisions:
         say(c)
     return result
