@@ -1,0 +1,103 @@
+"""End to end: the dashboard's servo set-up panel (app/web/static/setup.js) walks through the
+factory state on the practice bus, in Debian's headless Chromium against a real server: start
+the practice bus, scan (one factory servo), assign it as the angler's x and see it verified,
+plug in the next servo and set it up as y; two new servos at once are refused in words
+(several_servos)."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from typing import Any
+
+import _deps
+import pytest
+from conftest import serve_live
+
+pytestmark = pytest.mark.browser
+
+CHROMIUM = _deps.CHROMIUM
+ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+if CHROMIUM is None:
+    pytest.skip(_deps.missing_message("chromium") + "; the dashboard test needs it",
+                allow_module_level=True)
+sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing")
+
+
+def wait_for(fn: Callable[[], Any], what: str, timeout: float = 20.0) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            value = fn()
+        except Exception:  # noqa: BLE001 - retried until the deadline
+            value = None
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out: {what}")
+
+
+def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
+    with serve_live() as live, sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        page = browser.new_page(viewport={"width": 1440, "height": 1000})
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(live.url + "/")
+        page.click("#setup-details summary")
+        wait_for(lambda: "angler" in page.locator("#setup-profile").inner_text(),
+                 "the profiles listed")
+        page.select_option("#setup-profile", "angler")
+        page.fill("#setup-rates", "57600, 1000000")  # the rates the servos here run at
+        page.click("#setup-practice-start")
+        wait_for(lambda: page.locator("#setup-port").input_value().endswith("ttyDXL"),
+                 "the practice bus's port filled in")
+        assert "ID 1 @ 57,600 bps" in page.locator("#setup-practice").inner_text()
+        found = page.locator("#setup-found")
+        page.click("#setup-scan")
+        wait_for(lambda: found.get_attribute("data-servos") == "[[1,57600,null]]",
+                 "the factory servo found")
+        steps = page.locator("#setup-steps").inner_text()
+        assert "Connect only the servo for joint x" in steps and "factory state" in steps
+        assert page.locator("#setup-joint").input_value() == "x"
+
+        page.click("#setup-assign")
+        wait_for(lambda: found.get_attribute("data-servos") == '[[2,1000000,"x"]]',
+                 "x set up and verified by the scan after it")
+        assert "joint x: set up and verified: ID 2 at 1,000,000 bps" in \
+            page.locator("#setup-said").inner_text()
+        assert page.locator("#setup-steps").get_attribute("data-next") == "y"
+        assert page.locator("#setup-joint").input_value() == "y"
+
+        # the next servo, alone with x's: y
+        page.click("#setup-practice-plug")
+        wait_for(lambda: "ID 1 @ 57,600 bps" in page.locator("#setup-practice").inner_text(),
+                 "one more factory servo")
+        page.click("#setup-scan")
+        wait_for(lambda: len(json.loads(found.get_attribute("data-servos") or "[]")) == 2,
+                 "two servos found")
+        page.click("#setup-assign")
+        wait_for(lambda: page.locator("#setup-steps").get_attribute("data-next") == "theta3",
+                 "y set up; theta3 next")
+        assert sorted(json.loads(found.get_attribute("data-servos") or "[]")) == \
+            [[1, 1_000_000, "y"], [2, 1_000_000, "x"]]
+
+        # two new servos at once: refused in words, nothing written
+        page.click("#setup-practice-plug")
+        wait_for(lambda: page.locator("#setup-practice").inner_text().count("57,600") == 1,
+                 "a third servo")
+        page.click("#setup-practice-plug")
+        wait_for(lambda: page.locator("#setup-practice").inner_text().count("57,600") == 2,
+                 "a fourth servo")
+        page.click("#setup-assign")
+        error = page.locator("#setup-error")
+        wait_for(lambda: error.get_attribute("data-code") == "several_servos",
+                 "the refusal shown")
+        assert "connect one servo at a time" in error.inner_text()
+        state = page.evaluate("() => window.armServoSetup.state()")
+        assert state["errorCode"] == "several_servos"
+        browser.close()
+        assert not errors, f"uncaught errors in the page: {errors}"
