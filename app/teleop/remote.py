@@ -26,7 +26,7 @@ from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import orjson
 from websockets.asyncio.client import unix_connect
@@ -37,10 +37,6 @@ from app.arms import model_for
 from app.arms.model import KinematicsModel
 from app.config import ArmProfile
 from app.errors import LinkDown, NotSupported
-from app.teleop.leader import Leader
-
-if TYPE_CHECKING:
-    from app.service import ArmService
 
 log = logging.getLogger(__name__)
 
@@ -200,9 +196,3 @@ def peer_of(peers: Mapping[str, Peer] | None, name: str) -> Peer | None:
     """`name`'s peer, where the lab gave this worker the arms of the others."""
     return None if peers is None else peers.get(name)
 
-
-if TYPE_CHECKING:
-    def _both_lead(remote: RemoteLeader, local: ArmService) -> list[Leader]:
-        """Type-checked only: an arm of this server and a remote one are both a `Leader`
-        (what app/web/routes/teleop.py hands a session as its leader)."""
-        return [remote, local]

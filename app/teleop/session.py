@@ -33,6 +33,7 @@ from app.errors import ArmError
 from app.runtime.tasks import cancel_and_wait
 from app.service import ArmService
 from app.teleop.latency import TeleopStats
+from app.teleop.leader import Leader
 from app.teleop.mapping import Mapping, NoTarget, step_towards
 
 log = logging.getLogger(__name__)
@@ -53,7 +54,7 @@ class TeleopSession:
     """A leader driving a follower at `rate_hz`; built on any thread, run on the follower's
     control loop (`start`, `stop` are called there)."""
 
-    def __init__(self, sid: str, leader: ArmService, follower: ArmService, rate_hz: float,
+    def __init__(self, sid: str, leader: Leader, follower: ArmService, rate_hz: float,
                  mapping_name: Literal["joints", "tip"], mapping: Mapping,
                  deadman_s: float, free_leader: bool = False) -> None:
         self.id = sid
@@ -71,6 +72,9 @@ class TeleopSession:
         self.status: Literal["running", "ended"] = "running"
         self.reason: str | None = None
         self.last_refusal: str | None = None
+        #: Why the last tick held the follower (`deadman`, `no_target`, `refused:<code>`),
+        #: None while it follows.
+        self.held: str | None = None
         self.started = time.time()
         self.ended: float | None = None
         self._task: asyncio.Task[None] | None = None
@@ -155,12 +159,14 @@ class TeleopSession:
             now = loop.time()
             target = self._target(latest)
             if target is None or latest is None:
+                self.held = self._why_held(latest)
                 self.stats.hold(now)
             else:
                 if last is None:
                     here = self.follower.positions
                     last = None if here is None else np.asarray(here, dtype=float)
                 if last is None:
+                    self.held = "no_target"
                     self.stats.hold(now)
                 else:
                     cap = self._speed * min(max(now - last_at, 0.0), MAX_STEP_S)
@@ -169,8 +175,10 @@ class TeleopSession:
                         await self.follower.command_setpoint(q)
                     except ArmError as exc:
                         self.last_refusal = exc.code
+                        self.held = f"refused:{exc.code}"
                         self.stats.hold(loop.time())
                     else:
+                        self.held = None
                         last, last_at = q, loop.time()
                         self.stats.command(last_at, time.time() - float(latest["time"]))
             due += period
@@ -194,6 +202,15 @@ class TeleopSession:
         except NoTarget:
             return None
 
+    def _why_held(self, latest: dict[str, Any] | None) -> str:
+        """Why `_target` gave nothing: `deadman` (no leader sample, a stale one or one older
+        than the deadman time) or `no_target` (the pose maps to no follower target)."""
+        if latest is None or latest.get("stale") or latest.get("positions") is None:
+            return "deadman"
+        if time.time() - float(latest["time"]) > self.deadman_s:
+            return "deadman"
+        return "no_target"
+
     # --------------------------------------------------------- reading (any thread)
 
     def describe(self) -> s.TeleopSession:
@@ -208,5 +225,6 @@ class TeleopSession:
                                                                 p99=round(lat[1], 3)),
             commands=self.stats.commands, holds=self.stats.holds,
             status=self.status,
-            reason=self.reason, last_refusal=self.last_refusal, started=self.started,
+            reason=self.reason, last_refusal=self.last_refusal,
+            held=self.held if self.status == "running" else None, started=self.started,
             ended=self.ended)

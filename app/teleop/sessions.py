@@ -22,6 +22,7 @@ from app.runtime.control_thread import on_home
 from app.runtime.tasks import cancel_and_wait
 from app.service import ArmService
 from app.teleop.config import TeleopPair, with_pair
+from app.teleop.leader import Leader
 from app.teleop.mapping import Mapping, joint_map, tip_map
 from app.teleop.session import TeleopSession
 
@@ -42,7 +43,7 @@ class LeaseRef:
     gated: bool
 
 
-def frees_leader(req: s.TeleopStart, leader: ArmService) -> bool:
+def frees_leader(req: s.TeleopStart, leader: Leader) -> bool:
     """Whether the session switches the leader's torque off (to be moved by hand): as asked,
     else for a real leader (not simulated)."""
     if req.free_leader is not None:
@@ -73,7 +74,7 @@ class TeleopSessions:
             raise NotFound(f"no teleoperation session {sid!r} (GET /api/v1/teleop lists them)")
         return t
 
-    async def start(self, req: s.TeleopStart, leader: ArmService, follower: ArmService,
+    async def start(self, req: s.TeleopStart, leader: Leader, follower: ArmService,
                     lease: LeaseRef) -> TeleopSession:
         """Check and start a session (the caller checked the follower's `lease`). 422 for a
         leader that is the follower or a mapping that does not fit the arms; 409 `busy` for
@@ -84,7 +85,7 @@ class TeleopSessions:
         async with self._starting:
             return await self._start(with_pair(req, self._pairs), leader, follower, lease)
 
-    async def _start(self, req: s.TeleopStart, leader: ArmService, follower: ArmService,
+    async def _start(self, req: s.TeleopStart, leader: Leader, follower: ArmService,
                      lease: LeaseRef) -> TeleopSession:
         if leader is follower:
             raise InvalidRequest(f"the leader and the follower are both {leader.name}: an arm "
@@ -137,7 +138,7 @@ class TeleopSessions:
             await asyncio.sleep(LEASE_CHECK_S)
 
     @staticmethod
-    def _mapping(req: s.TeleopStart, leader: ArmService, follower: ArmService) -> Mapping:
+    def _mapping(req: s.TeleopStart, leader: Leader, follower: ArmService) -> Mapping:
         if req.mapping == "joints":
             return joint_map(leader.model, follower.model, req.scale, req.offset,
                              req.clamp_margin)

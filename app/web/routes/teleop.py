@@ -10,7 +10,10 @@ from fastapi import APIRouter, Header, Path, Request, status
 
 from app import schemas as s
 from app.classroom.lease import LeaseManager
+from app.errors import NotSupported
 from app.teleop.config import TeleopPair, with_pair
+from app.teleop.leader import Leader
+from app.teleop.remote import Peer, RemoteLeader, peer_of
 from app.teleop.sessions import LeaseRef, TeleopSessions, frees_leader
 from app.web.deps import (
     CallerDep,
@@ -74,18 +77,43 @@ async def start_teleop(request: Request, req: s.TeleopStart, services: ServicesD
                            description="a real leader's lease id, where one is held (its "
                            "torque goes off for the session)", max_length=128)] = None,
                        ) -> s.TeleopSession:
-    leader = lookup_arm(services, req.leader)
+    # a lab's worker knows the arms of the others (app/lab/worker.py): a leader there is read
+    # over its worker's telemetry socket (app/teleop/remote.py)
+    peer = None if req.leader in services else peer_of(
+        getattr(request.app.state, "lab_peers", None), req.leader)
     follower = lookup_arm(services, req.follower)
-    leases: LeaseManager = request.app.state.leases
-    gated = who.role < Role.INSTRUCTOR
-    await leases.check(follower.name, x_arm_lease, gated=gated)
-    if frees_leader(with_pair(req, pairs_of(request)), leader):
-        # its torque goes off: the arm goes limp, which is a command to it like a move, so
-        # whoever holds its lease must be the one asking (X-Leader-Lease)
-        await leases.check(leader.name, x_leader_lease, gated=gated)
-    session = await sessions_of(request).start(req, leader, follower,
-                                               LeaseRef(x_arm_lease, gated))
+    leader: Leader = lookup_arm(services, req.leader) if peer is None else \
+        await open_remote(peer, request, req)
+    try:
+        leases: LeaseManager = request.app.state.leases
+        gated = who.role < Role.INSTRUCTOR
+        await leases.check(follower.name, x_arm_lease, gated=gated)
+        if frees_leader(with_pair(req, pairs_of(request)), leader):
+            # its torque goes off: the arm goes limp, which is a command to it like a move, so
+            # whoever holds its lease must be the one asking (X-Leader-Lease)
+            await leases.check(leader.name, x_leader_lease, gated=gated)
+        session = await sessions_of(request).start(req, leader, follower,
+                                                   LeaseRef(x_arm_lease, gated))
+    except BaseException:
+        if isinstance(leader, RemoteLeader):
+            leader.close()
+        raise
     return session.describe()
+
+
+async def open_remote(peer: Peer, request: Request, req: s.TeleopStart) -> RemoteLeader:
+    """A simulated leader on another worker, read with the caller's token. 409
+    `not_supported` for a leader whose torque would go off (a real one, or `free_leader`):
+    that is a command to it, under its lease, in its own worker."""
+    if peer.profile.link.kind != "sim" or with_pair(req, pairs_of(request)).free_leader:
+        raise NotSupported(f"{peer.profile.name} is on another worker process, and its torque "
+                           "would go off for the session (a real arm, or free_leader): that is "
+                           "done in its own worker; put the leader and the follower on one "
+                           "worker (`worker = K` in both [[arms]] entries)")
+    auth = request.headers.get("authorization")
+    leader = RemoteLeader(peer, [("Authorization", auth)] if auth else [])
+    await leader.open()
+    return leader
 
 
 @router.get(
