@@ -76,6 +76,9 @@ _ROWS: tuple[tuple[str, int | None, str, str, str], ...] = (
      "the driver relies on this register: pass-through may not write it"),
     ("already_queued", 409, "AlreadyQueued", "Conflict",
      "the caller is in the arm's queue already"),
+    ("different_workers", 409, "DifferentWorkers", "Conflict",
+     "a lab's recording names arms or cameras on different worker processes: give the arms "
+     "recorded together one `worker = K` in the config"),
     ("port_in_use", 409, "PortInUse", "Conflict",
      "the port is the link of an arm this server owns (the detail names it): nothing else "
      "touches it"),
@@ -304,6 +307,10 @@ class TorqueOff(Conflict):
 
 class InUse(Conflict):
     code = "in_use"
+
+
+class DifferentWorkers(Conflict):
+    code = "different_workers"
 
 
 class PortInUse(Conflict):

@@ -24,6 +24,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+from app.errors import DifferentWorkers
 from app.lab.placement import LabPlan
 from app.recording.feeds import RECORDINGS_DIR
 from app.recording.manager import CONFIG as DATASET_CONFIG
@@ -33,14 +34,6 @@ TELEOP = API_PREFIX + "/teleop"
 RECORDINGS = API_PREFIX + "/recordings"
 #: A dataset's id as app/recording/manager.py allows it (no path separator, no leading dot).
 DATASET_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
-
-
-class Refusal(Exception):
-    """A request the front answers itself: `status`, `code`, `detail`."""
-
-    def __init__(self, status: int, code: str, detail: str) -> None:
-        super().__init__(detail)
-        self.status, self.code, self.detail = status, code, detail
 
 
 def handles(path: str) -> bool:
@@ -68,7 +61,7 @@ class Across:
 
     async def place(self, method: str, path: str, body: bytes) -> int | None:
         """The worker index for this request; None: any (the first ready one answers, e.g.
-        its 404 or 422). Raises Refusal for a recording across workers."""
+        its 404 or 422). Raises DifferentWorkers for a recording across workers."""
         if path == TELEOP:
             follower = _json(body).get("follower") if method == "POST" else None
             return self.worker_of.get(follower) if isinstance(follower, str) else None
@@ -91,7 +84,7 @@ class Across:
                 where.setdefault(self.camera_worker[name], []).append(f"camera {name}")
         if len(where) > 1:
             split = "; ".join(f"worker {k}: {', '.join(v)}" for k, v in sorted(where.items()))
-            raise Refusal(409, "different_workers", "a recording's arms and cameras must live "
+            raise DifferentWorkers("a recording's arms and cameras must live "
                           f"on one worker process, and these do not ({split}): give the arms "
                           "recorded together the same `worker = K` in the config (a camera "
                           "goes with its arm)")

@@ -34,7 +34,8 @@ from typing import Any
 from starlette.types import Receive, Scope, Send
 
 from app.config import Settings
-from app.lab.across import RECORDINGS, TELEOP, Across, Refusal, handles
+from app.errors import DifferentWorkers
+from app.lab.across import RECORDINGS, TELEOP, Across, handles
 from app.lab.headers import HOP, forwarded_headers
 from app.lab.placement import LabPlan
 from app.lab.supervisor import Supervisor, Worker
@@ -208,8 +209,8 @@ class LabFront:
             return await self._first_that_knows(scope, body)
         try:
             k = await self.across.place(method, path, body)
-        except Refusal as exc:
-            return _json_response(exc.status, {"detail": exc.detail, "code": exc.code})
+        except DifferentWorkers as exc:
+            return _json_response(exc.status_code, {"detail": exc.detail, "code": exc.code})
         worker = self._worker_for(path) if k is None else self._by_index.get(k)
         return await self._forward(scope, receive, send, worker, body)
 
