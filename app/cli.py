@@ -80,9 +80,11 @@ def register_client_commands(subparsers: Any) -> None:
         return
     from app.client.cli import register_client_commands as register
     from app.client.record_cli import add_record
+    from app.client.teleop_cli import add_teleop
 
     register(subparsers)
     add_record(subparsers)
+    add_teleop(subparsers)
 
 
 def _settings(args: argparse.Namespace) -> Any:

@@ -324,18 +324,29 @@ class AsyncArmClient:
         body = scene if isinstance(scene, s.WorldScene) else s.WorldScene.model_validate(scene)
         return await self.send(Requests.set_world(arm, body))
 
+    async def move_hand(self, arm: str, positions: Sequence[float], *, speed: float = 0.5,
+                        wait: bool = False) -> s.HandState:
+        """Move a simulated arm's joints by the hand in its world (rad or m), as a person
+        moves an arm whose torque is off (a `free_leader` of a teleoperation session); at
+        `speed` on the longest way; `wait`: answer when the hand has arrived."""
+        req = s.HandMoveRequest(positions=list(positions), speed=speed, wait=wait)
+        return await self.send(Requests.move_hand(arm, req))
+
     async def start_teleop(self, leader: str, follower: str, *, rate_hz: float = 50.0,
                            mapping: Literal["joints", "tip"] = "joints",
                            deadman_s: float = 0.2, scale: Sequence[float] | None = None,
                            offset: Sequence[float] | None = None, tip_scale: float = 1.0,
                            tip_offset: Sequence[float] | None = None,
-                           clamp_margin: float = 0.0) -> s.TeleopSession:
+                           clamp_margin: float = 0.0,
+                           free_leader: bool | None = None) -> s.TeleopSession:
         """Start teleoperation: `leader` drives `follower` (whose lease this client must
         hold) at `rate_hz` (30..100), mapping `joints` (one to one: `scale`, `offset` per
         joint) or `tip` (`tip_scale`, `tip_offset` m); targets clamped `clamp_margin` inside
-        the follower's limits; a leader sample older than `deadman_s` holds the follower."""
+        the follower's limits; a leader sample older than `deadman_s` holds the follower.
+        `free_leader`: the leader's torque off for the session (default: a real leader's)."""
         req = s.TeleopStart(leader=leader, follower=follower, rate_hz=rate_hz, mapping=mapping,
                             deadman_s=deadman_s, tip_scale=tip_scale, clamp_margin=clamp_margin,
+                            free_leader=free_leader,
                             scale=None if scale is None else list(scale),
                             offset=None if offset is None else list(offset),
                             tip_offset=None if tip_offset is None else list(tip_offset))

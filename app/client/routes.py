@@ -253,6 +253,11 @@ class Requests:
                     _body(scene), arm=arm, safe=True)
 
     @staticmethod
+    def move_hand(arm: str, req: s.HandMoveRequest) -> Call[s.HandState]:
+        return Call("PUT", url_path("arms", arm, "world", "hand"), _model(s.HandState),
+                    _body(req), arm=arm, timeout=WAIT_TIMEOUT_S if req.wait else None)
+
+    @staticmethod
     def start_teleop(req: s.TeleopStart, leader_lease: str | None = None
                      ) -> Call[s.TeleopSession]:
         # the lease header is the follower's: the session moves it; a real leader's torque

@@ -206,6 +206,7 @@ class ArmClient:
     set_safety = blocking(AsyncArmClient.set_safety)
     world = blocking(AsyncArmClient.world)
     set_world = blocking(AsyncArmClient.set_world)
+    move_hand = blocking(AsyncArmClient.move_hand)
     start_teleop = blocking(AsyncArmClient.start_teleop)
     replay = blocking(AsyncArmClient.replay)
     teleop_sessions = blocking(AsyncArmClient.teleop_sessions)

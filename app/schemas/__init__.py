@@ -135,7 +135,14 @@ from app.schemas.telemetry import (
     TelemetryMessage,
 )
 from app.schemas.teleop import ReplayRequest, TeleopLatency, TeleopSession, TeleopStart
-from app.schemas.world import WorldBin, WorldObject, WorldScene, WorldTable
+from app.schemas.world import (
+    HandMoveRequest,
+    HandState,
+    WorldBin,
+    WorldObject,
+    WorldScene,
+    WorldTable,
+)
 
 #: The version prefix of every route of the contract (server, audit and client alike).
 API_PREFIX = "/api/v1"
@@ -180,6 +187,8 @@ __all__ = [
     "GravityRun",
     "GripperCommand",
     "GripperState",
+    "HandMoveRequest",
+    "HandState",
     "Health",
     "HomeRequest",
     "IKSolution",

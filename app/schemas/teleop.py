@@ -70,6 +70,11 @@ class TeleopSession(Model):
     reason: str | None = Field(None, description="why it ended")
     last_refusal: str | None = Field(None, description="the error code of the follower's "
                                      "last refused setpoint")
+    held: str | None = Field(None, description="why the last tick held the follower: "
+                             "`deadman` (the leader's newest sample stale or older than "
+                             "deadman_s), `no_target` (its pose maps to no follower target), "
+                             "`refused:<code>` (the follower refused the setpoint); null while "
+                             "the follower follows, and once ended")
     started: float
     ended: float | None = None
 
