@@ -14,6 +14,10 @@ process), and while every arm runs at its poll rate prints:
 - then REST `GET /state` p50/p99 through the front, round robin over the arms, one client; the
   same request straight to a worker's Unix socket (the front's own cost is the difference);
 - estop p99 through the front: presses (`POST /estop`, each released after) spread over the arms.
+- with `--teleop` (3 arms or more, 2 workers): a teleoperation session's latency from a leader
+  sample to the follower's command (p50/p99, as `GET /teleop` reports it), the leader moving
+  back and forth, once with both arms on one worker and once with the leader on the other
+  worker (read over its worker's telemetry socket: the hop is the difference).
 
 `--pin` puts the server's processes on core 0 and the simulators and this client on the
 others (as issue 27's table was measured). The figures need a quiet machine: on a shared one,
@@ -150,6 +154,27 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
           f" ms ({len(estop)} presses)")
 
 
+async def teleop_latency(url: str, leader: str, follower: str, seconds: float) -> str:
+    """One session of `seconds`, the leader moved between two poses: its latency line."""
+    async with httpx.AsyncClient(base_url=url, timeout=30) as c:
+        # the emulated arms are serial links: their torque stays on (free_leader false), the
+        # leader moved by its own commands
+        r = await c.post(f"{API}/teleop", json={"leader": leader, "follower": follower,
+                                                "rate_hz": 100, "free_leader": False})
+        assert r.status_code == 201, r.text
+        sid = r.json()["id"]
+        t0, k = time.monotonic(), 0
+        while time.monotonic() - t0 < seconds:
+            q = [0.3, 0.2, 0.1] if k % 2 == 0 else [-0.3, 0.1, 0.2]
+            k += 1
+            await c.post(f"{API}/arms/{leader}/move/joints", json={"positions": q,
+                                                                   "wait": True})
+        r = await c.delete(f"{API}/teleop/{sid}")
+        lat = r.json()["latency_ms"]
+        return (f"p50 {lat['p50']:.2f} ms  p99 {lat['p99']:.2f} ms "
+                f"({r.json()['commands']} commands)")
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--arms", type=int, default=4)
@@ -157,6 +182,8 @@ def main() -> int:
     p.add_argument("--model", default="rbe3001", help="built-in profile of every arm")
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--presses", type=int, default=200)
+    p.add_argument("--teleop", action="store_true",
+                   help="also a teleoperation session's latency, on one worker and across two")
     p.add_argument("--pin", action="store_true",
                    help="server on core 0; simulators and this client on the others")
     args = p.parse_args()
@@ -198,6 +225,12 @@ def main() -> int:
         uds = _worker_socket(pids) if args.workers > 1 else None
         asyncio.run(measure(url, [f"arm-{i + 1}" for i in range(args.arms)], args.seconds,
                             args.presses, uds, pids))
+        if args.teleop and args.arms >= 3 and args.workers == 2:
+            # placement: arm-1 and arm-3 on worker 0, arm-2 on worker 1
+            same = asyncio.run(teleop_latency(url, "arm-1", "arm-3", args.seconds))
+            across = asyncio.run(teleop_latency(url, "arm-2", "arm-3", args.seconds))
+            print(f"teleop latency    one worker: {same}")
+            print(f"                  across two: {across}")
     finally:
         if server is not None:
             server.send_signal(signal.SIGTERM)

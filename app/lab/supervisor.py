@@ -140,14 +140,18 @@ class Supervisor:
             await asyncio.sleep(backoff)
 
     async def _probe(self, w: Worker, proc: asyncio.subprocess.Process) -> None:
-        """Until `proc` exits: see it ready, then ask its health every PROBE_EVERY_S; kill it
-        after PROBE_MISSES misses in a row (the watcher restarts it)."""
+        """Until `proc` exits or the lab stops: see it ready, then ask its health every
+        PROBE_EVERY_S; kill it after PROBE_MISSES misses in a row (the watcher restarts
+        it)."""
         await self._until_ready(w)
         misses = 0
         while True:
             if not misses:  # after a miss, ask again at once
                 await asyncio.sleep(PROBE_EVERY_S)
-            if await self._answers(w):
+            answered = await self._answers(w)
+            if self._stopping:  # the lab stops: its workers stop answering, on purpose
+                return
+            if answered:
                 misses = 0
                 w.ready, w.last_error = True, None
                 continue

@@ -102,16 +102,17 @@ async def start_teleop(request: Request, req: s.TeleopStart, services: ServicesD
 
 
 async def open_remote(peer: Peer, request: Request, req: s.TeleopStart) -> RemoteLeader:
-    """A simulated leader on another worker, read with the caller's token. 409
-    `not_supported` for a leader whose torque would go off (a real one, or `free_leader`):
-    that is a command to it, under its lease, in its own worker."""
-    if peer.profile.link.kind != "sim" or with_pair(req, pairs_of(request)).free_leader:
-        raise NotSupported(f"{peer.profile.name} is on another worker process, and its torque "
-                           "would go off for the session (a real arm, or free_leader): that is "
-                           "done in its own worker; put the leader and the follower on one "
-                           "worker (`worker = K` in both [[arms]] entries)")
+    """A leader on another worker, read with the caller's token. 409 `not_supported` where
+    its torque would go off for the session (a real arm unless `free_leader` is false, or
+    `free_leader` true): that is a command to it, under its lease, in its own worker."""
     auth = request.headers.get("authorization")
     leader = RemoteLeader(peer, [("Authorization", auth)] if auth else [])
+    if frees_leader(with_pair(req, pairs_of(request)), leader):
+        raise NotSupported(f"{peer.profile.name} is on another worker process, and its torque "
+                           "would go off for the session (free_leader; a real arm's default): "
+                           "that is done in its own worker; put the leader and the follower "
+                           "on one worker (`worker = K` in both [[arms]] entries), or send "
+                           "free_leader: false to drive it by its own commands")
     await leader.open()
     return leader
 
