@@ -213,9 +213,6 @@ def install(trace: Trace) -> None:
     async def _serve(self: Any, req: Any) -> None:
         if self.name == "angler" and "goal_position" in getattr(req.message, "what", ""):
             trace.mark("serve")
-            g = trace.cur
-            if g is not None:
-                g["queued_behind_poll"] = getattr(self, "_bench_polling", False)
         await serve(self, req)
     OwnerTask._serve = _serve  # type: ignore[method-assign]
 
@@ -238,6 +235,9 @@ def install(trace: Trace) -> None:
     async def _submit(self: Any, message: Any, *a: Any, **k: Any) -> Any:
         if self.name == "angler" and "goal_position" in getattr(message, "what", ""):
             trace.mark("queued")
+            g = trace.cur
+            if g is not None:  # the owner task is in a poll's exchange: the write waits for it
+                g["queued_behind_poll"] = getattr(self, "_bench_polling", False)
         return await submit(self, message, *a, **k)
     Driver._submit = _submit  # type: ignore[method-assign]
 
