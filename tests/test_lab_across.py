@@ -6,11 +6,14 @@ tests/test_lab_workers.py: left on worker 0, right on worker 1, rails on worker 
 - A recording of arms (or cameras) on different workers is refused, 409 `different_workers`;
   one of the second worker's arm and camera records through the front.
 - The simulated world of an arm on the second worker is that arm's.
+- A cross-worker session outlives a restart of its leader's worker (last: it kills worker 0).
 """
 
 from __future__ import annotations
 
 import math
+import os
+import signal
 from typing import Any
 
 import httpx
@@ -110,3 +113,38 @@ def test_the_world_of_an_arm_on_the_second_worker(lab: Lab) -> None:  # noqa: F8
             "only-right"]
         assert c.get("/api/v1/arms/left/world").json()["objects"] == left.json()["objects"]
         assert "only-right" not in [o["id"] for o in left.json()["objects"]]
+
+
+def test_a_cross_worker_session_outlives_its_leaders_worker(lab: Lab) -> None:  # noqa: F811
+    """The leader's worker killed mid-session: the follower holds (the deadman: no sample
+    comes), the session goes on, and once the worker is back its socket is opened again and
+    the follower follows the restarted leader."""
+    with httpx.Client(base_url=lab.url, headers=OP, timeout=30) as c:
+        started = c.post("/api/v1/teleop", json={"leader": "left", "follower": "right",
+                                                 "rate_hz": 50})
+        assert started.status_code == 201, started.text
+        sid = started.json()["id"]
+
+        def session() -> dict[str, Any]:
+            listed = c.get("/api/v1/teleop").json()
+            return next(t for t in listed if t["id"] == sid)
+
+        try:
+            wait_until(lambda: session()["commands"] > 10, what="the session commanding")
+            before = lab.workers()
+            os.kill(before[0], signal.SIGKILL)  # the left arm's worker
+            holds = session()["holds"]
+            wait_until(lambda: session()["holds"] > holds + 10, timeout=20,
+                       what="the follower holding while its leader is gone")
+            wait_until(lambda: lab.workers().get(0) not in (None, before[0])
+                       and c.get("/api/v1/arms/left/state").status_code == 200,
+                       timeout=30, what="the left arm back on a new worker 0")
+            assert session()["status"] == "running"
+            target = [-0.25, 0.15, 0.2]
+            move = c.post("/api/v1/arms/left/move/joints", json={"positions": target})
+            assert move.status_code in (200, 202), move.text
+            wait_until(lambda: all(math.isclose(a, b, abs_tol=0.02) for a, b in zip(
+                _positions(c, "right"), target, strict=True)), timeout=30,
+                what="the right arm following the restarted left arm")
+        finally:
+            c.delete(f"/api/v1/teleop/{sid}")
