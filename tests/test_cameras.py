@@ -368,3 +368,49 @@ async def test_default_server_serves_the_sim_camera() -> None:
             assert names == list(app.state.services)
             r = await c.get(f"{API}/cameras/{names[0]}/frame.jpg")
             assert r.status_code == 200 and r.content[:2] == b"\xff\xd8"
+
+
+def test_a_shutdown_ends_open_streams_instead_of_waiting_for_them(tmp_path: Path) -> None:
+    """uvicorn waits for open responses before it stops, and an MJPEG stream never ends by
+    itself: a dashboard left open held every restart for the whole graceful timeout. The
+    real server (ArmServer) ends the streams when its shutdown starts."""
+    import socket
+    import threading
+    import time
+
+    import uvicorn
+
+    from app.web.serving import ArmServer
+
+    folder = write_folder(tmp_path / "m", [render(scene(k), camera_homography())
+                                           for k in range(2)])
+    app = create_app(make_settings(), camera_configs=[folder_camera("m", folder, fps=30)])
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    # a graceful timeout far beyond the wait below: only ending the stream stops it in time
+    server = ArmServer(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
+                                      timeout_graceful_shutdown=120), app)
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    url = f"http://127.0.0.1:{port}/api/v1/cameras/m/stream"
+    wait_for_sync = time.monotonic() + 30
+    while not server.started and time.monotonic() < wait_for_sync:
+        time.sleep(0.02)
+    assert server.started
+    got = b""
+    try:
+        with httpx.stream("GET", url, timeout=30) as resp:
+            assert resp.status_code == 200
+            parts = resp.iter_bytes()
+            while b"\xff\xd8" not in got:  # a first JPEG: the stream is open
+                got += next(parts)
+            server.should_exit = True
+            for chunk in parts:  # ends when the server ends the response
+                got += chunk
+        thread.join(30)
+        assert not thread.is_alive(), "the server waited for the open stream"
+    finally:
+        server.force_exit = server.should_exit = True
+        thread.join(5)
+    assert got.startswith(b"--")

@@ -32,6 +32,7 @@ import uvicorn
 from conftest import OPERATOR, make_settings
 
 from app.web.factory import create_app
+from app.web.serving import ArmServer
 
 pytestmark = pytest.mark.browser
 
@@ -79,7 +80,7 @@ class Server:
         self.app = app = create_app(self.settings)
         config = uvicorn.Config(app, host="127.0.0.1", port=self.port, log_level="warning",
                                 lifespan="on")
-        self._server = server = uvicorn.Server(config)
+        self._server = server = ArmServer(config, app)  # the real server's shutdown
         self._thread = threading.Thread(target=server.run, name="dashboard-uvicorn", daemon=True)
         self._thread.start()
         wait_for(lambda: server.started, 15, "uvicorn did not start")
@@ -92,6 +93,9 @@ class Server:
             self._server.should_exit = True
             assert self._thread is not None
             self._thread.join(15)
+            # a dashboard's open responses (the camera's MJPEG stream) end with the server:
+            # uvicorn waits for them before it stops, and the page must not hold it up
+            assert not self._thread.is_alive(), "the server did not stop within 15 s"
             self._server = None
 
 

@@ -110,6 +110,11 @@ class CameraHub:
         except Exception:  # noqa: BLE001 - a bad stored value: uncalibrated, said once
             log.exception("camera %s: stored calibration unreadable; uncalibrated", name)
 
+    def end_streams(self) -> None:
+        """End every MJPEG response (the server is shutting down). On the event loop."""
+        for feed in self._feeds.values():
+            feed.end_streams()
+
     async def close(self) -> None:
         for feed in self._feeds.values():
             await feed.close()

@@ -44,6 +44,7 @@ class MjpegFeed:
         self._task: asyncio.Task[None] | None = None
         self._unlisten: Callable[[], None] | None = None
         self._last: tuple[int, bytes] | None = None
+        self._ending = False
         #: Parts produced (each encoded once) and parts a slow client never took.
         self.produced = 0
         self.dropped = 0
@@ -67,18 +68,30 @@ class MjpegFeed:
             self._task = asyncio.create_task(self._run(), name=f"mjpeg:{self.camera.name}")
         self._new.set()  # the latest frame at once
         try:
-            while True:
+            while not self._ending:
                 try:
                     data = await asyncio.wait_for(slot.get(), DEMAND_EVERY_S)
                 except TimeoutError:
                     if not self.camera.up:
                         return
                     continue
+                if not data:  # end_streams: the server is shutting down
+                    return
                 yield data
         finally:
             self._slots.discard(slot)
             if not self._slots:
                 await self.close()
+
+    def end_streams(self) -> None:
+        """End every client's response now and refuse none later (the server is shutting
+        down: uvicorn waits for open responses before it stops, and a stream never ends by
+        itself). On the event loop."""
+        self._ending = True
+        for slot in self._slots:
+            if slot.full():
+                slot.get_nowait()
+            slot.put_nowait(b"")
 
     async def close(self) -> None:
         if self._unlisten is not None:

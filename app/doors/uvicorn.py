@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import inspect
+import socket
 from collections.abc import Iterable
 from types import FrameType
 from typing import Any
@@ -145,13 +146,22 @@ class SignalServer(uvicorn.Server):
     and on a signal during it `again` and then a forced exit (uvicorn forces only on a second
     SIGINT, and stops waiting for connections and tasks once `force_exit` is set).
 
-    Internals: `handle_exit(sig, frame)` as the signal handler, `should_exit`, `force_exit`."""
+    Internals: `handle_exit(sig, frame)` as the signal handler, `should_exit`, `force_exit`;
+    `shutdown(sockets)`, awaited on the server's loop before it waits for connections."""
 
     def first_signal(self, sig: int) -> None:
         """The first SIGTERM or SIGINT, before uvicorn's graceful shutdown starts."""
 
     def again(self, sig: int) -> None:
         """A signal during the graceful shutdown, before the forced exit."""
+
+    def shutting_down(self) -> None:
+        """uvicorn's shutdown starts (a signal or `should_exit`), before it waits for the open
+        connections: end what never ends by itself (a streamed response)."""
+
+    async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        self.shutting_down()
+        await super().shutdown(sockets)
 
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
         if not self.should_exit:
@@ -200,6 +210,11 @@ def check() -> None:
          lambda: all(callable(getattr(http, n, None))
                      for n in ("data_received", "on_message_complete", "send_400_response")),
          "no bound on a request's head (a 64 MiB header parsed whole: 3.8 s)"),
+        ("Server.shutdown(sockets), run on the server's loop before it waits for connections",
+         lambda: (inspect.iscoroutinefunction(server.shutdown)
+                  and list(inspect.signature(server.shutdown).parameters) == ["self", "sockets"]),
+         "a streamed response (a camera's MJPEG) holds a shutdown for its whole graceful "
+         "timeout"),
         ("Server.handle_exit(sig, frame), .should_exit, .force_exit",
          lambda: (list(inspect.signature(server.handle_exit).parameters) == ["self", "sig",
                                                                              "frame"]

@@ -64,6 +64,11 @@ class ArmServer(uvicorn_door.SignalServer):
                     "holds the arms and exits at once)", sig)
         stop_arms(self.arm_app, hold=False)
 
+    def shutting_down(self) -> None:
+        cameras = getattr(self.arm_app.state, "cameras", None)
+        if cameras is not None:
+            cameras.end_streams()
+
     def again(self, sig: int) -> None:
         log.warning("signal %d again: holding every arm and exiting now", sig)
         futures = stop_arms(self.arm_app, hold=True)
