@@ -97,7 +97,7 @@ async def test_angler_measured_speed_stays_within_the_limit_on_a_fast_move() -> 
     svc = await _service("angler")
     try:
         vmax = svc.motion.model.vmax
-        peak = await _measured_peak(svc, [-0.05, -0.05, -1.2, 0.02], [0.05, 0.05, 1.2, 0.12])
+        peak = await _measured_peak(svc, [-0.015, -0.015, -1.2, 0.02], [0.015, 0.015, 1.2, 0.12])
         assert np.all(peak <= vmax), f"measured {peak} against the limits {vmax}"
     finally:
         await svc.close()
