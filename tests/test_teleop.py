@@ -178,7 +178,7 @@ async def test_a_stale_leader_holds_the_follower(pair: tuple[FastAPI, httpx.Asyn
         s = await session(c, t["id"])
         return s if s["holds"] >= before["holds"] + 20 else None
     held = await wait_for(holding, what="20 holds on the stale leader")
-    assert held["status"] == "running"
+    assert held["status"] == "running" and held["held"] == "deadman"
     # no command while the leader is stale: the count stands
     again = await wait_for(holding)
     assert again["commands"] == held["commands"]
@@ -210,7 +210,7 @@ async def test_a_refused_target_holds_and_the_session_goes_on(
         s = await session(c, t["id"])
         return s if s["last_refusal"] == "keep_out" and s["holds"] > 5 else None
     s = await wait_for(refused, what="the follower's guard refusing the zone")
-    assert s["status"] == "running"
+    assert s["status"] == "running" and s["held"] == "refused:keep_out"
     here = await held_still(lambda: follower.positions, TOL)
     tip = np.asarray(follower.model.fk(here), dtype=float)
     assert not np.all(np.abs(tip - p) < 0.02), "the follower's tip entered the zone"
