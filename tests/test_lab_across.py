@@ -40,6 +40,8 @@ def test_teleoperation_across_workers(lab: Lab) -> None:  # noqa: F811 - the fix
             assert started.status_code == 201, started.text
             session = started.json()
             assert (session["leader"], session["follower"]) == ("left", "right")
+            # the config's [[teleop]] default for the pair, applied in the follower's worker
+            assert session["deadman_s"] == 0.5 and session["rate_hz"] == 50
             target = [0.3, 0.2, 0.1]
             move = c.post("/api/v1/arms/left/move/joints", json={"positions": target})
             assert move.status_code in (200, 202), move.text

@@ -54,6 +54,11 @@ source = "sim:left"
 name = "table-right"
 arm = "right"
 source = "sim:right"
+
+[[teleop]]
+leader = "left"
+follower = "right"
+deadman_s = 0.5
 """
 ARMS = ["left", "right", "rails"]
 AUTH = {"Authorization": f"Bearer {VIEWER}"}
