@@ -60,14 +60,30 @@ def test_teleoperation_across_workers(lab: Lab) -> None:  # noqa: F811 - the fix
             assert mine[0]["commands"] > 0 and mine[0]["latency_ms"] is not None
             print("cross-worker teleop latency, ms:", mine[0]["latency_ms"])
             # a second session for the follower is its worker's refusal, as on one server
-            again = c.post("/api/v1/teleop", headers=held, json={
+            other = c.post("/api/v1/teleop", headers=held, json={
                 "leader": "rails", "follower": "right"})
-            assert again.status_code in (409, 422), again.text
+            assert other.status_code in (409, 422), other.text
             stopped = c.delete(f"/api/v1/teleop/{session['id']}")
             assert stopped.status_code == 200, stopped.text
             assert stopped.json()["status"] == "ended"
             unknown = c.delete("/api/v1/teleop/t999-nobody")
             assert unknown.status_code == 404 and unknown.json()["code"] == "not_found"
+            # the leader's emergency stop, latched in its own worker, ends the session in the
+            # follower's (the leader's samples carry the latch)
+            again = c.post("/api/v1/teleop", headers=held, json={
+                "leader": "left", "follower": "right", "rate_hz": 50})
+            assert again.status_code == 201, again.text
+            assert c.post("/api/v1/arms/left/estop").status_code == 200
+            try:
+                def ended() -> Any:
+                    listed = c.get("/api/v1/teleop").json()
+                    t = next(t for t in listed if t["id"] == again.json()["id"])
+                    return t["status"] == "ended" and t["reason"]
+
+                reason = wait_until(ended, what="the session ended by the leader's estop")
+                assert "emergency stop on left" in reason
+            finally:
+                assert c.delete("/api/v1/arms/left/estop").status_code == 200
         finally:
             c.delete(f"/api/v1/arms/right/lease/{held['X-Arm-Lease']}")
 

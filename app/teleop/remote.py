@@ -167,6 +167,8 @@ class RemoteLeader:
                 async with unix_connect(str(self._uds), uri, additional_headers=self._headers,
                                         compression=None, max_size=None, ping_interval=None,
                                         open_timeout=OPEN_TIMEOUT_S) as ws:
+                    if wait != RECONNECT_S:
+                        log.info("teleop leader %s: its socket is open again", self.name)
                     self._connected, wait = True, RECONNECT_S
                     async for message in ws:
                         self._received(message)
@@ -175,16 +177,23 @@ class RemoteLeader:
                 self.last_error = f"the leader's worker refused: {exc.response.status_code}"
             except (OSError, InvalidHandshake, TimeoutError, ConnectionClosed) as exc:
                 self.last_error = f"the leader's worker: {exc!r}"
+            if self._connected or wait == RECONNECT_S:  # once per outage, not per try
+                log.warning("teleop leader %s: %s; opening it again", self.name,
+                            self.last_error)
             self._connected = False
-            log.warning("teleop leader %s: %s; again in %g s", self.name, self.last_error, wait)
             await asyncio.sleep(wait)
             wait = min(wait * 2, RECONNECT_MAX_S)
 
     def _received(self, message: str | bytes) -> None:
-        data = orjson.loads(message)
-        if data.get("type") != "telemetry" or not data.get("samples"):
+        try:
+            data = orjson.loads(message)
+            latest = data["samples"][-1] if data.get("type") == "telemetry" else None
+        except (orjson.JSONDecodeError, AttributeError, KeyError, IndexError, TypeError):
+            log.warning("teleop leader %s: a message that is no telemetry: %.80r", self.name,
+                        message)
             return
-        latest = data["samples"][-1]
+        if not isinstance(latest, dict):  # an event, or a batch with no sample
+            return
         raw = orjson.dumps(latest).decode()
         with self._lock:
             self._latest, self._latest_raw = latest, raw
