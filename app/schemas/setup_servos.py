@@ -55,6 +55,9 @@ class ServoScan(Model):
     servos: list[FoundServo]
     collisions: list[str] = Field(description="garbled answers: two servos on one ID answer "
                                   "at once (connect one servo at a time)")
+    garbled: list[str] = Field(description="rates where only garbled bytes came: a UART at "
+                               "another rate than a servo's reads its replies so (told apart "
+                               "from silence; not refused)")
     joints: dict[str, Int] = Field(description="the profile's joints and their IDs")
     profile_baudrate: Int = Field(description="the rate the profile's link runs at, bit/s")
     todo: list[str] = Field(description="the profile's joints no servo found is yet, in order")

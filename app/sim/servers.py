@@ -4,7 +4,8 @@ This lets unmodified host software (DynamixelSDK, pyserial, our serial link) tal
 simulator exactly as to hardware: `serve_pty` makes a path that opens like /dev/ttyUSB0,
 `serve_tcp` a `socket://host:port` endpoint. On a pty the host's termios baud rate reaches a
 device that models it (`set_host_baudrate`: a Dynamixel bus, whose servos at another rate
-hear nothing, as a UART does); a socket carries none. Host bytes go to `device.receive(data, now)`;
+read the host's bytes as a UART at their rate does, app/sim/uart.py); a socket carries none.
+Host bytes go to `device.receive(data, now)`;
 each reply is written `delay` seconds after `now`, strictly in order (a FIFO with one
 writer, so a later reply never overtakes an earlier one). Packetized devices (HID-style,
 64-byte packets) get the host's stream cut into 64-byte packets. A physics tick task calls
@@ -18,8 +19,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
 import logging
 import os
+import sys
 import termios
 import time
 import tty
@@ -43,9 +46,25 @@ _TERMIOS_RATES = {getattr(termios, f"B{r}"): r for r in (
     2000000, 3000000, 4000000) if hasattr(termios, f"B{r}")}
 
 
+#: Linux's TCGETS2 (asm-generic ioctls: _IOR('T', 0x2A, struct termios2)), and where
+#: struct termios2 keeps c_ispeed: after four flags, c_line and 19 control characters.
+_TCGETS2 = 0x802C542A
+_ISPEED_OFFSET = 36
+
+
 def pty_baudrate(fd: int) -> int:
-    """The input baud rate the host set on a pty (termios), in bit/s; 0 for a rate without a
-    termios constant here (a UART at a rate no servo runs at: nothing hears it)."""
+    """The input baud rate the host set on a pty, in bit/s: the speed itself where Linux keeps
+    it (struct termios2, which holds any rate, such as 4,500,000, that pyserial sets with
+    BOTHER), else the termios constant's; 0 for a rate it cannot tell."""
+    if sys.platform.startswith("linux"):
+        buf = bytearray(64)
+        try:
+            fcntl.ioctl(fd, _TCGETS2, buf)
+            speed = int.from_bytes(buf[_ISPEED_OFFSET:_ISPEED_OFFSET + 4], sys.byteorder)
+            if speed:
+                return speed
+        except OSError:
+            pass
     try:
         return _TERMIOS_RATES.get(termios.tcgetattr(fd)[4], 0)
     except termios.error:

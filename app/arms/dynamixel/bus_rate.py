@@ -58,12 +58,17 @@ def poll_rate(wanted_hz: float, n_servos: int, baudrate: int,
                 "with armserver setup-servos, or lower link.poll_hz)")
 
 
-def found_message(rates: dict[int, list[int]], profile_rate: int) -> str:
-    """What a connect scan found, for the arm's detail and the log."""
+def found_message(rates: dict[int, list[int]], profile_rate: int,
+                  garbled: list[int] | tuple[int, ...] = ()) -> str:
+    """What a connect scan found, for the arm's detail and the log; `garbled`: the rates
+    where bytes came that were no packet (what a UART reads of a servo at another rate),
+    told apart from silence."""
+    noise = (f" (garbled answers at {', '.join(f'{r:,}' for r in garbled)} bps: a UART at "
+             "another rate than the servo's reads its replies as garbage)" if garbled else "")
     if not rates:
-        return (f"no servo answers at {profile_rate:,} bps nor at any other standard rate "
-                "(check power, the cable and the adapter)")
+        return (f"no servo answers at {profile_rate:,} bps nor at any other standard rate"
+                f"{noise} (check power, the cable and the adapter)")
     parts = [f"{rate:,} bps (ID {', '.join(map(str, ids))})" for rate, ids in rates.items()]
     first = next(iter(rates))
-    return (f"no servo answers at the profile's {profile_rate:,} bps; servos answer at "
+    return (f"no servo answers at the profile's {profile_rate:,} bps{noise}; servos answer at "
             f"{'; '.join(parts)}: run armserver setup-servos, or set link.baudrate = {first}")

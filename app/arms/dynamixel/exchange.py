@@ -11,6 +11,7 @@ Error bits 0-6 (instruction, CRC, data range, ...) fail the request.
 from __future__ import annotations
 
 import asyncio
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,6 +41,9 @@ class DynamixelBusDriver(Driver):
         self._dirty = False
         #: Servos whose last status carried the Alert bit.
         self._alerts: set[int] = set()
+        #: Bytes skipped as no packet's (the parser's "garbage"): what a UART at another rate
+        #: than a servo's reads of its replies (app/sim/uart.py); the connect scan tells it.
+        self.garbage_seen = 0
 
     @property
     def servo_ids(self) -> tuple[int, ...]:
@@ -126,16 +130,21 @@ class DynamixelBusDriver(Driver):
     async def _exchange_once(self, req: DxlRequest, timeout: float) -> list[dxl.Packet]:
         if self._dirty:
             await self._drain()
-        await self.link.write(req.packet)
+        # one call where the link can (a link with its own thread: the statuses read with the
+        # write, or read ahead on the poll schedule); else the write, and the reads below
+        sent = await self.link.transact(req.packet, _status_bytes(req), timeout)
         if not req.expect and not req.broadcast_ping:
             return []
+        if sent.data:
+            self._parser.feed(sent.data)
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
+        deadline = loop.time() + (sent.deadline - time.monotonic())
         got: list[dxl.Packet] = []
         while True:
             while (ev := self._parser.next_event()) is not None:
                 if isinstance(ev, dxl.ParseError):
                     if ev.kind == "garbage":
+                        self.garbage_seen += 1
                         continue
                     self.stats["corrupt"] += 1
                     raise CorruptReply(f"{self.name}: {req.what}: {ev.kind}: {ev.detail}")
@@ -179,6 +188,23 @@ class DynamixelBusDriver(Driver):
             pass
         self._parser = dxl.Parser()
         self._dirty = False
+
+
+def _status_bytes(req: DxlRequest) -> int:
+    """The bytes of the statuses `req` expects, unstuffed (a status packet is 11 bytes and its
+    parameters: PING 3, READ and SYNC_READ the length asked, a write none; e-manual, Protocol
+    2.0); 0 for no status or a broadcast PING. A hint: more bytes (stuffing) are read on."""
+    if not req.expect or req.broadcast_ping:
+        return 0
+    p = req.packet
+    instruction = p[7] if len(p) >= 10 else None
+    if instruction == dxl.Instruction.PING:
+        n = 3
+    elif instruction in (dxl.Instruction.READ, dxl.Instruction.SYNC_READ):
+        n = int.from_bytes(p[10:12], "little")
+    else:
+        n = 0
+    return len(req.expect) * (11 + n)
 
 
 def check_len(p: dxl.Packet, size: int) -> None:

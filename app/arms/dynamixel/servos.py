@@ -205,11 +205,12 @@ class DynamixelChainDriver(DynamixelBusDriver):
         return min(raw, velocity_limit) if velocity_limit > 0 else int(raw)
 
     async def _on_connected(self) -> None:
+        garbage = self.garbage_seen
         try:
             for i in self.servo_ids:
                 await self._setup_servo(i)
         except DeviceTimeout:
-            await self._why_silent()
+            await self._why_silent(self.garbage_seen > garbage)
             raise
         self._follow_the_bus()
 
@@ -225,14 +226,17 @@ class DynamixelChainDriver(DynamixelBusDriver):
         self.profile = self.profile.model_copy(
             update={"link": link.model_copy(update={"poll_hz": hz})})
 
-    async def _why_silent(self) -> None:
-        """The first servo did not answer its set-up: if no servo answers a broadcast PING at
-        the profile's rate, try the other standard rates (a serial port whose rate can be
+    async def _why_silent(self, garbled: bool = False) -> None:
+        """The first servo did not answer its set-up (`garbled`: bytes came that were no
+        packet, as a UART reads a servo at another rate): if no servo answers a broadcast PING
+        at the profile's rate, try the other standard rates (a serial port whose rate can be
         set) and raise what was found (the arm's detail shows it as the link's last error)."""
         ping = DxlRequest(dxl.ping(dxl.BROADCAST_ID), (), True, "broadcast PING")
+        garbage = self.garbage_seen
         if await self._exchange(ping, self.timeout):
             return  # some servo answers here: the set-up error stands as it is
         rate = self.profile.link.baudrate
+        garbled_at = [rate] if garbled or self.garbage_seen > garbage else []
         found: dict[int, list[int]] = {}
         settable = hasattr(self.link, "baudrate") and not str(self.link.address).startswith(
             ("socket://", "loop://"))
@@ -240,12 +244,15 @@ class DynamixelChainDriver(DynamixelBusDriver):
             try:
                 for other in (r for r in OTHER_RATES if r != rate):
                     await self._reopen_at(other)
+                    garbage = self.garbage_seen
                     got = await self._exchange(ping, self.timeout)
                     if got:
                         found[other] = sorted({p.id for p in got})
+                    elif self.garbage_seen > garbage:
+                        garbled_at.append(other)
             finally:
                 await self._reopen_at(rate)
-        raise DeviceTimeout(f"{self.name}: {found_message(found, rate)}")
+        raise DeviceTimeout(f"{self.name}: {found_message(found, rate, garbled_at)}")
 
     async def _reopen_at(self, baudrate: int) -> None:
         await self.link.close()

@@ -102,6 +102,9 @@ class Scan:
 
     found: list[Found] = field(default_factory=list)
     collisions: list[str] = field(default_factory=list)
+    #: Rates where only bytes that were no packet came: a UART at another rate than a
+    #: servo's reads its replies so (app/sim/uart.py); told, not refused.
+    garbled: list[str] = field(default_factory=list)
 
 
 def carries_baud(url: str) -> bool:
@@ -120,6 +123,8 @@ class Bus:
             opener = serial.serial_for_url
         self.url = url
         self.timeout = timeout
+        #: Bytes skipped as no packet's, counted (garbled answers, told apart from silence).
+        self.garbage = 0
         self.port = opener(url, baudrate=baudrate, timeout=0.005, exclusive=True) \
             if carries_baud(url) else opener(url, baudrate=baudrate, timeout=0.005)
 
@@ -154,6 +159,8 @@ class Bus:
                 if isinstance(ev, dxl.ParseError):
                     if ev.kind != "garbage":
                         errors.append(ev)
+                    else:
+                        self.garbage += 1
                 elif ev.instruction == dxl.Instruction.STATUS:
                     got.append(ev)
         return got, errors
@@ -166,6 +173,7 @@ class Bus:
         self.port.reset_input_buffer()
         self.port.write(packet)
         parser = dxl.Parser()
+        garbage = self.garbage
         while time.monotonic() < deadline and not got:
             data = self.port.read(4096)
             if data:
@@ -174,11 +182,14 @@ class Bus:
                 if isinstance(ev, dxl.ParseError):
                     if ev.kind != "garbage":
                         errors.append(ev)
+                    else:
+                        self.garbage += 1
                 elif ev.instruction == dxl.Instruction.STATUS and ev.id == dxl_id:
                     got.append(ev)
         if not got:
             why = (f"garbled replies ({errors[0].kind}): two servos on ID {dxl_id}?"
-                   if errors else "no reply")
+                   if errors else f"garbled answers at {self.port.baudrate:,} bps: a servo at "
+                   "another rate?" if self.garbage > garbage else "no reply")
             raise SetupError(f"{what}: servo {dxl_id}: {why}", EXIT_VERIFY,
                              "device" if errors else "no_reply")
         p = got[0]
@@ -210,7 +221,11 @@ def scan(bus: Bus, rates: Iterable[int] = SCAN_ORDER) -> Scan:
         where = f"{rate:,} bps" if rate is not None else "the socket"
         # every reply of up to SCAN_SERVOS servos, 14 bytes of 10 bits each, after the timeout
         window = bus.timeout + SCAN_SERVOS * 14 * 10 / (rate or 1_000_000)
+        garbage = bus.garbage
         packets, errors = bus.exchange(dxl.ping(dxl.BROADCAST_ID), window)
+        if not packets and not errors and bus.garbage > garbage:
+            out.garbled.append(f"garbled answers at {where}: a UART at another rate than a "
+                               "servo's reads its replies as garbage (the scan tries the others)")
         if errors:
             out.collisions.append(f"garbled replies at {where} ({errors[0].kind}): two servos "
                                   "on one ID answer at once")
@@ -389,6 +404,6 @@ def report(url: str, profile: ArmProfile | None, *, timeout: float = 0.1,
     for f in result.found:
         note = placement(profile, f)[1]
         say(f"found {f.describe()}{' ' + note if note else ''}")
-    for c in result.collisions:
+    for c in [*result.garbled, *result.collisions]:
         say(c)
     return result

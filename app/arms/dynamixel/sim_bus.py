@@ -12,13 +12,18 @@ answered as the e-manual (https://emanual.robotis.com/docs/en/dxl/protocol2/) de
   servo at Status Return Level 2 (the e-manual lists CRC error 0x03 as a status error);
   otherwise it is ignored. Unknown instructions get the instruction error, malformed
   params the data length error. Status packets on the bus (another device's) are ignored.
-- A servo whose Baud Rate item does not match the bus baud rate hears nothing. Servos start
-  configured for the bus baud rate (code 3 at 1 Mbps); a factory reset puts them back at
-  57600 as real ones, after which they fall silent on a 1 Mbps bus. The bus baud rate is the
-  host's: served on a pseudo-terminal it follows the termios rate the host set
-  (`set_host_baudrate`, app/sim/servers.py), as a UART at another rate than the servo's
-  hears framing errors and stays silent (our model of "silence or garbage": silence). None
-  (`baudrate=None`, a TCP socket, which carries no baud rate) lets every servo hear.
+- The bus baud rate is the host's: served on a pseudo-terminal it follows the termios rate
+  the host set (`set_host_baudrate`, app/sim/servers.py); None (`baudrate=None`, a TCP
+  socket, which carries no baud rate) lets every servo hear. Servos start configured for the
+  bus baud rate (code 3 at 1 Mbps); a factory reset puts them back at 57,600 as real ones.
+  A servo whose Baud Rate item is another rate than the host's reads the host's bytes as its
+  UART does (app/sim/uart.py `resample`: sampled at its own bit times, wrong values, more or
+  fewer bytes, framing errors) and acts on what that decodes to; its replies go back at its
+  rate and the host's UART reads them the same way. Between the standard rates nothing
+  decodes (the header FF FF FD 00 does not survive), so such a servo is silent, as real ones
+  are at the wrong rate ("no status packet"); where a header survives with a bad CRC (a 4 Mbps
+  host, a 4.5 Mbps servo: 12.5 % apart) a unicast instruction draws the servo's CRC error
+  status, which the host reads as garbled bytes.
 - Factory state (`DynamixelBus.factory`): every servo ID 1 at 57,600 bps, as the MX-28(2.0)
   and XM430 ship (e-manual, "Control Table of EEPROM Area": ID 1, Baud Rate 1 = 57,600).
   Two listening servos on one ID both act on an instruction and both answer at once: their
@@ -36,6 +41,7 @@ import functools
 from collections.abc import Iterable, Mapping
 
 from app.arms.dynamixel.sim_mx28 import BAUD_CODES, Mx28Servo
+from app.sim.uart import resample
 from protocol import dynamixel as dxl
 from protocol.dynamixel import BROADCAST_ID, ErrorCode, Instruction, Packet, ParseError
 
@@ -77,6 +83,10 @@ class DynamixelBus:
         #: Instructions whose replies collided (two servos on one ID), counted.
         self.collisions = 0
         self.parser = dxl.Parser()
+        #: Parsers of the host's bytes as a servo at another rate reads them, by that rate.
+        self._parsers: dict[int, dxl.Parser] = {}
+        #: The rate whose servos act on the instruction being handled (`hears`).
+        self._rate: int | None = baudrate
         self.errors: list[ParseError] = []  # last framing errors seen, newest last (bounded)
         self._now: float | None = None
         self._busy_until = 0.0
@@ -106,8 +116,10 @@ class DynamixelBus:
 
     def set_host_baudrate(self, baudrate: int | None) -> None:
         """The rate the host's UART runs at now (the pty server calls this with the
-        termios rate before each write of the host): servos at another rate hear nothing."""
+        termios rate before each write of the host; 0: one it cannot tell): servos at another
+        rate read the host's bytes re-sampled at theirs."""
         self.baudrate = baudrate
+        self._rate = baudrate
 
     # SimDevice ----------------------------------------------------------------------------
     def advance(self, now: float) -> None:
@@ -128,22 +140,47 @@ class DynamixelBus:
         for event in self.parser:
             if isinstance(event, ParseError):
                 self.errors = [*self.errors[-15:], event]
-                replies = self._on_corrupt(event)
-                frame_len = 0
-            else:
-                replies = self._handle(event)
-                frame_len = len(event.params) + 10
-            t += self._wire(frame_len)
-            for servo, reply in replies:
-                t += servo.get("return_delay_time") * 2e-6 + self._wire(len(reply))
-                out.append((t - now, reply))
+            t = self._act(event, t, now, out)
+        host = self.baudrate
+        if host:  # servos at other rates read the host's bytes as their UARTs do
+            for rate in sorted({BAUD_CODES.get(s.get("baud_rate"), 0) for s in self.servos}
+                               - {host, 0}):
+                parser = self._parsers.setdefault(rate, dxl.Parser())
+                parser.feed(resample(data, host, rate))
+                self._rate = rate
+                try:
+                    for event in parser:
+                        t = self._act(event, t, now, out)
+                finally:
+                    self._rate = host
         self._busy_until = t
         return out
 
+    def _act(self, event: Packet | ParseError, t: float, now: float,
+             out: list[tuple[float, bytes]]) -> float:
+        """Handle one instruction (or framing error) as the servos at `self._rate` read it;
+        their replies, timed at that rate and read at the host's, appended to `out`."""
+        if isinstance(event, ParseError):
+            replies = self._on_corrupt(event)
+            frame_len = 0
+        else:
+            replies = self._handle(event)
+            frame_len = len(event.params) + 10
+        rate = self._rate
+        t += self._wire(frame_len, rate)
+        for servo, reply in replies:
+            t += servo.get("return_delay_time") * 2e-6 + self._wire(len(reply), rate)
+            if rate and self.baudrate and rate != self.baudrate:
+                reply = resample(reply, rate, self.baudrate)
+            if reply:
+                out.append((t - now, reply))
+        return t
+
     # helpers ------------------------------------------------------------------------------
     def hears(self, s: Mx28Servo) -> bool:
-        """Whether servo `s` hears the host: its Baud Rate is the host's (or that is unknown)."""
-        return self.baudrate is None or BAUD_CODES.get(s.get("baud_rate")) == self.baudrate
+        """Whether servo `s` acts on the instruction being handled: its Baud Rate is the rate
+        being decoded (the host's, outside `receive`), or the host's rate is unknown."""
+        return self.baudrate is None or BAUD_CODES.get(s.get("baud_rate")) == self._rate
 
     def servo(self, id: int) -> Mx28Servo | None:
         """The listening servo with this id (the first, if ids collide), or None."""
@@ -159,8 +196,8 @@ class DynamixelBus:
     def _listening(self) -> list[Mx28Servo]:
         return sorted((s for s in self.servos if self.servo(s.id) is s), key=lambda s: s.id)
 
-    def _wire(self, n_bytes: int) -> float:
-        return n_bytes * 10.0 / (self.baudrate or 1_000_000)
+    def _wire(self, n_bytes: int, rate: int | None = None) -> float:
+        return n_bytes * 10.0 / (rate or self.baudrate or 1_000_000)
 
     def _collide(self, replies: list[tuple[Mx28Servo, bytes]]) -> list[tuple[Mx28Servo, bytes]]:
         """Replies of servos that share an id overlap on the line: one garbled packet. The

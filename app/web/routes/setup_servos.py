@@ -213,7 +213,7 @@ async def scan_servos(request: Request, req: s.ServoScanRequest,
     servos = [_found(profile, f) for f in result.found]
     placed = {f.joint for f in servos if f.joint is not None}
     return s.ServoScan(port=req.port, profile=profile.name, servos=servos,
-                       collisions=result.collisions,
+                       collisions=result.collisions, garbled=result.garbled,
                        joints={j.name: int(j.motor_id) for j in profile.joints
                                if j.motor_id is not None},
                        profile_baudrate=profile.link.baudrate,

@@ -1,0 +1,177 @@
+"""Baud-rate mismatch as a UART gives it (issue 24): app/sim/uart.py's `resample` (the bytes a
+UART at one rate reads from a stream sent at another), the simulated bus whose servos read the
+host's bytes through it (silence between the standard rates, garbled bytes where a header
+survives), a real pty carrying any rate (termios2), and the scans that tell garbled answers
+from silence and still find the servos' rate: the link's on connect, `armserver setup-servos`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from pathlib import Path
+
+import httpx
+import pytest
+import serial
+from _wait import wait_for
+
+from app.arms.dynamixel.setup import EXIT_OK
+from app.arms.dynamixel.sim_bus import DynamixelBus
+from app.arms.loading import load_profile
+from app.cli import main
+from app.sim.servers import serve_pty
+from app.sim.uart import resample
+from app.web.factory import create_app
+from protocol import dynamixel as dxl
+from tests.conftest import make_settings
+
+RATES = (9_600, 57_600, 115_200, 1_000_000, 2_000_000, 3_000_000, 4_000_000, 4_500_000)
+STATUS = dxl.encode_status(1, 0, bytes((30, 0, 45)))  # an MX-28's answer to PING
+
+
+# ------------------------------------------------------------------ the UART
+
+
+def test_equal_rates_read_what_was_sent() -> None:
+    assert resample(STATUS, 57_600, 57_600) == STATUS
+    assert resample(STATUS, 57_600, 57_600 * 1.02) == STATUS  # 2 % apart: both sides agree
+    assert resample(b"", 57_600, 1_000_000) == b""
+
+
+def test_a_receiver_twice_as_fast_reads_ff_as_fe() -> None:
+    # start bit 2 receiver bits long: bit 0 is sampled inside it, bits 1-7 from data bits 0-6
+    assert resample(b"\xff", 57_600, 115_200) == b"\xfe"
+    assert resample(b"\xff\xff\xfd\x00", 1_000_000, 2_000_000).startswith(b"\xfe\xfe")
+
+
+def test_a_much_faster_receiver_reads_breaks_and_a_slower_one_few_bytes() -> None:
+    # 1 Mbps reading 57,600: every low run is a frame read all low (a break: 0x00), more bytes
+    fast = resample(STATUS, 57_600, 1_000_000)
+    assert set(fast) == {0} and len(fast) > len(STATUS)
+    # 57,600 reading 1 Mbps: one frame spans many of the sender's bytes
+    slow = resample(STATUS, 1_000_000, 57_600)
+    assert 0 < len(slow) <= 2
+
+
+def test_between_standard_rates_no_packet_survives() -> None:
+    """Why a servo at another standard rate is silent: the host's instruction, read at the
+    servo's rate, is never a valid packet (the reply, read at the host's, neither)."""
+    for tx in RATES:
+        for rx in RATES:
+            if tx == rx:
+                continue
+            for packet in (dxl.ping(1), dxl.ping(dxl.BROADCAST_ID), STATUS):
+                parser = dxl.Parser()
+                parser.feed(resample(packet, tx, rx))
+                assert not [e for e in parser if isinstance(e, dxl.Packet)], (tx, rx, packet)
+
+
+# ------------------------------------------------------------------ the simulated bus
+
+
+def _heard(servo_rate: int, host_rate: int, packet: bytes) -> bytes:
+    bus = DynamixelBus(ids=(1,), baudrate=servo_rate)
+    bus.set_host_baudrate(host_rate)
+    return b"".join(reply for _, reply in bus.receive(packet, 0.0))
+
+
+def test_the_bus_is_silent_between_standard_rates_but_one_pair_garbles() -> None:
+    answers = {(s, h): _heard(s, h, dxl.ping(1)) for s in RATES for h in RATES}
+    for (s, h), got in answers.items():
+        if s == h:
+            assert got == STATUS, (s, h)
+        elif (s, h) == (4_500_000, 4_000_000):
+            # the header survives 12.5 %, the CRC does not: the servo answers its CRC error
+            # status at 4.5 Mbps, which the host at 4 Mbps reads as bytes that are no packet
+            parser = dxl.Parser()
+            parser.feed(got)
+            events = list(parser)
+            assert got and all(isinstance(e, dxl.ParseError) for e in events), got.hex()
+        else:
+            assert got == b"", (s, h, got.hex())
+    # a broadcast PING draws nothing from a servo at another rate (a CRC error on ID 254)
+    assert _heard(4_500_000, 4_000_000, dxl.ping(dxl.BROADCAST_ID)) == b""
+
+
+class Served:
+    """A bus on a pty from a loop in its own thread, for blocking pyserial clients."""
+
+    def __init__(self, bus: DynamixelBus, path: Path) -> None:
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.server = asyncio.run_coroutine_threadsafe(serve_pty(bus, path),
+                                                       self.loop).result(10)
+        self.url = str(path)
+
+    def close(self) -> None:
+        asyncio.run_coroutine_threadsafe(self.server.close(), self.loop).result(10)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(5)
+        self.loop.close()
+
+
+@pytest.fixture
+def at_4m5(tmp_path: Path) -> object:
+    """One servo at 4.5 Mbps (Baud Rate 7) on a pty: a rate with no termios constant."""
+    served = Served(DynamixelBus(ids=(1,), baudrate=4_500_000), tmp_path / "ttyDXL")
+    try:
+        yield served
+    finally:
+        served.close()
+
+
+def test_on_a_pty_the_host_reads_silence_garbage_or_the_answer(at_4m5: Served) -> None:
+    def ask(rate: int) -> bytes:
+        port = serial.serial_for_url(at_4m5.url, baudrate=rate, timeout=0.2)
+        try:
+            port.write(dxl.ping(1))
+            return bytes(port.read(14))
+        finally:
+            port.close()
+
+    assert ask(4_500_000) == STATUS  # termios2 carries the rate
+    assert ask(57_600) == b""  # silence
+    garbled = ask(4_000_000)
+    parser = dxl.Parser()
+    parser.feed(garbled)
+    assert garbled and all(isinstance(e, dxl.ParseError) and e.kind == "garbage"
+                           for e in parser), garbled.hex()
+
+
+def test_setup_servos_finds_the_rate_past_the_garbled_one(
+        at_4m5: Served, capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["setup-servos", "--port", at_4m5.url, "--profile", "angler", "--timeout", "0.15",
+            "--baudrates", "57600,4000000,4500000"]
+    assert main(argv) == EXIT_OK
+    out = capsys.readouterr().out
+    assert "found ID 1 at 4,500,000 bps: MX-28(2.0)" in out
+    assert main([*argv, "--joint", "x"]) == EXIT_OK  # set up from there, to 1 Mbps
+    assert "joint x: set up and verified: ID 2 at 1,000,000 bps" in capsys.readouterr().out
+
+
+async def test_the_link_tells_garbled_answers_from_silence(tmp_path: Path) -> None:
+    """Servos at 4.5 Mbps, the profile at 4 Mbps: the set-up's PINGs come back garbled, the
+    connect scan says so and where the servos answer."""
+    bus = DynamixelBus(ids=(1, 2, 3, 4), baudrate=4_500_000, operating_modes={1: 4, 2: 4, 4: 4})
+    path = tmp_path / "ttyDXL"
+    server = await serve_pty(bus, path)
+    p = load_profile("angler")
+    profile = p.model_copy(update={"link": p.link.model_copy(update={
+        "kind": "serial", "address": str(path), "baudrate": 4_000_000,
+        "homed_at_start": True})})
+    app = create_app(make_settings(), profiles=[profile])  # never ready: no wait_ready
+    try:
+        async with app.router.lifespan_context(app), httpx.AsyncClient(
+                transport=httpx.ASGITransport(app=app), base_url="http://armserver.test") as c:
+            svc = app.state.services["angler"]
+            await wait_for(lambda: "servos answer at" in (svc.driver.link.last_error or ""),
+                           what="the scan's finding", timeout=20.0)
+            error = (await c.get("/api/v1/arms/angler")).json()["link"]["last_error"]
+            assert "no servo answers at the profile's 4,000,000 bps (garbled answers at " \
+                   "4,000,000 bps" in error, error
+            assert "servos answer at 4,500,000 bps (ID 1, 2, 3, 4)" in error, error
+            assert "set link.baudrate = 4500000" in error
+    finally:
+        await server.close()
