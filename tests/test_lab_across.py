@@ -11,12 +11,15 @@ tests/test_lab_workers.py: left on worker 0, right on worker 1, rails on worker 
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import signal
+from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 from _wait import wait_until
 from test_lab_workers import AUTH, INSTRUCTOR, OP, Lab, lab  # noqa: F401 - the fixture
 
@@ -166,3 +169,41 @@ def test_a_cross_worker_session_outlives_its_leaders_worker(lab: Lab) -> None:  
                 what="the right arm following the restarted left arm")
         finally:
             c.delete(f"/api/v1/teleop/{sid}")
+
+
+async def test_the_front_places_by_the_arms_named(tmp_path: Path) -> None:
+    """app/lab/across.py on its own: the plan of the lab's config, a data folder of its own."""
+    from conftest import make_settings
+    from test_lab_workers import CONFIG
+
+    from app.errors import DifferentWorkers
+    from app.lab.across import Across
+    from app.lab.placement import plan_lab
+
+    config = tmp_path / "lab.toml"
+    config.write_text(CONFIG)
+    across = Across(plan_lab(make_settings(config=str(config)), 2), str(tmp_path / "data"))
+    assert await across.place("POST", "/api/v1/teleop", b'{"follower": "right"}') == 1
+    assert await across.place("POST", "/api/v1/teleop", b'{"follower": "rails"}') == 0
+    for body in (b"not json", b"[1]", b'{"follower": 3}', b'{"follower": "nobody"}'):
+        assert await across.place("POST", "/api/v1/teleop", body) is None  # a worker's 4xx
+    rec = b'{"name": "x", "arms": ["right"], "cameras": ["table-right"]}'
+    assert await across.place("POST", "/api/v1/recordings", rec) == 1
+    with pytest.raises(DifferentWorkers, match="worker 0: arm left; worker 1: arm right"):
+        await across.place("POST", "/api/v1/recordings", b'{"arms": ["left", "right"]}')
+    # a dataset's worker from its settings file; an id that is no dataset name reads nothing
+    folder = tmp_path / "data" / "recordings" / "demo"
+    folder.mkdir(parents=True)
+    (folder / "armserver.json").write_text(json.dumps({"arms": ["right"]}))
+    (tmp_path / "data" / "armserver.json").write_text(json.dumps({"arms": ["right"]}))
+    assert await across.place("GET", "/api/v1/recordings/demo/archive", b"") == 1
+    for rid in ("..", ".hidden", "nobody"):
+        assert await across.dataset_owner(rid) is None
+    # each dataset once, as its arms' worker lists it
+    stale = {"id": "demo", "arms": ["right"], "episodes": 0}
+    fresh = {"id": "demo", "arms": ["right"], "episodes": 2}
+    mine = {"id": "a", "arms": ["left"], "episodes": 1}
+    assert across.merge_recordings({0: [stale, mine], 1: [fresh]}) == [mine, fresh]
+    sessions = {0: [{"id": "e", "status": "ended", "started": 1.0}],
+                1: [{"id": "r", "status": "running", "started": 2.0}]}
+    assert [t["id"] for t in across.merge_teleop(sessions)] == ["r", "e"]
