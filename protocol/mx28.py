@@ -19,10 +19,13 @@ MODEL_NUMBER = 30
 E_MANUAL = "https://emanual.robotis.com/docs/en/dxl/mx/mx-28-2/"
 #: Present/Goal Position resolution: 4096 ticks per revolution, 0.088 deg per tick
 TICKS_PER_REV = 4096
-#: Velocity Limit (44) as shipped: 230 (0.229 rpm units, 52.7 rpm) from firmware V42; 380
-#: (87 rpm) in earlier firmware, the value older copies of the e-manual page still show
-#: (ROBOTIS-GIT/emanual docs/en/dxl/mx/mx-28-2.md at 203f49b). A servo on older firmware keeps
-#: 380: the driver reads the item, it never assumes this.
+#: Velocity Limit (44) as shipped: 230 (0.229 rpm units, 52.7 rpm, just under the 55 rpm no-load
+#: speed at 12 V) from firmware V42; 380 (87 rpm) before it. Sources, ROBOTIS-GIT/emanual:
+#: docs/en/dxl/mx/mx-28-2.md, "Control Table of EEPROM Area", Velocity Limit initial value 230
+#: at 203f49b5 (the current page's layout) and 380 at 07fe860b (the older layout, before the
+#: change); _includes/en/dxl/control_table_vellimit.md (321fd0e5), the item's page: "NOTE: The
+#: default value of Velocity Limit has been decreased since Firmware V42." A servo on older
+#: firmware keeps 380: the driver reads the item, it never assumes this.
 VELOCITY_LIMIT_DEFAULT = 230
 
 

@@ -9,7 +9,12 @@ ranges: Current Limit(38) and Goal Current(102) about 2.69 mA, 0 ~ 1193). The Op
 The layout is the MX-28(2.0)'s with three differences that matter: Current Limit (38) in the
 EEPROM, Goal Current (102) and Present Current (126, where the MX-28 has Present Load); the
 Operating Mode also takes 0 (current) and 5 (current-based position). Defaults differ too
-(Velocity Limit 265, i.e. 60.7 rpm, the e-manual's initial value; Position P Gain 800). As in
+(Velocity Limit 200, i.e. 45.8 rpm, the 46 rpm no-load speed at 12 V, from firmware V42, 350
+before it; Position P Gain 800). Sources, ROBOTIS-GIT/emanual docs/en/dxl/x/xm430-w350.md,
+"Control Table of EEPROM Area": 200 at 08551725 (the current layout, with "Default Value"), 350
+at 07fe860b (the older one); the item's page says the default "has been decreased since
+Firmware V42". 265, which issue 24 quoted, is the XL430-W250's (docs/en/dxl/x/xl430-w250*.md),
+not this servo's. As in
 :mod:`protocol.mx28`, items whose range depends on another item carry the widest range and
 the device (or simulator) enforces the dependent limit (Goal Current within Current Limit,
 among the others); Indirect Address/Data are not listed.
@@ -72,7 +77,7 @@ _ROWS: tuple[tuple[str, int, int, str, int | None, str | None, float, bool, int,
     ("pwm_limit", 36, 2, "rw", 885, "percent", 0.113, False, 0, 885),
     ("current_limit", 38, 2, "rw", 1193, "mA", 2.69, False, 0, 1193),
     ("acceleration_limit", 40, 4, "rw", 32767, "rev/min^2", 214.577, False, 0, 32767),
-    ("velocity_limit", 44, 4, "rw", 265, "rpm", 0.229, False, 0, 1023),  # e-manual: 265
+    ("velocity_limit", 44, 4, "rw", 200, "rpm", 0.229, False, 0, 1023),  # e-manual: 200 (V42+)
     ("max_position_limit", 48, 4, "rw", 4095, "deg", 0.088, False, 0, 4095),
     ("min_position_limit", 52, 4, "rw", 0, "deg", 0.088, False, 0, 4095),
     ("shutdown", 63, 1, "rw", 52, None, 1.0, False, 0, 0xFF),

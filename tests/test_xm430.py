@@ -18,7 +18,7 @@ from protocol import mx28, xm430
         ("operating_mode", 11, 1, "rw", 3),
         ("homing_offset", 20, 4, "rw", 0),
         ("current_limit", 38, 2, "rw", 1193),
-        ("velocity_limit", 44, 4, "rw", 265),
+        ("velocity_limit", 44, 4, "rw", 200),  # from firmware V42 (protocol/xm430.py)
         ("max_position_limit", 48, 4, "rw", 4095),
         ("shutdown", 63, 1, "rw", 52),
         # "Control Table of RAM Area"

@@ -39,7 +39,7 @@ def test_servo_classes_and_table() -> None:
     s = bus.servos[1]
     assert len(s.mem) == xm430.TABLE_END
     assert (s.get("model_number"), s.get("velocity_limit"), s.get("position_p_gain"),
-            s.get("current_limit")) == (1020, 265, 800, 1193)
+            s.get("current_limit")) == (1020, 200, 800, 1193)
     assert s.get("goal_current") == 1193
 
 

@@ -6,7 +6,7 @@ Source: the XM430-W350 e-manual, https://emanual.robotis.com/docs/en/dxl/x/xm430
 simulator does (app/arms/dynamixel/sim_mx28.py: write checks, faults, REBOOT, the profile generator
 and the motor that follows it) holds here unchanged; what differs is data:
 
-- Model Number 1020, the XM430's defaults (Velocity Limit 265, Position P Gain 800) and
+- Model Number 1020, the XM430's defaults (Velocity Limit 200, Position P Gain 800) and
   no-load speed (46 rpm at 12 V, 43 at 11.1 V, 57 at 14.8 V).
 - Operating Mode also takes 0 (current) and 5 (current-based position). Mode 5 runs the
   profile generator as extended position (multi-turn), the Current Limit acting only as the
