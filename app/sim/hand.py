@@ -5,10 +5,12 @@ simulated arm moved through its world").
 It acts on the simulated device, never on the server: each joint servo of a simulated
 Dynamixel bus (app/arms/dynamixel/sim_bus.py) whose Torque Enable (64) is 0 has its Present
 Position and Present Velocity set to where the hand has it, and the server reads them over the
-link as it reads hardware. A servo with torque on holds its goal (e-manual, Torque Enable: "the
-servo keeps its position") and the hand does not move it: a move is refused at the start with
-409 `conflict` when any joint holds torque, and a joint whose torque comes on during a move
-(the session that freed it has ended) is let go.
+link as it reads hardware. The ROBOTIS e-manual's X-series control table, Torque Enable (64):
+0 is "Torque OFF (Free-run) and the motor does not generate torque", so a hand turns the horn;
+with torque on, a position-mode servo drives to its Goal Position and holds it, so the hand
+does not move it: a move is refused at the start with 409 `conflict` when any joint holds
+torque, and a joint whose torque comes on during a move (the session that freed it has ended)
+is let go.
 
 The hand goes in a straight line in joint space from where the joints are when the device
 next runs (the simulated clock of its link) to the goal, at `speed` (rad/s or m/s) on the
