@@ -148,3 +148,46 @@ async def test_a_hand_on_a_device_without_servos_or_a_real_arm() -> None:
         assert r.status_code == 409 and r.json()["code"] == "not_supported", r.text
         r = await hand(c, "nope", [0.0])
         assert r.status_code == 404 and r.json()["code"] == "unknown_arm", r.text
+
+
+async def test_a_joint_whose_torque_comes_on_is_let_go(
+        pair: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """The session ends mid-move: the leader's torque comes on, its servos hold where they are
+    (the hand does not drag them on to its goal) and the move ends."""
+    app, c = pair
+    leader: ArmService = app.state.services["leader"]
+    r = await c.post(f"{API}/teleop", json=START)
+    assert r.status_code == 201, r.text
+    sid = r.json()["id"]
+    start = np.array(leader.positions, dtype=float)
+    goal = [0.9, -0.6, 0.5, 0.9]
+    r = await hand(c, "leader", goal, speed=0.3)
+    assert r.status_code == 200 and r.json()["moving"] is True, r.text
+    await wait_for(lambda: np.max(np.abs(leader.positions - start)) > 0.1,
+                   what="the hand under way")
+    assert (await c.delete(f"{API}/teleop/{sid}")).status_code == 200
+    await wait_for(lambda: all(sv.torque for sv in servos(leader)), what="the torque on")
+    assert leader.hand is not None
+    await wait_for(lambda: not leader.hand.active, what="the hand letting go")
+    held = await held_still(lambda: leader.positions, TOL)
+    assert np.max(np.abs(held - np.array(goal))) > 0.1, "the hand went on to its goal"
+
+
+async def test_the_hand_on_the_anglers_prismatic_joints() -> None:
+    """A simulated MX-28 bus (the angler: three lead-screw carriages and a revolute joint):
+    with its torque off (the facade's set_torque, as a session does), the hand puts the joints
+    where asked, metres and radians, and the server reads them there."""
+    async with running_client(make_settings()) as (app, c):
+        angler: ArmService = app.state.services["angler"]
+        detail = (await c.get(f"{API}/arms/angler")).json()
+        lo = np.array([j["min"] for j in detail["joints"]])
+        hi = np.array([j["max"] for j in detail["joints"]])
+        goal = (lo + 0.4 * (hi - lo)).tolist()
+        await angler.set_torque(False)
+        r = await hand(c, "angler", goal, speed=0.05, wait=True)
+        assert r.status_code == 200 and r.json()["moving"] is False, r.text
+        await wait_for(lambda: np.allclose(angler.positions, goal, atol=1e-3),
+                       what="the angler's samples where the hand put it")
+        await angler.set_torque(True)
+        r = await hand(c, "angler", (lo + 0.5 * (hi - lo)).tolist())
+        assert r.status_code == 409 and r.json()["code"] == "conflict", r.text
