@@ -128,6 +128,8 @@ class Hand:
         asked = self._asked
         under = self._under
         if asked is not None and (under is None or under.move is not asked):
+            if under is not None:  # replaced: the earlier move ends here
+                self._done = under.move.serial
             under = self._begin(asked, now)
         if under is None:
             return
@@ -159,8 +161,8 @@ class Hand:
         ticks = []
         for i in self.ids:
             s = self.device.servo(i)
-            if s is None:
-                self._done, self._asked = move.serial, None
+            if s is None:  # a servo that does not answer: nothing to hold on to
+                self._done, self._asked, self._under = move.serial, None, None
                 return None
             ticks.append(float(s.get("present_position")))
         start = np.asarray(tr.from_ticks(ticks), dtype=float)
