@@ -246,6 +246,7 @@ class OwnerTask:
                 self.motion_gate()  # raises (EstopLatched): nothing is written
             if req.on_send is not None:
                 req.on_send()
+            sent_at = asyncio.get_running_loop().time()
             reply = await self._exchange(req.message, req.timeout)
         except LinkError:
             if not req.future.done():
@@ -268,10 +269,20 @@ class OwnerTask:
                 req.future.set_exception(err)
             return
         self.stats["replies"] += 1
-        if getattr(req.message, "poll_after", False):
+        after = getattr(req.message, "poll_after", False)
+        if after:
             self._poll_now = True  # taken next, ahead of the schedule and of queued requests
         if not req.future.done():
             req.future.set_result(reply)
+        if after:
+            # ... once the device can show the request's effect (`poll_delay_s`: a goal's
+            # first encoder tick at the servo's pace), or a request comes: a read sooner reads
+            # what the last sample said, and the effect shows only a poll period later (issue
+            # 23's goal tail). The caller has its answer already.
+            loop = asyncio.get_running_loop()
+            until = sent_at + getattr(req.message, "poll_delay_s", 0.0)
+            if loop.time() < until and self._queue.empty():
+                await self._idle_until(loop, until)
 
     async def _do_poll(self) -> None:
         self.stats["polls"] += 1

@@ -30,6 +30,9 @@ class DxlRequest:
     #: Poll right after this request is answered (a write whose effect the samples should
     #: show without waiting for the schedule: up to one poll period, 5 ms at 200 Hz).
     poll_after: bool = False
+    #: ... but no sooner than this after the write, s: when the effect can first show (a
+    #: goal's first encoder tick, `_effect_delay`), else the poll reads the sample before.
+    poll_delay_s: float = 0.0
 
 
 class DynamixelBusDriver(Driver):
@@ -81,7 +84,8 @@ class DynamixelBusDriver(Driver):
         expect = () if dxl_id == dxl.BROADCAST_ID else (dxl_id,)
         values = {dxl_id: raw}
         await self.submit(DxlRequest(dxl.write(dxl_id, item.address, data), expect,
-                                     what=f"WRITE {item.name} to {dxl_id}", poll_after=True),
+                                     what=f"WRITE {item.name} to {dxl_id}", poll_after=True,
+                                     poll_delay_s=self._effect_delay(item, values)),
                           gated=gated, on_send=lambda: self._note_sent(item, values))
         self._note_written(item, values)
 
@@ -102,6 +106,11 @@ class DynamixelBusDriver(Driver):
                                      what=f"SYNC_WRITE {item.name}"),
                           gated=gated, on_send=lambda: self._note_sent(item, values))
         self._note_written(item, values)
+
+    def _effect_delay(self, item: ControlItem, values: dict[int, int]) -> float:
+        """How long after a write of `values` to `item` a poll can show its effect, s (a
+        hook: the chain driver gives a goal's first tick of motion; here none)."""
+        return 0.0
 
     def _note_written(self, item: ControlItem, values: dict[int, int]) -> None:  # noqa: B027
         """A pass-through write went out (a hook: the chain driver tracks Profile Velocity)."""

@@ -129,6 +129,24 @@ class DynamixelChainDriver(DynamixelBusDriver):
         if joints:
             self.note_commanded([values[self.ids[k]] for k in joints], joints)
 
+    def _effect_delay(self, item: ControlItem, values: dict[int, int]) -> float:
+        """A Goal Position write to joint servos shows in Present Position once a servo has
+        turned one encoder tick at its Profile Velocity (e-manual MX-28 (2.0), Profile
+        Velocity (112); Profile Acceleration only makes it later): the time that takes at the
+        fastest written joint, at most one poll period; 0 where no written joint has a profile
+        (its servo steps at once). At 2 rad/s (the angler's theta3) a tick takes 0.77 ms,
+        and a status reply comes back in about 0.3 ms at 1 Mbps."""
+        pace = self.pace()
+        if item.name != "goal_position" or pace is None:
+            return 0.0
+        tpu = np.abs(self.model.transmission.ticks_per_unit)
+        rates = [float(pace[k] * tpu[k]) for k in (self.ids.index(i) for i in values
+                                                   if i in self.ids)
+                 if np.isfinite(pace[k]) and pace[k] > 0]
+        if not rates:
+            return 0.0
+        return min(1.0 / max(rates), 1.0 / self.profile.link.poll_hz)
+
     def pace(self) -> np.ndarray | None:
         """Each joint's Profile Velocity as set (0.229 rpm units) in joint units: the servo
         moves to a new goal at that speed at most (e-manual, Profile Velocity (112)). NaN
