@@ -11,7 +11,7 @@ from pydantic import Field
 from app.schemas.common import Bool, Int, Model
 
 #: A port: an absolute path of a serial device, or socket://HOST:PORT (loopback only).
-Port = Field(min_length=1, max_length=256, pattern=r"^(/|socket://)",
+Port = Field(min_length=1, max_length=256, pattern=r"^(/|socket://)[^\x00-\x1f]*$",
              description="an absolute path of a serial device (/dev/ttyUSB0, "
              "/dev/serial/by-id/..., the practice bus's pty) or a loopback "
              "socket://127.0.0.1:PORT (`armserver sim dynamixel --listen`)")

@@ -70,6 +70,10 @@ class PracticeBus:
             raise
 
     def _run(self, coro: Coroutine[Any, Any, T]) -> T:
+        """Run `coro` on the bus's loop; ValueError once the bus is stopped."""
+        if self._loop.is_closed() or not self._thread.is_alive():
+            coro.close()
+            raise ValueError("the practice bus is stopped")
         return asyncio.run_coroutine_threadsafe(coro, self._loop).result(CALL_TIMEOUT_S)
 
     def _call(self, fn: Callable[[], T]) -> T:

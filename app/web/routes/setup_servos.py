@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
 import stat
 from typing import Any, cast
 from urllib.parse import urlsplit
@@ -80,11 +81,30 @@ def _practice(request: Request) -> practice.PracticeBus | None:
     return cast("practice.PracticeBus | None", getattr(request.app.state, "practice_bus", None))
 
 
-def _lock(request: Request) -> asyncio.Lock:
-    lock = getattr(request.app.state, "setup_lock", None)
+def _lock(request: Request, name: str = "setup_lock") -> asyncio.Lock:
+    """The app's lock of that name (one set-up at a time; one change of the practice bus)."""
+    lock = getattr(request.app.state, name, None)
     if lock is None:
-        lock = request.app.state.setup_lock = asyncio.Lock()
+        lock = asyncio.Lock()
+        setattr(request.app.state, name, lock)
     return cast(asyncio.Lock, lock)
+
+
+#: What a serial port's device is, its symlinks followed: a USB adapter (/dev/ttyUSB0, the
+#: U2D2), a board's UART (/dev/ttyS0, /dev/ttyAMA0), a pseudo-terminal (a simulator's).
+_SERIAL_DEVICE = re.compile(r"^/dev/(tty[A-Za-z]+[0-9]+|pts/[0-9]+|cu\.[^/]+|rfcomm[0-9]+)$")
+
+
+def _socket_address(port: str) -> tuple[str, int] | None:
+    """(host, port) of a `socket://HOST:PORT` URL, or None when it is not one."""
+    u = urlsplit(port)
+    try:
+        number = u.port
+    except ValueError:
+        return None
+    if u.scheme != "socket" or not u.hostname or not number or u.path or u.query:
+        return None
+    return u.hostname, number
 
 
 def _same_port(a: str, b: str) -> bool:
@@ -92,8 +112,18 @@ def _same_port(a: str, b: str) -> bool:
     (/dev/serial/by-id/... is /dev/ttyUSB0), a socket URL by host and port."""
     if a.startswith("/") and b.startswith("/"):
         return os.path.realpath(a) == os.path.realpath(b)
-    ua, ub = urlsplit(a), urlsplit(b)
-    return (ua.scheme, ua.hostname, ua.port) == (ub.scheme, ub.hostname, ub.port)
+    sa, sb = _socket_address(a), _socket_address(b)
+    return sa is not None and sa == sb
+
+
+def _own_terminals() -> set[str]:
+    out = set()
+    for fd in (0, 1, 2):
+        try:
+            out.add(os.path.realpath(os.ttyname(fd)))
+        except OSError:
+            continue
+    return out
 
 
 def _owned(services: dict[str, ArmService]) -> dict[str, str]:
@@ -104,23 +134,28 @@ def _owned(services: dict[str, ArmService]) -> dict[str, str]:
 
 def _check_port(port: str, services: dict[str, ArmService]) -> None:
     """409 for an arm's port; 422 for a port that is neither a serial device nor loopback."""
-    for address, arm in _owned(services).items():
-        if _same_port(port, address):
+    for link, arm in _owned(services).items():
+        if _same_port(port, link):
             raise PortInUse(f"{port} is the link of arm {arm}: the server owns it and nothing "
                             "else touches it (set its servos up with the server stopped, or "
                             "on another port)")
     if port.startswith("socket://"):
-        host = urlsplit(port).hostname
-        if host not in _LOOPBACK:
-            raise InvalidRequest(f"{port}: a socket port must be on this machine's loopback "
-                                 "(127.0.0.1): the server opens no connection elsewhere")
+        address = _socket_address(port)
+        if address is None or address[0] not in _LOOPBACK:
+            raise InvalidRequest(f"{port}: a socket port is socket://127.0.0.1:PORT, on this "
+                                 "machine's loopback: the server opens no connection elsewhere")
         return
     try:
         mode = os.stat(port).st_mode
-    except OSError as exc:
-        raise InvalidRequest(f"no port {port}: {exc.strerror}") from None
-    if not stat.S_ISCHR(mode):
-        raise InvalidRequest(f"{port} is not a serial device")
+    except (OSError, ValueError) as exc:
+        raise InvalidRequest(f"no port {port}: {getattr(exc, 'strerror', None) or exc}"
+                             ) from None
+    device = os.path.realpath(port)
+    if not stat.S_ISCHR(mode) or not _SERIAL_DEVICE.match(device):
+        raise InvalidRequest(f"{port} is not a serial device (/dev/ttyUSB0, /dev/ttyACM0, "
+                             "/dev/serial/by-id/..., a pseudo-terminal)")
+    if device in _own_terminals():
+        raise InvalidRequest(f"{port} is the server's own terminal")
 
 
 def _candidates(services: dict[str, ArmService]) -> dict[str, ArmProfile]:
@@ -188,10 +223,10 @@ def _practice_body(bus: practice.PracticeBus | None) -> s.PracticeBus:
 )
 async def setup_info(request: Request, _: ViewerRole) -> s.ServoSetupInfo:
     services = _services(request)
-    bus = _practice(request)
+    async with _lock(request, "practice_lock"):
+        body = await asyncio.to_thread(_practice_body, _practice(request))
     return s.ServoSetupInfo(profiles=list(_candidates(services)),
-                            ports_in_use=_owned(services),
-                            practice=await asyncio.to_thread(_practice_body, bus))
+                            ports_in_use=_owned(services), practice=body)
 
 
 @router.post(
@@ -256,13 +291,14 @@ async def assign_servo(request: Request, req: s.ServoAssignRequest,
 )
 async def start_practice(request: Request, req: s.PracticeBusRequest,
                          _: InstructorRole) -> s.PracticeBus:
-    old = _practice(request)
-    request.app.state.practice_bus = None
-    if old is not None:
-        await asyncio.to_thread(old.close)
-    bus = await asyncio.to_thread(practice.PracticeBus, req.servos)
-    request.app.state.practice_bus = bus
-    return await asyncio.to_thread(_practice_body, bus)
+    async with _lock(request, "practice_lock"):
+        old = _practice(request)
+        request.app.state.practice_bus = None
+        if old is not None:
+            await asyncio.to_thread(old.close)
+        bus = await asyncio.to_thread(practice.PracticeBus, req.servos)
+        request.app.state.practice_bus = bus
+        return await asyncio.to_thread(_practice_body, bus)
 
 
 @router.post(
@@ -274,14 +310,15 @@ async def start_practice(request: Request, req: s.PracticeBusRequest,
     responses=errors(401, 403, 409),
 )
 async def plug_practice_servo(request: Request, _: InstructorRole) -> s.PracticeBus:
-    bus = _practice(request)
-    if bus is None:
-        raise Conflict("no practice bus runs: start one (POST /api/v1/setup-servos/practice)")
-    try:
-        await asyncio.to_thread(bus.plug)
-    except ValueError as exc:
-        raise Conflict(str(exc)) from None
-    return await asyncio.to_thread(_practice_body, bus)
+    async with _lock(request, "practice_lock"):
+        bus = _practice(request)
+        if bus is None:
+            raise Conflict("no practice bus runs: start one (POST /api/v1/setup-servos/practice)")
+        try:
+            await asyncio.to_thread(bus.plug)
+        except ValueError as exc:
+            raise Conflict(str(exc)) from None
+        return await asyncio.to_thread(_practice_body, bus)
 
 
 @router.delete(
@@ -292,8 +329,9 @@ async def plug_practice_servo(request: Request, _: InstructorRole) -> s.Practice
     responses=errors(401, 403),
 )
 async def stop_practice(request: Request, _: InstructorRole) -> s.PracticeBus:
-    bus = _practice(request)
-    request.app.state.practice_bus = None
-    if bus is not None:
-        await asyncio.to_thread(bus.close)
+    async with _lock(request, "practice_lock"):
+        bus = _practice(request)
+        request.app.state.practice_bus = None
+        if bus is not None:
+            await asyncio.to_thread(bus.close)
     return _practice_body(None)
