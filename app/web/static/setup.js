@@ -34,7 +34,7 @@ class SetupPanel {
     };
     const button = (name, text, title, onclick, cls) =>
       el("button", { type: "button", id: id(name), title, onclick, class: cls || null }, text);
-    root.append(el("details", { id: id("details") },
+    root.append(el("details", { id: id("details"), ontoggle: (ev) => { if (ev.target.open) this.load(); } },
       el("summary", {}, "Servo set-up (Dynamixel, from the factory state)"),
       el("section", { class: "ctl", id: id("panel") },
         el("div", { class: "row" }, el("label", {}, "Profile ", this.el.profile),
@@ -53,13 +53,15 @@ class SetupPanel {
           button("assign", "Assign", "Give the one new servo on the port this joint's ID, rate and settings (EEPROM, torque off), then verify",
             () => this.assign(), "primary")),
         this.el.said, this.el.note, this.el.error)));
-    this.load();
   }
 
-  async load() {
+  async load() {   // at start, and each time the panel is opened (a token may have come since)
     try {
       const info = await call("GET", "/setup-servos");
+      const keep = this.el.profile.value;
       this.el.profile.replaceChildren(...info.profiles.map((p) => el("option", { value: p }, p)));
+      if (info.profiles.includes(keep)) this.el.profile.value = keep;
+      this.el.error.replaceChildren();
       this.showPractice(info.practice);
       this.render();
     } catch (e) { this.showError(e); }
