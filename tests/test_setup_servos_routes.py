@@ -204,6 +204,23 @@ async def test_a_pty_an_arm_owns_is_refused_through_its_symlinks(tmp_path: Path)
         await srv.close()
 
 
+async def test_a_port_another_program_holds_is_refused() -> None:
+    """A link opens its port exclusively (app/links/serial.py), as the set-up does: a port
+    held elsewhere (an arm on another worker) is 409 port_in_use, nothing written."""
+    import serial
+
+    async with server() as (_app, c):
+        port = await practice(c, 1)
+        held = serial.serial_for_url(port, baudrate=1_000_000, exclusive=True)
+        try:
+            r = await assign(c, port, "x")
+            assert r.status_code == 409 and r.json()["code"] == "port_in_use", r.text
+            assert "held by another program" in r.json()["detail"]
+        finally:
+            held.close()
+        assert await plugged(c) == [(1, 57_600)]
+
+
 @pytest.mark.parametrize(("method", "path", "body"), [
     ("POST", "/scan", {"port": "socket://127.0.0.1:9", "profile": "angler"}),
     ("POST", "/assign", {"port": "socket://127.0.0.1:9", "profile": "angler", "joint": "x"}),

@@ -15,13 +15,15 @@ refusals; nothing of it is repeated here), as routes, and a practice bus to try 
   more servo plugged in, and stopped (instructor).
 
 A port an arm of this server owns is refused with 409 `port_in_use` naming the arm: the server
-owns each link and nothing else touches it. The set-up's refusals keep their reasons: 409
-`no_servo`, `several_servos`, `id_in_use`, `conflict` (a servo with torque on), 422
-`invalid_request` (the profile cannot be set up so, or the port cannot be opened), 502
-`device_error` / 504 `device_timeout` (a servo that answers wrongly or not at all mid-way).
+owns each link and nothing else touches it; a port another program holds (a link opens its
+port exclusively, as the set-up does) is 409 `port_in_use` too. The set-up's refusals keep
+their reasons: 409 `no_servo`, `several_servos`, `id_in_use`, `conflict` (a servo with
+torque on), 422 `invalid_request` (the profile cannot be set up so, or the port cannot be
+opened), 502 `device_error` / 504 `device_timeout` (a servo that answers wrongly or not at all
+mid-way).
 One set-up at a time (409 `busy`); each runs on a worker thread (blocking pyserial), never on
-the HTTP loop. Under `--workers` this runs on the first worker, which knows its own arms'
-ports only.
+the HTTP loop. Under `--workers` this runs on the first worker, which knows its own arms' ports
+by name; another worker's is refused by its exclusive lock.
 """
 
 from __future__ import annotations
@@ -202,6 +204,10 @@ async def _run_setup(request: Request, fn: Any, *args: Any, **kw: Any) -> Any:
         except setup.SetupError as exc:
             raise _KIND.get(exc.kind, DeviceError)(exc.reason) from None
         except OSError as exc:  # pyserial's SerialException is an OSError
+            if "exclusively lock" in str(exc):  # serialposix: another program holds it
+                raise PortInUse(f"{args[0]} is held by another program (an arm's link on "
+                                "another worker or server, a terminal): nothing else touches "
+                                "a port in use") from None
             raise InvalidRequest(f"cannot open {args[0]}: {exc}") from None
 
 
