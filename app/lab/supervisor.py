@@ -8,19 +8,24 @@ arms: about 2 s here). The other workers are separate processes with their own c
 and links: a death elsewhere costs them nothing (tests/test_lab_workers.py kills one with
 SIGKILL and reads the other's samples throughout).
 
-A worker that hangs without exiting (a deadlock, SIGSTOP) is found by its prober: once ready,
+A worker that hangs without exiting (SIGSTOP, a deadlock) is found by its prober: once ready,
 the worker's `GET /api/v1/health` is asked every PROBE_EVERY_S over its socket and must answer
-within PROBE_DEADLINE_S. At the first miss the worker is not `ready` (its arms are 503
-`link_down`, the lab-wide lists leave it out instead of waiting for it) and is asked again at
-once; an answer makes it ready again; PROBE_MISSES misses in a row and it is stopped
-(SIGTERM, then SIGKILL after KILL_GRACE_S: a stopped or deadlocked process runs no handler)
-and restarted as a dead one is (tests/test_lab_workers.py stops one with SIGSTOP). The
-figures put a hung worker's arms back within about 5 s (at most 2.5 s to be sure it
-hangs, 0.5 s of grace, then its start: 1.5-2 s), while a loaded worker, whose health answers
-in milliseconds, would have to miss a whole second twice in a row to be taken for hung.
+within PROBE_DEADLINE_S (after a miss, it is asked again at once). A slow answer is not a hang:
+a live worker's HTTP loop has been seen silent for over 2 s during the tests at load average
+10 on two cores (it took its SIGTERM within 60 ms: it was running), and killing it would stop
+its arms for nothing. So a worker is taken for hung when
+- PROBE_MISSES probes in a row went unanswered and the process used no CPU at all during the
+  last one (`cpu_ticks`: a stopped or wholly deadlocked process; a live one, its control
+  thread polling its arms, uses some every second however loaded the machine), or
+- nothing answered for SILENT_S although it runs (its HTTP loop stuck, its control thread
+  still holding the arms).
+Then it gets SIGTERM, SIGKILL after KILL_GRACE_S (a stopped or deadlocked process runs no
+handler), and is restarted as a dead one is; `ready` is false from the kill (its arms 503
+`link_down`). A frozen worker's arms are back within about 5 s (at most 2.5 s of probes, 0.5 s
+of grace, then its start: 1.5-2 s); tests/test_lab_workers.py stops one with SIGSTOP.
 
 `ready` is the front's one question: has the worker answered its health since it last started
-(and its last probe).
+(and not been taken for hung since).
 """
 
 from __future__ import annotations
@@ -50,15 +55,28 @@ READY_ASK_S = 1.0
 #: How long the other workers wait for the first one at start-up, s (then they start anyway).
 FIRST_READY_S = 60.0
 #: A ready worker's health is asked this often, s, and must answer within PROBE_DEADLINE_S;
-#: PROBE_MISSES misses in a row and it is killed and restarted (a hung worker).
+#: PROBE_MISSES misses in a row with no CPU used during the last, or SILENT_S s without an
+#: answer, and it is killed and restarted (a hung worker: see the module doc).
 PROBE_EVERY_S = 0.5
 PROBE_DEADLINE_S = 1.0
 PROBE_MISSES = 2
+SILENT_S = 10.0
 #: How long a hung worker gets after its SIGTERM before its SIGKILL, s.
 KILL_GRACE_S = 0.5
 #: How long a stopping worker gets after its SIGTERM (beyond the server's own graceful
 #: shutdown) before it is killed, s.
 STOP_GRACE_S = 5.0
+
+
+def cpu_ticks(pid: int) -> int | None:
+    """The CPU time process `pid` has used, clock ticks (Linux: /proc/PID/stat, utime +
+    stime; proc(5)); None where it cannot be read."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+        return int(fields[11]) + int(fields[12])
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 @dataclass
@@ -131,7 +149,7 @@ class Supervisor:
             w.client.reset()  # its kept-alive connections lead nowhere now
             if self._stopping:
                 return
-            w.last_error = (f"worker {w.index} " + ("stopped answering its health: killed"
+            w.last_error = (f"worker {w.index} " + ("hung (no health answer): killed"
                             if w.hangs != hangs else f"exited with {code}") + "; restarting")
             log.error("worker %d (pid %d) exited with %s: restarting its arms (%s)", w.index,
                       w.proc.pid, code, ", ".join(w.arms))
@@ -141,30 +159,36 @@ class Supervisor:
 
     async def _probe(self, w: Worker, proc: asyncio.subprocess.Process) -> None:
         """Until `proc` exits or the lab stops: see it ready, then ask its health every
-        PROBE_EVERY_S; kill it after PROBE_MISSES misses in a row (the watcher restarts
-        it)."""
+        PROBE_EVERY_S; kill it once it is taken for hung (the module doc; the watcher
+        restarts it)."""
         await self._until_ready(w)
         misses = 0
+        answered_at = time.monotonic()
+        cpu = cpu_ticks(proc.pid)
         while True:
             if not misses:  # after a miss, ask again at once
                 await asyncio.sleep(PROBE_EVERY_S)
             answered = await self._answers(w)
             if self._stopping:  # the lab stops: its workers stop answering, on purpose
                 return
+            now, before, cpu = time.monotonic(), cpu, cpu_ticks(proc.pid)
             if answered:
-                misses = 0
-                w.ready, w.last_error = True, None
+                if misses:
+                    log.info("worker %d answers again after %.1f s", w.index,
+                             now - answered_at)
+                misses, answered_at = 0, now
                 continue
             misses += 1
-            w.ready = False
-            w.last_error = (f"worker {w.index} is not answering its health ({misses} "
-                            f"probe(s) of {PROBE_DEADLINE_S:g} s)")
-            log.warning("worker %d (pid %d): no health answer within %g s (%d in a row)",
-                        w.index, proc.pid, PROBE_DEADLINE_S, misses)
-            if misses >= PROBE_MISSES:
+            frozen = cpu is not None and cpu == before
+            silent = now - answered_at
+            log.warning("worker %d (pid %d): no health answer for %.1f s (%s)", w.index,
+                        proc.pid, silent, "no CPU used" if frozen else "it runs")
+            if (misses >= PROBE_MISSES and frozen) or silent >= SILENT_S:
                 w.hangs += 1
-                log.error("worker %d (pid %d) stopped answering: killing it to restart its "
-                          "arms (%s)", w.index, proc.pid, ", ".join(w.arms))
+                w.ready = False
+                log.error("worker %d (pid %d) hangs (%s): killing it to restart its arms "
+                          "(%s)", w.index, proc.pid, "stopped: no CPU used" if frozen else
+                          f"nothing answered for {silent:.0f} s", ", ".join(w.arms))
                 await self._kill(proc)
                 return
 
