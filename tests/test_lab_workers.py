@@ -366,3 +366,35 @@ def test_placement_follows_the_config_and_refuses_what_cannot_be(tmp_path: Path)
         config.write_text(f'[[arms]]\nprofile = "rbe3001"\nworker = {bad}\n')
         with pytest.raises(ConfigError, match="worker must be an integer 0..63"):
             plan_lab(make_settings(config=str(config)), 2)
+
+
+def test_a_slow_worker_is_not_a_hung_one() -> None:
+    """The supervisor's rule: unanswered probes are a hang only with no CPU used (stopped,
+    wholly deadlocked), or after SILENT_S of silence however busy it is; `cpu_ticks` tells a
+    running process from a stopped one (real processes: this one and a stopped child)."""
+    from app.lab.supervisor import PROBE_MISSES, SILENT_S, cpu_ticks, is_hung
+
+    assert not is_hung(1, True, 1.5)  # one miss: asked again at once
+    assert is_hung(PROBE_MISSES, True, 2.5)  # two, and frozen: SIGSTOP
+    assert not is_hung(PROBE_MISSES, False, 2.5)  # two, but it runs: slow, not hung
+    assert not is_hung(7, False, SILENT_S - 0.5)
+    assert is_hung(8, False, SILENT_S)  # its HTTP side stuck while it runs
+    mine = cpu_ticks(os.getpid())
+    assert mine is not None
+    deadline = time.monotonic() + 10  # burn CPU until the kernel counts a tick (10 ms)
+    while cpu_ticks(os.getpid()) == mine and time.monotonic() < deadline:
+        sum(range(10_000))
+    assert cpu_ticks(os.getpid()) != mine
+    child = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        os.kill(child.pid, signal.SIGSTOP)
+        wait_until(lambda: Path(f"/proc/{child.pid}/stat").read_text().rsplit(")", 1)[1]
+                   .split()[0] == "T", what="the child stopped")
+        stopped = cpu_ticks(child.pid)
+        assert stopped is not None
+        time.sleep(0.3)  # the window under test: a stopped process uses no CPU in it
+        assert cpu_ticks(child.pid) == stopped
+    finally:
+        child.kill()
+        child.wait()
+    assert cpu_ticks(child.pid) is None  # gone: unreadable

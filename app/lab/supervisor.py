@@ -79,6 +79,12 @@ def cpu_ticks(pid: int) -> int | None:
         return None
 
 
+def is_hung(misses: int, frozen: bool, silent_s: float) -> bool:
+    """After `misses` unanswered probes in a row, the last with no CPU used (`frozen`), and
+    `silent_s` s since the last answer: is the worker hung (see the module doc)?"""
+    return (misses >= PROBE_MISSES and frozen) or silent_s >= SILENT_S
+
+
 @dataclass
 class Worker:
     """One worker process and the front's connection pool to it."""
@@ -183,7 +189,7 @@ class Supervisor:
             silent = now - answered_at
             log.warning("worker %d (pid %d): no health answer for %.1f s (%s)", w.index,
                         proc.pid, silent, "no CPU used" if frozen else "it runs")
-            if (misses >= PROBE_MISSES and frozen) or silent >= SILENT_S:
+            if is_hung(misses, frozen, silent):
                 w.hangs += 1
                 w.ready = False
                 log.error("worker %d (pid %d) hangs (%s): killing it to restart its arms "
