@@ -42,7 +42,9 @@ def _detail(recs: Recordings, rec: Recording) -> s.RecordingDetail:
              "<name>`: `observation.state` and `action` of the arms in the order given (their "
              "joints, then the gripper where there is one), `observation.images.<camera>` per "
              "camera, `fps` frames a second. 404 `unknown_arm` / `not_found` (camera), 409 "
-             "`conflict` when the name is taken.",
+             "`conflict` when the name is taken; in a lab of worker processes, 409 "
+             "`different_workers` when its arms or cameras live on different workers (give "
+             "them one `worker = K` in the config).",
              responses=errors(401, 403, 404, 409, 422, 503))
 async def create(_: OperatorRole, request: Request,
                  body: s.RecordingCreate) -> s.RecordingDetail:

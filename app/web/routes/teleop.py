@@ -66,7 +66,10 @@ def sessions_of(request: Request) -> TeleopSessions:
     "as has a simulated one with `free_leader: true` (moved by PUT "
     "/api/v1/arms/{leader}/world/hand); "
     "409 `not_supported` where its device cannot. The session ends when another client's "
-    "lease holds the follower.",
+    "lease holds the follower. In a lab of worker processes (`armserver serve --workers`) the "
+    "session runs in the follower's worker and reads a leader on another worker over that "
+    "worker's telemetry socket (its latency includes the hop); 409 `not_supported` where "
+    "such a leader's torque would go off (`free_leader`, a real arm's default).",
     responses=errors(*DEVICE),
 )
 async def start_teleop(request: Request, req: s.TeleopStart, services: ServicesDep,
