@@ -35,6 +35,14 @@ a wait behind a poll or a collection from work of the goal's own. Figures: per h
 p99 and max of the wall time, the CPU time where a hop stays on one thread, and for the slowest
 goals which hop holds their excess over the median. On a shared machine the figures move from
 run to run: compare hops within a run, not runs.
+
+    python bench/goal_trace.py --light --root /tmp/v030 --n 300
+
+traces only the simulated link's bytes (the goal's WRITE and the polls after it), which works
+on another checkout's code too: here an export of 0.3.0 (`git archive ece2776 | tar -x -C
+/tmp/v030`). What it found (issue 23): the goals whose move showed a poll period late were
+those whose poll read the bus sooner than theta3's first tick after the write (`TICK_S`);
+docs/performance.md has the figures.
 """
 
 from __future__ import annotations
@@ -55,7 +63,14 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+# --root: another checkout's app (an export of 0.3.0, ece2776), traced with --light
+_root = sys.argv[sys.argv.index("--root") + 1] if "--root" in sys.argv else str(ROOT)
+sys.path.insert(0, _root)
+#: One tick of the simulated theta3 at its Profile Velocity (2 rad/s: 1,304 ticks/s): the
+#: simulated servo's first integration step of a velocity step goes half of v h, and Present
+#: Position rounds, so a poll's read sooner than this after the goal's write reads the position
+#: before it (app/arms/dynamixel/sim_motion.py; `--light` counts those).
+TICK_S = 1.0 / 1304.0
 
 PC = time.perf_counter
 CPU = time.thread_time
@@ -146,7 +161,7 @@ class Trace:
         self.polls: deque[tuple[str, float, float]] = deque(maxlen=2_000_000)
         self.gcs: list[tuple[int, float, float]] = []
         self._gc_start = 0.0
-        self.last_recv = (0.0, 0.0)
+        self.last_recv: tuple[float, float] | None = None
 
     def mark(self, name: str) -> None:
         g = self.cur
@@ -242,6 +257,25 @@ def install(trace: Trace) -> None:
     Driver._submit = _submit  # type: ignore[method-assign]
 
 
+def install_light(trace: Trace) -> None:
+    """Only the simulated link (the same module in 0.3.0 and now): the goal's WRITE to servo 3
+    and the SYNC_READ polls after it, by their bytes (Protocol 2.0: id at 4, instruction at
+    7, a WRITE's address at 8-9)."""
+    from app.links.sim import SimLink
+
+    write = SimLink.write
+
+    async def traced(self: Any, data: bytes) -> None:
+        g = trace.cur
+        if g is not None and len(data) > 10:
+            if data[4] == 3 and data[7] == 0x03 and int.from_bytes(data[8:10], "little") == 116:
+                trace.mark("write")
+            elif data[7] == 0x82 and "write" in g:
+                g.setdefault("polls", []).append(PC())
+        await write(self, data)
+    SimLink.write = traced  # type: ignore[method-assign]
+
+
 def wrap_angler(trace: Trace, svc: Any) -> None:
     """Instance wrappers on the running angler: its exchange and its hub's publish."""
     drv = svc.driver
@@ -287,7 +321,9 @@ def traced_app(trace: Trace, app: Any) -> Any:
             await app(scope, receive, send)
             return
         i = int(dict(scope["headers"]).get(b"x-goal", b"-1"))
-        g: dict[str, Any] = {"recv": (*trace.last_recv, threading.get_ident())}
+        g: dict[str, Any] = {}
+        if trace.last_recv is not None:
+            g["recv"] = (*trace.last_recv, threading.get_ident())
         trace.goals[i] = trace.cur = g
         trace.mark("asgi")
 
@@ -303,15 +339,22 @@ def run_server(args: argparse.Namespace) -> tuple[Trace, list[dict[str, Any]], f
     import uvicorn
 
     from app.cli import http_limits
-    from app.config.settings import Settings
-    from app.web.factory import create_app
-    from app.web.serving import ArmServer
+    from app.config import Settings
+    try:
+        from app.web.factory import create_app
+        from app.web.serving import ArmServer
+    except ImportError:  # 0.3.0's layout (--root)
+        from app.main import create_app  # type: ignore[no-redef]
+        from app.serving import ArmServer  # type: ignore[no-redef]
 
     cpus = sorted(os.sched_getaffinity(0))
     if len(cpus) >= 2:  # as make bench-peers: server on one core, load on another
         os.sched_setaffinity(0, {cpus[0]})
     trace = Trace()
-    install(trace)
+    if args.light:
+        install_light(trace)
+    else:
+        install(trace)
     gc.callbacks.append(trace.on_gc)
     settings = Settings()
     app = create_app(settings)
@@ -336,7 +379,8 @@ def run_server(args: argparse.Namespace) -> tuple[Trace, list[dict[str, Any]], f
         svc = app.state.services["angler"]
         while svc.driver.stale and time.monotonic() < deadline:
             time.sleep(0.1)
-        wrap_angler(trace, svc)
+        if not args.light:
+            wrap_angler(trace, svc)
         time.sleep(1.0)
         load.append(os.getloadavg()[0])
         cmd = [sys.executable, __file__, "--client", f"http://127.0.0.1:{port}", "--n",
@@ -417,17 +461,24 @@ def analyse(trace: Trace, client_recs: list[dict[str, Any]], load: float) -> dic
             "other_arms_polling_ms": round(overlaps([p for p in polls if p[0] != "angler"],
                                                     r["sent"], r["seen"]) * 1e3, 2),
         })
+    first_poll = [g["polls"][0] - r["write"] for r, _, _, g in rows
+                  if g.get("polls") and "write" in r]
+    early = sum(1 for dt in first_poll if dt < TICK_S)
     moved_at = [g.get("moved_polls") for _, _, _, g in rows]
     split = {}
     for k in sorted(set(moved_at), key=str):
         xs = [r["poll_write"] - r["write"] for r, _, _, g in rows
               if g.get("moved_polls") == k and "poll_write" in r and "write" in r]
-        split[str(k)] = [round(pct(xs, q) * 1e6) for q in (0, .1, .5, .9, 1.)]
+        if xs:
+            split[str(k)] = [round(pct(xs, q) * 1e6) for q in (0, .1, .5, .9, 1.)]
     return {
         "goals": len(rows), "load_average_1min": round(load, 2),
         "totals_ms": totals, "hops_us": hops,
         "moved_at_poll": {str(k): moved_at.count(k) for k in sorted(set(moved_at), key=str)},
         "write_to_poll_by_mode_us": split,
+        "first_poll_read_before_a_tick": f"{early} of {len(first_poll)}",
+        "write_to_first_poll_us": [round(pct(first_poll, q) * 1e6) for q in
+                                   (0, .01, .1, .5, .9, .99, 1.)] if first_poll else [],
         "queued_behind_poll": sum(1 for *_, g in rows if g.get("queued_behind_poll")),
         "gc_collections": {str(gen): sum(1 for g, _, _ in trace.gcs if g == gen)
                            for gen in (0, 1, 2)},
@@ -449,6 +500,9 @@ def show(fig: dict[str, Any]) -> None:
     print(f"  the move first seen at the n-th poll after the reply: {fig['moved_at_poll']}")
     print(f"  goal written -> the next poll's read written (min, p10, p50, p90, max us), by "
           f"the poll that saw the move: {fig['write_to_poll_by_mode_us']}")
+    print(f"  goal written -> the first poll's read written (min, p1, p10, p50, p90, p99, max "
+          f"us): {fig['write_to_first_poll_us']}; sooner than a tick of theta3's motion "
+          f"({TICK_S * 1e6:.0f} us): {fig['first_poll_read_before_a_tick']}")
     print(f"  goals queued behind a poll in progress: {fig['queued_behind_poll']}")
     print(f"  collections during the run, by generation: {fig['gc_collections']}")
     print(f"  slowest 1 %: the hop with the largest excess over its median: "
@@ -467,6 +521,10 @@ def main() -> None:
     ap.add_argument("--gap", type=float, nargs=2, default=(0.05, 0.1),
                     help="pause before each goal, s (default 0.05 0.1, as the harness)")
     ap.add_argument("--json", help="write the figures here too")
+    ap.add_argument("--light", action="store_true",
+                    help="trace only the simulated link's bytes (works on 0.3.0's code too)")
+    ap.add_argument("--root", help="import the app from this checkout (e.g. an export of "
+                    "ece2776, with --light)")
     ap.add_argument("--client", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.client:
