@@ -98,6 +98,8 @@ class ArmService:
         self.motion.start()
 
     async def close(self) -> None:
+        for task in list(self._grippers):  # a replay's gripper follower ends with the arm
+            task.cancel()
         await self.motion.close()
         await self.driver.close()
 
