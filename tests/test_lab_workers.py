@@ -362,6 +362,10 @@ def test_placement_follows_the_config_and_refuses_what_cannot_be(tmp_path: Path)
     assert plan.camera_worker == {"table-left": 0, "table-right": 1}
     with pytest.raises(ConfigError, match="names worker 1, but the server runs 1"):
         plan_lab(settings, 1)
+    # a simulated camera renders its source arm's world, in that arm's process
+    config.write_text(CONFIG.replace('source = "sim:right"', 'source = "sim:left"'))
+    with pytest.raises(ConfigError, match="camera 'table-right' renders arm 'left'"):
+        plan_lab(make_settings(config=str(config)), 2)
     for bad in ("-1", "true", '"0"', "64"):
         config.write_text(f'[[arms]]\nprofile = "rbe3001"\nworker = {bad}\n')
         with pytest.raises(ConfigError, match="worker must be an integer 0..63"):

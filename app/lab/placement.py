@@ -63,7 +63,8 @@ def lab_workers(settings: Settings, workers: int | None) -> int:
 
 def plan_lab(settings: Settings, workers: int) -> LabPlan:
     """Place the config's arms on `workers` processes (see the module doc). Raises ConfigError
-    for an arm placed on a worker that does not exist."""
+    for an arm placed on a worker that does not exist, and for a simulated camera whose arm
+    and the arm whose world it renders (`sim:<arm>`) are on different workers."""
     placed: dict[str, int] = {}
     profiles = load_arms(settings.config, placed)
     bins: list[list[ArmProfile]] = [[] for _ in range(workers)]
@@ -78,6 +79,15 @@ def plan_lab(settings: Settings, workers: int) -> LabPlan:
         if p.name not in placed:
             min(bins, key=len).append(p)
     order = {p.name: i for i, p in enumerate(profiles)}
-    return LabPlan(tuple(tuple(sorted(b, key=lambda p: order[p.name])) for b in bins),
+    plan = LabPlan(tuple(tuple(sorted(b, key=lambda p: order[p.name])) for b in bins),
                    tuple(p.name for p in profiles),
                    tuple(load_cameras(settings.config, profiles)))
+    worker_of = plan.worker_of
+    for cam in plan.cameras:
+        seen = cam.source[4:] if cam.kind == "sim" else cam.arm
+        if worker_of[seen] != worker_of[cam.arm]:
+            raise ConfigError(f"camera {cam.name!r} renders arm {seen!r}'s simulated world "
+                              f"(worker {worker_of[seen]}) but belongs to arm {cam.arm!r} "
+                              f"(worker {worker_of[cam.arm]}): a world and its cameras live "
+                              "in one process; give both arms the same `worker = K`")
+    return plan
