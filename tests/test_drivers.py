@@ -21,12 +21,20 @@ from app.device.factory import make_sim_device
 from app.errors import ArmError, CorruptReply, DeviceTimeout, LinkDown
 from app.links.serial import SerialLink
 from app.links.sim import SimLink
+from app.links.threaded import ThreadLink
 from app.sim.serve import serve_pty, serve_tcp
 from app.telemetry.hub import TelemetryHub
 from protocol import mx28
 from protocol import rbe3001 as rb
 
 DRIVERS = {"rbe3001": Rbe3001Driver, "angler": DynamixelDriver}
+
+@pytest.fixture(params=[SerialLink, ThreadLink], ids=["asyncio", "thread"])
+def serial_link(request):
+    """Each serial link: on the loop (pyserial-asyncio), and on a thread of its own (issue 27,
+    the default for a profile's serial link)."""
+    return request.param
+
 
 
 async def started(name: str, link, timeout: float = 5.0):
@@ -45,11 +53,11 @@ def sim_link(name: str, faults: FaultConfig | None = None, seed: int = 1) -> Sim
 # ------------------------------------------------------------------ real transports
 
 
-async def test_angler_over_a_real_pty(tmp_path):
+async def test_angler_over_a_real_pty(tmp_path, serial_link):
     device = make_sim_device(load_profile("angler"))
     path = tmp_path / "ttyDXL"
     server = await serve_pty(device, path)
-    driver = await started("angler", SerialLink(str(path)))
+    driver = await started("angler", serial_link(str(path)))
     try:
         pings = await driver.ping(None)
         assert [p[0] for p in pings] == [1, 2, 3, 4]
@@ -63,10 +71,10 @@ async def test_angler_over_a_real_pty(tmp_path):
         await server.close()
 
 
-async def test_angler_moves_over_socket_url():
+async def test_angler_moves_over_socket_url(serial_link):
     device = make_sim_device(load_profile("angler"))
     server = await serve_tcp(device)
-    driver = await started("angler", SerialLink(f"socket://127.0.0.1:{server.port}"))
+    driver = await started("angler", serial_link(f"socket://127.0.0.1:{server.port}"))
     try:
         target = np.array([0.01, -0.02, 0.3, 0.05])
         await driver.command_joints(target)
@@ -81,10 +89,10 @@ async def test_angler_moves_over_socket_url():
         await server.close()
 
 
-async def test_rbe3001_over_socket_url_with_stream_framing():
+async def test_rbe3001_over_socket_url_with_stream_framing(serial_link):
     device = make_sim_device(load_profile("rbe3001"))
     server = await serve_tcp(device)
-    driver = await started("rbe3001", SerialLink(f"socket://127.0.0.1:{server.port}"))
+    driver = await started("rbe3001", serial_link(f"socket://127.0.0.1:{server.port}"))
     try:
         status = await driver.status()
         assert isinstance(status, rb.StatusReply) and len(status.position_ticks) == 3
@@ -347,12 +355,12 @@ async def test_an_unencodable_request_fails_and_the_link_task_lives_on():
 
 
 @pytest.mark.parametrize("name", ["angler", "rbe3001"])
-async def test_faults_over_a_real_socket_fail_clearly_and_recover(name):
+async def test_faults_over_a_real_socket_fail_clearly_and_recover(name, serial_link):
     """The same faults, injected by the TCP simulator server: the driver reads real bytes
     through pyserial's socket:// transport, drops, corruption, and a pulled cable included."""
     device = make_sim_device(load_profile(name))
     server = await serve_tcp(device, faults=FaultConfig(reconnect_after_s=0.4), seed=3)
-    driver = await started(name, SerialLink(f"socket://127.0.0.1:{server.port}"))
+    driver = await started(name, serial_link(f"socket://127.0.0.1:{server.port}"))
     sub = driver.hub.subscribe()
     calls = _distinct_calls(driver) if name == "angler" else _rbe_calls(driver)
     try:

@@ -14,7 +14,7 @@ import pytest
 
 from app.arms.rbe3001.sim import Rbe3001Firmware
 from app.config import FaultConfig
-from app.links.base import LinkError, LinkState
+from app.links.base import Link, LinkError, LinkState
 from app.links.discovery import (
     DeviceInfo,
     format_devices,
@@ -25,10 +25,11 @@ from app.links.discovery import (
 from app.links.hid import HidLink, with_report_id
 from app.links.serial import SerialLink
 from app.links.sim import SimLink
+from app.links.threaded import ThreadLink
 from protocol.rbe3001 import SetGain, Status, StatusReply, decode_reply, encode_command
 
 
-async def read_n(link: SerialLink, n: int) -> bytes:
+async def read_n(link: Link, n: int) -> bytes:
     """Read until n bytes arrived (a stream may split them); bounded number of reads."""
     data = b""
     for _ in range(50):
@@ -36,6 +37,14 @@ async def read_n(link: SerialLink, n: int) -> bytes:
         if len(data) >= n:
             break
     return data
+
+
+@pytest.fixture(params=[SerialLink, ThreadLink], ids=["asyncio", "thread"])
+def serial_link(request: pytest.FixtureRequest) -> type[Link]:
+    """Each serial link: on the loop (pyserial-asyncio), and on a thread of its own (issue 27,
+    the default for a profile's serial link)."""
+    cls: type[Link] = request.param
+    return cls
 
 
 # --- serial over a pseudo-terminal -------------------------------------------------------
@@ -65,11 +74,12 @@ def pty_responder() -> Iterator[tuple[str, int]]:
         os.close(slave)  # kept open meanwhile so the master never sees EIO between clients
 
 
-async def test_serial_over_pty_write_read_timeout_reopen(tmp_path: Path) -> None:
+async def test_serial_over_pty_write_read_timeout_reopen(tmp_path: Path,
+                                                       serial_link: type[Link]) -> None:
     with pty_responder() as (path, _master):
         link_path = tmp_path / "ttyARM"
         link_path.symlink_to(path)  # pyserial opens a symlink to the pty just as well
-        link = SerialLink(str(link_path), baudrate=115200)
+        link = serial_link(str(link_path), baudrate=115200)
         assert link.state is LinkState.DOWN
         await link.open()
         assert link.state is LinkState.UP and link.kind == "serial" and not link.packetized
@@ -87,9 +97,9 @@ async def test_serial_over_pty_write_read_timeout_reopen(tmp_path: Path) -> None
         await link.close()
 
 
-async def test_serial_pty_peer_closing_is_link_error() -> None:
+async def test_serial_pty_peer_closing_is_link_error(serial_link: type[Link]) -> None:
     with pty_responder() as (path, master):
-        link = SerialLink(path)
+        link = serial_link(path)
         await link.open()
         asyncio.get_running_loop().remove_reader(master)
         os.close(master)  # the other end hangs up
@@ -101,8 +111,8 @@ async def test_serial_pty_peer_closing_is_link_error() -> None:
         await link.close()
 
 
-async def test_serial_open_failure_names_the_port() -> None:
-    link = SerialLink("/dev/does-not-exist-armserver")
+async def test_serial_open_failure_names_the_port(serial_link: type[Link]) -> None:
+    link = serial_link("/dev/does-not-exist-armserver")
     with pytest.raises(LinkError, match="cannot open /dev/does-not-exist-armserver"):
         await link.open()
     assert link.state is LinkState.DOWN
@@ -131,9 +141,9 @@ async def echo_server() -> AsyncIterator[int]:
         await server.wait_closed()
 
 
-async def test_serial_over_socket_url() -> None:
+async def test_serial_over_socket_url(serial_link: type[Link]) -> None:
     async with echo_server() as port:
-        link = SerialLink(f"socket://127.0.0.1:{port}")
+        link = serial_link(f"socket://127.0.0.1:{port}")
         await link.open()
         await link.write(bytes(range(64)))
         assert await read_n(link, 64) == bytes(range(64))

@@ -23,6 +23,7 @@ from app.config import FaultConfig, ForceConfig
 from app.errors import DeviceTimeout
 from app.links.serial import SerialLink
 from app.links.sim import SimLink
+from app.links.threaded import ThreadLink
 from app.service import ArmService
 from app.sim.serve import serve_pty, serve_tcp
 from app.telemetry.hub import TelemetryHub
@@ -30,6 +31,13 @@ from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
 from protocol import rbe3001 as rb
 
 API = "/api/v1"
+
+@pytest.fixture(params=[SerialLink, ThreadLink], ids=["asyncio", "thread"])
+def serial_link(request):
+    """Each serial link: on the loop (pyserial-asyncio), and on a thread of its own (issue 27,
+    the default for a profile's serial link)."""
+    return request.param
+
 
 
 async def _started(link, profile=None) -> Rbe3001Driver:
@@ -61,9 +69,9 @@ async def _exercise(driver: Rbe3001Driver) -> None:
 
 
 @pytest.mark.parametrize("echo", [False, True], ids=["zeroing", "echoing"])
-async def test_driver_over_a_socket_url_against_both_firmware_builds(echo):
+async def test_driver_over_a_socket_url_against_both_firmware_builds(echo, serial_link):
     server = await serve_tcp(Rbe3001Firmware(load_profile("rbe3001"), echo=echo))
-    driver = await _started(SerialLink(f"socket://127.0.0.1:{server.port}"))
+    driver = await _started(serial_link(f"socket://127.0.0.1:{server.port}"))
     try:
         await _exercise(driver)
     finally:
@@ -72,10 +80,10 @@ async def test_driver_over_a_socket_url_against_both_firmware_builds(echo):
 
 
 @pytest.mark.parametrize("echo", [False, True], ids=["zeroing", "echoing"])
-async def test_driver_over_a_pty_against_both_firmware_builds(echo, tmp_path):
+async def test_driver_over_a_pty_against_both_firmware_builds(echo, tmp_path, serial_link):
     path = tmp_path / "ttyRBE"
     server = await serve_pty(Rbe3001Firmware(load_profile("rbe3001"), echo=echo), path)
-    driver = await _started(SerialLink(str(path)))
+    driver = await _started(serial_link(str(path)))
     try:
         await _exercise(driver)
     finally:

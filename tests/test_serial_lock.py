@@ -10,15 +10,18 @@ import tty
 
 import pytest
 
-from app.links.base import LinkError, LinkState
+from app.links.base import Link, LinkError, LinkState
 from app.links.serial import SerialLink
+from app.links.threaded import ThreadLink
 
 
-async def test_a_second_link_on_a_held_port_is_refused_naming_the_holder() -> None:
+@pytest.mark.parametrize("serial_link", [SerialLink, ThreadLink], ids=["asyncio", "thread"])
+async def test_a_second_link_on_a_held_port_is_refused_naming_the_holder(
+        serial_link: type[Link]) -> None:
     master, slave = os.openpty()
     tty.setraw(master)
     path = os.ttyname(slave)
-    first, second = SerialLink(path), SerialLink(path)
+    first, second = serial_link(path), serial_link(path)
     try:
         await first.open()
         with pytest.raises(LinkError) as exc:

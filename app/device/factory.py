@@ -31,6 +31,10 @@ def make_link(profile: ArmProfile) -> Link:
 
         return HidLink(vid=cfg.vid, pid=cfg.pid, serial_number=cfg.serial_number,
                        address=cfg.address)
+    if cfg.io == "thread":
+        from app.links.threaded import ThreadLink
+
+        return ThreadLink(cfg.address, baudrate=cfg.baudrate)
     from app.links.serial import SerialLink
 
     return SerialLink(cfg.address, baudrate=cfg.baudrate)

@@ -20,6 +20,7 @@ import numpy as np
 
 from app.errors import ArmError, DeviceError, DeviceTimeout, LinkDown
 from app.links.base import Link, LinkError, LinkState
+from app.links.threaded import ThreadLink
 from app.runtime.tasks import resolve
 from app.telemetry.hub import TelemetryHub
 
@@ -42,6 +43,9 @@ POLL_EARLY_S = 0.001
 POLL_CATCH_UP = 10
 #: The shortest idle wait, s: uvloop's clock resolution (`_idle_until`); POLL_EARLY_S covers it.
 LOOP_TICK_S = 0.001
+#: Longest the owner task waits for the link's thread to hand over scheduled polls, s: only
+#: a thread that stopped answering makes it wait that long (app/links/threaded.py).
+SCHEDULE_WAIT_MAX_S = 1.0
 #: Consecutive failed polls before samples are marked stale and an event is sent.
 STALE_AFTER = 3
 
@@ -177,6 +181,9 @@ class OwnerTask:
                 req.future.set_exception(exc)
 
     async def _session(self) -> None:
+        if isinstance(self.link, ThreadLink):
+            await self._session_scheduled(self.link)
+            return
         period = 1.0 / self.profile.link.poll_hz
         loop = asyncio.get_running_loop()
         next_poll = loop.time()
@@ -204,6 +211,72 @@ class OwnerTask:
                 continue
             polled = False
             await self._serve(req)
+
+    async def _session_scheduled(self, link: ThreadLink) -> None:
+        """`_session` over a link with a thread of its own (app/links/threaded.py): while
+        nothing is queued and the last poll succeeded, the link's thread polls on the schedule
+        and the owner task waits; woken (a batch of replies, a reply that changed or failed, a
+        request), it pauses the thread (the poll in flight ends first), passes each reply read
+        ahead through the driver's poll, in order, then goes on as `_session` does."""
+        period = 1.0 / self.profile.link.poll_hz
+        loop = asyncio.get_running_loop()
+        next_poll = loop.time()
+        polled = False  # the last thing done was a poll
+        ok = False  # the last poll succeeded: the thread may poll on its own
+        try:
+            while True:
+                if link.prefetched:  # the thread's polls, older than anything done next
+                    while link.prefetched:
+                        ok = await self._do_poll(prefetched=True)
+                        if not ok:  # the driver resynchronises: the rest is input it drops
+                            link.drop_prefetched()
+                    polled = True
+                    next_poll = max(next_poll, link.next_slot)
+                    continue
+                now = loop.time()
+                due = now >= next_poll - POLL_EARLY_S
+                # as `_session`: a queued request goes between two polls, a poll a request
+                # asked for (`poll_after`) right after it
+                if not self._queue.empty() and not self._poll_now and (polled or not due):
+                    polled = False
+                    await self._serve(self._queue.get_nowait())
+                    continue
+                # a due poll with nothing queued after a good one: the thread makes it, at once
+                alone = ok and link.can_schedule  # the thread may poll on its own
+                if self._poll_now or (due and not (alone and self._queue.empty())):
+                    self._poll_now = False
+                    ok = await self._do_poll()
+                    polled = True
+                    if due:  # a poll a request asked for leaves the schedule as it was
+                        next_poll += period
+                        if next_poll < loop.time() - POLL_CATCH_UP * period:  # far behind
+                            next_poll = loop.time() + period
+                    continue
+                if alone:
+                    await self._idle_scheduled(loop, link, next_poll, period)
+                    next_poll = max(next_poll, link.next_slot)
+                else:  # after a failed poll the driver polls itself (its quiet wait first)
+                    await self._idle_until(loop, next_poll - POLL_EARLY_S)
+        finally:
+            await link.pause()
+
+    async def _idle_scheduled(self, loop: asyncio.AbstractEventLoop, link: ThreadLink,
+                              slot: float, period: float) -> None:
+        """Let the link's thread poll from `slot` while the owner task waits for its replies
+        or a request (`_wake_owner`); the schedule is paused again before this returns."""
+        fut = loop.create_future()
+        self._idle = fut  # before the thread may wake it
+        if not link.arm(slot, period, self._wake_owner):
+            timer = loop.call_at(max(slot - POLL_EARLY_S, loop.time() + LOOP_TICK_S),
+                                 resolve, fut)
+        else:  # the thread wakes it; the timer only bounds a thread that stopped answering
+            timer = loop.call_at(loop.time() + SCHEDULE_WAIT_MAX_S, resolve, fut)
+        try:
+            await fut
+        finally:
+            self._idle = None
+            timer.cancel()
+            await link.pause()
 
     async def _idle_until(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
         """Wait for a request or loop time `when`, whichever is first: one bare future and one
@@ -284,8 +357,13 @@ class OwnerTask:
             if loop.time() < until and self._queue.empty():
                 await self._idle_until(loop, until)
 
-    async def _do_poll(self) -> None:
+    async def _do_poll(self, prefetched: bool = False) -> bool:
+        """One poll and its sample (or its failure counted); True if it succeeded.
+        `prefetched`: the reply is the one the link's thread read ahead on the schedule."""
         self.stats["polls"] += 1
+        sched = self.link if isinstance(self.link, ThreadLink) else None
+        if sched is not None:
+            sched.begin_poll(prefetched)
         try:
             q, qd, tau = await self._poll()
         except LinkError:
@@ -305,7 +383,7 @@ class OwnerTask:
                 log.warning("%s: device not answering polls: %s", self.name, exc.detail)
                 self.hub.event("device_stale", reason=exc.detail, code=exc.code)
                 self._publish_stale()
-            return
+            return False
         if self._poll_failures >= STALE_AFTER:
             log.info("%s: device answering again", self.name)
             self.hub.event("device_back")
@@ -314,11 +392,15 @@ class OwnerTask:
         self.stale_error = None
         self.positions, self.velocities = q, qd
         self.torques_raw = tau
-        self._publish(q, qd, self._tared(tau, q), stale=False)
+        at = sched.reply_time if sched is not None else None
+        self._publish(q, qd, self._tared(tau, q), stale=False, at=at)
+        return True
 
     # ------------------------------------------------------------ samples
 
-    def _publish(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray | None, stale: bool) -> None:
+    def _publish(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray | None, stale: bool,
+                 at: float | None = None) -> None:
+        """Publish one sample; `at`: when its reading was taken (`time.time()`), if not now."""
         self._seq += 1
         positions = q.tolist()
         velocities = qd.tolist()
@@ -344,7 +426,7 @@ class OwnerTask:
             self._derived_key, self._derived = key, (tip, tip_v, force)
         sample: dict[str, Any] = {
             "seq": self._seq,
-            "time": time.time(),
+            "time": time.time() if at is None else at,
             "positions": positions,
             "velocities": velocities,
             "torques": torques,

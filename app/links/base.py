@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import abc
 import enum
+import time
+from dataclasses import dataclass
 
 
 class LinkState(enum.StrEnum):
@@ -19,6 +21,20 @@ class LinkState(enum.StrEnum):
 
 class LinkError(Exception):
     """The transport failed (cannot open, lost, closed). The link is DOWN afterwards."""
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    """What `Link.transact` read after writing its request."""
+
+    #: The bytes that arrived (b"": none yet). Fewer than asked for: the reply was not
+    #: complete by `deadline`; the caller may read on (`read`) for the rest or a late reply.
+    data: bytes
+    #: `time.monotonic()` (asyncio's `loop.time()`) by which the reply was due.
+    deadline: float
+    #: `time.time()` when the reply was complete, where the link read it on a thread of its
+    #: own ahead of the caller (a scheduled poll's, app/links/threaded.py); else None.
+    at: float | None = None
 
 
 class Link(abc.ABC):
@@ -49,6 +65,16 @@ class Link(abc.ABC):
     async def read(self, timeout: float) -> bytes:
         """Bytes received (one packet if packetised), or b"" after `timeout` seconds of
         silence; raise LinkError if the link is lost."""
+
+    async def transact(self, packet: bytes, reply_size: int, timeout: float) -> Reply:
+        """Write `packet` and read its reply: at most `timeout` s for `reply_size` bytes (a
+        stream link may return more, a packetised link one packet). This base writes and
+        returns no bytes (`Reply(b"", deadline)`): the caller reads the reply with `read`, as
+        the asyncio links are read. A link with a thread of its own (app/links/threaded.py)
+        does both in one blocking call on that thread."""
+        deadline = time.monotonic() + timeout
+        await self.write(packet)
+        return Reply(b"", deadline)
 
     @abc.abstractmethod
     async def close(self) -> None:

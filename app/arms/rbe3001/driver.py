@@ -190,12 +190,15 @@ class Rbe3001Driver(Driver):
             await self._drain()
         packet = self._matcher.request(message)
         name = _command_name(message)
-        await self.link.write(packet)
+        # one call where the link can (a link with its own thread: the reply read with the
+        # write, or read ahead on the poll schedule); else the write, and the reads below
+        sent = await self.link.transact(packet, rb.PACKET_SIZE, timeout)
+        self._take(sent.data)
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout
+        deadline = loop.time() + (sent.deadline - time.monotonic())
         while True:
             left = deadline - loop.time()
-            if left <= 0:
+            if left <= 0 and not self._ready:
                 self._matcher.cancel()
                 self._dirty = True
                 if isinstance(message, rb.SetGain | rb.SetClaw):  # no return values: sent
@@ -231,13 +234,19 @@ class Rbe3001Driver(Driver):
     async def _next_frame(self, timeout: float) -> bytes | None:
         if self._ready:  # a byte stream may carry several packets in one read
             return self._ready.popleft()
-        data = await self.link.read(timeout)
-        if not data:
-            return None
-        if self.link.packetized:
-            return self._frames.feed_report(data)
-        self._ready.extend(self._frames.feed(data))
+        self._take(await self.link.read(timeout))
         return self._ready.popleft() if self._ready else None
+
+    def _take(self, data: bytes) -> None:
+        """Bytes read: the whole packets in them, ready in order."""
+        if not data:
+            return
+        if self.link.packetized:
+            frame = self._frames.feed_report(data)
+            if frame is not None:
+                self._ready.append(frame)
+        else:
+            self._ready.extend(self._frames.feed(data))
 
     def _check_jump(self, q: np.ndarray) -> None:
         """With no checksum, one changed byte in a reading can stay plausible (a soak caught

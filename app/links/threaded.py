@@ -1,0 +1,469 @@
+"""A byte-stream link (any pyserial URL) whose I/O runs on a thread of its own (issue 27).
+
+Each request and its reply are one blocking call on that thread (`transact`: write, then read
+until the reply's bytes have come or its timeout has passed), as the HID link's hidapi calls
+are (app/links/hid.py): the owner task awaits one future where an asyncio link costs it a
+write, a read, a timer and the loop's wake-ups for each. And while the owner task has nothing
+else to do, the thread runs the owner's poll itself on the poll schedule (`arm`): it writes
+the poll request the owner task last made at each slot, reads the reply, and keeps it
+(`prefetched`); the owner task is woken for them together (one `call_soon_threadsafe` for a
+batch) and passes each through its driver as if it had made the poll itself (`begin_poll`):
+the same sans-IO parsing, matching and checks, in the same order.
+
+What the owner task relies on (app/device/owner.py `_session_scheduled`, tested in
+tests/test_link_thread.py):
+- The thread polls on its own only while the owner task waits: every call the owner task
+  makes (`transact`, `read`, `write`) first pauses the schedule and waits for the poll in
+  flight, so a request waits behind at most one poll and no byte of one exchange is read by
+  another.
+- The owner task is woken at once for a reply that differs from the one before (an arm that
+  moves, a fault), for one that did not come whole within its timeout (and the thread stops
+  polling: the driver resynchronises as it does on any link, with its quiet wait, before
+  anything is written again) and for a request; replies that repeat (an arm at rest) wait at
+  most BATCH_S on the thread and carry the time they were read (`Reply.at`).
+- A reply is taken for the owner's poll only if the owner task asks for the same request
+  bytes; otherwise the thread's replies are dropped (they answer requests the driver never
+  made).
+
+pyserial's port is opened as `app/links/serial.py` opens it (`serial_for_url`, exclusive);
+where it has a file descriptor (a tty, a pseudo-terminal, `socket://`) the thread writes and
+reads it with `os.write`, `poll` and `os.read` (pyserial's own `read` asks `select` again and
+builds a Timeout object per call), else with pyserial's `write` and `read` with a timeout.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import queue
+import select
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+from app.links.base import Link, LinkError, LinkState, Reply
+from app.runtime.tasks import resolve
+
+log = logging.getLogger(__name__)
+
+READ_CHUNK = 4096  # bytes per read: several Dynamixel status packets, far above one reply
+CLOSE_TIMEOUT_S = 1.0  # closing must not hang the owner task on a thread stuck in a call
+#: Longest a scheduled poll's reply waits on the thread before the owner task is woken for it,
+#: s: replies that repeat (an arm at rest) reach the owner task in batches this far apart at
+#: most; a reply that differs, one that failed and a request wake it at once.
+BATCH_S = 0.01
+#: Replies the thread keeps for the owner task at most; then it stops polling on its own (a
+#: stalled control loop gets no backlog to catch up on, as POLL_CATCH_UP bounds it).
+MAX_PREFETCHED = 64
+#: Periods a schedule may fall behind (a stalled machine) before it skips ahead, as the owner
+#: task's POLL_CATCH_UP.
+CATCH_UP = 10
+#: Longest wait for a full transmit buffer to take a request, s: then the link is lost.
+WRITE_WAIT_S = 1.0
+
+_NUDGE = object()  # a job that only wakes the thread (the schedule changed)
+_STOP = object()  # close the port and end the thread
+
+
+class _Lost(Exception):
+    """Raised on the thread: the transport failed; the loop side marks the link DOWN."""
+
+
+class ThreadLink(Link):
+    """A stream link (`read` returns whatever bytes have arrived) served by one thread."""
+
+    kind = "serial"
+    packetized = False
+
+    def __init__(self, address: str, baudrate: int = 1_000_000) -> None:
+        super().__init__(address)
+        self.baudrate = baudrate
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._ended: asyncio.Future[None] | None = None  # resolved as the thread ends
+        self._jobs: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        # on the thread only, once open
+        self._port: Any = None
+        self._fd: int | None = None
+        self._poller: Any = None
+        #: Bytes a call read for a caller that gave up (cancelled): read first, never lost.
+        self._stash = bytearray()
+        # the schedule: shared with the thread, under _lock
+        self._lock = threading.Lock()
+        self._armed = False
+        self._in_flight = False
+        self._slot = 0.0
+        self._period = 0.0
+        self._notify: Callable[[], None] | None = None
+        self._paused: asyncio.Future[None] | None = None
+        self._prefetched: deque[tuple[bytes, Reply | BaseException]] = deque()
+        self._last_data = b""
+        self._batch_since = 0.0
+        #: The owner's poll request (bytes, reply size, timeout), from its last poll.
+        self._poll: tuple[bytes, int, float] | None = None
+        #: Every reply whole by its timeout since the last poll's (the thread may poll alone).
+        self._clean = False
+        # the owner's current poll (loop side)
+        self._poll_next = False
+        self._use_prefetched = False
+        #: `time.time()` when the reply handed to the current poll was read, where the thread
+        #: read it ahead (None: just now).
+        self.reply_time: float | None = None
+        #: Scheduled polls made on the thread, and those of them dropped unused.
+        self.stats = {"scheduled": 0, "dropped": 0, "wakes": 0}
+
+    # ------------------------------------------------------------ the Link contract
+
+    async def open(self) -> None:
+        """Open the port on a new thread; LinkError naming the URL and the reason."""
+        await self.close()
+        self.state = LinkState.CONNECTING
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        self._jobs = queue.SimpleQueue()
+        self._stash.clear()
+        with self._lock:
+            self._armed = False
+            self._in_flight = False
+            self._prefetched.clear()
+        self._poll = None
+        self._clean = False
+        self._last_data = b""
+        self._ended = loop.create_future()
+        self._thread = threading.Thread(target=self._main, args=(loop, self._ended),
+                                        name=f"link {self.address}", daemon=True)
+        self._thread.start()
+        fut: asyncio.Future[Any] = loop.create_future()
+        self._jobs.put((self._open_blocking, (), fut))
+        try:
+            await fut
+        except (OSError, ValueError, _Lost) as exc:
+            await self._stop_thread()
+            from app.links.serial import lock_holder
+
+            holder = lock_holder(self.address) if "lock" in str(exc) else None
+            if holder is not None:
+                raise self._down(f"cannot open {self.address}: it is in use by {holder}; a "
+                                 "port is driven by one server at a time") from exc
+            raise self._down(f"cannot open {self.address}: {exc}") from exc
+        self.state = LinkState.UP
+        self.last_error = None
+        log.info("serial link %s open at %d baud (on its own thread)", self.address,
+                 self.baudrate)
+
+    async def write(self, data: bytes) -> None:
+        await self._call(self._write_all, bytes(data))
+
+    async def read(self, timeout: float) -> bytes:
+        if self._stash:
+            data = bytes(self._stash[:READ_CHUNK])
+            del self._stash[:READ_CHUNK]
+            return data
+        result: bytes = await self._call(self._read_some, timeout)
+        return result
+
+    async def transact(self, packet: bytes, reply_size: int, timeout: float) -> Reply:
+        """Write `packet` and read until `reply_size` bytes or `timeout`, in one call on the
+        thread; for the owner's poll (`begin_poll`), the reply the thread read ahead."""
+        if self._poll_next:
+            if self._use_prefetched:
+                self._use_prefetched = False
+                with self._lock:
+                    head = self._prefetched.popleft() if (
+                        self._prefetched and self._prefetched[0][0] == packet) else None
+                if head is not None:
+                    self._poll_next = False
+                    entry = head[1]
+                    if isinstance(entry, BaseException):
+                        raise self._lost(str(entry))
+                    self.reply_time = entry.at
+                    return entry
+                self.drop_prefetched()  # another request: the thread's replies are no answer
+            self._poll = (bytes(packet), reply_size, timeout)
+        polling, self._poll_next = self._poll_next, False
+        try:
+            reply: Reply = await self._call(self._transact, bytes(packet), reply_size, timeout,
+                                            False)
+        except BaseException:
+            self._clean = False
+            raise
+        if len(reply.data) < reply_size:
+            self._clean = False  # its reply may still come: the driver's quiet wait is next
+        elif polling:
+            self._clean = True
+        if self._stash:  # bytes read for a cancelled call came first on the wire
+            reply = Reply(bytes(self._stash) + reply.data, reply.deadline, reply.at)
+            self._stash.clear()
+        return reply
+
+    async def close(self) -> None:
+        self.state = LinkState.DOWN
+        with self._lock:
+            self._armed = False
+            self._prefetched.clear()
+        await self._stop_thread()
+
+    # ------------------------------------------------------------ the owner's schedule
+
+    def begin_poll(self, prefetched: bool) -> None:
+        """The owner task's next `transact` is its poll: answered from the replies the thread
+        read ahead if `prefetched` (the first of them, if it answers the same request), else
+        made now and kept as the request `arm` repeats."""
+        self._poll_next = True
+        self._use_prefetched = prefetched
+        self.reply_time = None
+
+    @property
+    def prefetched(self) -> int:
+        """Replies the thread read ahead that the owner task has not taken yet."""
+        return len(self._prefetched)
+
+    @property
+    def can_schedule(self) -> bool:
+        """`arm` would poll: a poll request is known and the last exchange ended clean (every
+        reply whole by its timeout, the last poll's among them)."""
+        return self._clean and self._poll is not None and self.state is LinkState.UP
+
+    @property
+    def next_slot(self) -> float:
+        """The schedule's next slot (`time.monotonic()`), once paused."""
+        return self._slot
+
+    def arm(self, slot: float, period: float, notify: Callable[[], None]) -> bool:
+        """Poll on the thread from `slot` (`time.monotonic()`) every `period` s with the last
+        poll request, calling `notify` (from the thread) when the owner task should take the
+        replies; False (nothing armed) before a poll request is known."""
+        if not self.can_schedule or self._thread is None:
+            return False
+        with self._lock:
+            self._armed = True
+            self._slot, self._period, self._notify = slot, period, notify
+            self._batch_since = time.monotonic()
+        self._jobs.put(_NUDGE)
+        return True
+
+    async def pause(self) -> None:
+        """Stop the schedule; return once no scheduled poll is in flight."""
+        loop = asyncio.get_running_loop()
+        with self._lock:
+            self._armed = False
+            if not self._in_flight:
+                return
+            fut = self._paused = loop.create_future()
+        await fut
+
+    def drop_prefetched(self) -> None:
+        """Forget the replies read ahead (after a failed poll: the driver's quiet wait would
+        have discarded them as input it did not ask for)."""
+        with self._lock:
+            self.stats["dropped"] += len(self._prefetched)
+            self._prefetched.clear()
+
+    # ------------------------------------------------------------ loop side
+
+    async def _call(self, fn: Callable[..., Any], *args: Any) -> Any:
+        if self._thread is None or self.state is not LinkState.UP or self._loop is None:
+            raise LinkError(self.last_error or f"serial link {self.address} is not open")
+        if self._armed or self._in_flight:
+            await self.pause()
+        fut = self._loop.create_future()
+        self._jobs.put((fn, args, fut))
+        try:
+            return await fut
+        except (OSError, _Lost) as exc:
+            raise self._lost(str(exc)) from exc
+
+    def _settle(self, fut: asyncio.Future[Any], result: Any, exc: BaseException | None) -> None:
+        """A job's outcome, on the loop. A caller that gave up leaves its bytes to the next."""
+        if fut.done():
+            if isinstance(result, bytes):
+                self._stash += result
+            elif isinstance(result, Reply):
+                self._stash += result.data
+            return
+        if exc is not None:
+            fut.set_exception(exc)
+        else:
+            fut.set_result(result)
+
+    def _lost(self, reason: str) -> LinkError:
+        """Mark the link DOWN and end its thread (which closes the port)."""
+        with self._lock:
+            self._armed = False
+        if self._thread is not None:
+            self._jobs.put(_STOP)
+        log.warning("serial link %s lost: %s", self.address, reason)
+        return self._down(f"serial link {self.address} lost: {reason}")
+
+    async def _stop_thread(self) -> None:
+        thread, ended = self._thread, self._ended
+        self._thread = None
+        if thread is None or ended is None:
+            return
+        self._jobs.put(_STOP)
+        if not ended.done():
+            try:
+                async with asyncio.timeout(CLOSE_TIMEOUT_S):
+                    await asyncio.shield(ended)
+            except TimeoutError:
+                log.debug("serial link %s: its thread did not end within %.1f s",
+                          self.address, CLOSE_TIMEOUT_S)
+
+    # ------------------------------------------------------------ the thread
+
+    def _main(self, loop: asyncio.AbstractEventLoop, ended: asyncio.Future[None]) -> None:
+        jobs = self._jobs
+        try:
+            while True:
+                with self._lock:
+                    wait = self._slot - time.monotonic() if self._armed else None
+                try:
+                    if wait is None:
+                        job = jobs.get()
+                    elif wait > 0:
+                        job = jobs.get(timeout=wait)
+                    else:
+                        job = jobs.get_nowait()
+                except queue.Empty:
+                    self._scheduled_poll(loop)
+                    continue
+                if job is _STOP:
+                    return
+                if job is _NUDGE:
+                    continue
+                fn, args, fut = job
+                result: Any = None
+                error: BaseException | None = None
+                try:
+                    result = fn(*args)
+                except Exception as exc:  # noqa: BLE001 - delivered to the caller, who raises it
+                    error = exc
+                loop.call_soon_threadsafe(self._settle, fut, result, error)
+        except RuntimeError:  # the loop is closed: nobody is left to answer
+            pass
+        finally:
+            self._close_port()
+            try:
+                loop.call_soon_threadsafe(resolve, ended)
+            except RuntimeError:
+                pass
+
+    def _scheduled_poll(self, loop: asyncio.AbstractEventLoop) -> None:
+        with self._lock:
+            if not self._armed or self._poll is None or self._slot > time.monotonic():
+                return
+            self._in_flight = True
+            packet, size, timeout = self._poll
+        entry: Reply | BaseException
+        try:
+            entry = self._transact(packet, size, timeout, True)
+        except (OSError, _Lost) as exc:
+            entry = exc
+        now = time.monotonic()
+        with self._lock:
+            self._in_flight = False
+            paused, self._paused = self._paused, None
+            self._prefetched.append((packet, entry))
+            self.stats["scheduled"] += 1
+            period = self._period
+            self._slot += period
+            if self._slot < now - CATCH_UP * period:  # far behind: skip ahead
+                self._slot = now + period
+            failed = not isinstance(entry, Reply) or len(entry.data) != size
+            if failed:
+                self._clean = False
+            if failed or len(self._prefetched) >= MAX_PREFETCHED:
+                self._armed = False  # the owner task takes it from here
+            data = entry.data if isinstance(entry, Reply) else b""
+            wake = (failed or not self._armed or data != self._last_data
+                    or now - self._batch_since >= BATCH_S)
+            self._last_data = data
+            if wake:
+                self._batch_since = now
+            notify = self._notify
+        if paused is not None:
+            loop.call_soon_threadsafe(resolve, paused)
+        if wake and notify is not None:
+            self.stats["wakes"] += 1
+            notify()
+
+    def _open_blocking(self) -> None:
+        import serial
+
+        # Exclusive (flock): a second server on the same port would break this one's link
+        # mid-move; it is refused instead, told who holds the port.
+        try:
+            port = serial.serial_for_url(self.address, baudrate=self.baudrate, exclusive=True)
+        except serial.SerialException as exc:
+            raise _Lost(str(exc)) from exc
+        try:
+            fd = port.fileno()
+        except (AttributeError, NotImplementedError, OSError, ValueError,
+                serial.SerialException):
+            fd = None
+        self._port, self._fd = port, fd
+        if fd is not None:
+            self._poller = select.poll()
+            self._poller.register(fd, select.POLLIN)
+
+    def _close_port(self) -> None:
+        port, self._port, self._fd, self._poller = self._port, None, None, None
+        if port is not None:
+            try:
+                port.close()
+            except Exception as exc:  # noqa: BLE001 - a lost port: nothing left to do
+                log.debug("serial link %s closed with %r", self.address, exc)
+
+    def _transact(self, packet: bytes, size: int, timeout: float, stamp: bool) -> Reply:
+        deadline = time.monotonic() + timeout
+        self._write_all(packet)
+        data = b""
+        while len(data) < size:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            chunk = self._read_some(left)
+            if not chunk:
+                break
+            data += chunk
+        return Reply(data, deadline, time.time() if stamp else None)
+
+    def _write_all(self, data: bytes) -> None:
+        fd = self._fd
+        if fd is None:
+            if self._port is None:
+                raise _Lost("closed")
+            self._port.write(data)
+            return
+        view = memoryview(data)
+        while view:
+            try:
+                view = view[os.write(fd, view):]
+            except BlockingIOError:
+                pass
+            if view and not select.select([], [fd], [], WRITE_WAIT_S)[1]:
+                raise _Lost(f"the port took no bytes for {WRITE_WAIT_S:.0f} s")
+
+    def _read_some(self, timeout: float) -> bytes:
+        """What arrives within `timeout` s (up to READ_CHUNK bytes), b"" if nothing."""
+        fd, poller = self._fd, self._poller
+        if fd is None or poller is None:
+            port = self._port
+            if port is None:
+                raise _Lost("closed")
+            port.timeout = timeout
+            first: bytes = port.read(1)
+            waiting = port.in_waiting if first else 0
+            return first + (port.read(min(waiting, READ_CHUNK - 1)) if waiting else b"")
+        if not poller.poll(max(0.0, timeout) * 1000.0):
+            return b""
+        try:
+            data = os.read(fd, READ_CHUNK)
+        except BlockingIOError:
+            return b""
+        if not data:
+            raise _Lost("closed by the peer (end of file)")
+        return data

@@ -1,0 +1,239 @@
+"""The serial link on a thread of its own (issue 27, app/links/threaded.py): a request and its
+reply in one call on the link's thread, the owner's poll run there on the schedule while the
+owner task waits, replies handed over in batches. Over a real loopback socket (pyserial's
+socket://) and a pseudo-terminal, against the simulators; nothing of our own code is mocked.
+
+The guarantees of the asyncio link hold (tests/test_links.py, test_drivers.py,
+test_rbe3001_hardware.py, test_serial_lock.py run every serial test on both links); these
+tests show what is the thread's own: the polls are the thread's, no sample is lost or out of
+order, a request goes between polls, a silent device goes stale and comes back, a late reply
+answers nothing, and bytes read for a caller that gave up are not lost."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+from collections.abc import AsyncIterator
+
+import numpy as np
+import pytest
+from _wait import wait_for
+
+from app.arms.dynamixel.driver import DynamixelDriver
+from app.arms.loading import load_profile
+from app.arms.rbe3001.driver import Rbe3001Driver
+from app.arms.rbe3001.sim import Rbe3001Firmware
+from app.config import FaultConfig
+from app.device.driver import Driver
+from app.device.factory import make_link, make_sim_device
+from app.errors import DeviceTimeout
+from app.links.base import LinkError, LinkState
+from app.links.serial import SerialLink
+from app.links.threaded import ThreadLink
+from app.sim.serve import serve_pty, serve_tcp
+from app.telemetry.hub import TelemetryHub
+from protocol import mx28
+from protocol import rbe3001 as rb
+
+DRIVERS = {"rbe3001": Rbe3001Driver, "angler": DynamixelDriver}
+
+
+@contextlib.asynccontextmanager
+async def arm(name: str, device=None, **faults) -> AsyncIterator[tuple[Driver, ThreadLink, object]]:
+    """A driver over a ThreadLink to `device` (default: the arm type's simulator) served on a
+    loopback socket."""
+    profile = load_profile(name)
+    device = device or make_sim_device(profile)
+    server = await serve_tcp(device, faults=FaultConfig(**faults) if faults else None)
+    link = ThreadLink(f"socket://127.0.0.1:{server.port}")
+    driver = DRIVERS[name](profile, link, TelemetryHub(name))
+    await driver.start()
+    try:
+        assert await driver.wait_connected(10.0), f"never connected: {link.last_error}"
+        yield driver, link, server
+    finally:
+        await driver.close()
+        await server.close()
+
+
+def _samples(sub) -> list[dict]:
+    samples, _events, dropped = sub.take()
+    assert dropped == 0
+    return [json.loads(s) for s in samples]
+
+
+def test_a_profile_serial_link_runs_on_its_own_thread_unless_told_otherwise():
+    base = load_profile("rbe3001").model_dump()
+    base["link"].update(kind="serial", address="socket://127.0.0.1:9")
+    from app.arms.loading import check_profile
+
+    assert isinstance(make_link(check_profile(base)), ThreadLink)
+    base["link"]["io"] = "asyncio"
+    assert type(make_link(check_profile(base))) is SerialLink
+
+
+@pytest.mark.parametrize("name", ["rbe3001", "angler"])
+async def test_the_thread_polls_on_the_schedule_and_every_sample_is_published(name):
+    async with arm(name) as (driver, link, _server):
+        sub = driver.hub.subscribe()
+        try:
+            scheduled0, polls0 = link.stats["scheduled"], driver.stats["polls"]
+            seq0 = driver.hub.latest["seq"]
+            await wait_for(lambda: driver.hub.latest["seq"] > seq0 + 100, what="samples")
+            samples = _samples(sub)
+            seqs = [s["seq"] for s in samples]
+            assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # none lost, in order
+            times = [s["time"] for s in samples]
+            assert all(b > a for a, b in zip(times, times[1:], strict=False))  # read times
+            assert not any(s["stale"] for s in samples)
+            polls = driver.stats["polls"] - polls0
+            # the thread made the polls; the owner task made only the ones after a wake-up
+            assert link.stats["scheduled"] - scheduled0 > polls // 2
+            assert driver.stats["poll_failures"] == 0 and link.stats["dropped"] == 0
+        finally:
+            sub.close()
+
+
+async def test_a_moving_arm_is_published_as_it_moves_and_requests_go_between_polls():
+    async with arm("rbe3001") as (driver, link, _server):
+        for k in range(20):  # requests while the thread polls: each answered, in turn
+            assert isinstance(await driver.status(), rb.StatusReply)
+            await driver.set_pid([(10.0 * k, 0, 0), (0.0, 0, 0), (0.0, 0, 0)])
+        await driver.set_pid([(400.0, 0, 0), (300.0, 0, 0), (100.0, 0, 0)])
+        sub = driver.hub.subscribe()
+        try:
+            async def there() -> bool:
+                return bool(np.allclose((await driver.status()).position_ticks,
+                                        [400, 300, 100], atol=15))
+
+            with contextlib.suppress(AssertionError):  # judged below, with the numbers
+                await wait_for(there, every=0.05)
+            np.testing.assert_allclose((await driver.status()).position_ticks, [400, 300, 100],
+                                       atol=15)
+            scheduled = link.stats["scheduled"]
+            await wait_for(lambda: link.stats["scheduled"] > scheduled + 20,
+                           what="the thread polling again after the requests")
+            samples = _samples(sub)
+            base = [s["positions"][0] for s in samples]
+            assert base[-1] > base[0]  # the move, sample by sample as it was read
+            assert driver.stats["corrupt"] == 0 and driver.stats["poll_failures"] == 0
+        finally:
+            sub.close()
+
+
+async def test_the_angler_register_write_is_read_back_by_the_poll_after_it():
+    async with arm("angler") as (driver, link, _server):
+        await driver.write_register(3, mx28.TABLE["led"], 1)
+        assert await driver.read_register(3, mx28.TABLE["led"]) == 1
+        pings = await driver.ping(None)
+        assert [p[0] for p in pings] == [1, 2, 3, 4]
+        target = np.array([0.01, -0.02, 0.3, 0.05])
+        await driver.command_joints(target)
+        with contextlib.suppress(AssertionError):
+            await wait_for(lambda: np.allclose(driver.positions, target, atol=2e-3))
+        np.testing.assert_allclose(driver.positions, target, atol=2e-3)
+        assert link.stats["scheduled"] > 0
+
+
+async def test_a_silent_device_goes_stale_and_the_thread_polls_again_once_it_answers():
+    async with arm("rbe3001") as (driver, link, server):
+        sub = driver.hub.subscribe()
+        try:
+            server.set_faults(FaultConfig(drop=1.0))
+            await wait_for(lambda: driver.stale, what="stale samples")
+            assert isinstance(driver.stale_error, DeviceTimeout)
+            server.set_faults(FaultConfig())
+            await wait_for(lambda: not driver.stale, what="the device answering again")
+            scheduled = link.stats["scheduled"]
+            await wait_for(lambda: link.stats["scheduled"] > scheduled + 20,
+                           what="the thread polling again")
+            _, events, _ = sub.take()
+            assert any('"device_stale"' in e for e in events)
+            assert any('"device_back"' in e for e in events)
+            assert link.state is LinkState.UP
+        finally:
+            sub.close()
+
+
+async def test_a_late_status_reply_never_answers_a_later_poll_or_request():
+    """As tests/test_rbe3001_hardware.py's test over the in-process link, over the thread: a
+    STATUS times out, its reply comes later with the old reading while the arm reads 1000
+    ticks further on; no later answer, request or poll, is the old reading."""
+    fw = Rbe3001Firmware(load_profile("rbe3001"))
+    async with arm("rbe3001", fw) as (driver, _link, server):
+        server.set_faults(FaultConfig(latency_s=driver.timeout * 1.6))
+        with pytest.raises(DeviceTimeout):
+            await driver.status()
+        fw.offset[0] += 1000.0  # the base encoder now reads 1000 ticks more ...
+        fw.setpoint[0] += 1000.0  # ... and the controller holds it there
+        await wait_for(lambda: fw.position_ticks[0] > 900.0, what="the encoder average")
+        server.set_faults(FaultConfig())
+        sub = driver.hub.subscribe()
+        joined = driver.hub.latest["seq"]  # (a subscriber gets the latest sample first)
+        try:
+            for _ in range(5):
+                reply = await driver.status()
+                assert reply.position_ticks[0] > 900.0, reply
+            seq = driver.hub.latest["seq"]
+            await wait_for(lambda: driver.hub.latest["seq"] > seq + 20, what="polls")
+            ticks_per_rad = 4096 / (2 * np.pi)
+            first = [s["positions"][0] for s in _samples(sub)
+                     if not s["stale"] and s["seq"] > joined]
+            assert first and min(first) * ticks_per_rad > 800, first  # never the old reading
+        finally:
+            sub.close()
+        assert driver.stats["stale_replies"] >= 1  # the late ones were seen and dropped
+
+
+async def test_a_read_given_up_leaves_its_bytes_to_the_next(tmp_path):
+    """A caller cancelled while the thread reads for it: the bytes the thread then reads are
+    returned by the next read, never lost."""
+
+    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        while data := await reader.read(4096):
+            writer.write(data)
+            await writer.drain()
+
+    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    link = ThreadLink(f"socket://127.0.0.1:{server.sockets[0].getsockname()[1]}")
+    try:
+        await link.open()
+        pending = asyncio.ensure_future(link.read(2.0))
+        await asyncio.sleep(0)  # the read's call is queued for the thread ...
+        assert not link._jobs.empty()
+        await wait_for(lambda: link._jobs.empty(), what="the read on the thread")
+        pending.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await pending
+        await link.write(b"kept")  # echoed while the given-up read still waits on the thread
+        got = b""
+        for _ in range(20):
+            got += await link.read(1.0)
+            if len(got) >= 4:
+                break
+        assert got == b"kept"
+    finally:
+        await link.close()
+        server.close()
+        await server.wait_closed()
+
+
+async def test_transact_reads_the_whole_reply_in_one_call_over_a_pty(tmp_path):
+    path = tmp_path / "ttyRBE"
+    server = await serve_pty(Rbe3001Firmware(load_profile("rbe3001")), path)
+    link = ThreadLink(str(path))
+    try:
+        await link.open()
+        packet = rb.ReplyMatcher().request(rb.Status())
+        reply = await link.transact(packet, rb.PACKET_SIZE, 1.0)
+        assert len(reply.data) == rb.PACKET_SIZE and reply.at is None
+        assert isinstance(rb.decode_reply(rb.Status(), reply.data), rb.StatusReply)
+        nothing = await link.transact(b"", 0, 0.01)  # no reply asked: written, nothing read
+        assert nothing.data == b""
+        await link.close()
+        with pytest.raises(LinkError, match="not open"):
+            await link.transact(packet, rb.PACKET_SIZE, 0.1)
+    finally:
+        await link.close()
+        await server.close()
