@@ -20,7 +20,7 @@ from fastapi import FastAPI
 from app.errors import ArmError
 from app.service import ArmService
 from tests.conftest import make_settings, running_client
-from tests.test_replay import dense, path_distance
+from tests.test_replay import dense, path_distance, wave
 
 API = "/api/v1"
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "teleop_omx.toml"
@@ -164,13 +164,14 @@ async def test_a_stopped_replay_sends_no_more_gripper_actions(
     assert leader.gripper_setpoint() == pytest.approx(0.2)
 
 
-async def test_gripper_actions_not_one_per_frame_in_0_to_1_are_refused_whole(
-        recorded: tuple[FastAPI, httpx.AsyncClient]) -> None:
-    app, _c = recorded
-    leader: ArmService = app.state.services["leader"]
-    _s, actions, _gs, g_actions = episode(app)
-    for bad in (g_actions[:-1], np.where(np.arange(len(g_actions)) == 3, 1.5, g_actions)):
-        with pytest.raises(ArmError) as info:
-            await leader.replay(actions, FPS, bad)
-        assert info.value.code == "invalid_request"
-    assert not leader.moving
+async def test_gripper_actions_not_one_per_frame_in_0_to_1_are_refused_whole() -> None:
+    async with running_client(make_settings(config=str(CONFIG))) as (app, _c):
+        leader: ArmService = app.state.services["leader"]
+        actions = wave()
+        good = np.linspace(0.0, 1.0, len(actions))
+        for bad in (good[:-1], np.where(np.arange(len(good)) == 3, 1.5, good),
+                    np.where(np.arange(len(good)) == 3, np.nan, good)):
+            with pytest.raises(ArmError) as info:
+                await leader.replay(actions, FPS, bad)
+            assert info.value.code == "invalid_request"
+        assert not leader.moving and leader.gripper_setpoint() is None
