@@ -20,6 +20,7 @@ import pytest
 from _wait import held_still, wait_for
 from fastapi import FastAPI
 
+from app.client import AsyncArmClient
 from app.service import ArmService
 from tests._lerobot import check_dataset
 from tests.conftest import make_settings, running_client
@@ -191,3 +192,40 @@ async def test_the_hand_on_the_anglers_prismatic_joints() -> None:
         await angler.set_torque(True)
         r = await hand(c, "angler", (lo + 0.5 * (hi - lo)).tolist())
         assert r.status_code == 409 and r.json()["code"] == "conflict", r.text
+
+
+async def test_the_hand_is_the_lease_holders_or_an_instructors() -> None:
+    """With tokens: a viewer may not move an arm by hand (403); while one operator holds the
+    leader's lease another's hand is refused (409 `leased`), the holder's is let through to the
+    torque check, and an instructor's too; the Python client's move_hand sends the lease."""
+    settings = make_settings(config=str(CONFIG), operator_tokens="op-a, op-b",
+                             instructor_tokens="teach", viewer_tokens="look")
+    async with running_client(settings) as (app, c):
+        def auth(token: str, lease: str | None = None) -> dict[str, str]:
+            h = {"Authorization": f"Bearer {token}"}
+            return {**h, "X-Arm-Lease": lease} if lease else h
+
+        r = await c.put(f"{API}/arms/leader/world/hand", json={"positions": PATH[0]},
+                        headers=auth("look"))
+        assert r.status_code == 403 and r.json()["code"] == "forbidden", r.text
+        r = await c.post(f"{API}/arms/leader/lease", headers=auth("op-a"))
+        assert r.status_code in (200, 201), r.text
+        lease = r.json()["id"]
+        r = await c.put(f"{API}/arms/leader/world/hand", json={"positions": PATH[0]},
+                        headers=auth("op-b"))
+        assert r.status_code == 409 and r.json()["code"] == "leased", r.text
+        for headers in (auth("op-a", lease), auth("teach")):  # through, to the torque check
+            r = await c.put(f"{API}/arms/leader/world/hand", json={"positions": PATH[0]},
+                            headers=headers)
+            assert r.status_code == 409 and r.json()["code"] == "conflict", r.text
+        leader: ArmService = app.state.services["leader"]
+        await leader.set_torque(False)
+        transport = httpx.ASGITransport(app=app)
+        async with AsyncArmClient("http://armserver.test", token="op-a",
+                                  transport=transport) as client:
+            client.leases["leader"] = lease
+            done = await client.move_hand("leader", PATH[0], speed=1.0, wait=True)
+        assert done.moving is False and done.positions == PATH[0]
+        await wait_for(lambda: np.allclose(leader.positions, PATH[0], atol=TOL),
+                       what="the leader where the client's hand put it")
+        await leader.set_torque(True)
