@@ -65,8 +65,9 @@ AUTH = {"Authorization": f"Bearer {VIEWER}"}
 OP = {"Authorization": f"Bearer {OPERATOR}"}
 INSTRUCTOR = "instructor-token-lab"
 #: A worker's arms are back within this, s (issue 27 asks 5 s; a loaded two-core machine
-#: gets slack: the bound of a wait, not a timing assert).
-BACK_WITHIN_S = 15.0
+#: gets slack, a restarting worker's imports alone took 7 s at load average 7: the bound of a
+#: wait, not a timing assert; the tests print the time taken).
+BACK_WITHIN_S = 30.0
 #: The lab is up within this, s (a bound, not a timing assert).
 START_WITHIN_S = 120.0
 
