@@ -199,6 +199,14 @@ async def test_the_front_places_by_the_arms_named(tmp_path: Path) -> None:
     assert await across.place("GET", "/api/v1/recordings/demo/archive", b"") == 1
     for rid in ("..", ".hidden", "nobody"):
         assert await across.dataset_owner(rid) is None
+    # a dataset made across today's workers (by a single server): read anywhere, recorded nowhere
+    split = tmp_path / "data" / "recordings" / "both"
+    split.mkdir()
+    (split / "armserver.json").write_text(json.dumps({"arms": ["left"],
+                                                      "cameras": ["table-right"]}))
+    assert await across.place("GET", "/api/v1/recordings/both", b"") == 0
+    with pytest.raises(DifferentWorkers, match="worker 0: arm left; worker 1: camera table-r"):
+        await across.place("POST", "/api/v1/recordings/both/episodes", b"")
     # each dataset once, as its arms' worker lists it
     stale = {"id": "demo", "arms": ["right"], "episodes": 0}
     fresh = {"id": "demo", "arms": ["right"], "episodes": 2}

@@ -56,56 +56,73 @@ class Across:
         self.worker_of = plan.worker_of
         self.camera_worker = plan.camera_worker
         self.datasets = Path(data_dir) / RECORDINGS_DIR
-        #: Dataset id -> the worker of its arms (a dataset's arms never change).
-        self._owner: dict[str, int] = {}
+        #: Dataset id -> where its arms and cameras live (a dataset's arms never change).
+        self._datasets: dict[str, dict[int, list[str]]] = {}
 
     async def place(self, method: str, path: str, body: bytes) -> int | None:
         """The worker index for this request; None: any (the first ready one answers, e.g.
-        its 404 or 422). Raises DifferentWorkers for a recording across workers."""
+        its 404 or 422). Raises DifferentWorkers for a recording across workers: a new one,
+        or an episode of one made so elsewhere (a single server's dataset, a changed config)."""
         if path == TELEOP:
             follower = _json(body).get("follower") if method == "POST" else None
             return self.worker_of.get(follower) if isinstance(follower, str) else None
         if path == RECORDINGS:
-            return self._new_recording(body) if method == "POST" else None
+            if method != "POST":
+                return None
+            data = _json(body)
+            return self._one_worker(self._where(data.get("arms"), data.get("cameras")))
         if path.startswith(RECORDINGS + "/"):
-            return await self.dataset_owner(path[len(RECORDINGS) + 1:].split("/", 1)[0])
+            rid, _, rest = path[len(RECORDINGS) + 1:].partition("/")
+            where = await self._dataset(rid)
+            if not where:  # no such dataset, or none of its arms here
+                return None
+            if method == "POST" and rest.startswith("episodes"):
+                return self._one_worker(where)
+            return min(where)  # to read it, any of them: the folder is shared
         return None
 
-    def _new_recording(self, body: bytes) -> int | None:
-        data = _json(body)
-        arms = [a for a in data.get("arms") or [] if isinstance(a, str)]
-        cams = [c for c in data.get("cameras") or [] if isinstance(c, str)]
+    def _where(self, arms: Any, cameras: Any) -> dict[int, list[str]]:
+        """Worker -> the named arms and cameras it hosts (names it does not know left out:
+        the worker answers them with its 404)."""
         where: dict[int, list[str]] = {}
-        for name in arms:
-            if name in self.worker_of:
-                where.setdefault(self.worker_of[name], []).append(f"arm {name}")
-        for name in cams:
-            if name in self.camera_worker:
-                where.setdefault(self.camera_worker[name], []).append(f"camera {name}")
+        for kind, names, of in (("arm", arms, self.worker_of),
+                                ("camera", cameras, self.camera_worker)):
+            for name in names if isinstance(names, list) else []:
+                if isinstance(name, str) and name in of:
+                    where.setdefault(of[name], []).append(f"{kind} {name}")
+        return where
+
+    @staticmethod
+    def _one_worker(where: dict[int, list[str]]) -> int | None:
         if len(where) > 1:
             split = "; ".join(f"worker {k}: {', '.join(v)}" for k, v in sorted(where.items()))
-            raise DifferentWorkers("a recording's arms and cameras must live "
-                          f"on one worker process, and these do not ({split}): give the arms "
-                          "recorded together the same `worker = K` in the config (a camera "
-                          "goes with its arm)")
+            raise DifferentWorkers(
+                f"a recording's arms and cameras must live on one worker process, and these "
+                f"do not ({split}): give the arms recorded together the same `worker = K` in "
+                "the config (a camera goes with its arm)")
         return next(iter(where), None)
 
-    async def dataset_owner(self, rid: str) -> int | None:
-        """The worker of dataset `rid`'s arms (from its settings file), None when unknown."""
-        if rid in self._owner:
-            return self._owner[rid]
+    async def _dataset(self, rid: str) -> dict[int, list[str]] | None:
+        """Where dataset `rid`'s arms and cameras live (from its settings file, read once);
+        None when there is no such dataset."""
+        if rid in self._datasets:
+            return self._datasets[rid]
         if not DATASET_ID.match(rid):
             return None
         try:
             text = await asyncio.to_thread(
                 (self.datasets / rid / DATASET_CONFIG).read_text, encoding="utf-8")
-            arms = json.loads(text).get("arms") or []
+            config = json.loads(text)
+            where = self._where(config.get("arms"), config.get("cameras"))
         except (OSError, ValueError, AttributeError):
             return None
-        k = next((self.worker_of[a] for a in arms if a in self.worker_of), None)
-        if k is not None:
-            self._owner[rid] = k
-        return k
+        self._datasets[rid] = where
+        return where
+
+    async def dataset_owner(self, rid: str) -> int | None:
+        """The worker that serves dataset `rid` (of its arms), None when unknown."""
+        where = await self._dataset(rid)
+        return min(where) if where else None
 
     def merge_recordings(self, answers: dict[int, Any]) -> list[Any]:
         """Every dataset once, as its arms' worker lists it (else as the first lists it), by
