@@ -69,6 +69,11 @@ def test_teleoperation_across_workers(lab: Lab) -> None:  # noqa: F811 - the fix
             stopped = c.delete(f"/api/v1/teleop/{session['id']}")
             assert stopped.status_code == 200, stopped.text
             assert stopped.json()["status"] == "ended"
+            nobody = c.post("/api/v1/teleop", headers=held, json={
+                "leader": "nobody", "follower": "right"})
+            assert nobody.status_code == 404, nobody.text
+            assert nobody.json() == {"detail": "no arm 'nobody'; this server hosts left, "
+                                     "right, rails", "code": "unknown_arm"}
             unknown = c.delete("/api/v1/teleop/t999-nobody")
             assert unknown.status_code == 404 and unknown.json()["code"] == "not_found"
             # the leader's emergency stop, latched in its own worker, ends the session in the

@@ -264,11 +264,19 @@ class LabFront:
             await r.aclose()
 
     def _all_arms_named(self, path: str, body: bytes) -> bytes:
-        """A worker's 404 `unknown_arm` names its own arms: the lab's names them all."""
+        """A worker's 404 `unknown_arm` names its own arms (`no arm 'x'; this server hosts
+        a, b`, app/web/deps.py, app/recording/manager.py): the lab's names them all."""
         arm = path[len(ARMS) + 1:].split("/", 1)[0] if path.startswith(ARMS + "/") else None
-        if arm is None or arm in self._by_arm or b'"unknown_arm"' not in body:
+        if arm in self._by_arm or b'"unknown_arm"' not in body:
             return body
-        return json.dumps({"detail": f"no arm {arm[:64]!r}; this server hosts "
+        if arm is not None:
+            detail = f"no arm {arm[:64]!r}"
+        else:  # named in a body (teleoperation, recordings): keep the worker's own words
+            try:
+                detail = str(json.loads(body)["detail"]).split("; this server hosts", 1)[0]
+            except (ValueError, KeyError, TypeError):
+                return body
+        return json.dumps({"detail": f"{detail}; this server hosts "
                            f"{', '.join(self.plan.names)}", "code": "unknown_arm"}).encode()
 
     def _down(self, worker: Worker | None) -> Answer:
