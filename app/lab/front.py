@@ -11,6 +11,9 @@ process owning its arm (app/lab/supervisor.py) and answers the lab-wide endpoint
   list with its last known summary, link `down`.
 - `/api/v1/cameras/{cam}/...` goes to the worker of the camera's arm, and `GET
   /api/v1/cameras` is merged like the arms.
+- Teleoperation and recordings go where the arms they name live (app/lab/across.py): a
+  session to its follower's worker, a recording to its arms' (409 `different_workers` across
+  workers); their lists are merged, a session's stop asks each worker until one has it.
 - Everything else (`/api/v1/me`, the audit log, which every worker reads from the one store in
   ARMSERVER_DATA_DIR, the dashboard, `/openapi.json`, an unknown arm's 404) goes to the first
   ready worker: each serves the same routes and tokens.
