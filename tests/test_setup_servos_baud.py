@@ -142,7 +142,7 @@ def test_on_a_pty_the_host_reads_silence_garbage_or_the_answer(at_4m5: Served) -
 
 def test_setup_servos_finds_the_rate_past_the_garbled_one(
         at_4m5: Served, capsys: pytest.CaptureFixture[str]) -> None:
-    argv = ["setup-servos", "--port", at_4m5.url, "--profile", "angler", "--timeout", "0.15",
+    argv = ["setup-servos", "--port", at_4m5.url, "--profile", "angler", "--timeout", "0.5",
             "--baudrates", "57600,4000000,4500000"]
     assert main(argv) == EXIT_OK
     out = capsys.readouterr().out

@@ -29,6 +29,8 @@ VIEW = {"Authorization": "Bearer view"}
 ANGLER = {"x": 2, "y": 1, "theta3": 3, "z": 4}  # the profile's motor ids
 #: The rates the servos here run at (the full scan of every rate is the CLI tests').
 RATES = [57_600, 1_000_000]
+#: How long each rate's broadcast waits, s: generous, as other tests share the two cores.
+WINDOW = 0.5
 #: A loopback port nothing listens on: the twin arm's link, down and retried.
 DEAD_PORT = "socket://127.0.0.1:9"
 
@@ -67,7 +69,8 @@ async def practice(c: httpx.AsyncClient, servos: int) -> str:
 async def assign(c: httpx.AsyncClient, port: str, joint: str, profile: str = "angler"
                  ) -> httpx.Response:
     return await c.post(f"{API}/assign", json={"port": port, "profile": profile,
-                                                "joint": joint, "baudrates": RATES})
+                                                "joint": joint, "baudrates": RATES,
+                                                "timeout": WINDOW})
 
 
 async def plugged(c: httpx.AsyncClient) -> list[tuple[int, int]]:
@@ -83,7 +86,7 @@ async def test_four_factory_servos_one_at_a_time_then_the_angler_polls_the_bus()
         assert info["practice"] == {"running": False, "port": None, "servos": []}
         port = await practice(c, 1)
         scan = (await c.post(f"{API}/scan", json={"port": port, "profile": "angler",
-                                                    "baudrates": RATES})).json()
+                                                    "baudrates": RATES, "timeout": WINDOW})).json()
         [servo] = scan["servos"]
         assert (servo["id"], servo["baudrate"], servo["model_name"]) == (1, 57_600, "MX-28(2.0)")
         assert servo["factory"] is True and servo["joint"] is None and servo["torque"] is False
@@ -105,7 +108,7 @@ async def test_four_factory_servos_one_at_a_time_then_the_angler_polls_the_bus()
                        for line in body["said"]), body["said"]
         assert sorted(await plugged(c)) == sorted((i, 1_000_000) for i in ANGLER.values())
         scan = (await c.post(f"{API}/scan", json={"port": port, "profile": "angler",
-                                                    "baudrates": RATES})).json()
+                                                    "baudrates": RATES, "timeout": WINDOW})).json()
         assert {s["id"]: s["joint"] for s in scan["servos"]} == {i: j for j, i in ANGLER.items()}
         assert scan["todo"] == []
         # nothing left to set up: the next assignment finds only other joints' servos
@@ -139,7 +142,7 @@ async def test_refusals_have_their_codes_and_write_nothing(tmp_path: Path) -> No
         assert r.status_code == 409 and r.json()["code"] == "no_servo", r.text
         assert "nothing answered" in r.json()["detail"]
         scan = (await c.post(f"{API}/scan", json={"port": port, "profile": "angler",
-                                                    "baudrates": RATES})).json()
+                                                    "baudrates": RATES, "timeout": WINDOW})).json()
         assert scan["servos"] == [] and scan["collisions"] == []
         # two factory servos on one ID: their answers collide
         port = await practice(c, 2)
@@ -148,7 +151,7 @@ async def test_refusals_have_their_codes_and_write_nothing(tmp_path: Path) -> No
         assert "connect one servo at a time" in r.json()["detail"]
         assert await plugged(c) == [(1, 57_600), (1, 57_600)]  # nothing written
         scan = (await c.post(f"{API}/scan", json={"port": port, "profile": "angler",
-                                                    "baudrates": RATES})).json()
+                                                    "baudrates": RATES, "timeout": WINDOW})).json()
         assert scan["collisions"] and "two servos on one ID" in scan["collisions"][0]
         # a profile that gives joint x the ID of joint y: refused before the port is opened
         port = await practice(c, 1)

@@ -281,15 +281,18 @@ class AsyncArmClient:
         """What servo set-up can do on this server: profiles, ports in use, the practice bus."""
         return await self.send(Requests.servo_setup())
 
-    async def scan_servos(self, port: str, profile: str,
-                          baudrates: Sequence[int] | None = None) -> s.ServoScan:
-        """The servos answering on `port` and whose each is against `profile` (instructor)."""
-        return await self.send(Requests.scan_servos(port, profile, baudrates))
+    async def scan_servos(self, port: str, profile: str, baudrates: Sequence[int] | None = None,
+                          scan_timeout: float | None = None) -> s.ServoScan:
+        """The servos answering on `port` and whose each is against `profile` (instructor);
+        `scan_timeout`: how long each rate's broadcast PING waits, s."""
+        return await self.send(Requests.scan_servos(port, profile, baudrates, scan_timeout))
 
     async def assign_servo(self, port: str, profile: str, joint: str,
-                           baudrates: Sequence[int] | None = None) -> s.ServoAssigned:
+                           baudrates: Sequence[int] | None = None,
+                           scan_timeout: float | None = None) -> s.ServoAssigned:
         """Set up the one new servo on `port` as `joint`'s, EEPROM (instructor)."""
-        return await self.send(Requests.assign_servo(port, profile, joint, baudrates))
+        return await self.send(Requests.assign_servo(port, profile, joint, baudrates,
+                                                     scan_timeout))
 
     async def start_practice_bus(self, servos: int = 1) -> s.PracticeBus:
         """Start a simulated factory-state bus on a loopback port (instructor)."""

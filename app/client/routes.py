@@ -320,20 +320,25 @@ class Requests:
         return Call("GET", url_path("setup-servos"), _model(s.ServoSetupInfo), safe=True)
 
     @staticmethod
-    def scan_servos(port: str, profile: str,
-                    baudrates: Sequence[int] | None = None) -> Call[s.ServoScan]:
+    def scan_servos(port: str, profile: str, baudrates: Sequence[int] | None = None,
+                    scan_timeout: float | None = None) -> Call[s.ServoScan]:
         body: dict[str, Any] = {"port": port, "profile": profile}
         if baudrates is not None:
             body["baudrates"] = list(baudrates)
+        if scan_timeout is not None:
+            body["timeout"] = scan_timeout
         return Call("POST", url_path("setup-servos", "scan"), _model(s.ServoScan), body,
                     safe=True, timeout=SETUP_S)
 
     @staticmethod
     def assign_servo(port: str, profile: str, joint: str,
-                     baudrates: Sequence[int] | None = None) -> Call[s.ServoAssigned]:
+                     baudrates: Sequence[int] | None = None,
+                     scan_timeout: float | None = None) -> Call[s.ServoAssigned]:
         body: dict[str, Any] = {"port": port, "profile": profile, "joint": joint}
         if baudrates is not None:
             body["baudrates"] = list(baudrates)
+        if scan_timeout is not None:
+            body["timeout"] = scan_timeout
         return Call("POST", url_path("setup-servos", "assign"), _model(s.ServoAssigned), body,
                     timeout=SETUP_S)
 

@@ -4,7 +4,7 @@ bus (a simulated factory-state bus the server serves on a pseudo-terminal)."""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field
 
@@ -24,6 +24,9 @@ Rate = Literal[9600, 57600, 115200, 1000000, 2000000, 3000000, 4000000, 4500000]
 class ServoScanRequest(Model):
     port: str = Port
     profile: str = ProfileName
+    timeout: Annotated[float, Field(gt=0.0, le=2.0, allow_inf_nan=False, strict=True)] | None = \
+        Field(None, description="how long a broadcast PING waits for answers at each rate, s "
+              "(default 0.3; the CLI's --timeout); a servo heard may take up to 1 s to answer")
     baudrates: list[Rate] | None = Field(
         None, min_length=1, max_length=8,
         description="rates to scan, in this order (default: 57,600, 1,000,000, then the "

@@ -116,13 +116,17 @@ class Bus:
     """A blocking Protocol 2.0 exchange on one pyserial port."""
 
     def __init__(self, url: str, baudrate: int = 57_600, timeout: float = 0.1,
-                 opener: Callable[..., Any] | None = None) -> None:
+                 opener: Callable[..., Any] | None = None,
+                 reply_timeout: float | None = None) -> None:
+        """`timeout`: how long a broadcast waits for answers; `reply_timeout` (default the
+        same): how long a servo already heard may take to answer (only spent on a failure)."""
         if opener is None:
             import serial
 
             opener = serial.serial_for_url
         self.url = url
         self.timeout = timeout
+        self.reply_timeout = timeout if reply_timeout is None else reply_timeout
         #: Bytes skipped as no packet's, counted (garbled answers, told apart from silence).
         self.garbage = 0
         self.port = opener(url, baudrate=baudrate, timeout=0.005, exclusive=True) \
@@ -167,7 +171,7 @@ class Bus:
 
     def one(self, packet: bytes, dxl_id: int, what: str) -> dxl.Packet:
         """The status of servo `dxl_id` to `packet`; SetupError if none, garbled or an error."""
-        deadline = time.monotonic() + self.timeout
+        deadline = time.monotonic() + self.reply_timeout
         got: list[dxl.Packet] = []
         errors: list[dxl.ParseError] = []
         self.port.reset_input_buffer()
@@ -306,14 +310,15 @@ def others_in_place(profile: ArmProfile, joint: str, found: list[Found]) -> dict
 
 def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 0.1,
                  rates: Iterable[int] = SCAN_ORDER, say: Callable[[str], None] = print,
-                 opener: Callable[..., Any] | None = None) -> Found:
+                 opener: Callable[..., Any] | None = None,
+                 reply_timeout: float | None = None) -> Found:
     """Find the one servo on the bus that is not another joint's (its ID at the profile's
     rate: never touched), give it `joint`'s ID, baud rate, operating mode and limits (EEPROM,
     torque off) and verify them. SetupError with the reason and exit code when there is no
     such servo, several (two on the joint's ID among them), a collision (two on one ID at one
     rate), a servo with torque on, or a value that does not read back."""
     want = wanted(profile, joint)
-    bus = Bus(url, timeout=timeout, opener=opener)
+    bus = Bus(url, timeout=timeout, opener=opener, reply_timeout=reply_timeout)
     try:
         result = scan(bus, rates)
         for f in result.found:
@@ -369,9 +374,10 @@ def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 
 
 
 def scan_port(url: str, *, timeout: float = 0.1, rates: Iterable[int] = SCAN_ORDER,
-              opener: Callable[..., Any] | None = None) -> Scan:
+              opener: Callable[..., Any] | None = None,
+              reply_timeout: float | None = None) -> Scan:
     """Open `url`, scan it (`scan`) and close it."""
-    bus = Bus(url, timeout=timeout, opener=opener)
+    bus = Bus(url, timeout=timeout, opener=opener, reply_timeout=reply_timeout)
     try:
         return scan(bus, rates)
     finally:

@@ -60,8 +60,12 @@ from app.web.routes.common import errors
 
 router = APIRouter(prefix="/setup-servos", tags=["servo set-up"])
 
-#: Reply timeout of each set-up request, s (the CLI's default).
-TIMEOUT_S = 0.1
+#: How long a broadcast PING waits for answers at each rate, s, unless the request says: three
+#: times the CLI's default, as a server shares its cores with the arms it serves (a full scan
+#: of the eight rates then takes about 3 s).
+TIMEOUT_S = 0.3
+#: How long a servo already heard may take to answer, s (spent only when one does not).
+REPLY_TIMEOUT_S = 1.0
 _LOOPBACK = {"127.0.0.1", "localhost", "::1"}
 _KIND: dict[str, type[ArmError]] = {
     "no_servo": NoServo, "several_servos": SeveralServos, "id_in_use": IdInUse,
@@ -193,6 +197,11 @@ def _rates(req: s.ServoScanRequest) -> tuple[int, ...]:
     return tuple(req.baudrates) if req.baudrates else setup.SCAN_ORDER
 
 
+def _timeouts(req: s.ServoScanRequest) -> dict[str, float]:
+    timeout = req.timeout or TIMEOUT_S
+    return {"timeout": timeout, "reply_timeout": max(timeout, REPLY_TIMEOUT_S)}
+
+
 async def _run_setup(request: Request, fn: Any, *args: Any, **kw: Any) -> Any:
     """One set-up at a time, on a worker thread; its SetupError as the table's error."""
     lock = _lock(request)
@@ -250,7 +259,7 @@ async def scan_servos(request: Request, req: s.ServoScanRequest,
     _check_port(req.port, services)
     profile = _profile(req.profile, services)
     result: setup.Scan = await _run_setup(request, setup.scan_port, req.port,
-                                          timeout=TIMEOUT_S, rates=_rates(req))
+                                          rates=_rates(req), **_timeouts(req))
     servos = [_found(profile, f) for f in result.found]
     placed = {f.joint for f in servos if f.joint is not None}
     return s.ServoScan(port=req.port, profile=profile.name, servos=servos,
@@ -280,8 +289,8 @@ async def assign_servo(request: Request, req: s.ServoAssignRequest,
     profile = _profile(req.profile, services)
     said: list[str] = []
     done: setup.Found = await _run_setup(request, setup.set_up_joint, req.port, profile,
-                                         req.joint, timeout=TIMEOUT_S, rates=_rates(req),
-                                         say=said.append)
+                                         req.joint, rates=_rates(req), say=said.append,
+                                         **_timeouts(req))
     return s.ServoAssigned(port=req.port, profile=profile.name, joint=req.joint,
                            servo=_found(profile, done), said=said)
 
