@@ -1,7 +1,8 @@
 """What one arm's sample costs the server (issue 27): CPU per sample and per arm at its poll rate.
 
     python bench/sample_cost.py [--model rbe3001] [--seconds 10] [--moving] [--subscribe HZ]
-                                [--eager] [--profile 25]
+                                [--eager] [--profile 25] [--io thread|asyncio]
+    python bench/sample_cost.py --compare [--models rbe3001,angler,openmanipulator_x]
 
 Serves the arm type's simulated hardware with `armserver sim MODEL --listen tcp://...` in
 another process, and in this one runs the arm as the server does (`ArmService` over a
@@ -21,6 +22,9 @@ reader taking every 10 samples (a 50 Hz client of a 500 Hz arm).
 (rbe3001 only): a STATUS request written and its 64-byte reply read at 500 Hz, once with
 asyncio streams and a timer (what the owner task's machinery cannot go below) and once with a
 blocking socket on one thread.
+`--io thread|asyncio` picks the serial link (`[link] io`: the link on a thread of its own,
+the default, or the asyncio link); `--compare` runs each of `--models` (default: the three arm
+types) with both, back to back, and prints each figure with the load average and the ratio.
 `--profile N` runs the window under cProfile and prints the N costliest functions (cProfile
 slows what it measures: read its shares, not its times).
 
@@ -32,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import cProfile
 import os
 import pstats
@@ -39,6 +44,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -81,9 +87,10 @@ async def _read(svc: ArmService, hz: float) -> None:
 
 
 async def run(model: str, port: int, seconds: float, prof: cProfile.Profile | None,
-              moving: bool, subscribe: float, eager: bool) -> None:
+              moving: bool, subscribe: float, eager: bool, io: str = "thread") -> float:
+    """Runs the window; prints and returns the CPU time a sample, s."""
     base = load_profile(model).model_dump()
-    base["link"].update(kind="serial", address=f"socket://127.0.0.1:{port}")
+    base["link"].update(kind="serial", address=f"socket://127.0.0.1:{port}", io=io)
     for joint in base["joints"]:  # the simulator powers on at its known zero: no calibration
         if "zero_known" in joint:
             joint["zero_known"] = True
@@ -128,10 +135,12 @@ async def run(model: str, port: int, seconds: float, prof: cProfile.Profile | No
     how = ", ".join(w for w, on in (("moving", moving), (f"a reader at {subscribe:g} Hz",
                                                           bool(subscribe)),
                                      ("eager (before issue 27)", eager)) if on) or "at rest"
-    print(f"{model} ({how}): {n} samples in {wall:.1f} s ({rate:.0f}/s, poll_hz "
+    print(f"{model} ({how}, io={io}): {n} samples in {wall:.1f} s ({rate:.0f}/s, poll_hz "
           f"{profile.link.poll_hz:.0f}); CPU {1e6 * per:.0f} µs a sample, "
           f"({1e6 * user / n:.0f} user, {1e6 * system / n:.0f} system), "
-          f"{100 * cpu / wall:.1f} % of a core for this arm")
+          f"{100 * cpu / wall:.1f} % of a core for this arm; load average "
+          f"{os.getloadavg()[0]:.1f}", flush=True)
+    return per
 
 
 async def publish_only() -> None:
@@ -233,28 +242,59 @@ def main() -> int:
     p.add_argument("--eager", action="store_true")
     p.add_argument("--publish-only", action="store_true")
     p.add_argument("--floor", action="store_true")
+    p.add_argument("--io", choices=("thread", "asyncio"), default="thread")
+    p.add_argument("--compare", action="store_true")
+    p.add_argument("--models", default="rbe3001,angler,openmanipulator_x")
     args = p.parse_args()
     if args.publish_only:
         asyncio.run(publish_only())
         return 0
-    port = _port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
-    sim = subprocess.Popen([sys.executable, "-m", "app.cli", "sim", args.model, "--listen",
-                            f"tcp://127.0.0.1:{port}"], cwd=ROOT, env=env,
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        _wait_listening(port)
+    if args.compare:
+        return compare(args.models.split(","), args.seconds, args.moving, args.subscribe)
+    with _simulator(args.model) as port:
         if args.floor:
             floor(port, args.seconds)
             return 0
         prof = cProfile.Profile() if args.profile else None
         asyncio.run(run(args.model, port, args.seconds, prof, args.moving, args.subscribe,
-                        args.eager))
+                        args.eager, args.io))
         if prof is not None:
             pstats.Stats(prof).sort_stats("tottime").print_stats(args.profile)
+    return 0
+
+
+@contextlib.contextmanager
+def _simulator(model: str) -> Iterator[int]:
+    """`armserver sim MODEL` on a loopback port, in its own process: its port."""
+    port = _port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
+    sim = subprocess.Popen([sys.executable, "-m", "app.cli", "sim", model, "--listen",
+                            f"tcp://127.0.0.1:{port}"], cwd=ROOT, env=env,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        _wait_listening(port)
+        yield port
     finally:
         sim.terminate()
         sim.wait(10)
+
+
+def compare(models: list[str], seconds: float, moving: bool, subscribe: float) -> int:
+    """Each model with the asyncio link, then the thread link, then both again (A B B A), a
+    fresh simulator each: CPU a sample and the ratio thread / asyncio of the means."""
+    rows = []
+    for model in models:
+        per: dict[str, list[float]] = {"asyncio": [], "thread": []}
+        for io in ("asyncio", "thread", "thread", "asyncio"):
+            with _simulator(model) as port:
+                per[io].append(asyncio.run(run(model, port, seconds, None, moving, subscribe,
+                                               False, io)))
+        a, t = (sum(per[k]) / len(per[k]) for k in ("asyncio", "thread"))
+        rows.append((model, a, t))
+    print("\n| arm | asyncio link, µs a sample | thread link | thread / asyncio |")
+    print("|---|---|---|---|")
+    for model, a, t in rows:
+        print(f"| {model} | {1e6 * a:.0f} | {1e6 * t:.0f} | {t / a:.2f} |")
     return 0
 
 
