@@ -117,6 +117,37 @@ def reference_check(g: SafetyGuard, target: np.ndarray, pace: np.ndarray | None)
                         "along the path from where the arm is to the commanded position")
     _reference_step(g, target, here, speed, paced)
 
+def reference_first_hit(env: Any, q: np.ndarray, t: np.ndarray) -> Any:
+    """ArmSafety.first_hit as it was (one (body, zone) pair at a time), on `env`'s settings."""
+    c = env._c
+    if not c.active:
+        return None
+    p = env.points(np.asarray(q, dtype=float).reshape(-1, env.model.n))
+    lo_all, hi_all = p.min(axis=0), p.max(axis=0)
+    best: tuple[int, int, str] | None = None
+    for b in range(p.shape[1]):
+        x, y, z = p[:, b, 0], p[:, b, 1], p[:, b, 2]
+        if c.floor is not None and lo_all[b, 2] < c.floor[b]:
+            i = int(np.argmax(z < c.floor[b]))
+            best = min(best, (i, b, "floor")) if best else (i, b, "floor")
+        for j, name in enumerate(c.names):
+            lo, hi = c.lo[b, j], c.hi[b, j]
+            if np.any(lo_all[b] > hi) or np.any(hi_all[b] < lo):
+                continue
+            cand = np.flatnonzero((x >= lo[0]) & (x <= hi[0]))
+            for k, axis in ((1, y), (2, z)):
+                if cand.size:
+                    v = axis[cand]
+                    cand = cand[(v >= lo[k]) & (v <= hi[k])]
+            if cand.size:
+                i = int(cand[0])
+                if best is None or (i, b) < best[:2]:
+                    best = (i, b, name)
+    if best is None:
+        return None
+    i, b, zone = best
+    return (zone, env.bodies[b], p[i, b].tolist(), i, float(np.asarray(t)[i]))
+
 # ------------------------------------------------------------------ random states
 
 
@@ -214,3 +245,24 @@ def test_the_random_states_reach_every_verdict() -> None:
     collect()
     assert {"accepted", "joint_limit", "keep_out", "velocity_limit", "not_homed",
             "invalid_request", "link_down"} <= seen, seen
+
+
+@settings(max_examples=400, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(states(), st.integers(1, 60), st.integers(0, 2**31 - 1))
+def test_the_envelope_finds_the_hit_it_found(state: Any, steps: int, seed: int) -> None:
+    """`ArmSafety.first_hit`, its overlapping pairs now found all at once, finds the first hit
+    it found (zone, body point, where, when) on random paths, planned-move and pass-through
+    shapes alike: a straight path, and one through random poses."""
+    svc, target, _pace = state
+    env, m = svc.safety, svc.model
+    here = np.asarray(svc.driver.positions, dtype=float)
+    end = np.where(np.isfinite(target), target, here)
+    rng = np.random.default_rng(seed)
+    paths = [here + np.linspace(0.0, 1.0, steps)[:, None] * (end - here),
+             m.lower + (m.upper - m.lower) * rng.random((steps, m.n))]
+    for q in paths:
+        t = np.linspace(0.0, 1.0, len(q))
+        hit = env.first_hit(q, t)
+        got = None if hit is None else (hit.zone, hit.body, hit.point.tolist(), hit.index, hit.t)
+        assert got == reference_first_hit(env, q, t)

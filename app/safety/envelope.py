@@ -132,25 +132,27 @@ class ArmSafety:
         """The earliest of the poses q (T, n), at times t (T,), with a body point inside a
         zone or below the floor; None if there is none.
 
-        Vectorised over time; the loop is over (body point, zone) pairs only, and a pair whose
-        boxes do not overlap (the path's bounding box against the grown zone) costs nothing
-        more: in the usual case, zones away from the path, the check is one min and max per
-        body point."""
+        Vectorised over time; the loop is over the (body point, zone) pairs whose boxes overlap
+        (the path's bounding box against the grown zone, all pairs compared at once) and the
+        body points that go below the floor: in the usual case, zones away from the path, the
+        check is one min and max per body point and no loop."""
         c = self._c  # one snapshot for the whole check
         if not c.active:
             return None
         p = self.points(np.asarray(q, dtype=float).reshape(-1, self.model.n))  # (T, B, 3)
         lo_all, hi_all = p.min(axis=0), p.max(axis=0)  # (B, 3) the path's bounding boxes
+        low = (lo_all[:, 2] < c.floor if c.floor is not None
+               else np.zeros(p.shape[1], dtype=bool))  # (B,) below the floor somewhere
+        near = (np.all(lo_all[:, None, :] <= c.hi, axis=-1)
+                & np.all(hi_all[:, None, :] >= c.lo, axis=-1))  # (B, Z) boxes that overlap
         best: tuple[int, int, str] | None = None  # (time index, body, zone)
-        for b in range(p.shape[1]):
+        for b in np.flatnonzero(low | near.any(axis=1)).tolist():
             x, y, z = p[:, b, 0], p[:, b, 1], p[:, b, 2]
-            if c.floor is not None and lo_all[b, 2] < c.floor[b]:
+            if low[b] and c.floor is not None:
                 i = int(np.argmax(z < c.floor[b]))
                 best = min(best, (i, b, "floor")) if best else (i, b, "floor")
-            for j, name in enumerate(c.names):
-                lo, hi = c.lo[b, j], c.hi[b, j]
-                if np.any(lo_all[b] > hi) or np.any(hi_all[b] < lo):
-                    continue
+            for j in np.flatnonzero(near[b]).tolist():
+                name, lo, hi = c.names[j], c.lo[b, j], c.hi[b, j]
                 # narrow the candidates axis by axis: each pass looks only at what is left
                 cand = np.flatnonzero((x >= lo[0]) & (x <= hi[0]))
                 for k, axis in ((1, y), (2, z)):
