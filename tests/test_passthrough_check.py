@@ -7,7 +7,9 @@ before (commit c7f4815, app/safety/guard.py and app/safety/envelope.py), kept he
 the oracle. Over many random states of real arms' guards and drivers (positions, the last
 command and its age, the servos' pace, homing, calibration, zones, floor, speed override, raw
 access) both must accept the same commands and refuse the others with the same error, code
-and message.
+and message. `reference_first_hit` is the envelope's `first_hit` as it was (commit d753f31),
+one (body point, zone) pair at a time; the new one, its overlapping pairs found at once, must
+find the same first hit on random paths.
 """
 
 from __future__ import annotations
