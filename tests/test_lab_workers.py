@@ -377,6 +377,46 @@ def test_placement_follows_the_config_and_refuses_what_cannot_be(tmp_path: Path)
             plan_lab(make_settings(config=str(config)), 2)
 
 
+@pytest.mark.serial  # as above
+async def test_a_worker_hung_in_its_start_is_restarted(lab: Lab) -> None:
+    """Worker 1 killed, its new process stopped (SIGSTOP) before its first answer: the
+    supervisor sees it use no CPU while starting (START_FROZEN_S), kills it and starts another,
+    and the right arm comes back."""
+    before = lab.workers()[1]
+    os.kill(before, signal.SIGKILL)
+    starting = await wait_for(lambda: lab.workers().get(1) not in (None, before)
+                              and lab.workers()[1], timeout=BACK_WITHIN_S, every=0.002,
+                              what="worker 1's new process")
+    os.kill(starting, signal.SIGSTOP)
+    try:
+        async with httpx.AsyncClient(base_url=lab.url, headers=AUTH, timeout=30) as c:
+            async def why() -> str:
+                return str((await c.get("/api/v1/health")).json()["arms"]["right"]
+                           ["last_error"])
+
+            assert "hung in its start" in await wait_for(
+                _contains(why, "hung in its start"), timeout=BACK_WITHIN_S,
+                what="worker 1 killed for hanging in its start", every=0.05)
+            await wait_for(lambda: lab.workers().get(1) not in (None, before, starting),
+                           timeout=BACK_WITHIN_S, what="worker 1 on a third process")
+            await wait_for(_is(lambda: _status(c, "/api/v1/arms/right/state"), 200),
+                           timeout=BACK_WITHIN_S, what="the right arm back")
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(starting, signal.SIGKILL)
+
+
+async def _status(c: httpx.AsyncClient, path: str) -> int:
+    return (await c.get(path)).status_code
+
+
+def _contains(fn: Any, part: str) -> Any:
+    async def check() -> str | None:
+        text = str(await fn())
+        return text if part in text else None
+    return check
+
+
 def test_a_slow_worker_is_not_a_hung_one() -> None:
     """The supervisor's rule: unanswered probes are a hang only with no CPU used (stopped,
     wholly deadlocked), or after SILENT_S of silence however busy it is; `cpu_ticks` tells a

@@ -22,7 +22,9 @@ its arms for nothing. So a worker is taken for hung when
 Then it gets SIGTERM, SIGKILL after KILL_GRACE_S (a stopped or deadlocked process runs no
 handler), and is restarted as a dead one is; `ready` is false from the kill (its arms 503
 `link_down`). A frozen worker's arms are back within about 5 s (at most 2.5 s of probes, 0.5 s
-of grace, then its start: 1.5-2 s); tests/test_lab_workers.py stops one with SIGSTOP.
+of grace, then its start: 1.5-2 s); tests/test_lab_workers.py stops one with SIGSTOP. A worker
+that hangs in its start, before its first answer, is killed and restarted the same way once it
+has used no CPU for START_FROZEN_S, or after START_S without an answer.
 
 `ready` is the front's one question: has the worker answered its health since it last started
 (and not been taken for hung since).
@@ -61,6 +63,11 @@ PROBE_EVERY_S = 0.5
 PROBE_DEADLINE_S = 1.0
 PROBE_MISSES = 2
 SILENT_S = 10.0
+#: A starting worker (not yet answering) is hung once it has used no CPU for START_FROZEN_S
+#: (its start is imports and set-up, all CPU; a store locked by another process waits 1 s at
+#: most, app/store.py), or when it has not answered for START_S.
+START_FROZEN_S = 5.0
+START_S = 120.0
 #: How long a hung worker gets after its SIGTERM before its SIGKILL, s.
 KILL_GRACE_S = 0.5
 #: How long a stopping worker gets after its SIGTERM (beyond the server's own graceful
@@ -97,8 +104,9 @@ class Worker:
     ready: bool = False
     starts: int = 0
     last_error: str | None = None
-    #: Times it was killed for not answering its health (a hung worker).
+    #: Times it was killed for not answering its health (a hung worker), and how it hung.
     hangs: int = 0
+    hung: str = ""
 
     @property
     def pid(self) -> int | None:
@@ -155,8 +163,9 @@ class Supervisor:
             w.client.reset()  # its kept-alive connections lead nowhere now
             if self._stopping:
                 return
-            w.last_error = (f"worker {w.index} " + ("hung (no health answer): killed"
-                            if w.hangs != hangs else f"exited with {code}") + "; restarting")
+            w.last_error = (f"worker {w.index} " + (f"{w.hung}: killed" if w.hangs != hangs
+                                                     else f"exited with {code}")
+                            + "; restarting")
             log.error("worker %d (pid %d) exited with %s: restarting its arms (%s)", w.index,
                       w.proc.pid, code, ", ".join(w.arms))
             backoff = backoff * 2 if time.monotonic() - started < YOUNG_S else RESTART_BACKOFF_S
@@ -167,7 +176,10 @@ class Supervisor:
         """Until `proc` exits or the lab stops: see it ready, then ask its health every
         PROBE_EVERY_S; kill it once it is taken for hung (the module doc; the watcher
         restarts it)."""
-        await self._until_ready(w)
+        if not await self._until_ready(w, proc):
+            w.hangs, w.hung = w.hangs + 1, "hung in its start"
+            await self._kill(proc)
+            return
         misses = 0
         answered_at = time.monotonic()
         cpu = cpu_ticks(proc.pid)
@@ -190,7 +202,7 @@ class Supervisor:
             log.warning("worker %d (pid %d): no health answer for %.1f s (%s)", w.index,
                         proc.pid, silent, "no CPU used" if frozen else "it runs")
             if is_hung(misses, frozen, silent):
-                w.hangs += 1
+                w.hangs, w.hung = w.hangs + 1, "hung (no health answer)"
                 w.ready = False
                 log.error("worker %d (pid %d) hangs (%s): killing it to restart its arms "
                           "(%s)", w.index, proc.pid, "stopped: no CPU used" if frozen else
@@ -224,7 +236,11 @@ class Supervisor:
         with contextlib.suppress(ProcessLookupError):
             proc.kill()
 
-    async def _until_ready(self, w: Worker) -> None:
+    async def _until_ready(self, w: Worker, proc: asyncio.subprocess.Process) -> bool:
+        """Ask a starting worker's health until it answers (True), or until it has used no
+        CPU for START_FROZEN_S or not answered for START_S (False: it hangs in its start)."""
+        started = changed = time.monotonic()
+        cpu = cpu_ticks(proc.pid)
         while True:
             with contextlib.suppress(UpstreamError, TimeoutError):
                 r = await w.client.request("GET", "/api/v1/health",
@@ -234,8 +250,16 @@ class Supervisor:
                     w.ready, w.last_error = True, None
                     self._first_ready.set()
                     log.info("worker %d ready", w.index)
-                    return
+                    return True
             await asyncio.sleep(READY_POLL_S)
+            now, before, cpu = time.monotonic(), cpu, cpu_ticks(proc.pid)
+            if cpu is None or cpu != before:
+                changed = now
+            if now - changed >= START_FROZEN_S or now - started >= START_S:
+                log.error("worker %d (pid %d) hangs in its start (%s): killing it", w.index,
+                          proc.pid, f"no CPU used for {now - changed:.0f} s"
+                          if now - changed >= START_FROZEN_S else f"{START_S:.0f} s")
+                return False
 
     def signal_all(self, sig: int) -> None:
         """Send `sig` to every running worker now (from a signal handler: no awaiting). The
