@@ -176,7 +176,10 @@ class Supervisor:
         """Until `proc` exits or the lab stops: see it ready, then ask its health every
         PROBE_EVERY_S; kill it once it is taken for hung (the module doc; the watcher
         restarts it)."""
-        if not await self._until_ready(w, proc):
+        ready = await self._until_ready(w, proc)
+        if self._stopping:  # the lab stops: a worker's silence now is on purpose
+            return
+        if not ready:
             w.hangs, w.hung = w.hangs + 1, "hung in its start"
             await self._kill(proc)
             return
@@ -252,6 +255,8 @@ class Supervisor:
                     log.info("worker %d ready", w.index)
                     return True
             await asyncio.sleep(READY_POLL_S)
+            if self._stopping:
+                return False
             now, before, cpu = time.monotonic(), cpu, cpu_ticks(proc.pid)
             if cpu is None or cpu != before:
                 changed = now
