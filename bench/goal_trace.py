@@ -437,7 +437,8 @@ def analyse(trace: Trace, client_recs: list[dict[str, Any]], load: float) -> dic
         totals[name] = {"n": len(xs), **{k: round(pct(xs, q) * 1e3, 3) for k, q in
                                          (("p50", .5), ("p90", .9), ("p99", .99), ("max", 1.))}}
     # the slowest goals by the harness's figure: which hop holds their excess over the median
-    seen = sorted((r["seen"] - r["sent"], r, g) for r, _, _, g in rows if "seen" in r)
+    seen = sorted(((r["seen"] - r["sent"], r, g) for r, _, _, g in rows if "seen" in r),
+                  key=lambda x: x[0])
     med = {name: pct([r[b] - r[a] for r, _, _, _ in rows if a in r and b in r], .5)
            for name, a, b, _ in HOPS}
     slow = seen[-max(1, len(seen) // 100):]
