@@ -186,6 +186,8 @@ def main() -> int:
                    help="also a teleoperation session's latency, on one worker and across two")
     p.add_argument("--pin", action="store_true",
                    help="server on core 0; simulators and this client on the others")
+    p.add_argument("--io", choices=("thread", "asyncio"), default="thread",
+                   help="each arm's serial link ([link] io): on its own thread or on the loop")
     args = p.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="armserver-bench-lab-"))
     ports = _free_ports(args.arms + 1)
@@ -200,7 +202,8 @@ def main() -> int:
              f"tcp://127.0.0.1:{port}"], cwd=ROOT, env=env,
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         config.append(f'[[arms]]\nprofile = "{args.model}"\nname = "arm-{i + 1}"\n'
-                      f'[arms.link]\nkind = "serial"\naddress = "socket://127.0.0.1:{port}"\n')
+                      f'[arms.link]\nkind = "serial"\naddress = "socket://127.0.0.1:{port}"\n'
+                      f'io = "{args.io}"\n')
     (folder / "lab.toml").write_text("\n".join(config))
     server = None
     try:

@@ -53,8 +53,9 @@ READ_CHUNK = 4096  # bytes per read: several Dynamixel status packets, far above
 CLOSE_TIMEOUT_S = 1.0  # closing must not hang the owner task on a thread stuck in a call
 #: Longest a scheduled poll's reply waits on the thread before the owner task is woken for it,
 #: s: replies that repeat (an arm at rest) reach the owner task in batches this far apart at
-#: most; a reply that differs, one that failed and a request wake it at once.
-BATCH_S = 0.01
+#: most (a 50 Hz subscriber's period); a reply that differs, one that failed and a request
+#: wake it at once.
+BATCH_S = 0.02
 #: Replies the thread keeps for the owner task at most; then it stops polling on its own (a
 #: stalled control loop gets no backlog to catch up on, as POLL_CATCH_UP bounds it).
 MAX_PREFETCHED = 64
@@ -102,6 +103,7 @@ class ThreadLink(Link):
         self._prefetched: deque[tuple[bytes, Reply | BaseException]] = deque()
         self._last_data = b""
         self._batch_since = 0.0
+        self._waits_until: float | None = None  # the slot the thread waits for (None: a job)
         #: The owner's poll request (bytes, reply size, timeout), from its last poll.
         self._poll: tuple[bytes, int, float] | None = None
         #: Every reply whole by its timeout since the last poll's (the thread may poll alone).
@@ -242,7 +244,11 @@ class ThreadLink(Link):
             self._armed = True
             self._slot, self._period, self._notify = slot, period, notify
             self._batch_since = time.monotonic()
-        self._jobs.put(_NUDGE)
+            # the thread, waiting for the slot it had (re-armed within one period: the common
+            # case), wakes in time by itself; waiting for a job only, it needs a nudge
+            nudge = self._waits_until is None or self._waits_until > slot
+        if nudge:
+            self._jobs.put(_NUDGE)
         return True
 
     async def pause(self) -> None:
@@ -319,6 +325,7 @@ class ThreadLink(Link):
         try:
             while True:
                 with self._lock:
+                    self._waits_until = self._slot if self._armed else None
                     wait = self._slot - time.monotonic() if self._armed else None
                 try:
                     if wait is None:
