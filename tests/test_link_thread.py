@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import time
 from collections.abc import AsyncIterator
 
 import numpy as np
@@ -168,9 +169,9 @@ async def test_a_late_status_reply_never_answers_a_later_poll_or_request():
         fw.offset[0] += 1000.0  # the base encoder now reads 1000 ticks more ...
         fw.setpoint[0] += 1000.0  # ... and the controller holds it there
         await wait_for(lambda: fw.position_ticks[0] > 900.0, what="the encoder average")
-        server.set_faults(FaultConfig())
         sub = driver.hub.subscribe()
-        joined = driver.hub.latest["seq"]  # (a subscriber gets the latest sample first)
+        cleared = time.time()  # a reading taken from now on is the new one
+        server.set_faults(FaultConfig())
         try:
             for _ in range(5):
                 reply = await driver.status()
@@ -178,8 +179,10 @@ async def test_a_late_status_reply_never_answers_a_later_poll_or_request():
             seq = driver.hub.latest["seq"]
             await wait_for(lambda: driver.hub.latest["seq"] > seq + 20, what="polls")
             ticks_per_rad = 4096 / (2 * np.pi)
+            # (readings the thread took before the request, passed on after it, carry the
+            # time they were read: before `cleared`)
             first = [s["positions"][0] for s in _samples(sub)
-                     if not s["stale"] and s["seq"] > joined]
+                     if not s["stale"] and s["time"] >= cleared]
             assert first and min(first) * ticks_per_rad > 800, first  # never the old reading
         finally:
             sub.close()

@@ -79,6 +79,7 @@ class Driver(OwnerTask, abc.ABC):
         self._derived_key: tuple[list[float], list[float], list[float] | None] | None = None
         self._derived: tuple[Any, Any, Any] | None = None
         self._seq = 0
+        self._stamp = 0.0  # the last sample's time (owner.py `_publish`: never goes back)
         self._poll_failures = 0
         self.stale = True
         #: The poll error that made the samples stale (None while polls succeed): the device

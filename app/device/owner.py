@@ -78,6 +78,7 @@ class OwnerTask:
     _derived_key: tuple[list[float], list[float], list[float] | None] | None
     _derived: tuple[Any, Any, Any] | None
     _seq: int
+    _stamp: float
     _poll_failures: int
     stale: bool
     stale_error: ArmError | None
@@ -216,8 +217,10 @@ class OwnerTask:
         """`_session` over a link with a thread of its own (app/links/threaded.py): while
         nothing is queued and the last poll succeeded, the link's thread polls on the schedule
         and the owner task waits; woken (a batch of replies, a reply that changed or failed, a
-        request), it pauses the thread (the poll in flight ends first), passes each reply read
-        ahead through the driver's poll, in order, then goes on as `_session` does."""
+        request), it pauses the thread (the poll in flight ends first), serves a queued
+        request, passes each reply read ahead through the driver's poll, in order (after a
+        failed request the driver's quiet wait comes first, as before any exchange), then goes
+        on as `_session` does."""
         period = 1.0 / self.profile.link.poll_hz
         loop = asyncio.get_running_loop()
         next_poll = loop.time()
@@ -225,21 +228,23 @@ class OwnerTask:
         ok = False  # the last poll succeeded: the thread may poll on its own
         try:
             while True:
-                if link.prefetched:  # the thread's polls, older than anything done next
+                now = loop.time()
+                due = now >= next_poll - POLL_EARLY_S
+                # as `_session`: a queued request goes between two polls (replies the thread
+                # read ahead are polls made: it goes before their samples, an estop's hold
+                # waits for no sample), a poll a request asked for (`poll_after`) right after
+                if (not self._queue.empty() and not self._poll_now
+                        and (polled or not due or link.prefetched)):
+                    polled = False
+                    await self._serve(self._queue.get_nowait())
+                    continue
+                if link.prefetched:  # the thread's polls, before any poll made now
                     while link.prefetched:
                         ok = await self._do_poll(prefetched=True)
                         if not ok:  # the driver resynchronises: the rest is input it drops
                             link.drop_prefetched()
                     polled = True
                     next_poll = max(next_poll, link.next_slot)
-                    continue
-                now = loop.time()
-                due = now >= next_poll - POLL_EARLY_S
-                # as `_session`: a queued request goes between two polls, a poll a request
-                # asked for (`poll_after`) right after it
-                if not self._queue.empty() and not self._poll_now and (polled or not due):
-                    polled = False
-                    await self._serve(self._queue.get_nowait())
                     continue
                 # a due poll with nothing queued after a good one: the thread makes it, at once
                 alone = ok and link.can_schedule  # the thread may poll on its own
@@ -400,8 +405,14 @@ class OwnerTask:
 
     def _publish(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray | None, stale: bool,
                  at: float | None = None) -> None:
-        """Publish one sample; `at`: when its reading was taken (`time.time()`), if not now."""
+        """Publish one sample; `at`: when its reading was taken (`time.time()`), if not now.
+        Sample times never go back: a reading the link's thread took before a sample published
+        meanwhile (an estop's `publish_state`) is stamped with that sample's time."""
         self._seq += 1
+        stamp = time.time() if at is None else at
+        if stamp < self._stamp:
+            stamp = self._stamp
+        self._stamp = stamp
         positions = q.tolist()
         velocities = qd.tolist()
         torques = None if tau is None else tau.tolist()
@@ -426,7 +437,7 @@ class OwnerTask:
             self._derived_key, self._derived = key, (tip, tip_v, force)
         sample: dict[str, Any] = {
             "seq": self._seq,
-            "time": time.time() if at is None else at,
+            "time": stamp,
             "positions": positions,
             "velocities": velocities,
             "torques": torques,
