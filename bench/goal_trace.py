@@ -483,6 +483,9 @@ def analyse(trace: Trace, client_recs: list[dict[str, Any]], load: float) -> dic
         "queued_behind_poll": sum(1 for *_, g in rows if g.get("queued_behind_poll")),
         "gc_collections": {str(gen): sum(1 for g, _, _ in trace.gcs if g == gen)
                            for gen in (0, 1, 2)},
+        "gc_ms_p50_max": {str(gen): [round(pct(d, q) * 1e3, 2) for q in (.5, 1.)]
+                          for gen in (0, 1, 2)
+                          if (d := [e - s for g, s, e in trace.gcs if g == gen])},
         "slowest_1pct_blame": blame, "slowest_1pct": detail,
     }
 
@@ -505,7 +508,8 @@ def show(fig: dict[str, Any]) -> None:
           f"us): {fig['write_to_first_poll_us']}; sooner than a tick of theta3's motion "
           f"({TICK_S * 1e6:.0f} us): {fig['first_poll_read_before_a_tick']}")
     print(f"  goals queued behind a poll in progress: {fig['queued_behind_poll']}")
-    print(f"  collections during the run, by generation: {fig['gc_collections']}")
+    print(f"  collections during the run, by generation: {fig['gc_collections']}; their "
+          f"pause p50 and max, ms: {fig['gc_ms_p50_max']}")
     print(f"  slowest 1 %: the hop with the largest excess over its median: "
           f"{fig['slowest_1pct_blame']}")
     for d in fig["slowest_1pct"]:
