@@ -56,6 +56,8 @@ _FAULT_ADDR = mx28.TABLE["torque_enable"].address
 _FAULT_LEN = mx28.TABLE["hardware_error_status"].address - _FAULT_ADDR + 1
 #: 0.229 rpm per Present Velocity unit (e-manual MX-28 (2.0) and XM430-W350, address 128).
 _RPM_PER_UNIT = 0.229
+#: Ticks of motion after a goal before the poll that follows it reads the bus (`_effect_delay`).
+TICKS_TO_SHOW = 1.5
 #: How often a standing fault's Hardware Error Status is read again, s.
 FAULT_REFRESH_S = 1.0
 #: How long a rebooted servo may take to answer a PING again, s.
@@ -132,10 +134,12 @@ class DynamixelChainDriver(DynamixelBusDriver):
     def _effect_delay(self, item: ControlItem, values: dict[int, int]) -> float:
         """A Goal Position write to joint servos shows in Present Position once a servo has
         turned one encoder tick at its Profile Velocity (e-manual MX-28 (2.0), Profile
-        Velocity (112); Profile Acceleration only makes it later): the time that takes at the
-        fastest written joint, at most one poll period; 0 where no written joint has a profile
-        (its servo steps at once). At 2 rad/s (the angler's theta3) a tick takes 0.77 ms,
-        and a status reply comes back in about 0.3 ms at 1 Mbps."""
+        Velocity (112); Profile Acceleration only makes it later): `TICKS_TO_SHOW` ticks' time
+        at the fastest written joint (the half: the owner task times the wait from just
+        before the exchange, the write itself goes out a little later), at most one poll
+        period; 0 where no written joint has a profile (its servo steps at once). At 2 rad/s
+        (the angler's theta3) a tick takes 0.77 ms, and a status reply comes back in about
+        0.3 ms at 1 Mbps."""
         pace = self.pace()
         if item.name != "goal_position" or pace is None:
             return 0.0
@@ -145,7 +149,7 @@ class DynamixelChainDriver(DynamixelBusDriver):
                  if np.isfinite(pace[k]) and pace[k] > 0]
         if not rates:
             return 0.0
-        return min(1.0 / max(rates), 1.0 / self.profile.link.poll_hz)
+        return min(TICKS_TO_SHOW / max(rates), 1.0 / self.profile.link.poll_hz)
 
     def pace(self) -> np.ndarray | None:
         """Each joint's Profile Velocity as set (0.229 rpm units) in joint units: the servo
