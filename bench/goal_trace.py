@@ -357,7 +357,7 @@ def run_server(args: argparse.Namespace) -> tuple[Trace, list[dict[str, Any]], f
         install(trace)
     gc.callbacks.append(trace.on_gc)
     settings = Settings()
-    app = create_app(settings)
+    app = create_app(settings, camera_configs=[]) if args.no_cameras else create_app(settings)
     import socket
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
@@ -530,6 +530,8 @@ def main() -> None:
                     help="trace only the simulated link's bytes (works on 0.3.0's code too)")
     ap.add_argument("--root", help="import the app from this checkout (e.g. an export of "
                     "ece2776, with --light)")
+    ap.add_argument("--no-cameras", action="store_true",
+                    help="without the simulated cameras `armserver serve` starts by default")
     ap.add_argument("--client", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.client:
