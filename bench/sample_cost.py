@@ -71,8 +71,9 @@ async def _move(svc: ArmService) -> None:
     targets = [lo + 0.25 * (hi - lo), lo + 0.75 * (hi - lo)]
     k = 0
     while True:
-        await svc.move_joints(s.MoveJoints(positions=targets[k % 2].tolist(), speed=0.5,
-                                           wait=True))
+        record = await svc.move_joints(s.MoveJoints(positions=targets[k % 2].tolist(),
+                                                    speed=0.5, wait=True))
+        await record.wait()  # (the route waits for `wait`; the facade answers at the start)
         k += 1
 
 

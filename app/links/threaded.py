@@ -16,11 +16,12 @@ tests/test_link_thread.py):
   makes (`transact`, `read`, `write`) first pauses the schedule and waits for the poll in
   flight, so a request waits behind at most one poll and no byte of one exchange is read by
   another.
-- The owner task is woken at once for a reply that differs from the one before (an arm that
-  moves, a fault), for one that did not come whole within its timeout (and the thread stops
-  polling: the driver resynchronises as it does on any link, with its quiet wait, before
-  anything is written again) and for a request; replies that repeat (an arm at rest) wait at
-  most BATCH_S on the thread and carry the time they were read (`Reply.at`).
+- The owner task is woken at once for a reply that differs from the ones before (an arm that
+  starts to move, a fault), for one that did not come whole within its timeout (and the thread
+  stops polling: the driver resynchronises as it does on any link, with its quiet wait, before
+  anything is written again) and for a request; replies that go on changing (a moving arm)
+  wait at most MOVING_BATCH_S on the thread, replies that repeat (an arm at rest) BATCH_S, and
+  each carries the time it was read (`Reply.at`).
 - A reply is taken for the owner's poll only if the owner task asks for the same request
   bytes; otherwise the thread's replies are dropped (they answer requests the driver never
   made).
@@ -38,6 +39,7 @@ import logging
 import os
 import queue
 import select
+import stat
 import threading
 import time
 from collections import deque
@@ -56,6 +58,9 @@ CLOSE_TIMEOUT_S = 1.0  # closing must not hang the owner task on a thread stuck 
 #: most (a 50 Hz subscriber's period); a reply that differs, one that failed and a request
 #: wake it at once.
 BATCH_S = 0.02
+#: ... and replies that go on changing (an arm that moves), after the first of them, which
+#: wakes it at once: a subscriber at the poll rate sees a moving arm this much later at most.
+MOVING_BATCH_S = 0.005
 #: Replies the thread keeps for the owner task at most; then it stops polling on its own (a
 #: stalled control loop gets no backlog to catch up on, as POLL_CATCH_UP bounds it).
 MAX_PREFETCHED = 64
@@ -67,6 +72,11 @@ WRITE_WAIT_S = 1.0
 
 _NUDGE = object()  # a job that only wakes the thread (the schedule changed)
 _STOP = object()  # close the port and end the thread
+
+
+def _settle_once(fut: asyncio.Future[bool], ready: bool) -> None:
+    if not fut.done():
+        fut.set_result(ready)
 
 
 class _Lost(Exception):
@@ -89,6 +99,7 @@ class ThreadLink(Link):
         # on the thread only, once open
         self._port: Any = None
         self._fd: int | None = None
+        self._socket = False  # the descriptor is a socket (`socket://`): b"" is its end
         self._poller: Any = None
         #: Bytes a call read for a caller that gave up (cancelled): read first, never lost.
         self._stash = bytearray()
@@ -102,6 +113,7 @@ class ThreadLink(Link):
         self._paused: asyncio.Future[None] | None = None
         self._prefetched: deque[tuple[bytes, Reply | BaseException]] = deque()
         self._last_data = b""
+        self._changing = False  # the last reply differed from the one before
         self._batch_since = 0.0
         self._waits_until: float | None = None  # the slot the thread waits for (None: a job)
         #: The owner's poll request (bytes, reply size, timeout), from its last poll.
@@ -134,6 +146,7 @@ class ThreadLink(Link):
         self._poll = None
         self._clean = False
         self._last_data = b""
+        self._changing = False
         self._ended = loop.create_future()
         self._thread = threading.Thread(target=self._main, args=(loop, self._ended),
                                         name=f"link {self.address}", daemon=True)
@@ -157,13 +170,19 @@ class ThreadLink(Link):
                  self.baudrate)
 
     async def write(self, data: bytes) -> None:
-        await self._call(self._write_all, bytes(data))
+        fd = await self._paused_fd()
+        rest = bytes(data) if fd is None else self._write_here(fd, bytes(data))
+        if rest:  # no descriptor, or a full transmit buffer: the thread waits for it
+            await self._call(self._write_all, rest)
 
     async def read(self, timeout: float) -> bytes:
         if self._stash:
             data = bytes(self._stash[:READ_CHUNK])
             del self._stash[:READ_CHUNK]
             return data
+        fd = await self._paused_fd()
+        if fd is not None:
+            return await self._read_here(fd, timeout, True)
         result: bytes = await self._call(self._read_some, timeout)
         return result
 
@@ -187,8 +206,12 @@ class ThreadLink(Link):
             self._poll = (bytes(packet), reply_size, timeout)
         polling, self._poll_next = self._poll_next, False
         try:
-            reply: Reply = await self._call(self._transact, bytes(packet), reply_size, timeout,
-                                            False)
+            fd = await self._paused_fd()
+            if fd is not None:
+                reply = await self._transact_here(fd, bytes(packet), reply_size, timeout)
+            else:
+                reply = await self._call(self._transact, bytes(packet), reply_size, timeout,
+                                         False)
         except BaseException:
             self._clean = False
             raise
@@ -281,6 +304,82 @@ class ThreadLink(Link):
             return await fut
         except (OSError, _Lost) as exc:
             raise self._lost(str(exc)) from exc
+
+    async def _paused_fd(self) -> int | None:
+        """The port's descriptor once the schedule is paused (None: pyserial without one):
+        the owner task's own calls run on its loop, as an asyncio link's do; only the
+        scheduled polls run on the thread."""
+        if self._thread is None or self.state is not LinkState.UP or self._loop is None:
+            raise LinkError(self.last_error or f"serial link {self.address} is not open")
+        if self._armed or self._in_flight:
+            await self.pause()
+        return self._fd
+
+    async def _transact_here(self, fd: int, packet: bytes, size: int, timeout: float) -> Reply:
+        deadline = time.monotonic() + timeout
+        rest = self._write_here(fd, packet)
+        if rest:
+            await self._call(self._write_all, rest)
+        data = b""
+        first = True
+        while len(data) < size:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            chunk = await self._read_here(fd, left, not first)  # (just written: not there yet)
+            first = False
+            if not chunk:
+                break
+            data += chunk
+        return Reply(data, deadline)
+
+    def _write_here(self, fd: int, data: bytes) -> bytes:
+        """Write what the descriptor takes now; the rest (a full transmit buffer)."""
+        try:
+            n = os.write(fd, data)
+        except BlockingIOError:
+            n = 0
+        except OSError as exc:
+            raise self._lost(str(exc)) from exc
+        return data[n:]
+
+    async def _read_here(self, fd: int, timeout: float, now_first: bool) -> bytes:
+        """What arrives within `timeout` s, on the loop (one reader and one timer, no task)."""
+        if now_first and (data := self._read_now(fd)) is not None:
+            return data
+        assert self._loop is not None
+        loop = self._loop
+        deadline = loop.time() + max(0.0, timeout)
+        while True:
+            fut: asyncio.Future[bool] = loop.create_future()
+            loop.add_reader(fd, _settle_once, fut, True)
+            timer = loop.call_at(deadline, _settle_once, fut, False)
+            try:
+                ready = await fut
+            finally:
+                timer.cancel()
+                loop.remove_reader(fd)
+            data = self._read_now(fd, ready)
+            if data is not None:
+                return data
+            if loop.time() >= deadline:
+                return b""
+
+    def _read_now(self, fd: int, ready: bool = False) -> bytes | None:
+        """The bytes waiting (None: none yet). Nothing read where the descriptor said it was
+        ready is a lost port (a socket's end of file; a tty whose other end is gone, as
+        pyserial's own read says)."""
+        try:
+            data = os.read(fd, READ_CHUNK)
+        except BlockingIOError:
+            return None
+        except OSError as exc:  # a tty whose other end is gone: EIO
+            raise self._lost(str(exc)) from exc
+        if not data:
+            if ready or self._socket:  # (a tty reads nothing when it has nothing)
+                raise self._lost("closed by the peer (end of file)")
+            return None
+        return data
 
     def _settle(self, fut: asyncio.Future[Any], result: Any, exc: BaseException | None) -> None:
         """A job's outcome, on the loop. A caller that gave up leaves its bytes to the next."""
@@ -385,8 +484,14 @@ class ThreadLink(Link):
             if failed or len(self._prefetched) >= MAX_PREFETCHED:
                 self._armed = False  # the owner task takes it from here
             data = entry.data if isinstance(entry, Reply) else b""
-            wake = (failed or not self._armed or data != self._last_data
-                    or now - self._batch_since >= BATCH_S)
+            changed = data != self._last_data
+            since = now - self._batch_since
+            # a reading that changes after repeats (a move starts: the samples a goal's or a
+            # teleoperation's latency waits for) at once; while it goes on changing, every
+            # MOVING_BATCH_S; repeats every BATCH_S
+            wake = (failed or not self._armed or (changed and not self._changing)
+                    or since >= (MOVING_BATCH_S if changed else BATCH_S))
+            self._changing = changed
             self._last_data = data
             if wake:
                 self._batch_since = now
@@ -412,6 +517,7 @@ class ThreadLink(Link):
                 serial.SerialException):
             fd = None
         self._port, self._fd = port, fd
+        self._socket = fd is not None and stat.S_ISSOCK(os.fstat(fd).st_mode)
         if fd is not None:
             self._poller = select.poll()
             self._poller.register(fd, select.POLLIN)
