@@ -63,10 +63,10 @@ class LinkConfig(_Strict):
     serial_number: str | None = None
     baudrate: int = 1_000_000
     io: Literal["thread", "asyncio"] = Field(
-        "thread", description="serial only: `thread` runs each request and its reply in one "
-        "blocking call on the link's own thread, which also polls on the schedule while the "
-        "arm's loop waits (app/links/threaded.py, issue 27: about half the CPU a sample); "
-        "`asyncio` reads and writes on the control loop (pyserial-asyncio)")
+        "thread", description="serial only: `thread` polls on the schedule on the link's own "
+        "thread while the arm's loop waits, a poll's request and reply in one blocking call, "
+        "replies handed over in batches (app/links/threaded.py, issue 27: less CPU a sample "
+        "at rest); `asyncio` polls on the control loop (pyserial-asyncio)")
     timeout_s: float = Field(0.05, gt=0.0, le=10.0, description="per-request reply timeout, s")
     poll_hz: float = Field(100.0, gt=0.0, le=2000.0)
     control_hz: float = Field(100.0, gt=0.0, le=1000.0)

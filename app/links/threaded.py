@@ -1,21 +1,28 @@
-"""A byte-stream link (any pyserial URL) whose I/O runs on a thread of its own (issue 27).
+"""A byte-stream link (any pyserial URL) whose polls run on a thread of its own (issue 27).
 
-Each request and its reply are one blocking call on that thread (`transact`: write, then read
-until the reply's bytes have come or its timeout has passed), as the HID link's hidapi calls
-are (app/links/hid.py): the owner task awaits one future where an asyncio link costs it a
-write, a read, a timer and the loop's wake-ups for each. And while the owner task has nothing
-else to do, the thread runs the owner's poll itself on the poll schedule (`arm`): it writes
-the poll request the owner task last made at each slot, reads the reply, and keeps it
-(`prefetched`); the owner task is woken for them together (one `call_soon_threadsafe` for a
-batch) and passes each through its driver as if it had made the poll itself (`begin_poll`):
-the same sans-IO parsing, matching and checks, in the same order.
+While the owner task has nothing else to do, the link's thread runs the owner's poll itself on
+the poll schedule (`arm`): at each slot it writes the poll request the owner task last made
+and reads the reply in one blocking call (`os.write`, then `poll` and `os.read` until the
+reply's bytes have come or its timeout has passed, as the HID link's hidapi calls block on
+theirs: app/links/hid.py), and keeps it (`prefetched`). The owner task is woken for the
+replies together (one `call_soon_threadsafe` for a batch) and passes each through its driver
+as if it had made the poll itself (`begin_poll`): the same sans-IO parsing, matching and
+checks, in the same order. An idle arm then costs the control loop one wake-up a batch instead
+of a timer, a write, a read and two wake-ups a poll.
+
+The owner task's own calls (a request, a poll after a failure or a write, the driver's quiet
+wait) pause the schedule and run on its loop over the port's descriptor, as an asyncio link's
+do (`transact`: write, then one reader and one timer until the reply's bytes or its timeout).
+Where pyserial gives no descriptor (URLs such as `loop://`), they run on the thread with
+pyserial's own `write` and `read` with a timeout.
 
 What the owner task relies on (app/device/owner.py `_session_scheduled`, tested in
 tests/test_link_thread.py):
 - The thread polls on its own only while the owner task waits: every call the owner task
   makes (`transact`, `read`, `write`) first pauses the schedule and waits for the poll in
   flight, so a request waits behind at most one poll and no byte of one exchange is read by
-  another.
+  another; it polls alone again only after a good poll, every reply since whole
+  (`can_schedule`).
 - The owner task is woken at once for a reply that differs from the ones before (an arm that
   starts to move, a fault), for one that did not come whole within its timeout (and the thread
   stops polling: the driver resynchronises as it does on any link, with its quiet wait, before
@@ -26,10 +33,8 @@ tests/test_link_thread.py):
   bytes; otherwise the thread's replies are dropped (they answer requests the driver never
   made).
 
-pyserial's port is opened as `app/links/serial.py` opens it (`serial_for_url`, exclusive);
-where it has a file descriptor (a tty, a pseudo-terminal, `socket://`) the thread writes and
-reads it with `os.write`, `poll` and `os.read` (pyserial's own `read` asks `select` again and
-builds a Timeout object per call), else with pyserial's `write` and `read` with a timeout.
+pyserial's port is opened as `app/links/serial.py` opens it (`serial_for_url`, exclusive), on
+the thread. `[link] io = "asyncio"` in a profile keeps the asyncio link (app/links/serial.py).
 """
 
 from __future__ import annotations
@@ -187,8 +192,9 @@ class ThreadLink(Link):
         return result
 
     async def transact(self, packet: bytes, reply_size: int, timeout: float) -> Reply:
-        """Write `packet` and read until `reply_size` bytes or `timeout`, in one call on the
-        thread; for the owner's poll (`begin_poll`), the reply the thread read ahead."""
+        """Write `packet` and read until `reply_size` bytes or `timeout` (on the loop, the
+        schedule paused); for the owner's poll (`begin_poll`), the reply the thread read
+        ahead, if it answers the same request."""
         if self._poll_next:
             if self._use_prefetched:
                 self._use_prefetched = False
