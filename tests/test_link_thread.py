@@ -240,3 +240,18 @@ async def test_transact_reads_the_whole_reply_in_one_call_over_a_pty(tmp_path):
     finally:
         await link.close()
         await server.close()
+
+
+def test_the_dynamixel_status_size_hint_is_the_statuses_asked_for():
+    """What a Dynamixel request expects back, unstuffed (e-manual, Protocol 2.0: a status is 11
+    bytes and its parameters): the thread reads that much before it hands the reply over."""
+    from app.arms.dynamixel.exchange import DxlRequest, _status_bytes
+    from protocol import dynamixel as dxl
+
+    assert _status_bytes(DxlRequest(dxl.ping(3), (3,))) == 11 + 3
+    assert _status_bytes(DxlRequest(dxl.read(3, 132, 4), (3,))) == 11 + 4
+    assert _status_bytes(DxlRequest(dxl.sync_read(122, 14, [1, 2, 3, 4]), (1, 2, 3, 4))) == \
+        4 * (11 + 14)
+    assert _status_bytes(DxlRequest(dxl.write(3, 64, b"\x01"), (3,))) == 11
+    assert _status_bytes(DxlRequest(dxl.ping(dxl.BROADCAST_ID), (), True)) == 0
+    assert _status_bytes(DxlRequest(dxl.sync_write(116, 4, {1: b"\0\0\0\0"}), ())) == 0
