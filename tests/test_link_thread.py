@@ -255,3 +255,24 @@ def test_the_dynamixel_status_size_hint_is_the_statuses_asked_for():
     assert _status_bytes(DxlRequest(dxl.write(3, 64, b"\x01"), (3,))) == 11
     assert _status_bytes(DxlRequest(dxl.ping(dxl.BROADCAST_ID), (), True)) == 0
     assert _status_bytes(DxlRequest(dxl.sync_write(116, 4, {1: b"\0\0\0\0"}), ())) == 0
+
+
+async def test_a_cable_pulled_while_the_thread_polls_is_a_lost_link_and_it_comes_back():
+    async with arm("rbe3001", reconnect_after_s=0.3) as (driver, link, server):
+        scheduled = link.stats["scheduled"]
+        await wait_for(lambda: link.stats["scheduled"] > scheduled + 10, what="thread polls")
+        sub = driver.hub.subscribe()
+        try:
+            server.disconnect()  # the cable is pulled while the arm is at rest
+            await wait_for(lambda: driver.state.value in ("down", "connecting"),
+                           what="link down")
+            assert await driver.wait_connected(10.0)
+            scheduled = link.stats["scheduled"]
+            await wait_for(lambda: link.stats["scheduled"] > scheduled + 10,
+                           what="the thread polling after the reconnect")
+            _, events, _ = sub.take()
+            assert any('"link_lost"' in e for e in events)
+            assert any('"link_back"' in e for e in events)
+            assert isinstance(await driver.status(), rb.StatusReply)
+        finally:
+            sub.close()
