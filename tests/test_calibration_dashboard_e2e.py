@@ -5,12 +5,11 @@ on the simulated board as it ships (not calibrated, powered on in its jig)."""
 from __future__ import annotations
 
 import json
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import _deps
+import _browser
 import httpx
 import pytest
 from conftest import serve_live
@@ -19,34 +18,20 @@ from app.arms.loading import load_arms
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM = _deps.CHROMIUM
-ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+CHROMIUM, CHROMIUM_ARGS = _browser.CHROMIUM, _browser.CHROMIUM_ARGS
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "rbe3001-day-one.example.toml"
 
-if CHROMIUM is None:
-    pytest.skip(_deps.missing_message("chromium") + "; the dashboard test needs it",
-                allow_module_level=True)
-sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing")
+sync_api = _browser.sync_api_or_skip()
 
 
 def wait_for(fn: Callable[[], Any], what: str, timeout: float = 15.0) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            value = fn()
-        except Exception:  # noqa: BLE001 - retried until the deadline
-            value = None
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out: {what}")
+    return _browser.poll(fn, what, timeout)
 
 
 def test_the_panel_leads_through_declaring_the_jig_pose() -> None:
     with serve_live(profiles=load_arms(str(CONFIG))) as live, \
             sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         page = browser.new_page(viewport={"width": 1440, "height": 1000})
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-import _deps
+import _browser
 import httpx
 import numpy as np
 import pytest
@@ -19,13 +19,8 @@ from app.sim.camera import SimView
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM = _deps.CHROMIUM
-CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update"]
-if CHROMIUM is None:
-    pytest.skip(_deps.missing_message("chromium") + "; the dashboard test needs it",
-                allow_module_level=True)
-sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing")
+CHROMIUM, CHROMIUM_ARGS = _browser.CHROMIUM, _browser.CHROMIUM_ARGS
+sync_api = _browser.sync_api_or_skip()
 
 ARM = "rbe3001"
 #: Where the tip is put for the calibration: four table points (m), at a height above the

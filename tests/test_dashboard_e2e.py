@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import _deps
+import _browser
 import httpx
 import pytest
 import uvicorn
@@ -36,10 +36,7 @@ from app.web.serving import ArmServer
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM = _deps.CHROMIUM  # the one way the tests and the Makefile find it
-CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic",
-                 "--no-first-run", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync"]
+CHROMIUM, CHROMIUM_ARGS = _browser.CHROMIUM, _browser.CHROMIUM_ARGS
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "test-output"
 DOCS_SHOT = ROOT / "docs" / "dashboard.png"
@@ -55,10 +52,7 @@ POS_TOL_RAD = 1e-3
 TARGET_MM = (120.0, -180.0, 280.0)
 FAR_MM = (1000.0, 0.0, 200.0)
 
-if CHROMIUM is None:
-    pytest.skip(_deps.missing_message("chromium") + "; the dashboard test needs it",
-                allow_module_level=True)
-sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing")
+sync_api = _browser.sync_api_or_skip()
 
 
 # ---------------------------------------------------------------- server (restartable, fixed port)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import re
 
-import _deps
+import _browser
 import httpx
 import pytest
 from _wait import wait_until
@@ -14,13 +14,8 @@ from conftest import serve_live
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM = _deps.CHROMIUM
-CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update"]
-if CHROMIUM is None:
-    pytest.skip(_deps.missing_message("chromium") + "; the dashboard test needs it",
-                allow_module_level=True)
-sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing")
+CHROMIUM, CHROMIUM_ARGS = _browser.CHROMIUM, _browser.CHROMIUM_ARGS
+sync_api = _browser.sync_api_or_skip()
 
 
 def test_record_and_stop_from_the_bar() -> None:

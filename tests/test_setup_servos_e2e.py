@@ -7,42 +7,27 @@ plug in the next servo and set it up as y; two new servos at once are refused in
 from __future__ import annotations
 
 import json
-import time
 from collections.abc import Callable
 from typing import Any
 
-import _deps
+import _browser
 import pytest
 from conftest import serve_live
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM = _deps.CHROMIUM
-ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+CHROMIUM, CHROMIUM_ARGS = _browser.CHROMIUM, _browser.CHROMIUM_ARGS
 
-if CHROMIUM is None:
-    pytest.skip(_deps.missing_message("chromium") + "; the dashboard test needs it",
-                allow_module_level=True)
-sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing")
+sync_api = _browser.sync_api_or_skip()
 
 
 def wait_for(fn: Callable[[], Any], what: str, timeout: float = 20.0) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            value = fn()
-        except Exception:  # noqa: BLE001 - retried until the deadline
-            value = None
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out: {what}")
+    return _browser.poll(fn, what, timeout)
 
 
 def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
     with serve_live() as live, sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         page = browser.new_page(viewport={"width": 1440, "height": 1000})
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))

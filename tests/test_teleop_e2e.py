@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import _deps
+import _browser
 import httpx
 import numpy as np
 import pytest
@@ -20,13 +20,8 @@ from app.runtime.control_thread import on_home
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM = _deps.CHROMIUM
-CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update"]
-if CHROMIUM is None:
-    pytest.skip(_deps.missing_message("chromium") + "; the dashboard test needs it",
-                allow_module_level=True)
-sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is missing")
+CHROMIUM, CHROMIUM_ARGS = _browser.CHROMIUM, _browser.CHROMIUM_ARGS
+sync_api = _browser.sync_api_or_skip()
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "teleop_omx.toml"
 TOL = 8 * 2 * np.pi / 4096

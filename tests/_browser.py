@@ -1,0 +1,44 @@
+"""What the dashboard's browser tests share: Chromium (found by tests/_deps.py, as the Makefile
+finds it) and its flags, playwright's sync API, the skip when either is missing (a failure
+under ARMSERVER_STRICT_SKIPS: `make test` installs both), and a bounded poll of the page."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from types import ModuleType
+from typing import Any
+
+import _deps
+import pytest
+
+CHROMIUM = _deps.CHROMIUM
+#: Headless, no sandbox (CI runs as root), nothing of Chromium's own on the network.
+CHROMIUM_ARGS = ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic",
+                 "--no-first-run", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync"]
+
+
+def sync_api_or_skip() -> ModuleType:
+    """playwright.sync_api; called at a test module's import, skips the module without
+    Chromium or playwright."""
+    if CHROMIUM is None:
+        pytest.skip(_deps.missing_message("chromium") + "; the dashboard test needs it",
+                    allow_module_level=True)
+    return pytest.importorskip("playwright.sync_api",
+                               reason="the playwright package is missing")
+
+
+def poll(fn: Callable[[], Any], what: str, timeout: float = 20.0) -> Any:
+    """`fn()`'s first truthy value within `timeout` s; an exception (a page mid-render) counts
+    as not yet. AssertionError naming `what` at the deadline."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            value = fn()
+        except Exception:  # noqa: BLE001 - retried until the deadline
+            value = None
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out: {what}")
