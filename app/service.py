@@ -766,11 +766,12 @@ class ArmService:
 
     # --------------------------------------------------------- the facade: the envelope
 
-    def safety_view(self, store_ok: bool, store_error: str | None, settings_pending: int,
+    def safety_view(self, stored: bool, store_error: str | None, settings_pending: int,
                     editable: bool) -> s.Safety:
-        """The envelope as API.md's `Safety`: `persisted` unless a stored setting waits."""
+        """The envelope as API.md's `Safety`: `persisted` unless there is no store (`stored`
+        False) or a stored setting waits."""
         env, cfg = self.safety, self.safety.settings
-        persisted = env.source == "profile" or (store_ok and settings_pending == 0)
+        persisted = env.source == "profile" or (stored and settings_pending == 0)
         return s.Safety(zones=list(cfg.zones), floor_z=cfg.floor_z,
                         speed_override=cfg.speed_override, tool_margin=env.profile.tool_margin,
                         body_margin=env.profile.body_margin, body_points=list(env.bodies),

@@ -18,8 +18,13 @@ import random
 import time
 
 import numpy as np
+import pytest
 from _wait import wait_for
 from conftest import make_settings, running_client
+
+#: Serial (tests/conftest.py): the poll's wait and the servo's first tick are both wall time
+#: (one goal of 40 read a poll early beside three loaded workers).
+pytestmark = pytest.mark.serial
 
 GOAL = "/api/v1/arms/angler/dynamixel/3/registers/goal_position"
 GOALS = 40

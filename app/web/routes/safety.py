@@ -38,7 +38,9 @@ def describe(svc: ArmService, store: Store | None, editable: bool) -> s.Safety:
     health = store.health() if store is not None else None
     if health is None or store is None:
         return svc.safety_view(False, "no store", 0, editable)
-    return svc.safety_view(health.ok, health.error, store.settings_pending(), editable)
+    # on disk when no setting waits: the audit log's own trouble (health.ok covers it too, and
+    # its retry lands after this answer) is said in store_error, not as this setting unsaved
+    return svc.safety_view(True, health.error, store.settings_pending(), editable)
 
 
 def load_stored(svc: ArmService, store: Store) -> None:
