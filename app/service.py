@@ -39,8 +39,8 @@ from app.links.base import LinkState
 from app.motion import replay
 from app.motion.executor import MotionExecutor, MotionRecord
 from app.motion.stream import AT_REST
-from app.runtime.control_thread import on_home, running_loop, start_now
-from app.runtime.tasks import retrieve
+from app.runtime.control_thread import on_home, start_now
+from app.runtime.tasks import retrieve, running_loop
 from app.safety.envelope import ArmSafety
 from app.safety.guard import SafetyGuard
 from app.sim.hand import Hand

@@ -33,7 +33,7 @@ import threading
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
-from app.runtime.tasks import retrieve
+from app.runtime.tasks import retrieve, running_loop
 
 log = logging.getLogger(__name__)
 
@@ -122,13 +122,6 @@ def _raise_priority() -> int | None:
         os.setpriority(os.PRIO_PROCESS, tid, CONTROL_NICE)
         return os.getpriority(os.PRIO_PROCESS, tid)
     except (OSError, AttributeError):
-        return None
-
-
-def running_loop() -> asyncio.AbstractEventLoop | None:
-    try:
-        return asyncio.get_running_loop()
-    except RuntimeError:
         return None
 
 

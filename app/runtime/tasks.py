@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
+from collections.abc import Callable
 from typing import Any
 
 log = logging.getLogger(__name__)
@@ -45,3 +46,20 @@ def resolve(fut: asyncio.Future[None] | None) -> None:
     from another thread may come after the waiter gave up)."""
     if fut is not None and not fut.done():
         fut.set_result(None)
+
+
+def running_loop() -> asyncio.AbstractEventLoop | None:
+    """The event loop running on this thread, or None."""
+    try:
+        return asyncio.get_running_loop()
+    except RuntimeError:
+        return None
+
+
+def soon_on(loop: asyncio.AbstractEventLoop, fn: Callable[..., Any], *args: Any) -> None:
+    """`fn(*args)` on `loop`: at once when this thread runs it, else queued with
+    `call_soon_threadsafe` (RuntimeError when `loop` is closed)."""
+    if running_loop() is loop:
+        fn(*args)
+    else:
+        loop.call_soon_threadsafe(fn, *args)

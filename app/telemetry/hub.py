@@ -37,7 +37,7 @@ from typing import Any
 
 import orjson
 
-from app.runtime.tasks import resolve
+from app.runtime.tasks import resolve, soon_on
 
 #: Samples a subscriber may fall behind before the oldest are dropped: 4 s at 500 Hz.
 DEFAULT_BACKLOG = 2000
@@ -104,14 +104,7 @@ class Subscription:
         fut, loop = self._waiter, self._loop
         if fut is None or loop is None or fut.done():
             return
-        try:
-            running = asyncio.get_running_loop()
-        except RuntimeError:
-            running = None
-        if running is loop:
-            fut.set_result(None)
-        else:
-            loop.call_soon_threadsafe(resolve, fut)
+        soon_on(loop, resolve, fut)
 
     @property
     def has_events(self) -> bool:

@@ -37,6 +37,7 @@ from app.arms import model_for
 from app.arms.model import KinematicsModel
 from app.config import ArmProfile
 from app.errors import LinkDown, NotSupported
+from app.runtime.tasks import soon_on
 
 log = logging.getLogger(__name__)
 
@@ -149,15 +150,8 @@ class RemoteLeader:
         task, loop = self._task, self._loop
         if task is None or loop is None or task.done():
             return
-        try:
-            running = asyncio.get_running_loop()
-        except RuntimeError:
-            running = None
-        if running is loop:
-            task.cancel()
-        else:
-            with contextlib.suppress(RuntimeError):  # its loop closed: the task is gone
-                loop.call_soon_threadsafe(task.cancel)
+        with contextlib.suppress(RuntimeError):  # its loop closed: the task is gone
+            soon_on(loop, task.cancel)
 
     async def _run(self) -> None:
         uri = f"ws://localhost/api/v1/arms/{self.name}/telemetry?rate={RATE_HZ:g}"
