@@ -63,6 +63,16 @@ def _resolve(fut: asyncio.Future[None] | None) -> None:
         fut.set_result(None)
 
 
+def cannot_open(address: str, exc: BaseException) -> str:
+    """Why the port at `address` did not open: who holds it, where its exclusive lock (flock)
+    refused us (a second server would break the first's link mid-move), else the error."""
+    holder = lock_holder(address) if "lock" in str(exc) else None
+    if holder is not None:
+        return (f"cannot open {address}: it is in use by {holder}; a port is driven by one "
+                "server at a time")
+    return f"cannot open {address}: {exc}"
+
+
 def lock_holder(path: str) -> str | None:
     """Who holds an flock on the device `path` ("process 1234 (armserver serve ...)"), from
     /proc/locks (Linux); None if unknown."""
@@ -126,11 +136,7 @@ class SerialLink(Link):
                                                          port, READ_CHUNK)
             self._proto = proto  # (connection_made comes later, from call_soon)
         except (*self._errors, ValueError) as exc:
-            holder = lock_holder(self.address) if "lock" in str(exc) else None
-            if holder is not None:
-                raise self._down(f"cannot open {self.address}: it is in use by {holder}; a "
-                                 "port is driven by one server at a time") from exc
-            raise self._down(f"cannot open {self.address}: {exc}") from exc
+            raise self._down(cannot_open(self.address, exc)) from exc
         self.state = LinkState.UP
         self.last_error = None
         log.info("serial link %s open at %d baud", self.address, self.baudrate)

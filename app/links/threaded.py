@@ -162,13 +162,9 @@ class ThreadLink(Link):
             await fut
         except (OSError, ValueError, _Lost) as exc:
             await self._stop_thread()
-            from app.links.serial import lock_holder
+            from app.links.serial import cannot_open
 
-            holder = lock_holder(self.address) if "lock" in str(exc) else None
-            if holder is not None:
-                raise self._down(f"cannot open {self.address}: it is in use by {holder}; a "
-                                 "port is driven by one server at a time") from exc
-            raise self._down(f"cannot open {self.address}: {exc}") from exc
+            raise self._down(cannot_open(self.address, exc)) from exc
         self.state = LinkState.UP
         self.last_error = None
         log.info("serial link %s open at %d baud (on its own thread)", self.address,
