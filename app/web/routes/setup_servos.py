@@ -185,6 +185,13 @@ def _profile(name: str, services: dict[str, ArmService]) -> ArmProfile:
     return candidates[name]
 
 
+def _checked(request: Request, req: s.ServoScanRequest) -> ArmProfile:
+    """The request's profile, once its port is known to be no arm's of this server."""
+    services = _services(request)
+    _check_port(req.port, services)
+    return _profile(req.profile, services)
+
+
 def _found(profile: ArmProfile, f: setup.Found) -> s.FoundServo:
     joint, note = setup.placement(profile, f)
     return s.FoundServo(id=f.id, baudrate=f.baudrate, model=f.model,
@@ -255,9 +262,7 @@ async def setup_info(request: Request, _: ViewerRole) -> s.ServoSetupInfo:
 )
 async def scan_servos(request: Request, req: s.ServoScanRequest,
                       _: InstructorRole) -> s.ServoScan:
-    services = _services(request)
-    _check_port(req.port, services)
-    profile = _profile(req.profile, services)
+    profile = _checked(request, req)
     result: setup.Scan = await _run_setup(request, setup.scan_port, req.port,
                                           rates=_rates(req), **_timeouts(req))
     servos = [_found(profile, f) for f in result.found]
@@ -284,9 +289,7 @@ async def scan_servos(request: Request, req: s.ServoScanRequest,
 )
 async def assign_servo(request: Request, req: s.ServoAssignRequest,
                        _: InstructorRole) -> s.ServoAssigned:
-    services = _services(request)
-    _check_port(req.port, services)
-    profile = _profile(req.profile, services)
+    profile = _checked(request, req)
     said: list[str] = []
     done: setup.Found = await _run_setup(request, setup.set_up_joint, req.port, profile,
                                          req.joint, rates=_rates(req), say=said.append,
