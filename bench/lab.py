@@ -1,14 +1,17 @@
 """A whole lab on one PC (issue 27): N simulated arms on emulated links, one server address.
 
-    python bench/lab.py [--arms 4] [--workers 2] [--model rbe3001] [--seconds 10] [--pin]
+    python bench/lab.py [--arms 4] [--workers 2] [--model rbe3001] [--seconds 10] [--per-sim 16]
+                        [--pin]
 
-Starts one `armserver sim MODEL --listen tcp://127.0.0.1:PORT` per arm (the project's
-simulated firmware or servo bus, out of the server's process; each arm's link is
-`socket://127.0.0.1:PORT`), then `armserver serve --workers W` over them (W = 1: today's single
-process), and while every arm runs at its poll rate prints:
+Starts the arms' simulators out of the server's process (the project's simulated firmware or
+servo bus, one device and one `socket://127.0.0.1:PORT` address per arm), `--per-sim` arms to a
+process (`armserver sim MODEL --listen tcp://127.0.0.1:PORT --listen ...`: one event loop for
+them), then `armserver serve --workers W` over them (W = 1: today's single process), and
+while every arm runs at its poll rate prints:
 
 - server CPU: front and workers together, % of one core, in all and per arm, over `--seconds`
-  with no client asking anything (what the arms cost);
+  with no client asking anything (what the arms cost); the simulators' CPU and the whole
+  machine's beside it (on two cores the simulators share the machine with the server);
 - samples/s per arm over that window, min and mean over the arms (each arm's `seq` over its
   own sample clock);
 - then REST `GET /state` p50/p99 through the front, round robin over the arms, one client; the
@@ -105,13 +108,22 @@ async def _rates(c: httpx.AsyncClient, arms: list[str]) -> dict[str, tuple[int, 
     return out
 
 
+def _idle_s() -> float:
+    """Idle time of all the machine's cores, s (/proc/stat)."""
+    with open("/proc/stat") as f:
+        return int(f.readline().split()[4]) / os.sysconf("SC_CLK_TCK")
+
+
 async def measure(url: str, arms: list[str], seconds: float, presses: int,
-                  uds: str | None, pids: list[int]) -> None:
+                  uds: str | None, pids: list[int], sims: list[int]) -> None:
     async with httpx.AsyncClient(base_url=url, timeout=10) as c:
         first = await _rates(c, arms)
-        cpu0, t0 = _cpu_s(pids), time.monotonic()
+        cpu0, sim0, idle0, t0 = _cpu_s(pids), _cpu_s(sims), _idle_s(), time.monotonic()
         await asyncio.sleep(seconds)  # the arms alone: their cost, no client's
-        cpu = (_cpu_s(pids) - cpu0) / (time.monotonic() - t0)
+        span = time.monotonic() - t0
+        cpu = (_cpu_s(pids) - cpu0) / span
+        sim_cpu = (_cpu_s(sims) - sim0) / span
+        busy = (os.cpu_count() or 1) - (_idle_s() - idle0) / span
         last = await _rates(c, arms)
         rest: list[float] = []
         k = 0
@@ -144,6 +156,8 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
     rates = [(last[a][0] - first[a][0]) / (last[a][1] - first[a][1]) for a in arms]
     n = len(arms)
     print(f"server CPU        {100 * cpu:.0f} % of a core in all, {100 * cpu / n:.1f} % per arm")
+    print(f"simulators CPU    {100 * sim_cpu:.0f} % of a core; the whole machine busy "
+          f"{100 * busy:.0f} % of {100 * (os.cpu_count() or 1)}")
     print(f"samples/s per arm min {min(rates):.0f}  mean {sum(rates) / n:.0f}")
     print(f"REST GET state    p50 {1e3 * pct(rest, 0.5):.2f} ms  p99 {1e3 * pct(rest, 0.99):.2f}"
           f" ms through the front ({len(rest)} requests)")
@@ -184,6 +198,9 @@ def main() -> int:
     p.add_argument("--presses", type=int, default=200)
     p.add_argument("--teleop", action="store_true",
                    help="also a teleoperation session's latency, on one worker and across two")
+    p.add_argument("--per-sim", type=int, default=16, metavar="K",
+                   help="arms each simulator process serves (one device and address each, "
+                        "one process's loop for all: `armserver sim MODEL --listen A --listen B`)")
     p.add_argument("--pin", action="store_true",
                    help="server on core 0; simulators and this client on the others")
     p.add_argument("--io", choices=("thread", "asyncio"), default="thread",
@@ -196,11 +213,14 @@ def main() -> int:
     cpus = sorted(os.sched_getaffinity(0))
     sims = []
     config = []
-    for i, port in enumerate(ports[1:]):
+    per = max(1, args.per_sim)
+    for k in range(0, args.arms, per):  # one simulator process serves `per` arms
+        listen = [a for port in ports[1 + k:1 + k + per]
+                  for a in ("--listen", f"tcp://127.0.0.1:{port}")]
         sims.append(subprocess.Popen(
-            [sys.executable, "-m", "app.cli", "sim", args.model, "--listen",
-             f"tcp://127.0.0.1:{port}"], cwd=ROOT, env=env,
+            [sys.executable, "-m", "app.cli", "sim", args.model, *listen], cwd=ROOT, env=env,
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+    for i, port in enumerate(ports[1:]):
         config.append(f'[[arms]]\nprofile = "{args.model}"\nname = "arm-{i + 1}"\n'
                       f'[arms.link]\nkind = "serial"\naddress = "socket://127.0.0.1:{port}"\n'
                       f'io = "{args.io}"\n')
@@ -227,7 +247,7 @@ def main() -> int:
               f"{', pinned' if args.pin else ''}")
         uds = _worker_socket(pids) if args.workers > 1 else None
         asyncio.run(measure(url, [f"arm-{i + 1}" for i in range(args.arms)], args.seconds,
-                            args.presses, uds, pids))
+                            args.presses, uds, pids, [p.pid for p in sims]))
         if args.teleop and args.arms >= 3 and args.workers == 2:
             # placement: arm-1 and arm-3 on worker 0, arm-2 on worker 1
             same = asyncio.run(teleop_latency(url, "arm-1", "arm-3", args.seconds))

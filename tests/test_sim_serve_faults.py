@@ -67,3 +67,62 @@ def test_fault_flag_raises_the_error_on_schedule_over_tcp() -> None:
     finally:
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
+
+
+def _status(sock: socket.socket) -> tuple[float, ...]:
+    """One rbe3001 STATUS exchange: the reply's 15 floats (its id echoed)."""
+    from protocol import rbe3001
+
+    sock.sendall(rbe3001.encode_packet(rbe3001.CommandId.STATUS))
+    data = b""
+    while len(data) < rbe3001.PACKET_SIZE:
+        data += sock.recv(rbe3001.PACKET_SIZE - len(data))
+    packet = rbe3001.decode_packet(data)
+    assert packet.command_id == rbe3001.CommandId.STATUS
+    return packet.values
+
+
+def test_several_listen_addresses_serve_one_device_each_from_one_process() -> None:
+    """`armserver sim rbe3001 --listen A --listen B`: two firmwares in one process (a lab's
+    arms, bench/lab.py), each on its own address; a command to one leaves the other as it
+    was, and a burst of requests gets every reply, whole and in order."""
+    from protocol import rbe3001
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app.sim.serve", "rbe3001", "--listen", "tcp://127.0.0.1:0",
+         "--listen", "tcp://127.0.0.1:0"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        ports = [int(proc.stdout.readline().split("socket://127.0.0.1:")[1].rstrip(")\n"))
+                 for _ in range(2)]
+        assert ports[0] != ports[1]
+        with socket.create_connection(("127.0.0.1", ports[0]), timeout=5) as a, \
+                socket.create_connection(("127.0.0.1", ports[1]), timeout=5) as b:
+            start_a, start_b = _status(a)[:3], _status(b)[:3]
+            # SET_PID: the base joint 300 ticks on, on arm a only
+            goal = [start_a[0] + 300.0, 0.0, 0.0, start_a[1], 0.0, 0.0, start_a[2], 0.0, 0.0]
+            a.sendall(rbe3001.encode_packet(rbe3001.CommandId.SET_PID, goal))
+            data = b""
+            while len(data) < rbe3001.PACKET_SIZE:
+                data += a.recv(rbe3001.PACKET_SIZE - len(data))
+            assert rbe3001.decode_packet(data).command_id == rbe3001.CommandId.SET_PID
+            for _ in range(400):
+                if abs(_status(a)[0] - start_a[0]) > 100:
+                    break
+                time.sleep(0.01)
+            assert abs(_status(a)[0] - start_a[0]) > 100
+            # the other firmware's base did not turn (its shoulder and elbow may sag: no
+            # setpoint holds them yet)
+            assert _status(b)[0] == start_b[0]
+            # a burst of 50 requests at once: 50 replies, whole, in order
+            b.sendall(rbe3001.encode_packet(rbe3001.CommandId.STATUS) * 50)
+            data = b""
+            while len(data) < 50 * rbe3001.PACKET_SIZE:
+                data += b.recv(4096)
+            assert len(data) == 50 * rbe3001.PACKET_SIZE
+            ids = {rbe3001.decode_packet(data[k:k + 64]).command_id
+                   for k in range(0, len(data), 64)}
+            assert ids == {rbe3001.CommandId.STATUS}
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0

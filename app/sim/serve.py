@@ -11,9 +11,11 @@ error name of protocol.mx28.HARDWARE_ERRORS (overload, overheating, electrical_s
 motor_encoder, input_voltage), `power_cycle` or `brown_out`, raised on servo ID (or `all`)
 T seconds after the start: `--fault 1:overload@2.0`.
 
-`armserver sim PROFILE (--pty PATH | --listen URL) [--drop F] [--corrupt F] [--latency S]`
-serves the simulated hardware of any arm type instead (PROFILE: a built-in profile name
-such as `rbe3001`, or a profile TOML path; the device is its arm type's `simulator`).
+`armserver sim PROFILE (--pty PATH | --listen URL [--listen URL ...]) [--drop F]
+[--corrupt F] [--latency S]` serves the simulated hardware of any arm type instead (PROFILE:
+a built-in profile name such as `rbe3001`, or a profile TOML path; the device is its arm
+type's `simulator`). `--listen` given N times serves N devices alike from this one process, one
+on each address, with one physics tick for all (a lab's arms: bench/lab.py).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from app.sim.servers import PtyServer as PtyServer
 from app.sim.servers import TcpServer as TcpServer
 from app.sim.servers import serve_pty as serve_pty
 from app.sim.servers import serve_tcp as serve_tcp
+from app.sim.servers import tick_all
 from protocol.mx28 import HARDWARE_ERRORS, hardware_error_bits
 
 log = logging.getLogger(__name__)
@@ -49,7 +52,10 @@ def _parser() -> argparse.ArgumentParser:
                    "or TOML path) whose arm type's simulator to serve")
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", metavar="PATH", help="symlink to create for the pseudo-terminal")
-    where.add_argument("--listen", metavar="URL", help="tcp://HOST:PORT to listen on")
+    where.add_argument("--listen", metavar="URL", action="append",
+                       help="tcp://HOST:PORT to listen on; given N times, N devices alike, "
+                            "one on each address, served by this one process (a lab's arms: "
+                            "bench/lab.py)")
     p.add_argument("--ids", default="1,2,3,4", help="servo ids, comma separated")
     p.add_argument("--baudrate", type=int, default=1_000_000, help="bus baud rate, bit/s")
     p.add_argument("--factory", type=int, default=0, metavar="N",
@@ -134,7 +140,8 @@ def _profile_device(source: str) -> tuple[SimDevice, str]:
     return arm_type(profile.model).simulator(profile), f"{profile.model} ({profile.name})"
 
 
-async def _run(args: argparse.Namespace) -> None:
+def _device(args: argparse.Namespace) -> tuple[SimDevice, str, list[asyncio.TimerHandle]]:
+    """A new device as the arguments describe it, a line saying what it is, its fault timers."""
     timers: list[asyncio.TimerHandle] = []
     device: SimDevice
     if args.device == "dynamixel" and args.factory > 0:
@@ -153,27 +160,47 @@ async def _run(args: argparse.Namespace) -> None:
         if args.fault or args.supply is not None or args.mode or args.xm430:
             raise ValueError("--fault, --supply, --mode and --xm430 are for `dynamixel` only")
         device, what = _profile_device(args.device)
+    return device, what, timers
+
+
+async def _run(args: argparse.Namespace) -> None:
     faults = FaultConfig(drop=args.drop, corrupt=args.corrupt, latency_s=args.latency)
-    server: PtyServer | TcpServer
-    if args.pty:
-        server = await serve_pty(device, args.pty, faults=faults, seed=None)
-        where = f"{args.pty} -> {server.tty_name}"
-    else:
-        url = urlsplit(args.listen)
-        if url.scheme != "tcp" or not url.hostname or url.port is None:
-            raise ValueError(f"--listen wants tcp://HOST:PORT, got {args.listen!r}")
-        server = await serve_tcp(device, url.hostname, url.port, faults=faults, seed=None)
-        where = f"tcp://{url.hostname}:{server.port} (socket://{url.hostname}:{server.port})"
-    print(f"{what} on {where}", flush=True)
-    stop = asyncio.Event()
-    with contextlib.suppress(NotImplementedError):  # SIGTERM: close cleanly (remove the link)
-        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
+    servers: list[PtyServer | TcpServer] = []
+    timers: list[asyncio.TimerHandle] = []
+    ticks: asyncio.Task[None] | None = None
     try:
+        if args.pty:
+            device, what, timers = _device(args)
+            pty = await serve_pty(device, args.pty, faults=faults, seed=None)
+            servers.append(pty)
+            print(f"{what} on {args.pty} -> {pty.tty_name}", flush=True)
+        else:
+            devices = []
+            for listen in args.listen:
+                url = urlsplit(listen)
+                if url.scheme != "tcp" or not url.hostname or url.port is None:
+                    raise ValueError(f"--listen wants tcp://HOST:PORT, got {listen!r}")
+                device, what, more = _device(args)
+                timers += more
+                devices.append(device)
+                # one physics tick for all the process's devices (below), not a task each
+                tcp = await serve_tcp(device, url.hostname, url.port, tick_s=None,
+                                      faults=faults, seed=None)
+                servers.append(tcp)
+                print(f"{what} on tcp://{url.hostname}:{tcp.port} "
+                      f"(socket://{url.hostname}:{tcp.port})", flush=True)
+            ticks = asyncio.get_running_loop().create_task(tick_all(devices, TICK_S))
+        stop = asyncio.Event()
+        with contextlib.suppress(NotImplementedError):  # SIGTERM: close cleanly
+            asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, stop.set)
         await stop.wait()
     finally:
         for timer in timers:
             timer.cancel()
-        await server.close()
+        if ticks is not None:
+            ticks.cancel()
+        for server in servers:
+            await server.close()
 
 
 def _check_faults_and_supply(args: argparse.Namespace) -> None:

@@ -26,7 +26,8 @@ import sys
 import termios
 import time
 import tty
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from app.config import FaultConfig
@@ -72,7 +73,12 @@ def pty_baudrate(fd: int) -> int:
 
 
 class _Pump:
-    """Host bytes -> device -> timed, ordered replies through `write`."""
+    """Host bytes -> device -> timed, ordered replies through `write`.
+
+    Replies wait in a FIFO of (due, bytes) with one timer armed for its head (`call_at`): no
+    task and no queue hand-off per reply, which a simulator serving many arms at 500 Hz each
+    pays for every request (bench/lab.py). Due times never decrease (latency delays every
+    reply alike), so writing the head first keeps the order."""
 
     def __init__(self, device: SimDevice, write: Callable[[bytes], None],
                  faults: ReplyFaults | None = None) -> None:
@@ -81,10 +87,14 @@ class _Pump:
         self.faults = faults or ReplyFaults()
         self._last_due = 0.0
         self._pending = bytearray()
-        self._queue: asyncio.Queue[tuple[float, bytes]] = asyncio.Queue(REPLY_BACKLOG)
-        self._task = asyncio.get_running_loop().create_task(self._writer())
+        self._due: deque[tuple[float, bytes]] = deque()
+        self._loop = asyncio.get_running_loop()
+        self._timer: asyncio.TimerHandle | None = None
+        self._closed = False
 
     def on_data(self, data: bytes) -> None:
+        if self._closed:
+            return
         now = time.monotonic()
         chunks = [data]
         if self.device.packetized:
@@ -97,34 +107,48 @@ class _Pump:
                 out = self.faults.apply(reply)
                 if out is None:
                     continue
+                if len(self._due) >= REPLY_BACKLOG:
+                    log.warning("reply backlog full (%d); reply dropped", REPLY_BACKLOG)
+                    continue
                 # latency delays every reply alike: never reordered
                 self._last_due = max(self._last_due, now + delay + self.faults.latency_s)
-                try:
-                    self._queue.put_nowait((self._last_due, out))
-                except asyncio.QueueFull:
-                    log.warning("reply backlog full (%d); reply dropped", REPLY_BACKLOG)
+                self._due.append((self._last_due, out))
+        if self._due and self._timer is None:
+            # the loop's clock is time.monotonic(), as `now` above
+            self._timer = self._loop.call_at(self._due[0][0], self._flush)
 
-    async def _writer(self) -> None:
-        while True:
-            due, reply = await self._queue.get()
-            wait = due - time.monotonic()
-            if wait > 0:
-                await asyncio.sleep(wait)
+    def _flush(self) -> None:
+        """Write every reply now due, in order; arm the timer for the next one."""
+        self._timer = None
+        now = self._loop.time()
+        while self._due and self._due[0][0] <= now + 1e-6:
+            reply = self._due.popleft()[1]
             try:
                 self._write(reply)
             except OSError as exc:
                 log.warning("reply not written: %s", exc)
+        if self._due:
+            self._timer = self._loop.call_at(self._due[0][0], self._flush)
 
     async def close(self) -> None:
-        self._task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await self._task
+        self._closed = True
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self._due.clear()
+
+
+async def tick_all(devices: Sequence[SimDevice], period: float) -> None:
+    """Advance every device's physics each `period` s (one task for a process's devices)."""
+    while True:
+        now = time.monotonic()
+        for device in devices:
+            device.advance(now)
+        await asyncio.sleep(period)
 
 
 async def _ticker(device: SimDevice, period: float) -> None:
-    while True:
-        device.advance(time.monotonic())
-        await asyncio.sleep(period)
+    await tick_all([device], period)
 
 
 class PtyServer:
@@ -192,6 +216,48 @@ class PtyServer:
             self.link_path.unlink()
 
 
+class _Connection(asyncio.Protocol):
+    """One host connection of a TcpServer: its bytes straight to the pump (no reader task)."""
+
+    def __init__(self, server: TcpServer) -> None:
+        self.server = server
+        self.transport: asyncio.Transport | None = None
+        self.pump: _Pump | None = None
+        self._timer: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        if time.monotonic() < self.server._refuse_until:
+            transport.close()
+            return
+        self.transport = transport
+        self.pump = _Pump(self.server.device, transport.write, self.server.faults)
+        self.server._conns.add(self)
+        after = self.server.faults.faults.disconnect_after_s
+        if after is not None:
+            self._timer = asyncio.get_running_loop().call_later(after, self.server.disconnect)
+
+    def data_received(self, data: bytes) -> None:
+        if self.pump is not None:
+            self.pump.on_data(data)
+
+    def drop(self) -> None:
+        """End the connection now, unsent replies with it (the cable pulled)."""
+        if self.transport is not None:
+            log.info("connection dropped (simulated disconnect or shutdown)")
+            self.transport.abort()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if exc is not None:
+            log.info("connection lost: %s", exc)
+        if self._timer is not None:
+            self._timer.cancel()
+        self.server._conns.discard(self)
+        if self.pump is not None:
+            self.server._closing.add(asyncio.get_running_loop().create_task(self.pump.close()))
+            self.pump = None
+
+
 class TcpServer:
     """A device behind a TCP listener; every connection feeds the same device."""
 
@@ -200,7 +266,8 @@ class TcpServer:
         self.device = device
         self.faults = ReplyFaults(faults, seed)
         self.server: asyncio.Server | None = None
-        self._conns: set[asyncio.Task[None]] = set()
+        self._conns: set[_Connection] = set()
+        self._closing: set[asyncio.Task[None]] = set()
         self._refuse_until = 0.0
         loop = asyncio.get_running_loop()
         self._tick = loop.create_task(_ticker(device, tick_s)) if tick_s else None
@@ -217,47 +284,23 @@ class TcpServer:
         """Drop every connection now and refuse new ones for `faults.reconnect_after_s`: the
         host sees the cable pulled (end of file), then the device back."""
         self._refuse_until = time.monotonic() + self.faults.faults.reconnect_after_s
-        for t in list(self._conns):
-            t.cancel()
-
-    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        if time.monotonic() < self._refuse_until:
-            writer.close()
-            return
-        task = asyncio.current_task()
-        assert task is not None
-        self._conns.add(task)
-        after = self.faults.faults.disconnect_after_s
-        timer = (asyncio.get_running_loop().call_later(after, self.disconnect)
-                 if after is not None else None)
-        pump = _Pump(self.device, writer.write, self.faults)
-        try:
-            while data := await reader.read(READ_CHUNK):
-                pump.on_data(data)
-        except ConnectionError as exc:
-            log.info("connection lost: %s", exc)
-        except asyncio.CancelledError:
-            log.info("connection dropped (simulated disconnect or shutdown)")
-        finally:
-            if timer is not None:
-                timer.cancel()
-            self._conns.discard(task)
-            await pump.close()
-            writer.close()
-            with contextlib.suppress(ConnectionError):
-                await writer.wait_closed()
+        for conn in list(self._conns):
+            conn.drop()
 
     async def close(self) -> None:
         if self.server is not None:
             self.server.close()
-        for t in [*self._conns, *([self._tick] if self._tick else [])]:
-            t.cancel()
+        for conn in list(self._conns):
+            conn.drop()
+        if self._tick is not None:
+            self._tick.cancel()
             with contextlib.suppress(asyncio.CancelledError):
-                await t
+                await self._tick
         self._tick = None
         if self.server is not None:
             await self.server.wait_closed()
             self.server = None
+        await asyncio.gather(*self._closing, return_exceptions=True)
 
 
 async def serve_pty(device: SimDevice, link_path: str | os.PathLike[str],
@@ -274,5 +317,6 @@ async def serve_tcp(device: SimDevice, host: str = "127.0.0.1", port: int = 0,
     """Serve `device` on a TCP listener (port 0: any free port; see `.port`), with per-reply
     `faults` and, for TCP, disconnects (`disconnect()`, or `faults.disconnect_after_s`)."""
     srv = TcpServer(device, tick_s, faults, seed)
-    srv.server = await asyncio.start_server(srv._serve, host, port)
+    srv.server = await asyncio.get_running_loop().create_server(
+        lambda: _Connection(srv), host, port)
     return srv
