@@ -78,6 +78,13 @@ class Driver(OwnerTask, abc.ABC):
         #: velocity, tip force): reused while the readings do not change.
         self._derived_key: tuple[list[float], list[float], list[float] | None] | None = None
         self._derived: tuple[Any, Any, Any] | None = None
+        #: The last poll's sample (from the full path), the readings its derived fields
+        #: follow from, and what it was made from: published again for a reply that repeats
+        #: the last poll's byte for byte (owner.py `_repeat`).
+        self._template: tuple[dict[str, Any], Any, tuple[Any, ...]] | None = None
+        #: Publish the last sample again for such a reply (False: every reply takes the full
+        #: path: the reference tests/test_sample_repeat.py compares with).
+        self.repeat_samples = True
         self._seq = 0
         self._stamp = 0.0  # the last sample's time (owner.py `_publish`: never goes back)
         self._poll_failures = 0
@@ -87,7 +94,7 @@ class Driver(OwnerTask, abc.ABC):
         self.stale_error: ArmError | None = None
         self.last_error: str | None = None
         self.stats = {"requests": 0, "replies": 0, "timeouts": 0, "corrupt": 0, "stale_replies": 0,
-                      "polls": 0, "poll_failures": 0, "reconnects": 0}
+                      "polls": 0, "poll_failures": 0, "reconnects": 0, "repeats": 0}
         self.gripper: float | None = None
         self.positions: np.ndarray | None = None
         self.velocities: np.ndarray | None = None
@@ -381,3 +388,14 @@ class Driver(OwnerTask, abc.ABC):
 
     def _reset_reader(self) -> None:  # noqa: B027 - an optional hook
         """Forget partial input (after a timeout or reconnect)."""
+
+    def _repeat_ok(self) -> bool:
+        """A poll reply byte for byte the last poll's would leave this driver as the full
+        path would and give the same readings (no partial input held, no request pending, no
+        check due that a poll runs): the owner task may publish the last sample again for it
+        (owner.py `_repeat`). Base: never; a driver says when."""
+        return False
+
+    def _repeated(self) -> None:  # noqa: B027 - an optional hook
+        """A repeated poll reply was taken without the full path: what the full path would
+        have changed for the same bytes (a check's clock)."""

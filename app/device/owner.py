@@ -77,6 +77,9 @@ class OwnerTask:
     _poll_now: bool
     _derived_key: tuple[list[float], list[float], list[float] | None] | None
     _derived: tuple[Any, Any, Any] | None
+    _template: tuple[dict[str, Any], Any, tuple[Any, ...]] | None
+    repeat_samples: bool
+    units_version: int
     _seq: int
     _stamp: float
     _poll_failures: int
@@ -109,6 +112,10 @@ class OwnerTask:
         def _reset_reader(self) -> None: ...
 
         def forget_commanded(self, joints: Any = None) -> None: ...
+
+        def _repeat_ok(self) -> bool: ...
+
+        def _repeated(self) -> None: ...
 
     # ------------------------------------------------------------ owner task
 
@@ -240,6 +247,8 @@ class OwnerTask:
                     continue
                 if link.prefetched:  # the thread's polls, before any poll made now
                     while link.prefetched:
+                        if self._repeat(link):  # the last reply again: the last sample again
+                            continue
                         ok = await self._do_poll(prefetched=True)
                         if not ok:  # the driver resynchronises: the rest is input it drops
                             link.drop_prefetched()
@@ -398,16 +407,58 @@ class OwnerTask:
         self.positions, self.velocities = q, qd
         self.torques_raw = tau
         at = sched.reply_time if sched is not None else None
-        self._publish(q, qd, self._tared(tau, q), stale=False, at=at)
+        sample, inputs = self._publish(q, qd, self._tared(tau, q), stale=False, at=at)
+        self._template = (sample, inputs, (q, qd, tau, self.gravity, self.torque_tare,
+                                           self.units_version))
+        return True
+
+    def _repeat(self, link: ThreadLink) -> bool:
+        """The next reply the link's thread read ahead, if it is byte for byte the last poll's
+        (`ThreadLink.take_repeat`: an arm at rest), published as the last sample again with
+        the reply's own time and the next seq, without parsing, converting and checking the
+        same bytes again; True if it was. Only where nothing a sample is made from has changed
+        since that sample (the readings, units, tare, gravity fit, gripper, faults, homing,
+        calibration; the driver's own state: `_repeat_ok`), else False and the full path
+        runs. What a subscriber sees is the same as from the full path
+        (tests/test_sample_repeat.py)."""
+        t = self._template
+        if (t is None or self._poll_failures or self.stale or not self.repeat_samples
+                or not self._repeat_ok()):
+            return False
+        sample, inputs, (q, qd, tau, gravity, tare, units) = t
+        if (q is not self.positions or qd is not self.velocities or tau is not self.torques_raw
+                or gravity is not self.gravity or tare is not self.torque_tare
+                or units != self.units_version or sample["gripper"] != self.gripper
+                or sample["faults"] != self.faults or sample["homed"] != self.homed
+                or sample["calibrated"] != self.calibrated):
+            return False
+        at = link.take_repeat()
+        if at is None:
+            return False
+        self._repeated()
+        self.stats["polls"] += 1
+        self.stats["repeats"] += 1
+        self._seq += 1
+        stamp = at if at > self._stamp else self._stamp
+        self._stamp = stamp
+        again = dict(sample)
+        again["seq"] = self._seq
+        again["time"] = stamp
+        if inputs is None:
+            self.hub.publish(again)
+        else:  # its derived fields from the same readings, at its first read (as the full path)
+            again["tip"] = again["tip_velocity"] = again["tip_force"] = None
+            self.hub.publish(again, inputs)
         return True
 
     # ------------------------------------------------------------ samples
 
     def _publish(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray | None, stale: bool,
-                 at: float | None = None) -> None:
+                 at: float | None = None) -> tuple[dict[str, Any], Any]:
         """Publish one sample; `at`: when its reading was taken (`time.time()`), if not now.
         Sample times never go back: a reading the link's thread took before a sample published
-        meanwhile (an estop's `publish_state`) is stamped with that sample's time."""
+        meanwhile (an estop's `publish_state`) is stamped with that sample's time. Answers the
+        sample and the readings its derived fields wait for (None: derived already)."""
         self._seq += 1
         stamp = time.time() if at is None else at
         if stamp < self._stamp:
@@ -455,10 +506,12 @@ class OwnerTask:
         }
         # the arm's hub adds the estop, motion, fault and homing fields
         if lazy:
-            self.hub.publish(sample, (np.array(q, dtype=float), np.array(qd, dtype=float),
-                                      None if tau is None else np.array(tau, dtype=float)))
-        else:
-            self.hub.publish(sample)
+            inputs = (np.array(q, dtype=float), np.array(qd, dtype=float),
+                      None if tau is None else np.array(tau, dtype=float))
+            self.hub.publish(sample, inputs)
+            return sample, inputs
+        self.hub.publish(sample)
+        return sample, None
 
     def publish_state(self) -> None:
         """Publish the latest reading again, at once, with the arm's state as it is now: for a

@@ -131,6 +131,9 @@ class ThreadLink(Link):
         #: `time.time()` when the reply handed to the current poll was read, where the thread
         #: read it ahead (None: just now).
         self.reply_time: float | None = None
+        #: (request, reply) of the owner's last poll, if its reply came whole and nothing
+        #: else was written or read since (None otherwise): what `take_repeat` compares with.
+        self._last_poll: tuple[bytes, bytes] | None = None
         #: Scheduled polls made on the thread, and those of them dropped unused.
         self.stats = {"scheduled": 0, "dropped": 0, "wakes": 0}
 
@@ -151,6 +154,7 @@ class ThreadLink(Link):
         self._poll = None
         self._clean = False
         self._last_data = b""
+        self._last_poll = None
         self._changing = False
         self._ended = loop.create_future()
         self._thread = threading.Thread(target=self._main, args=(loop, self._ended),
@@ -171,12 +175,14 @@ class ThreadLink(Link):
                  self.baudrate)
 
     async def write(self, data: bytes) -> None:
+        self._last_poll = None
         fd = await self._paused_fd()
         rest = bytes(data) if fd is None else self._write_here(fd, bytes(data))
         if rest:  # no descriptor, or a full transmit buffer: the thread waits for it
             await self._call(self._write_all, rest)
 
     async def read(self, timeout: float) -> bytes:
+        self._last_poll = None
         if self._stash:
             data = bytes(self._stash[:READ_CHUNK])
             del self._stash[:READ_CHUNK]
@@ -201,12 +207,16 @@ class ThreadLink(Link):
                     self._poll_next = False
                     entry = head[1]
                     if isinstance(entry, BaseException):
+                        self._last_poll = None
                         raise self._lost(str(entry))
                     self.reply_time = entry.at
+                    self._last_poll = ((packet, entry.data) if len(entry.data) == reply_size
+                                       else None)
                     return entry
                 self.drop_prefetched()  # another request: the thread's replies are no answer
             self._poll = (bytes(packet), reply_size, timeout)
         polling, self._poll_next = self._poll_next, False
+        self._last_poll = None
         try:
             fd = await self._paused_fd()
             if fd is not None:
@@ -224,6 +234,8 @@ class ThreadLink(Link):
         if self._stash:  # bytes read for a cancelled call came first on the wire
             reply = Reply(bytes(self._stash) + reply.data, reply.deadline, reply.at)
             self._stash.clear()
+        elif polling and len(reply.data) == reply_size:
+            self._last_poll = (bytes(packet), reply.data)
         return reply
 
     async def close(self) -> None:
@@ -242,6 +254,25 @@ class ThreadLink(Link):
         self._poll_next = True
         self._use_prefetched = prefetched
         self.reply_time = None
+
+    def take_repeat(self) -> float | None:
+        """Take the first reply read ahead if it repeats the owner's last poll byte for byte
+        (the same request, the same whole reply, nothing else written or read since: an arm at
+        rest), and answer when it was read (`time.time()`); None, and nothing taken,
+        otherwise. The owner task then publishes its last sample again instead of parsing
+        the same bytes (app/device/owner.py `_repeat`)."""
+        last = self._last_poll
+        if last is None:
+            return None
+        with self._lock:
+            if not self._prefetched:
+                return None
+            packet, entry = self._prefetched[0]
+            if (not isinstance(entry, Reply) or packet != last[0] or entry.data != last[1]
+                    or entry.at is None):
+                return None
+            self._prefetched.popleft()
+        return entry.at
 
     @property
     def prefetched(self) -> int:
@@ -289,6 +320,7 @@ class ThreadLink(Link):
     def drop_prefetched(self) -> None:
         """Forget the replies read ahead (after a failed poll: the driver's quiet wait would
         have discarded them as input it did not ask for)."""
+        self._last_poll = None
         with self._lock:
             self.stats["dropped"] += len(self._prefetched)
             self._prefetched.clear()

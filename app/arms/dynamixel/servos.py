@@ -417,6 +417,14 @@ class DynamixelChainDriver(DynamixelBusDriver):
         tau = np.array(load, dtype=float) * self._effort_per_load if self._sensed else None
         return self.remember_converted(raw, (q, qd, tau))
 
+    def _repeat_ok(self) -> bool:
+        """The same SYNC_READ statuses again give the same readings, moving flags and aux
+        positions, while no input is held, no servo raises its Alert bit (its fault is read
+        again every FAULT_REFRESH_S) and the power check is not due."""
+        return not (self._dirty or self._parser.buffered or self._alerts or self._hw_errors
+                    or (self.profile_velocity
+                        and time.monotonic() - self._power_checked >= POWER_CHECK_S))
+
     def _on_aux_polled(self) -> None:  # noqa: B027 - an optional hook
         """The aux servos' `aux_ticks` were just read (a gripper publishes its opening)."""
 

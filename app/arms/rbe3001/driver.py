@@ -154,6 +154,15 @@ class Rbe3001Driver(Driver):
         self._frames.clear()
         self._ready.clear()
 
+    def _repeat_ok(self) -> bool:
+        """The same STATUS bytes again give the same reading (the matcher's known reply, the
+        converted readings kept for it) while no input is held and no quiet wait is due."""
+        return not (self._dirty or self._ready or self._frames.pending
+                    or self._matcher.outstanding is not None)
+
+    def _repeated(self) -> None:
+        self._last_q_t = time.monotonic()  # as `_poll` for a known reply: the jump check's clock
+
     async def _drain(self) -> None:
         """After a timeout, discard input until the link has been quiet for one timeout (see
         the module doc): a reply later than that is as good as lost, one sooner is dropped

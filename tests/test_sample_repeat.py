@@ -1,0 +1,207 @@
+"""A poll reply byte for byte the last one (an arm at rest) is published as the last sample
+again, with its own read time and the next seq, without parsing, converting and checking the
+same bytes (issue 27: app/device/owner.py `_repeat`, app/links/threaded.py `take_repeat`).
+
+What a subscriber sees must not change: each test runs the arm type's simulator over a real
+loopback socket and the thread link, and compares the samples of a driver that repeats with
+those of one that takes the full path for every reply (`repeat_samples = False`), value for
+value; and shows that whatever a sample is made from and changes while the replies repeat (a
+tare, a new zero, a move) shows in the next sample as the full path would show it."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import time
+from collections.abc import AsyncIterator
+
+import numpy as np
+import pytest
+from _wait import wait_for
+
+from app.arms.dynamixel.driver import DynamixelDriver
+from app.arms.loading import load_profile
+from app.arms.openmanipulator_x.driver import OmxDriver
+from app.arms.rbe3001.driver import Rbe3001Driver
+from app.device.driver import Driver
+from app.device.factory import make_sim_device
+from app.links.threaded import ThreadLink
+from app.sim.serve import serve_tcp
+from app.telemetry.hub import TelemetryHub
+from protocol import rbe3001 as rb
+
+DRIVERS = {"rbe3001": Rbe3001Driver, "angler": DynamixelDriver,
+           "openmanipulator_x": OmxDriver}
+
+
+@contextlib.asynccontextmanager
+async def arm(name: str, repeat: bool = True) -> AsyncIterator[Driver]:
+    """A driver over a ThreadLink to the arm type's simulator on a loopback socket."""
+    profile = load_profile(name)
+    server = await serve_tcp(make_sim_device(profile))
+    driver = DRIVERS[name](profile, ThreadLink(f"socket://127.0.0.1:{server.port}"),
+                           TelemetryHub(name))
+    driver.repeat_samples = repeat
+    await driver.start()
+    try:
+        assert await driver.wait_connected(10.0), f"never connected: {driver.link.last_error}"
+        yield driver
+    finally:
+        await driver.close()
+        await server.close()
+
+
+def _take(sub) -> list[dict]:
+    samples, _events, dropped = sub.take()
+    assert dropped == 0
+    return [json.loads(s) for s in samples]
+
+
+def _values(sample: dict) -> str:
+    """What a sample says besides its seq and time, as one comparable string."""
+    return json.dumps({k: v for k, v in sample.items() if k not in ("seq", "time")},
+                      sort_keys=True)
+
+
+async def _rest_samples(driver: Driver, n: int) -> list[dict]:
+    """`n` or more consecutive samples of the arm at rest (after the set-up's first polls)."""
+    await wait_for(lambda: driver.stats["polls"] > 50, what="the first polls")
+    sub = driver.hub.subscribe()
+    try:
+        before = time.time()
+        seq = driver.hub.latest["seq"]
+        await wait_for(lambda: driver.hub.latest["seq"] >= seq + n, what=f"{n} samples")
+        samples = _take(sub)
+        after = time.time()
+    finally:
+        sub.close()
+    seqs = [s["seq"] for s in samples]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))  # none lost, none twice
+    times = [s["time"] for s in samples]
+    assert all(b > a for a, b in zip(times, times[1:], strict=False))  # each its own read time
+    assert before - 0.1 <= times[0] and times[-1] <= after
+    return samples
+
+
+#: What the scripted board answers to STATUS number n: REPLIES[(n // RUN) % 3], each a run of
+#: RUN equal replies (an arm at rest, then a small step: within the jump check's bound).
+RUN = 15
+REPLIES = [rb.encode_reply(rb.StatusReply((100.0 + 3 * k, -50.0, 20.0), (0.0, 1.5 * k, 0.0),
+                                          (0.25, 0.5 + 0.01 * k, 0.125)))
+           for k in range(3)]
+
+
+@contextlib.asynccontextmanager
+async def scripted_board() -> AsyncIterator[int]:
+    """A loopback TCP board that answers the n-th STATUS of each connection with
+    REPLIES[(n // RUN) % 3] (the set-up's STATUS is n = 0): two drivers get the same replies
+    in the same order. Its port."""
+
+    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        n = 0
+        with contextlib.suppress(asyncio.IncompleteReadError, ConnectionError):
+            while True:
+                packet = await reader.readexactly(rb.PACKET_SIZE)
+                assert int.from_bytes(packet[:4], "little") == rb.CommandId.STATUS
+                writer.write(REPLIES[(n // RUN) % 3])
+                n += 1
+        writer.close()
+
+    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    try:
+        yield server.sockets[0].getsockname()[1]
+    finally:
+        server.close()
+
+
+async def test_the_same_replies_give_the_same_samples_seq_by_seq():
+    """Replies that repeat in runs, the same to both drivers: each sample (seq n answers the
+    n-th poll) of the driver that repeats equals, value for value, the full path's."""
+    profile = load_profile("rbe3001")
+    drivers: list[Driver] = []
+    async with scripted_board() as port, contextlib.AsyncExitStack() as stack:
+        for repeat in (True, False):
+            d = Rbe3001Driver(profile, ThreadLink(f"socket://127.0.0.1:{port}"),
+                              TelemetryHub("rbe3001"))
+            d.repeat_samples = repeat
+            await d.start()
+            stack.push_async_callback(d.close)
+            drivers.append(d)
+        subs = [d.hub.subscribe() for d in drivers]  # (before the first sample: every seq)
+        for sub in subs:
+            stack.callback(sub.close)
+        for d in drivers:
+            assert await d.wait_connected(10.0), d.link.last_error
+        await wait_for(lambda: min(d.hub.latest["seq"] for d in drivers) > 8 * RUN,
+                       what="eight runs of replies")
+        fast, full = ({s["seq"]: s for s in _take(sub)} for sub in subs)
+        common = sorted(fast.keys() & full.keys())
+        assert common[0] == 1 and len(common) > 8 * RUN
+        for n in common:
+            assert _values(fast[n]) == _values(full[n]), n
+        assert len({_values(fast[n]) for n in common}) == 3
+        assert drivers[0].stats["repeats"] > 4 * RUN and drivers[1].stats["repeats"] == 0
+        for d in drivers:
+            assert d.stats["corrupt"] == 0 and d.stats["poll_failures"] == 0
+
+
+@pytest.mark.parametrize("name", ["angler", "openmanipulator_x"])
+async def test_repeated_replies_give_the_samples_the_full_path_gives(name):
+    async with arm(name, repeat=True) as fast, arm(name, repeat=False) as full:
+        fast_samples = await _rest_samples(fast, 60)
+        full_samples = await _rest_samples(full, 60)
+        assert fast.stats["repeats"] > 30  # most of them went the short way ...
+        assert full.stats["repeats"] == 0  # ... and none of the reference's
+        # the same replies (two simulators at rest, powered on alike): the same samples,
+        # derived fields (tip, tip velocity, tip force) included
+        assert {_values(s) for s in fast_samples} == {_values(s) for s in full_samples}
+        assert len({_values(s) for s in fast_samples}) == 1
+        assert fast_samples[-1]["tip"] is not None
+        assert fast.stats["poll_failures"] == 0 and fast.stats["corrupt"] == 0
+
+
+async def test_a_tare_and_a_new_zero_at_rest_show_in_the_next_samples():
+    async with arm("rbe3001") as driver:
+        before = await _rest_samples(driver, 30)
+        assert driver.stats["repeats"] > 0
+        torques = before[-1]["torques"]
+        assert torques is not None and any(abs(t) > 1e-9 for t in torques)
+        # a tare (the service's: a new array, on the owner task's loop, as here)
+        driver.torque_tare = np.array(driver.torques_raw, dtype=float)
+        repeats = driver.stats["repeats"]
+        after = await _rest_samples(driver, 30)
+        assert all(s["torques"] == [0.0, 0.0, 0.0] for s in after)
+        assert after[0]["tip_force"] != before[-1]["tip_force"]
+        # a new zero for the base joint: the positions in the new units from the next sample
+        q0 = after[-1]["positions"][0]
+        driver.set_home(0, q0 + 0.25)
+        moved = await _rest_samples(driver, 30)
+        assert all(s["positions"][0] == pytest.approx(q0 + 0.25, abs=1e-9) for s in moved)
+        assert moved[0]["tip"] != after[-1]["tip"]
+        assert driver.stats["repeats"] > repeats + 20  # the short way again, after each change
+        assert driver.stats["corrupt"] == 0
+
+
+async def test_a_move_takes_the_full_path_and_the_rest_after_it_the_short_one():
+    async with arm("rbe3001") as driver:
+        await _rest_samples(driver, 10)
+        sub = driver.hub.subscribe()
+        try:
+            polls, repeats = driver.stats["polls"], driver.stats["repeats"]
+            await driver.set_pid([(300.0, 0, 0), (200.0, 0, 0), (100.0, 0, 0)])
+            ticks = 4096 / (2 * np.pi)
+            await wait_for(lambda: np.allclose(np.asarray(driver.positions) * ticks,
+                                               [300, 200, 100], atol=15), what="the move")
+            moving = driver.stats["polls"] - polls - (driver.stats["repeats"] - repeats)
+            await wait_for(lambda: driver.stats["repeats"] > repeats + 20,
+                           what="repeats once at rest")
+            samples = _take(sub)
+        finally:
+            sub.close()
+        assert moving > 10  # the changing replies, each parsed
+        seqs = [s["seq"] for s in samples]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+        base = [s["positions"][0] for s in samples]
+        assert base[-1] > base[0]
+        assert driver.stats["corrupt"] == 0 and driver.stats["poll_failures"] == 0
