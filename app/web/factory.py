@@ -62,6 +62,7 @@ from app.web.routes import (
     world,
 )
 from app.web.security import Access, install_log_redaction
+from app.web.warm import warm_routes
 
 log = logging.getLogger("armserver")
 
@@ -123,6 +124,8 @@ def create_app(settings: Settings | None = None,
             app.state.mqtt = start_mqtt_bridge(settings, services)
             room.load(app.state.access.names)  # entries of names no token has: dropped
             room.start()
+            # every route built now, not by its first request (an estop press: app/web/warm.py)
+            await warm_routes(app.router, API_PREFIX)
             collector.start()  # after start-up: what exists now is frozen
             access: Access = app.state.access
             log.log(logging.INFO if access.enabled else logging.WARNING, "access: %s",
