@@ -421,9 +421,11 @@ def test_a_slow_worker_is_not_a_hung_one() -> None:
     """The supervisor's rule: unanswered probes are a hang only with no CPU used (stopped,
     wholly deadlocked), or after SILENT_S of silence however busy it is; `cpu_ticks` tells a
     running process from a stopped one (real processes: this one and a stopped child)."""
-    from app.lab.supervisor import PROBE_MISSES, SILENT_S, cpu_ticks, is_hung
+    from app.lab.supervisor import PROBE_MISSES, SILENT_S, cpu_ticks, is_hung, is_stopped
 
     assert not is_hung(1, True, 1.5)  # one miss: asked again at once
+    assert is_hung(1, True, 1.5, stopped=True)  # ... unless stopped by a signal
+    assert not is_hung(0, True, 0.2, stopped=True)  # (answered since: continued)
     assert is_hung(PROBE_MISSES, True, 2.5)  # two, and frozen: SIGSTOP
     assert not is_hung(PROBE_MISSES, False, 2.5)  # two, but it runs: slow, not hung
     assert not is_hung(7, False, SILENT_S - 0.5)
@@ -439,11 +441,15 @@ def test_a_slow_worker_is_not_a_hung_one() -> None:
         os.kill(child.pid, signal.SIGSTOP)
         wait_until(lambda: Path(f"/proc/{child.pid}/stat").read_text().rsplit(")", 1)[1]
                    .split()[0] == "T", what="the child stopped")
+        assert is_stopped(child.pid) and not is_stopped(os.getpid())
         stopped = cpu_ticks(child.pid)
         assert stopped is not None
         time.sleep(0.3)  # the window under test: a stopped process uses no CPU in it
         assert cpu_ticks(child.pid) == stopped
+        os.kill(child.pid, signal.SIGCONT)
+        wait_until(lambda: not is_stopped(child.pid), what="the child continued")
     finally:
         child.kill()
         child.wait()
     assert cpu_ticks(child.pid) is None  # gone: unreadable
+    assert not is_stopped(child.pid)

@@ -14,6 +14,8 @@ within PROBE_DEADLINE_S (after a miss, it is asked again at once). A slow answer
 a live worker's HTTP loop has been seen silent for over 2 s during the tests at load average
 10 on two cores (it took its SIGTERM within 60 ms: it was running), and killing it would stop
 its arms for nothing. So a worker is taken for hung when
+- a probe went unanswered and the process is stopped by a signal (`is_stopped`: state `T`,
+  SIGSTOP or SIGTSTP; it gets SIGKILL at once, as a SIGTERM would wait for it to continue), or
 - PROBE_MISSES probes in a row went unanswered and the process used no CPU at all during the
   last one (`cpu_ticks`: a stopped or wholly deadlocked process; a live one, its control
   thread polling its arms, uses some every second however loaded the machine), or
@@ -21,8 +23,9 @@ its arms for nothing. So a worker is taken for hung when
   still holding the arms).
 Then it gets SIGTERM, SIGKILL after KILL_GRACE_S (a stopped or deadlocked process runs no
 handler), and is restarted as a dead one is; `ready` is false from the kill (its arms 503
-`link_down`). A frozen worker's arms are back within about 5 s (at most 2.5 s of probes, 0.5 s
-of grace, then its start: 1.5-2 s); tests/test_lab_workers.py stops one with SIGSTOP. A worker
+`link_down`). A stopped worker's arms are back within about 3.5 s (at most 1.5 s of probes,
+then its start: 1.5-2 s), a frozen one's within about 5 s (2.5 s of probes, 0.5 s of grace,
+its start); tests/test_lab_workers.py stops one with SIGSTOP. A worker
 that hangs in its start, before its first answer, is killed and restarted the same way once it
 has used no CPU for START_FROZEN_S, or after START_S without an answer.
 
@@ -75,21 +78,39 @@ KILL_GRACE_S = 0.5
 STOP_GRACE_S = 5.0
 
 
-def cpu_ticks(pid: int) -> int | None:
-    """The CPU time process `pid` has used, clock ticks (Linux: /proc/PID/stat, utime +
-    stime; proc(5)); None where it cannot be read."""
+def _stat(pid: int) -> list[bytes] | None:
+    """The fields of /proc/PID/stat after the command name (proc(5): state first), or None."""
     try:
         with open(f"/proc/{pid}/stat", "rb") as f:
-            fields = f.read().rsplit(b")", 1)[1].split()
-        return int(fields[11]) + int(fields[12])
-    except (OSError, IndexError, ValueError):
+            return f.read().rsplit(b")", 1)[1].split()
+    except (OSError, IndexError):
         return None
 
 
-def is_hung(misses: int, frozen: bool, silent_s: float) -> bool:
+def cpu_ticks(pid: int) -> int | None:
+    """The CPU time process `pid` has used, clock ticks (Linux: /proc/PID/stat, utime +
+    stime; proc(5)); None where it cannot be read."""
+    fields = _stat(pid)
+    try:
+        return int(fields[11]) + int(fields[12]) if fields is not None else None
+    except (IndexError, ValueError):
+        return None
+
+
+def is_stopped(pid: int) -> bool:
+    """Whether process `pid` is stopped by a signal (SIGSTOP, SIGTSTP: state `T` in
+    /proc/PID/stat, proc(5)); not `t`, a debugger's tracing stop, which is someone's on
+    purpose."""
+    fields = _stat(pid)
+    return fields is not None and fields[0] == b"T"
+
+
+def is_hung(misses: int, frozen: bool, silent_s: float, stopped: bool = False) -> bool:
     """After `misses` unanswered probes in a row, the last with no CPU used (`frozen`), and
-    `silent_s` s since the last answer: is the worker hung (see the module doc)?"""
-    return (misses >= PROBE_MISSES and frozen) or silent_s >= SILENT_S
+    `silent_s` s since the last answer, the process `stopped` by a signal or not: is the
+    worker hung (see the module doc)?"""
+    return ((misses >= 1 and stopped) or (misses >= PROBE_MISSES and frozen)
+            or silent_s >= SILENT_S)
 
 
 @dataclass
@@ -201,15 +222,18 @@ class Supervisor:
                 continue
             misses += 1
             frozen = cpu is not None and cpu == before
+            stopped = is_stopped(proc.pid)
             silent = now - answered_at
             log.warning("worker %d (pid %d): no health answer for %.1f s (%s)", w.index,
-                        proc.pid, silent, "no CPU used" if frozen else "it runs")
-            if is_hung(misses, frozen, silent):
+                        proc.pid, silent, "stopped by a signal" if stopped else
+                        "no CPU used" if frozen else "it runs")
+            if is_hung(misses, frozen, silent, stopped):
                 w.hangs, w.hung = w.hangs + 1, "hung (no health answer)"
                 w.ready = False
+                why = ("stopped by a signal" if stopped else "no CPU used" if frozen
+                       else f"nothing answered for {silent:.0f} s")
                 log.error("worker %d (pid %d) hangs (%s): killing it to restart its arms "
-                          "(%s)", w.index, proc.pid, "stopped: no CPU used" if frozen else
-                          f"nothing answered for {silent:.0f} s", ", ".join(w.arms))
+                          "(%s)", w.index, proc.pid, why, ", ".join(w.arms))
                 await self._kill(proc)
                 return
 
@@ -228,8 +252,13 @@ class Supervisor:
 
     @staticmethod
     async def _kill(proc: asyncio.subprocess.Process) -> None:
-        """SIGTERM, then SIGKILL after KILL_GRACE_S (a stopped or deadlocked process runs no
-        handler; one that does stops its arms as `POST /stop` does)."""
+        """SIGTERM, then SIGKILL after KILL_GRACE_S (a deadlocked process runs no handler;
+        one that does stops its arms as `POST /stop` does); SIGKILL at once to a process
+        stopped by a signal (its SIGTERM would wait, pending, until it is continued)."""
+        if is_stopped(proc.pid):
+            with contextlib.suppress(ProcessLookupError):
+                proc.kill()
+            return
         with contextlib.suppress(ProcessLookupError):
             proc.send_signal(signal.SIGTERM)
         with contextlib.suppress(TimeoutError):
