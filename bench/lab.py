@@ -16,7 +16,9 @@ while every arm runs at its poll rate prints:
   own sample clock);
 - then REST `GET /state` p50/p99 through the front, round robin over the arms, one client; the
   same request straight to a worker's Unix socket (the front's own cost is the difference);
-- estop p99 through the front: presses (`POST /estop`, each released after) spread over the arms.
+- estop p99 through the front: presses (`POST /estop`, each released after) spread over the arms,
+  until the POST's answer (the hold commanded on the device), and on SEEN_ARMS arms until the
+  first telemetry sample that shows the latch (`make bench-peers`' estop figure).
 - with `--teleop` (3 arms or more, 2 workers): a teleoperation session's latency from a leader
   sample to the follower's command (p50/p99, as `GET /teleop` reports it), the leader moving
   back and forth, once with both arms on one worker and once with the leader on the other
@@ -114,6 +116,53 @@ def _idle_s() -> float:
         return int(f.readline().split()[4]) / os.sysconf("SC_CLK_TCK")
 
 
+#: Arms whose telemetry the "latch seen" figure reads (a stream at the poll rate each).
+SEEN_ARMS = 4
+
+
+async def estop_seen(c: httpx.AsyncClient, url: str, arms: list[str],
+                     presses: int) -> list[float]:
+    """Seconds from each `POST /estop` to the first telemetry sample that shows the latch
+    (`make bench-peers`' estop figure; the POST itself answers later, once the hold is
+    commanded on the device), presses spread over `arms`, each released after."""
+    import json
+
+    import websockets
+
+    ws_base = url.replace("http", "ws", 1) + API
+    socks = [await websockets.connect(f"{ws_base}/arms/{a}/telemetry?rate=500",
+                                      max_size=None, compression=None) for a in arms]
+    queues: list[asyncio.Queue[tuple[float, bool]]] = [asyncio.Queue() for _ in arms]
+
+    async def read(k: int) -> None:
+        async for m in socks[k]:
+            for smp in json.loads(m).get("samples", []):
+                queues[k].put_nowait((time.perf_counter(), bool(smp["estop"])))
+
+    readers = [asyncio.create_task(read(k)) for k in range(len(arms))]
+    out: list[float] = []
+    try:
+        for i in range(presses):
+            k = i % len(arms)
+            while not queues[k].empty():
+                queues[k].get_nowait()
+            start = time.perf_counter()
+            r = await c.post(f"{API}/arms/{arms[k]}/estop")
+            assert r.status_code == 200, r.text
+            while True:
+                at, latched = await asyncio.wait_for(queues[k].get(), 5)
+                if latched:
+                    out.append(at - start)
+                    break
+            assert (await c.delete(f"{API}/arms/{arms[k]}/estop")).status_code == 200
+    finally:
+        for t in readers:
+            t.cancel()
+        for ws in socks:
+            await ws.close()
+    return out
+
+
 async def measure(url: str, arms: list[str], seconds: float, presses: int,
                   uds: str | None, pids: list[int], sims: list[int]) -> None:
     async with httpx.AsyncClient(base_url=url, timeout=10) as c:
@@ -143,7 +192,9 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
             estop.append(time.perf_counter() - start)
             assert r.status_code == 200, r.text
             assert (await c.delete(f"{API}/arms/{arm}/estop")).status_code == 200
+        seen = await estop_seen(c, url, arms[:SEEN_ARMS], presses)
     direct: list[float] = []
+    estop_direct: list[float] = []
     if uds is not None:
         transport = httpx.AsyncHTTPTransport(uds=uds)
         async with httpx.AsyncClient(transport=transport, base_url="http://localhost") as w:
@@ -153,6 +204,12 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
                 start = time.perf_counter()
                 await w.get(f"{API}/arms/{name}/state")
                 direct.append(time.perf_counter() - start)
+            for _ in range(presses):
+                start = time.perf_counter()
+                r = await w.post(f"{API}/arms/{name}/estop")
+                estop_direct.append(time.perf_counter() - start)
+                assert r.status_code == 200, r.text
+                assert (await w.delete(f"{API}/arms/{name}/estop")).status_code == 200
     rates = [(last[a][0] - first[a][0]) / (last[a][1] - first[a][1]) for a in arms]
     n = len(arms)
     print(f"server CPU        {100 * cpu:.0f} % of a core in all, {100 * cpu / n:.1f} % per arm")
@@ -166,6 +223,12 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
               f"{1e3 * pct(direct, 0.99):.2f} ms (the front's hop: the difference)")
     print(f"estop             p50 {1e3 * pct(estop, 0.5):.2f} ms  p99 {1e3 * pct(estop, 0.99):.2f}"
           f" ms ({len(estop)} presses)")
+    if estop_direct:
+        print(f"  straight to a worker's socket: p50 {1e3 * pct(estop_direct, 0.5):.2f} ms  p99 "
+              f"{1e3 * pct(estop_direct, 0.99):.2f} ms")
+    print(f"  the latch seen on the telemetry (as `make bench-peers`): p50 "
+          f"{1e3 * pct(seen, 0.5):.2f} ms  p99 {1e3 * pct(seen, 0.99):.2f} ms ({len(seen)} "
+          f"presses on {min(SEEN_ARMS, n)} arms)")
 
 
 async def teleop_latency(url: str, leader: str, follower: str, seconds: float) -> str:
