@@ -39,6 +39,7 @@ from app.links.base import LinkState
 from app.motion import replay
 from app.motion.executor import MotionExecutor, MotionRecord
 from app.motion.stream import AT_REST
+from app.runtime import gc_policy
 from app.runtime.control_thread import on_home, start_now
 from app.runtime.tasks import retrieve, running_loop
 from app.safety.envelope import ArmSafety
@@ -266,7 +267,10 @@ class ArmService:
 
     async def command_passthrough(self, goals: dict[int, float],
                                   send: Callable[[], Awaitable[T]]) -> T:
-        """Runs `_command_passthrough` on the arm's control loop (its state changes only there)."""
+        """Runs `_command_passthrough` on the arm's control loop (its state changes only there).
+        The goal holds automatic garbage collections off until its effect can have been seen
+        (`gc_policy.hold`: a collection stops every thread, and set the goal's p99, issue 23)."""
+        gc_policy.hold()
         return await on_home(self.home_loop, lambda: self._command_passthrough(goals, send))
 
     async def _command_passthrough(self, goals: dict[int, float],
@@ -721,6 +725,16 @@ class ArmService:
     def moving(self) -> bool:
         """A motion is running."""
         return self.motion.current is not None
+
+    @property
+    def in_motion(self) -> bool:
+        """A motion is running, or the last reading had a joint moving (a pass-through goal's
+        servos on their way): what the garbage-collection policy waits out (app/runtime/
+        gc_policy.py; read from any thread)."""
+        if self.motion.current is not None:
+            return True
+        qd = self.driver.velocities
+        return qd is not None and bool(np.any(np.abs(qd) > self.model.vmax * AT_REST))
 
     # --------------------------------------------------------- the facade: the device
 

@@ -95,6 +95,8 @@ HOPS = [
     ("reply -> the poll's read is written", "reply", "poll_write", True),
     ("goal written -> poll's read written", "write", "poll_write", True),
     ("reply -> moved sample published", "reply", "moved", True),
+    ("moved sample -> the HTTP loop takes it", "moved", "ws_take", False),
+    ("taken -> client's WebSocket", "ws_take", "seen", False),
     ("moved sample -> client's WebSocket", "moved", "seen", False),
 ]
 TOTALS = [("goal -> response (client)", "sent", "answered"),
@@ -160,7 +162,11 @@ class Trace:
         self.goals: dict[int, dict[str, Any]] = {}
         self.polls: deque[tuple[str, float, float]] = deque(maxlen=2_000_000)
         self.gcs: list[tuple[int, float, float]] = []
+        #: the telemetry batcher's writes of the angler's broadcast (start, end)
+        self.batches: deque[tuple[str, float, float]] = deque(maxlen=2_000_000)
         self._gc_start = 0.0
+        self._gc_cpu = 0.0
+        self.gc_cpu: list[float] = []
         self.last_recv: tuple[float, float] | None = None
 
     def mark(self, name: str) -> None:
@@ -170,9 +176,13 @@ class Trace:
 
     def on_gc(self, phase: str, info: dict[str, Any]) -> None:
         if phase == "start":
+            self._gc_cpu = CPU()
             self._gc_start = PC()
         else:
-            self.gcs.append((int(info["generation"]), self._gc_start, PC()))
+            t = PC()
+            self.gcs.append((int(info["generation"]), self._gc_start, t))
+            # the collection's own CPU time (wall minus what the OS took the core for)
+            self.gc_cpu.append(CPU() - self._gc_cpu)
 
 
 def install(trace: Trace) -> None:
@@ -242,6 +252,29 @@ def install(trace: Trace) -> None:
             self._bench_polling = False
             trace.polls.append((self.name, t0, PC()))
     OwnerTask._do_poll = _do_poll  # type: ignore[method-assign]
+
+    from app.telemetry.hub import Subscription
+
+    take_message = Subscription.take_message
+
+    def _take_message(self: Any, *a: Any, **k: Any) -> Any:
+        g = trace.cur
+        if g is not None and "moved" in g and self.hub.arm == "angler":
+            trace.mark("ws_take")
+        return take_message(self, *a, **k)
+    Subscription.take_message = _take_message  # type: ignore[method-assign]
+
+    from app.web.ws_fanout import Broadcast
+
+    write_slice = Broadcast._write_slice
+
+    def _write_slice(self: Any, *a: Any, **k: Any) -> None:
+        t0 = PC()
+        try:
+            write_slice(self, *a, **k)
+        finally:
+            trace.batches.append((self.hub.arm, t0, PC()))
+    Broadcast._write_slice = _write_slice  # type: ignore[method-assign]
 
     from app.device.driver import Driver
 
@@ -356,6 +389,10 @@ def run_server(args: argparse.Namespace) -> tuple[Trace, list[dict[str, Any]], f
     else:
         install(trace)
     gc.callbacks.append(trace.on_gc)
+    if args.no_hold:  # the goals as before issue 23's hold: collections may fall in them
+        from app.runtime import gc_policy
+        gc_policy.hold = lambda seconds=0.0: False
+        gc_policy.Collector.collect_young = lambda self: None
     settings = Settings()
     app = create_app(settings, camera_configs=[]) if args.no_cameras else create_app(settings)
     import socket
@@ -462,6 +499,7 @@ def analyse(trace: Trace, client_recs: list[dict[str, Any]], load: float) -> dic
             "other_arms_polling_ms": round(overlaps([p for p in polls if p[0] != "angler"],
                                                     r["sent"], r["seen"]) * 1e3, 2),
         })
+    causes = tail_causes(trace, rows)
     first_poll = [g["polls"][0] - r["write"] for r, _, _, g in rows
                   if g.get("polls") and "write" in r]
     early = sum(1 for dt in first_poll if dt < TICK_S)
@@ -486,7 +524,99 @@ def analyse(trace: Trace, client_recs: list[dict[str, Any]], load: float) -> dic
         "gc_ms_p50_max": {str(gen): [round(pct(d, q) * 1e3, 2) for q in (.5, 1.)]
                           for gen in (0, 1, 2)
                           if (d := [e - s for g, s, e in trace.gcs if g == gen])},
-        "slowest_1pct_blame": blame, "slowest_1pct": detail,
+        "gc_cpu_ms_p50_p99_max": {str(gen): [round(pct(d, q) * 1e3, 2) for q in (.5, .99, 1.)]
+                                  for gen in (0, 1, 2)
+                                  if (d := [c for (g, _, _), c in zip(trace.gcs, trace.gc_cpu,
+                                                                      strict=False) if g == gen])},
+        "slowest_1pct_blame": blame, "slowest_1pct": detail, "causes": causes,
+    }
+
+
+#: The marks of a goal's one path, in order (the answer's marks run beside it).
+CHAIN = ["sent", "recv", "asgi", "route", "ctrl", "check0", "check1", "queued", "serve",
+         "write", "reply", "poll_write", "moved", "ws_take", "seen"]
+
+
+def pct_i(xs: list[float], q: float) -> float:
+    """The harness's percentile (rtt_armserver.py: linear between the two nearest ranks)."""
+    xs = sorted(xs)
+    if not xs:
+        return float("nan")
+    k = (len(xs) - 1) * q
+    f = int(k)
+    c = min(f + 1, len(xs) - 1)
+    return xs[f] + (xs[c] - xs[f]) * (k - f)
+
+
+def tail_causes(trace: Trace, rows: list[Any]) -> dict[str, Any]:
+    """For every goal, what overlapped it between sent and seen: collections (generation,
+    pause, and the hop each began in), the angler's poll in progress when the write was
+    queued, the other arms' polls, the telemetry batcher's writes; then the slowest 2 % and
+    1 % against all goals, and the p99 with the collections' pauses taken out of each goal."""
+    per = []
+    for r, _, _, g in rows:
+        if "seen" not in r:
+            continue
+        t0, t1 = r["sent"], r["seen"]
+        chain = [(r[m], m) for m in CHAIN if m in r]
+        gcs = []
+        for gen, s, e in trace.gcs:
+            if e > t0 and s < t1:
+                hop = max((c for c in chain if c[0] <= s), default=(0.0, "before"))[1]
+                gcs.append((gen, min(e, t1) - max(s, t0), hop))
+        polls = [p for p in trace.polls if p[2] > t0 and p[1] < t1]
+        batches = [b for b in trace.batches if b[2] > t0 and b[1] < t1]
+        per.append({
+            "total": t1 - t0, "gc": gcs, "gc_s": sum(x[1] for x in gcs),
+            "gc_gen": max((x[0] for x in gcs), default=-1),
+            "behind_poll": bool(g.get("queued_behind_poll")),
+            "angler_polls_s": overlaps([p for p in polls if p[0] == "angler"], t0, t1),
+            "other_polls_s": overlaps([p for p in polls if p[0] != "angler"], t0, t1),
+            "batch_s": overlaps(batches, t0, t1),
+            "moved_at": g.get("moved_polls"),
+        })
+    if not per:
+        return {}
+    per.sort(key=lambda x: x["total"])
+    med = pct([x["total"] for x in per], .5)
+
+    def group(xs: list[dict[str, Any]]) -> dict[str, Any]:
+        n = len(xs)
+        excess = sum(max(0.0, x["total"] - med) for x in xs)
+        gc_hops: dict[str, int] = {}
+        for x in xs:
+            for _, _, hop in x["gc"]:
+                gc_hops[hop] = gc_hops.get(hop, 0) + 1
+        return {
+            "n": n,
+            "with_gen2": sum(1 for x in xs if x["gc_gen"] == 2),
+            "with_gen1": sum(1 for x in xs if x["gc_gen"] == 1),
+            "with_gen0_only": sum(1 for x in xs if x["gc_gen"] == 0),
+            "without_gc": sum(1 for x in xs if x["gc_gen"] < 0),
+            "gc_ms_mean": round(sum(x["gc_s"] for x in xs) / n * 1e3, 2),
+            "excess_over_median_ms_mean": round(excess / n * 1e3, 2),
+            "share_of_excess_in_gc": round(sum(min(x["gc_s"], max(0.0, x["total"] - med))
+                                               for x in xs) / excess, 2) if excess else 0.0,
+            "behind_a_poll": sum(1 for x in xs if x["behind_poll"]),
+            "moved_after_first_poll": sum(1 for x in xs if (x["moved_at"] or 1) > 1),
+            "other_arms_polls_ms_mean": round(sum(x["other_polls_s"] for x in xs) / n * 1e3, 2),
+            "batcher_ms_mean": round(sum(x["batch_s"] for x in xs) / n * 1e3, 2),
+            "gc_began_in_hop": gc_hops,
+        }
+    totals = [x["total"] for x in per]
+    without = [x["total"] - x["gc_s"] for x in per]
+    n = len(per)
+    return {
+        "all": group(per), "slowest_2pct": group(per[-max(1, n // 50):]),
+        "slowest_1pct": group(per[-max(1, n // 100):]),
+        "p50_p99_ms (harness percentile)": [round(pct_i(totals, q) * 1e3, 2) for q in (.5, .99)],
+        "p50_p99_ms without the collections pauses": [round(pct_i(without, q) * 1e3, 2)
+                                                        for q in (.5, .99)],
+        "slowest_10": [{"ms": round(x["total"] * 1e3, 2),
+                        "gc": [(gen, round(d * 1e3, 2), hop) for gen, d, hop in x["gc"]],
+                        "behind_poll": x["behind_poll"], "moved_at": x["moved_at"],
+                        "other_polls_ms": round(x["other_polls_s"] * 1e3, 2),
+                        "batcher_ms": round(x["batch_s"] * 1e3, 2)} for x in per[-10:]],
     }
 
 
@@ -510,6 +640,7 @@ def show(fig: dict[str, Any]) -> None:
     print(f"  goals queued behind a poll in progress: {fig['queued_behind_poll']}")
     print(f"  collections during the run, by generation: {fig['gc_collections']}; their "
           f"pause p50 and max, ms: {fig['gc_ms_p50_max']}")
+    print(f"  their CPU time p50, p99 and max, ms: {fig['gc_cpu_ms_p50_p99_max']}")
     print(f"  slowest 1 %: the hop with the largest excess over its median: "
           f"{fig['slowest_1pct_blame']}")
     for d in fig["slowest_1pct"]:
@@ -517,6 +648,20 @@ def show(fig: dict[str, Any]) -> None:
               f"{d['moved_at_poll']} {d['after_reply']}, behind a poll "
               f"{d['queued_behind_poll']}, gc {d['gc']}, other arms' polls "
               f"{d['other_arms_polling_ms']} ms")
+
+
+def show_causes(c: dict[str, Any]) -> None:
+    if not c:
+        return
+    print("  what overlapped the goals (sent -> seen), all goals against the slowest:")
+    for k in ("all", "slowest_2pct", "slowest_1pct"):
+        print(f"    {k:13s} {c[k]}")
+    print(f"  goal -> moved sample seen p50, p99 (the harness's percentile): "
+          f"{c['p50_p99_ms (harness percentile)']} ms; with each goal's collection pauses "
+          f"taken out: {c['p50_p99_ms without the collections pauses']} ms")
+    print("  the slowest ten:")
+    for x in c["slowest_10"]:
+        print(f"    {x}")
 
 
 def main() -> None:
@@ -532,6 +677,9 @@ def main() -> None:
                     "ece2776, with --light)")
     ap.add_argument("--no-cameras", action="store_true",
                     help="without the simulated cameras `armserver serve` starts by default")
+    ap.add_argument("--no-hold", action="store_true",
+                    help="as before issue 23's change: goals do not hold collections off and the "
+                    "policy does not run the young ones (app/runtime/gc_policy.py)")
     ap.add_argument("--client", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.client:
@@ -541,6 +689,7 @@ def main() -> None:
     trace, recs, load = run_server(args)
     fig = analyse(trace, recs, load)
     show(fig)
+    show_causes(fig.get("causes", {}))
     if args.json:
         Path(args.json).write_text(json.dumps(fig, indent=1))
 

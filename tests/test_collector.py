@@ -87,7 +87,7 @@ async def test_a_collection_deferred_too_long_runs_anyway() -> None:
         await col.close()
 
 
-async def test_moving_is_true_exactly_while_an_arm_executes_a_motion() -> None:
+async def test_moving_is_true_while_an_arm_executes_a_motion_until_it_is_at_rest() -> None:
     svc = ArmService(homed_at_start(load_profile("rbe3001")))
     await svc.start()
     try:
@@ -100,6 +100,7 @@ async def test_moving_is_true_exactly_while_an_arm_executes_a_motion() -> None:
             seen = seen or busy()
             await asyncio.sleep(0.01)
         assert seen and rec.status == "done", rec.reason
-        assert not busy()
+        # (the joints' last readings may still move a little as the motion ends: busy till then)
+        await wait_for(lambda: not busy(), what="the arm at rest after its motion")
     finally:
         await svc.close()

@@ -14,7 +14,24 @@ So, while a server runs:
   `threshold2` collections of generation 1; default 10);
 - a full collection is run here every `FULL_EVERY_S`, at a moment when no arm is executing a
   motion, or after `FULL_DEFER_MAX_S` of waiting for one, so cyclic garbage is still freed.
-The young generations are collected automatically as before. A full collection can still
+The young generations (issue 23). A young collection stops every thread as a full one does,
+and CPython starts one at the allocation that crosses generation 0's threshold: a command's
+own path (HTTP parsing, validation, the check, the write) allocates, so that is where they
+fell. In a traced run of 400 Dynamixel goals (bench/goal_trace.py) 88 goals met one (a goal is
+some 7 ms in 80), and the generation-1 ones (2-4 ms of CPU, each over the young generations'
+few thousand live samples) were in 3 of the 4 slowest, which set the goal's p99. So:
+- the policy collects the young generations itself, on a timer (`YOUNG_EVERY_S`), once
+  `YOUNG_AT` of generation 0's threshold waits, generation 1 as often as CPython would: the
+  collections then come at moments of the timer, not of a command, and a command's
+  allocations seldom reach the threshold (which stays, for bursts the timer does not keep up
+  with);
+- a command in flight holds automatic collections off (`hold`): a pass-through goal
+  (`ArmService.command_passthrough`) from the facade's call until `HOLD_S` later, by when its
+  write, the poll after it and the sample that shows the move are through; the collection its
+  allocations made due runs when the hold ends. No hold is granted while more than
+  `HOLD_MAX_PENDING` times generation 0's threshold waits, so commands back to back cannot put
+  collections off for good; the timer and a due full collection wait for no hold to be active.
+A full collection can still
 pause sampling (when it runs automatically, at most about once a minute under heavy client
 churn, or a scheduled one); the motion executor then goes on from its last setpoint (it never
 jumps, app/motion/stream.py). Without CPython's incremental collector (3.14) only a process
@@ -26,11 +43,12 @@ from __future__ import annotations
 import asyncio
 import gc
 import logging
+import threading
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from app.runtime.tasks import cancel_and_wait
+from app.runtime.tasks import cancel_and_wait, running_loop
 
 log = logging.getLogger(__name__)
 
@@ -43,12 +61,84 @@ FULL_DEFER_MAX_S = 600.0
 #: How often a deferred collection looks again, s.
 RETRY_S = 0.5
 
+#: How often the policy looks whether a young collection is due, s.
+YOUNG_EVERY_S = 0.05
+#: The share of generation 0's threshold (CPython's: 700 allocations of containers less
+#: their deallocations) at which the policy runs the young collection itself: about 1,800
+#: samples' containers a second are kept by the arms' telemetry logs (three simulated arms),
+#: 90 in a timer's period, and a request's own path holds a few hundred at its peak.
+YOUNG_AT = 0.5
+#: How long a command in flight holds automatic collections off, s: a pass-through goal's
+#: check, write and status reply, the poll after it (its wait for the servo's first tick, at
+#: most a poll period: 5 ms at 200 Hz) and the moved sample's way to a WebSocket took 2-8 ms
+#: in a traced run (bench/goal_trace.py); 20 ms leaves room for a loaded machine.
+HOLD_S = 0.02
+#: No hold is granted while more than this many times generation 0's threshold of
+#: allocations wait for a collection (a stream of goals: collections run late, not never).
+HOLD_MAX_PENDING = 4
+#: A hold whose release did not come this long after its end (its loop closed) is let go.
+HOLD_LOST_S = 1.0
+
 _active = 0  # collectors running in this process (tests run several apps at once)
 _saved: tuple[int, int, int] | None = None
+_hold_lock = threading.Lock()
+_held = False  # automatic collections disabled by a hold (and by nothing else)
+_held_until = 0.0  # time.monotonic() when the last hold ends
+#: Holds granted and refused in this process (refused: collections due, or none running).
+holds = {"granted": 0, "refused": 0}
+
+
+def hold(seconds: float = HOLD_S) -> bool:
+    """Hold CPython's automatic collections off for `seconds` from now: what a command in
+    flight does so that no collection (which stops every thread) falls between it and the
+    sample that shows it. Called on a running event loop (the release is its timer), from any
+    thread; only while a server's policy runs (a `Collector` started), and not while more than
+    `HOLD_MAX_PENDING` young generations of allocations wait. Explicit `gc.collect()` calls
+    are not held. True if held."""
+    global _held, _held_until
+    loop = running_loop()
+    now = time.monotonic()
+    with _hold_lock:
+        due = gc.get_count()[0] > HOLD_MAX_PENDING * max(1, gc.get_threshold()[0])
+        if _held and (due or now > _held_until + HOLD_LOST_S):
+            _let_go()  # commands back to back, or a release lost with its loop
+        if not _held:
+            if _active == 0 or loop is None or due or not gc.isenabled():
+                holds["refused"] += 1
+                return False
+            gc.disable()
+            _held = True
+        _held_until = max(_held_until, now + seconds)
+        holds["granted"] += 1
+    assert loop is not None
+    loop.call_later(seconds, _release)
+    return True
+
+
+def held() -> bool:
+    """Whether a hold keeps automatic collections off now."""
+    return _held
+
+
+def _release() -> None:
+    """A hold's timer: collections come back once the last hold has ended (the collection
+    that came due meanwhile runs at the next allocation)."""
+    with _hold_lock:
+        if _held and time.monotonic() >= _held_until - 0.001:
+            _let_go()
+
+
+def _let_go() -> None:
+    global _held, _held_until
+    _held_until = 0.0
+    if _held:
+        _held = False
+        gc.enable()
 
 
 class Collector:
-    """The server's garbage-collection policy; `busy()` says whether an arm is moving."""
+    """The server's garbage-collection policy; `busy()` says whether an arm is moving (a due
+    full collection also waits while a command's `hold` is active)."""
 
     def __init__(self, busy: Callable[[], bool], every_s: float = FULL_EVERY_S,
                  defer_max_s: float = FULL_DEFER_MAX_S) -> None:
@@ -56,9 +146,12 @@ class Collector:
         self.every_s = every_s
         self.defer_max_s = defer_max_s
         self.full_collections = 0
+        #: Young collections run by the policy's timer (CPython's own are not counted).
+        self.young_collections = 0
         #: The longest pause of a full collection run here, s.
         self.longest_s = 0.0
         self._task: asyncio.Task[None] | None = None
+        self._young: asyncio.Task[None] | None = None
 
     def start(self) -> None:
         global _active, _saved
@@ -70,15 +163,21 @@ class Collector:
             gc.freeze()
             gc.set_threshold(_saved[0], _saved[1], GEN2_THRESHOLD)
         _active += 1
-        self._task = asyncio.get_running_loop().create_task(self._run(), name="gc")
+        loop = asyncio.get_running_loop()
+        self._task = loop.create_task(self._run(), name="gc")
+        self._young = loop.create_task(self._run_young(), name="gc-young")
 
     async def close(self) -> None:
         global _active, _saved
         if self._task is None:
             return
         await cancel_and_wait(self._task)
-        self._task = None
+        await cancel_and_wait(self._young)
+        self._task = self._young = None
         _active -= 1
+        if _active == 0:
+            with _hold_lock:
+                _let_go()
         if _active == 0 and _saved is not None:
             gc.set_threshold(*_saved)
             gc.unfreeze()
@@ -88,10 +187,31 @@ class Collector:
         while True:
             await asyncio.sleep(self.every_s)
             waited = 0.0
-            while self.busy() and waited < self.defer_max_s:
+            while (self.busy() or _held) and waited < self.defer_max_s:
                 await asyncio.sleep(RETRY_S)
                 waited += RETRY_S
             self.collect_now()
+
+    async def _run_young(self) -> None:
+        while True:
+            await asyncio.sleep(YOUNG_EVERY_S)
+            self.collect_young()
+
+    def collect_young(self) -> int | None:
+        """The young collection CPython would run next, now, if `YOUNG_AT` of it is due and
+        no hold is active: generation 1 once generation 0 has been collected its threshold of
+        times since (CPython's second threshold), else generation 0. The generation collected,
+        or None."""
+        if _held or not gc.isenabled():
+            return None
+        c0, c1, _ = gc.get_count()
+        t0, t1, _ = gc.get_threshold()
+        if t0 <= 0 or c0 < t0 * YOUNG_AT:  # (a threshold of 0: automatic collection off)
+            return None
+        gen = 1 if c1 >= t1 else 0
+        gc.collect(gen)
+        self.young_collections += 1
+        return gen
 
     def collect_now(self) -> int:
         """One full collection now; the number of unreachable objects found."""
@@ -105,8 +225,9 @@ class Collector:
 
 
 def moving(services: Mapping[str, Any]) -> Callable[[], bool]:
-    """`busy()` for a Collector: whether any arm of `services` (name -> ArmService) is
-    executing a motion (read from another thread: one attribute read per arm)."""
+    """`busy()` for a Collector: whether any arm of `services` (name -> ArmService) is in
+    motion, a planned one or its joints on their way after a pass-through goal (`in_motion`;
+    read from another thread: a few attribute reads per arm)."""
     def busy() -> bool:
-        return any(svc.moving for svc in list(services.values()))
+        return any(svc.in_motion for svc in list(services.values()))
     return busy
