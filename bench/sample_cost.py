@@ -43,6 +43,7 @@ import pstats
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -115,12 +116,14 @@ async def run(model: str, port: int, seconds: float, prof: cProfile.Profile | No
             tasks.append(asyncio.create_task(_read(svc, subscribe)))
         await asyncio.sleep(1.0)  # past the set-up
         n0, c0, t0 = svc.hub.published, os.times(), time.monotonic()
+        th0 = _thread_cpu()
         if prof is not None:
             prof.enable()
         await asyncio.sleep(seconds)
         if prof is not None:
             prof.disable()
         c1 = os.times()
+        th1 = _thread_cpu()
         n, wall = svc.hub.published - n0, time.monotonic() - t0
         user, system = c1.user - c0.user, c1.system - c0.system
         cpu = user + system
@@ -141,7 +144,26 @@ async def run(model: str, port: int, seconds: float, prof: cProfile.Profile | No
           f"({1e6 * user / n:.0f} user, {1e6 * system / n:.0f} system), "
           f"{100 * cpu / wall:.1f} % of a core for this arm; load average "
           f"{os.getloadavg()[0]:.1f}", flush=True)
+    split = sorted(((th1[k] - th0.get(k, 0.0), k) for k in th1), reverse=True)
+    print("  by thread: " + ", ".join(f"{name} {1e6 * c / n:.0f} µs" for c, name in split
+                                      if c > 0), flush=True)
     return per
+
+
+def _thread_cpu() -> dict[str, float]:
+    """CPU time (s) of each of this process's threads, by Python thread name: the scheduler's
+    own count, in ns (/proc/self/task/TID/schedstat, first field), not the ticks of /stat."""
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    out: dict[str, float] = {}
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/schedstat") as f:
+                ns = int(f.read().split()[0])
+        except OSError:  # the thread ended meanwhile
+            continue
+        name = names.get(int(tid), f"thread {tid}")
+        out[name] = out.get(name, 0.0) + ns / 1e9
+    return out
 
 
 async def publish_only() -> None:

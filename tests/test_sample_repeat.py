@@ -158,7 +158,8 @@ async def test_repeated_replies_give_the_samples_the_full_path_gives(name):
         assert {_values(s) for s in fast_samples} == {_values(s) for s in full_samples}
         assert len({_values(s) for s in fast_samples}) == 1
         assert fast_samples[-1]["tip"] is not None
-        assert fast.stats["poll_failures"] == 0 and fast.stats["corrupt"] == 0
+        # (a reply late under a loaded machine is a failed poll, not a wrong value)
+        assert fast.stats["corrupt"] == 0 and full.stats["corrupt"] == 0
 
 
 async def test_a_tare_and_a_new_zero_at_rest_show_in_the_next_samples():

@@ -1,37 +1,42 @@
-"""A byte-stream link (any pyserial URL) whose polls run on a thread of its own (issue 27).
+"""A byte-stream link (any pyserial URL) whose scheduled polls run off the control loop (issue 27).
 
-While the owner task has nothing else to do, the link's thread runs the owner's poll itself on
-the poll schedule (`arm`): at each slot it writes the poll request the owner task last made
-and reads the reply in one blocking call (`os.write`, then `poll` and `os.read` until the
-reply's bytes have come or its timeout has passed, as the HID link's hidapi calls block on
-theirs: app/links/hid.py), and keeps it (`prefetched`). The owner task is woken for the
-replies together (one `call_soon_threadsafe` for a batch) and passes each through its driver
-as if it had made the poll itself (`begin_poll`): the same sans-IO parsing, matching and
-checks, in the same order. An idle arm then costs the control loop one wake-up a batch instead
-of a timer, a write, a read and two wake-ups a poll.
+While the owner task has nothing else to do, the process's poll thread (app/links/poller.py:
+one thread for every thread link of the worker, not one a link) runs the owner's poll itself
+on the poll schedule (`arm`): at each slot it writes the poll request the owner task last made
+and reads the reply (over the port's descriptor, until the reply's bytes have come or its
+timeout has passed), and keeps it here (`prefetched`). Links of one period share their slots
+(`aligned`), so one wake-up writes every due request and one `poll` waits for all the replies.
+The owner tasks are woken for the replies together (one `call_soon_threadsafe` per event loop
+for a batch of polls of every arm on it) and pass each through the driver as if they had made
+the poll themselves (`begin_poll`): the same sans-IO parsing, matching and checks, in the same
+order; a reply byte for byte the last poll's is the last sample again (`take_repeat`). An idle
+arm then costs the control loop one wake-up a batch instead of a timer, a write, a read and two
+wake-ups a poll.
 
 The owner task's own calls (a request, a poll after a failure or a write, the driver's quiet
 wait) pause the schedule and run on its loop over the port's descriptor, as an asyncio link's
 do (`transact`: write, then one reader and one timer until the reply's bytes or its timeout).
-Where pyserial gives no descriptor (URLs such as `loop://`), they run on the thread with
-pyserial's own `write` and `read` with a timeout.
+Where pyserial gives no descriptor (URLs such as `loop://` and `rfc2217://`), they run on the
+link's own thread with pyserial's own `write` and `read` with a timeout, and nothing is polled
+on the schedule: the owner task makes every poll itself.
 
 What the owner task relies on (app/device/owner.py `_session_scheduled`, tested in
 tests/test_link_thread.py):
-- The thread polls on its own only while the owner task waits: every call the owner task
+- The poll thread polls this link only while the owner task waits: every call the owner task
   makes (`transact`, `read`, `write`) first pauses the schedule and waits for the poll in
   flight, so a request waits behind at most one poll and no byte of one exchange is read by
-  another; it polls alone again only after a good poll, every reply since whole
-  (`can_schedule`).
+  another; it polls again only after a good poll, every reply since whole (`can_schedule`).
 - The owner task is woken at once for a reply that differs from the ones before (an arm that
-  starts to move, a fault), for one that did not come whole within its timeout (and the thread
-  stops polling: the driver resynchronises as it does on any link, with its quiet wait, before
-  anything is written again) and for a request; replies that go on changing (a moving arm)
-  wait at most MOVING_BATCH_S on the thread, replies that repeat (an arm at rest) BATCH_S, and
-  each carries the time it was read (`Reply.at`).
+  starts to move, a fault), for one that did not come whole within its timeout (and the
+  schedule stops: the driver resynchronises as it does on any link, with its quiet wait,
+  before anything is written again) and for a request; replies that go on changing (a moving
+  arm) wait at most MOVING_BATCH_S, replies that repeat (an arm at rest) BATCH_S, and each
+  carries the time it was read (`Reply.at`).
 - A reply is taken for the owner's poll only if the owner task asks for the same request
-  bytes; otherwise the thread's replies are dropped (they answer requests the driver never
+  bytes; otherwise the replies read ahead are dropped (they answer requests the driver never
   made).
+- Closing the port waits for the poll in flight (the poll thread never reads a descriptor
+  that was closed, or reused).
 
 pyserial's port is opened as `app/links/serial.py` opens it (`serial_for_url`, exclusive), on
 the thread. `[link] io = "asyncio"` in a profile keeps the asyncio link (app/links/serial.py).
@@ -52,6 +57,7 @@ from collections.abc import Callable
 from typing import Any
 
 from app.links.base import Link, LinkError, LinkState, Reply
+from app.links.poller import EARLY_S, aligned, shared
 from app.runtime.tasks import resolve
 
 log = logging.getLogger(__name__)
@@ -75,7 +81,6 @@ CATCH_UP = 10
 #: Longest wait for a full transmit buffer to take a request, s: then the link is lost.
 WRITE_WAIT_S = 1.0
 
-_NUDGE = object()  # a job that only wakes the thread (the schedule changed)
 _STOP = object()  # close the port and end the thread
 
 
@@ -120,7 +125,8 @@ class ThreadLink(Link):
         self._last_data = b""
         self._changing = False  # the last reply differed from the one before
         self._batch_since = 0.0
-        self._waits_until: float | None = None  # the slot the thread waits for (None: a job)
+        #: Signalled as a scheduled poll ends (`poll_ended`): closing the port waits for it.
+        self._flight_ended = threading.Condition(self._lock)
         #: The owner's poll request (bytes, reply size, timeout), from its last poll.
         self._poll: tuple[bytes, int, float] | None = None
         #: Every reply whole by its timeout since the last poll's (the thread may poll alone).
@@ -294,18 +300,79 @@ class ThreadLink(Link):
         """Poll on the thread from `slot` (`time.monotonic()`) every `period` s with the last
         poll request, calling `notify` (from the thread) when the owner task should take the
         replies; False (nothing armed) before a poll request is known."""
-        if not self.can_schedule or self._thread is None:
-            return False
+        if not self.can_schedule or self._thread is None or self._fd is None:
+            return False  # (no descriptor: pyserial's own calls, the owner task polls itself)
+        slot = aligned(slot, period)  # the slots every link of this period shares
         with self._lock:
             self._armed = True
             self._slot, self._period, self._notify = slot, period, notify
             self._batch_since = time.monotonic()
-            # the thread, waiting for the slot it had (re-armed within one period: the common
-            # case), wakes in time by itself; waiting for a job only, it needs a nudge
-            nudge = self._waits_until is None or self._waits_until > slot
-        if nudge:
-            self._jobs.put(_NUDGE)
+        shared().add(self, slot)
         return True
+
+    @property
+    def armed(self) -> bool:
+        """The poll thread polls this link on its schedule (until `pause`)."""
+        return self._armed
+
+    def poll_due(self, now: float) -> tuple[int, bytes, int, float] | float | None:
+        """For the poll thread (app/links/poller.py), at `now` (`time.monotonic()`): None if
+        not armed; the time to wake for the next slot if not due yet; else the poll is in
+        flight from here, and (descriptor, request, reply size, timeout) says what to do."""
+        with self._lock:
+            fd, poll = self._fd, self._poll
+            if not self._armed or fd is None or poll is None:
+                self._armed = False
+                return None
+            if self._slot - EARLY_S > now:
+                return self._slot - EARLY_S
+            self._in_flight = True
+            packet, size, timeout = poll
+            return fd, packet, size, timeout
+
+    def poll_ended(self, packet: bytes, entry: Reply | BaseException
+                   ) -> tuple[asyncio.AbstractEventLoop | None, list[Callable[[], None]]]:
+        """For the poll thread: the scheduled poll of `packet` ended with `entry` (its reply,
+        whole or short, or the failure). Keeps it for the owner task and moves the schedule
+        on; answers the owner's loop and what to run there, in the batch (the owner's wake-up
+        where it should take the replies now, a `pause` that waited for this poll)."""
+        now = time.monotonic()
+        calls: list[Callable[[], None]] = []
+        with self._lock:
+            self._in_flight = False
+            self._flight_ended.notify_all()
+            paused, self._paused = self._paused, None
+            self._prefetched.append((packet, entry))
+            self.stats["scheduled"] += 1
+            period = self._period
+            self._slot += period
+            if self._slot < now - CATCH_UP * period:  # far behind: skip ahead, on the grid
+                self._slot = aligned(now + period, period)
+            size = self._poll[1] if self._poll is not None else 0
+            failed = not isinstance(entry, Reply) or len(entry.data) != size
+            if failed:
+                self._clean = False
+            if failed or len(self._prefetched) >= MAX_PREFETCHED:
+                self._armed = False  # the owner task takes it from here
+            data = entry.data if isinstance(entry, Reply) else b""
+            changed = data != self._last_data
+            since = now - self._batch_since
+            # a reading that changes after repeats (a move starts: the samples a goal's or a
+            # teleoperation's latency waits for) at once; while it goes on changing, every
+            # MOVING_BATCH_S; repeats every BATCH_S
+            wake = (failed or not self._armed or (changed and not self._changing)
+                    or since >= (MOVING_BATCH_S if changed else BATCH_S))
+            self._changing = changed
+            self._last_data = data
+            if wake:
+                self._batch_since = now
+            notify = self._notify
+        if paused is not None:
+            calls.append(lambda: resolve(paused))
+        if wake and notify is not None:
+            self.stats["wakes"] += 1
+            calls.append(notify)
+        return self._loop, calls
 
     async def pause(self) -> None:
         """Stop the schedule; return once no scheduled poll is in flight."""
@@ -457,23 +524,9 @@ class ThreadLink(Link):
         jobs = self._jobs
         try:
             while True:
-                with self._lock:
-                    self._waits_until = self._slot if self._armed else None
-                    wait = self._slot - time.monotonic() if self._armed else None
-                try:
-                    if wait is None:
-                        job = jobs.get()
-                    elif wait > 0:
-                        job = jobs.get(timeout=wait)
-                    else:
-                        job = jobs.get_nowait()
-                except queue.Empty:
-                    self._scheduled_poll(loop)
-                    continue
+                job = jobs.get()
                 if job is _STOP:
                     return
-                if job is _NUDGE:
-                    continue
                 fn, args, fut = job
                 result: Any = None
                 error: BaseException | None = None
@@ -490,51 +543,6 @@ class ThreadLink(Link):
                 loop.call_soon_threadsafe(resolve, ended)
             except RuntimeError:
                 pass
-
-    def _scheduled_poll(self, loop: asyncio.AbstractEventLoop) -> None:
-        with self._lock:
-            if not self._armed or self._poll is None or self._slot > time.monotonic():
-                return
-            self._in_flight = True
-            packet, size, timeout = self._poll
-        entry: Reply | BaseException
-        try:
-            entry = self._transact(packet, size, timeout, True)
-        except (OSError, _Lost) as exc:
-            entry = exc
-        now = time.monotonic()
-        with self._lock:
-            self._in_flight = False
-            paused, self._paused = self._paused, None
-            self._prefetched.append((packet, entry))
-            self.stats["scheduled"] += 1
-            period = self._period
-            self._slot += period
-            if self._slot < now - CATCH_UP * period:  # far behind: skip ahead
-                self._slot = now + period
-            failed = not isinstance(entry, Reply) or len(entry.data) != size
-            if failed:
-                self._clean = False
-            if failed or len(self._prefetched) >= MAX_PREFETCHED:
-                self._armed = False  # the owner task takes it from here
-            data = entry.data if isinstance(entry, Reply) else b""
-            changed = data != self._last_data
-            since = now - self._batch_since
-            # a reading that changes after repeats (a move starts: the samples a goal's or a
-            # teleoperation's latency waits for) at once; while it goes on changing, every
-            # MOVING_BATCH_S; repeats every BATCH_S
-            wake = (failed or not self._armed or (changed and not self._changing)
-                    or since >= (MOVING_BATCH_S if changed else BATCH_S))
-            self._changing = changed
-            self._last_data = data
-            if wake:
-                self._batch_since = now
-            notify = self._notify
-        if paused is not None:
-            loop.call_soon_threadsafe(resolve, paused)
-        if wake and notify is not None:
-            self.stats["wakes"] += 1
-            notify()
 
     def _open_blocking(self) -> None:
         import serial
@@ -557,7 +565,10 @@ class ThreadLink(Link):
             self._poller.register(fd, select.POLLIN)
 
     def _close_port(self) -> None:
-        port, self._port, self._fd, self._poller = self._port, None, None, None
+        with self._lock:  # the poll thread's poll in flight ends first (its own timeout)
+            self._armed = False
+            self._flight_ended.wait_for(lambda: not self._in_flight, CLOSE_TIMEOUT_S)
+            port, self._port, self._fd, self._poller = self._port, None, None, None
         if port is not None:
             try:
                 port.close()

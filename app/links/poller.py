@@ -1,0 +1,256 @@
+"""One thread that runs the scheduled polls of every thread link of the process (issue 27).
+
+A worker with 16 arms had 16 link threads, each woken twice a poll (its slot, its reply) and
+each taking the GIL back from the others: 16,000 wake-ups a second at 500 Hz. Here one thread
+serves them all. Its slots are on one grid per period (`aligned`: a link armed between two
+grid points polls at the nearer one, never more than half a period from where its owner
+asked), so at each slot it writes every due poll request, then waits for the replies of all
+of them in one `select.poll` over their descriptors (and its own wake-up pipe), and hands the
+owner tasks what they should take in one `call_soon_threadsafe` per event loop for the whole
+batch, not one per arm.
+
+What a link keeps of its own (app/links/threaded.py): its schedule and its replies read
+ahead, under its lock; `begin` and `end` there say what a poll is, this thread only does the
+I/O. A link is polled here only while its owner task waits (armed); `ThreadLink.pause`
+returns once the poll in flight has ended, so the owner task and this thread never read or
+write the same descriptor at once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import logging
+import math
+import os
+import select
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from app.links.base import Reply
+
+log = logging.getLogger(__name__)
+
+READ_CHUNK = 4096  # bytes per read: several Dynamixel status packets, far above one reply
+#: Longest a full transmit buffer may hold back a poll request, s: then the link is lost.
+WRITE_WAIT_S = 1.0
+#: A poll may go this much before its slot (s): `poll` waits in whole milliseconds, and the
+#: owner task's own polls may run as early (app/device/owner.py POLL_EARLY_S); the schedule
+#: itself stays absolute.
+EARLY_S = 0.001
+_ERR = select.POLLERR | select.POLLHUP | select.POLLNVAL
+
+
+class Polled(Protocol):
+    """What the poll thread asks of a link (app/links/threaded.py `ThreadLink`)."""
+
+    @property
+    def armed(self) -> bool: ...
+
+    def poll_due(self, now: float) -> tuple[int, bytes, int, float] | float | None: ...
+
+    def poll_ended(self, packet: bytes, entry: Reply | BaseException
+                   ) -> tuple[asyncio.AbstractEventLoop | None, list[Callable[[], None]]]: ...
+
+
+class PollLost(Exception):
+    """A scheduled poll found the transport failed (the owner task marks the link DOWN)."""
+
+
+def aligned(slot: float, period: float) -> float:
+    """The grid point (a multiple of `period` of `time.monotonic()`) nearest `slot`: links of
+    one period share their slots, so that one wake-up serves all of them."""
+    return math.ceil(slot / period - 0.5) * period
+
+
+@dataclass
+class _Flight:
+    """One poll in flight: its request still to write, its reply so far, its deadline."""
+
+    link: Polled
+    fd: int
+    packet: bytes
+    size: int
+    deadline: float
+    out: bytes
+    write_by: float
+    data: bytearray = field(default_factory=bytearray)
+
+
+class PollThread:
+    """The process's scheduled polls (module doc). `add` a link when its owner arms it."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._links: set[Polled] = set()
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        self._poller = select.poll()
+        self._poller.register(self._wake_r, select.POLLIN)
+        #: When the thread wakes by itself next (monotonic s; None: only when nudged).
+        self._sleeps_until: float | None = None
+        self._nudged = False
+        self._thread = threading.Thread(target=self._main, name="link polls", daemon=True)
+        self._thread.start()
+        #: Wake-ups of the thread, and the batches it handed to event loops.
+        self.stats = {"wakes": 0, "handovers": 0, "polls": 0}
+
+    def add(self, link: Polled, slot: float) -> None:
+        """Serve `link`'s schedule (armed, its first slot `slot`); wakes the thread if it
+        sleeps past that slot."""
+        with self._lock:
+            self._links.add(link)
+            until = self._sleeps_until
+            nudge = not self._nudged and (until is None or until > slot)
+            if nudge:
+                self._nudged = True
+        if nudge:
+            with contextlib.suppress(BlockingIOError):
+                os.write(self._wake_w, b"x")
+
+    # ------------------------------------------------------------ the thread
+
+    def _main(self) -> None:
+        flights: dict[int, _Flight] = {}
+        while True:
+            try:
+                self._round(flights)
+            except Exception:  # a bug must not end every arm's polls: log, drop, go on
+                log.exception("the link poll thread failed a round")
+                for f in list(flights.values()):
+                    self._finish(f, PollLost("internal error in the poll thread"), {}, flights)
+                time.sleep(0.01)
+
+    def _round(self, flights: dict[int, _Flight]) -> None:
+        now = time.monotonic()
+        with self._lock:
+            links = list(self._links)
+        handover: dict[asyncio.AbstractEventLoop, list[Callable[[], None]]] = {}
+        wake_at: float | None = None
+        for link in links:
+            if any(f.link is link for f in flights.values()):
+                continue
+            state = link.poll_due(now)
+            if state is None:  # not armed: served again when its owner arms it
+                with self._lock:
+                    if not link.armed:
+                        self._links.discard(link)
+                continue
+            if isinstance(state, float):
+                wake_at = state if wake_at is None else min(wake_at, state)
+                continue
+            fd, packet, size, timeout = state
+            t = time.monotonic()
+            f = _Flight(link, fd, packet, size, t + timeout, packet, t + WRITE_WAIT_S)
+            flights[fd] = f
+            try:
+                self._write(f)
+            except (OSError, PollLost) as exc:
+                self._finish(f, exc, handover, flights)
+        for f in flights.values():
+            wake_at = f.deadline if wake_at is None else min(wake_at, f.deadline)
+            self._poller.register(f.fd, select.POLLIN | (select.POLLOUT if f.out else 0))
+        with self._lock:
+            self._sleeps_until = wake_at
+        # whole milliseconds, rounded up: never a spin; a slot's wake-up is EARLY_S before it
+        timeout_ms = (None if wake_at is None
+                      else max(0, math.ceil((wake_at - time.monotonic()) * 1e3)))
+        if not handover:
+            events = self._poller.poll(timeout_ms)
+        else:  # (a write that failed: told before waiting)
+            events = []
+        self.stats["wakes"] += 1
+        with self._lock:
+            self._sleeps_until = None
+            self._nudged = False
+        for fd, ev in events:
+            if fd == self._wake_r:
+                with contextlib.suppress(BlockingIOError):
+                    os.read(self._wake_r, 512)
+                continue
+            got = flights.get(fd)
+            if got is None:
+                continue
+            try:
+                if ev & select.POLLOUT and got.out:
+                    self._write(got)
+                if ev & (select.POLLIN | _ERR):
+                    self._read(got)
+            except (OSError, PollLost) as exc:
+                self._finish(got, exc, handover, flights)
+                continue
+            if len(got.data) >= got.size:
+                self._finish(got, None, handover, flights)
+        now = time.monotonic()
+        for f in [f for f in flights.values() if now >= f.deadline]:
+            if f.out and now >= f.write_by:
+                self._finish(f, PollLost(f"the port took no bytes for {WRITE_WAIT_S:.0f} s"),
+                             handover, flights)
+            elif now >= f.deadline:
+                self._finish(f, None, handover, flights)  # short: the owner task resyncs
+        for loop, calls in handover.items():
+            self.stats["handovers"] += 1
+            with contextlib.suppress(RuntimeError):  # a closed loop: nobody left to tell
+                loop.call_soon_threadsafe(_run_all, calls)
+
+    def _write(self, f: _Flight) -> None:
+        try:
+            n = os.write(f.fd, f.out)
+        except BlockingIOError:
+            n = 0
+        f.out = f.out[n:]
+
+    def _read(self, f: _Flight) -> None:
+        try:
+            data = os.read(f.fd, READ_CHUNK)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            if exc.errno == errno.EAGAIN:
+                return
+            raise
+        if not data:  # ready and nothing: a socket's end, a tty whose other end is gone
+            raise PollLost("closed by the peer (end of file)")
+        f.data += data
+
+    def _finish(self, f: _Flight, error: BaseException | None,
+                handover: dict[asyncio.AbstractEventLoop, list[Callable[[], None]]],
+                flights: dict[int, _Flight]) -> None:
+        flights.pop(f.fd, None)
+        with contextlib.suppress(KeyError):
+            self._poller.unregister(f.fd)
+        self.stats["polls"] += 1
+        entry: Reply | BaseException = (
+            error if error is not None
+            else Reply(bytes(f.data), f.deadline, time.time()))
+        loop, calls = f.link.poll_ended(f.packet, entry)
+        if loop is not None and calls:
+            handover.setdefault(loop, []).extend(calls)
+
+
+def _run_all(calls: list[Callable[[], None]]) -> None:
+    """On an event loop: what one batch of polls asks of it (wake-ups, paused schedules)."""
+    for call in calls:
+        try:
+            call()
+        except Exception:
+            log.exception("a link poll hand-over failed")
+
+
+_shared: tuple[int, PollThread] | None = None
+_shared_lock = threading.Lock()
+
+
+def shared() -> PollThread:
+    """The process's poll thread, started at its first use (again in a forked child)."""
+    global _shared
+    with _shared_lock:
+        if _shared is None or _shared[0] != os.getpid():
+            _shared = (os.getpid(), PollThread())
+        return _shared[1]
+
