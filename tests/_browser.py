@@ -42,3 +42,14 @@ def poll(fn: Callable[[], Any], what: str, timeout: float = 20.0) -> Any:
             return value
         time.sleep(0.05)
     raise AssertionError(f"timed out: {what}")
+
+
+def open_page(pw: Any, url: str, viewport: dict[str, int] | None = None) -> tuple[Any, list[str]]:
+    """A new Chromium page (of the playwright `pw`, which closes it as it ends) on `url`, and
+    the list its uncaught errors go to."""
+    browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+    page = browser.new_page(viewport=viewport) if viewport else browser.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(url)
+    return page, errors

@@ -18,7 +18,6 @@ from app.arms.loading import load_arms
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM, CHROMIUM_ARGS = _browser.CHROMIUM, _browser.CHROMIUM_ARGS
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "rbe3001-day-one.example.toml"
 
 sync_api = _browser.sync_api_or_skip()
@@ -31,11 +30,7 @@ def wait_for(fn: Callable[[], Any], what: str, timeout: float = 15.0) -> Any:
 def test_the_panel_leads_through_declaring_the_jig_pose() -> None:
     with serve_live(profiles=load_arms(str(CONFIG))) as live, \
             sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1440, "height": 1000})
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(live.url + "/")
+        page, errors = _browser.open_page(pw, live.url + "/", {"width": 1440, "height": 1000})
         joints = page.locator("#rbe3001-cal-joints")
         wait_for(lambda: joints.get_attribute("data-calibrated") == "[false,false,false]",
                  "the panel shows no joint calibrated")
@@ -52,5 +47,4 @@ def test_the_panel_leads_through_declaring_the_jig_pose() -> None:
         assert [j["source"] for j in cal["joints"]] == ["declared"] * 3 and cal["stored"]
         state = page.evaluate("() => window.armCalibration.state('rbe3001')")
         assert json.dumps(state["calibrated"]) == "[true, true, true]"
-        browser.close()
         assert not errors, f"uncaught errors in the page: {errors}"

@@ -19,7 +19,6 @@ from app.sim.camera import SimView
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM, CHROMIUM_ARGS = _browser.CHROMIUM, _browser.CHROMIUM_ARGS
 sync_api = _browser.sync_api_or_skip()
 
 ARM = "rbe3001"
@@ -36,11 +35,7 @@ def test_camera_panel_calibrate_by_clicks_then_click_to_reach() -> None:
     with serve_live() as live, sync_api.sync_playwright() as pw:
         svc = live.app.state.services[ARM]
         view = SimView.default_for(svc.profile, 640, 480)
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1440, "height": 1000})
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(live.url + "/")
+        page, errors = _browser.open_page(pw, live.url + "/", {"width": 1440, "height": 1000})
 
         def state() -> Any:
             return page.evaluate(f"window.armCameras && window.armCameras.state('{ARM}')")
@@ -92,4 +87,3 @@ def test_camera_panel_calibrate_by_clicks_then_click_to_reach() -> None:
                          + abs(tip["z"] - (cal["z"] + 0.05)))
         wait_until(lambda: tip_error() < TOL_M, timeout=20, what="the tip above the clicked point")
         assert errors == [] and state()["error"] == ""
-        browser.close()

@@ -14,7 +14,6 @@ from conftest import serve_live
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM, CHROMIUM_ARGS = _browser.CHROMIUM, _browser.CHROMIUM_ARGS
 sync_api = _browser.sync_api_or_skip()
 
 
@@ -23,11 +22,7 @@ def test_record_and_stop_from_the_bar() -> None:
         r = httpx.post(f"{live.url}/api/v1/recordings",
                        json={"name": "bar", "arms": ["rbe3001"], "fps": 10})
         assert r.status_code == 201, r.text
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        page = browser.new_page()
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(live.url + "/")
+        page, errors = _browser.open_page(pw, live.url + "/")
 
         def status() -> str:
             return str(page.locator("#recording-status").text_content() or "")
@@ -41,4 +36,3 @@ def test_record_and_stop_from_the_bar() -> None:
         wait_until(lambda: status() == "1 episode", what="the episode written")
         assert httpx.get(f"{live.url}/api/v1/recordings/bar").json()["episodes"] == 1
         assert errors == []
-        browser.close()

@@ -16,7 +16,6 @@ from conftest import serve_live
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM, CHROMIUM_ARGS = _browser.CHROMIUM, _browser.CHROMIUM_ARGS
 
 sync_api = _browser.sync_api_or_skip()
 
@@ -27,11 +26,7 @@ def wait_for(fn: Callable[[], Any], what: str, timeout: float = 20.0) -> Any:
 
 def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
     with serve_live() as live, sync_api.sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        page = browser.new_page(viewport={"width": 1440, "height": 1000})
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(live.url + "/")
+        page, errors = _browser.open_page(pw, live.url + "/", {"width": 1440, "height": 1000})
         page.click("#setup-details summary")
         wait_for(lambda: "angler" in page.locator("#setup-profile").inner_text(),
                  "the profiles listed")
@@ -84,5 +79,4 @@ def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
         assert "connect one servo at a time" in error.inner_text()
         state = page.evaluate("() => window.armServoSetup.state()")
         assert state["errorCode"] == "several_servos"
-        browser.close()
         assert not errors, f"uncaught errors in the page: {errors}"

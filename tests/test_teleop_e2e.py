@@ -20,7 +20,6 @@ from app.runtime.control_thread import on_home
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM, CHROMIUM_ARGS = _browser.CHROMIUM, _browser.CHROMIUM_ARGS
 sync_api = _browser.sync_api_or_skip()
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "teleop_omx.toml"
@@ -33,11 +32,7 @@ def test_start_and_stop_teleop_from_the_bar() -> None:
             sync_api.sync_playwright() as pw:
         leader = live.app.state.services["leader"]
         follower = live.app.state.services["follower"]
-        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        page = browser.new_page()
-        errors: list[str] = []
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(live.url + "/")
+        page, errors = _browser.open_page(pw, live.url + "/")
 
         def status() -> str:
             return str(page.locator("#teleop-status").text_content() or "")
@@ -74,4 +69,3 @@ def test_start_and_stop_teleop_from_the_bar() -> None:
         assert [t["status"] for t in httpx.get(f"{live.url}/api/v1/teleop").json()] == ["ended"]
         assert not page.locator("#teleop-start").is_disabled()
         assert errors == []
-        browser.close()
