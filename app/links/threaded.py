@@ -287,9 +287,11 @@ class ThreadLink(Link):
 
     @property
     def can_schedule(self) -> bool:
-        """`arm` would poll: a poll request is known and the last exchange ended clean (every
-        reply whole by its timeout, the last poll's among them)."""
-        return self._clean and self._poll is not None and self.state is LinkState.UP
+        """`arm` would poll: a poll request is known, the last exchange ended clean (every
+        reply whole by its timeout, the last poll's among them) and the port has a descriptor
+        (without one, the owner task polls itself)."""
+        return (self._clean and self._poll is not None and self.state is LinkState.UP
+                and self._fd is not None)
 
     @property
     def next_slot(self) -> float:
@@ -300,8 +302,8 @@ class ThreadLink(Link):
         """Poll on the thread from `slot` (`time.monotonic()`) every `period` s with the last
         poll request, calling `notify` (from the thread) when the owner task should take the
         replies; False (nothing armed) before a poll request is known."""
-        if not self.can_schedule or self._thread is None or self._fd is None:
-            return False  # (no descriptor: pyserial's own calls, the owner task polls itself)
+        if not self.can_schedule or self._thread is None:
+            return False
         slot = aligned(slot, period)  # the slots every link of this period shares
         with self._lock:
             self._armed = True
