@@ -7,13 +7,15 @@ The guarantees of the asyncio link hold (tests/test_links.py, test_drivers.py,
 test_rbe3001_hardware.py, test_serial_lock.py run every serial test on both links); these
 tests show what is the thread's own: the polls are the thread's, no sample is lost or out of
 order, a request goes between polls, a silent device goes stale and comes back, a late reply
-answers nothing, and bytes read for a caller that gave up are not lost."""
+answers nothing, bytes read for a caller that gave up are not lost, and one poll thread
+serves every arm's schedule."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
 import json
+import threading
 import time
 from collections.abc import AsyncIterator
 
@@ -276,3 +278,41 @@ async def test_a_cable_pulled_while_the_thread_polls_is_a_lost_link_and_it_comes
             assert isinstance(await driver.status(), rb.StatusReply)
         finally:
             sub.close()
+
+
+async def test_one_poll_thread_serves_every_arm_on_shared_slots_and_wakes_them_together():
+    """Six arms (four rbe3001 at 500 Hz, two angler at 200 Hz): their scheduled polls are the
+    process's one poll thread's (app/links/poller.py), each link's slots on its period's grid,
+    every sample of every arm published in order, and the owner tasks woken in batches that
+    serve several arms (fewer hand-overs to the loop than wake-ups of owner tasks)."""
+    from app.links import poller
+
+    async with contextlib.AsyncExitStack() as stack:
+        arms = [await stack.enter_async_context(arm(name))
+                for name in ("rbe3001",) * 4 + ("angler",) * 2]
+        subs = [d.hub.subscribe() for d, _l, _s in arms]
+        for sub in subs:
+            stack.callback(sub.close)
+        thread = poller.shared()
+        stats0 = dict(thread.stats)
+        wakes0 = sum(link.stats["wakes"] for _d, link, _s in arms)
+        scheduled0 = [link.stats["scheduled"] for _d, link, _s in arms]
+        await wait_for(lambda: all(link.stats["scheduled"] > s + 100
+                                   for (_d, link, _s), s in zip(arms, scheduled0, strict=True)),
+                       what="100 scheduled polls of every arm")
+        polls = thread.stats["polls"] - stats0["polls"]
+        assert polls >= sum(link.stats["scheduled"] - s
+                            for (_d, link, _s), s in zip(arms, scheduled0, strict=True))
+        wakes = sum(link.stats["wakes"] for _d, link, _s in arms) - wakes0
+        assert thread.stats["handovers"] - stats0["handovers"] < wakes  # shared batches
+        assert thread.stats["wakes"] - stats0["wakes"] < polls  # fewer wake-ups than polls
+        for (driver, link, _s), sub in zip(arms, subs, strict=True):
+            period = 1.0 / driver.profile.link.poll_hz
+            slot = link.next_slot
+            assert abs(slot / period - round(slot / period)) < 1e-6  # on its period's grid
+            samples = _samples(sub)
+            seqs = [s["seq"] for s in samples]
+            assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+            assert driver.stats["poll_failures"] == 0
+        names = {t.name for t in threading.enumerate()}
+        assert "link polls" in names
