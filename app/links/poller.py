@@ -132,17 +132,19 @@ class PollThread:
             links = list(self._links)
         handover: dict[asyncio.AbstractEventLoop, list[Callable[[], None]]] = {}
         wake_at: float | None = None
+        flying = {id(f.link) for f in flights.values()}
         for link in links:
-            if any(f.link is link for f in flights.values()):
+            if id(link) in flying:
                 continue
             state = link.poll_due(now)
-            if state is None:  # not armed: served again when its owner arms it
+            if state is None:  # closed: served again when its owner arms it
                 with self._lock:
                     if not link.armed:
                         self._links.discard(link)
                 continue
             if isinstance(state, float):
-                wake_at = state if wake_at is None else min(wake_at, state)
+                if state != math.inf:
+                    wake_at = state if wake_at is None else min(wake_at, state)
                 continue
             fd, packet, size, timeout = state
             t = time.monotonic()

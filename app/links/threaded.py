@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import os
 import queue
 import select
@@ -57,7 +58,7 @@ from collections.abc import Callable
 from typing import Any
 
 from app.links.base import Link, LinkError, LinkState, Reply
-from app.links.poller import EARLY_S, aligned, shared
+from app.links.poller import EARLY_S, PollThread, aligned, shared
 from app.runtime.tasks import resolve
 
 log = logging.getLogger(__name__)
@@ -125,8 +126,11 @@ class ThreadLink(Link):
         self._last_data = b""
         self._changing = False  # the last reply differed from the one before
         self._batch_since = 0.0
-        #: Signalled as a scheduled poll ends (`poll_ended`): closing the port waits for it.
+        #: Signalled as a scheduled poll ends (`poll_ended`) while the port is closing.
         self._flight_ended = threading.Condition(self._lock)
+        self._closing = False
+        #: The process's poll thread (app/links/poller.py), from the first `arm`.
+        self._polls: PollThread | None = None
         #: The owner's poll request (bytes, reply size, timeout), from its last poll.
         self._poll: tuple[bytes, int, float] | None = None
         #: Every reply whole by its timeout since the last poll's (the thread may poll alone).
@@ -309,7 +313,10 @@ class ThreadLink(Link):
             self._armed = True
             self._slot, self._period, self._notify = slot, period, notify
             self._batch_since = time.monotonic()
-        shared().add(self, slot)
+        polls = self._polls
+        if polls is None:
+            polls = self._polls = shared()
+        polls.add(self, slot)
         return True
 
     @property
@@ -319,15 +326,20 @@ class ThreadLink(Link):
 
     def poll_due(self, now: float) -> tuple[int, bytes, int, float] | float | None:
         """For the poll thread (app/links/poller.py), at `now` (`time.monotonic()`): None if
-        not armed; the time to wake for the next slot if not due yet; else the poll is in
-        flight from here, and (descriptor, request, reply size, timeout) says what to do."""
+        closed (forget the link until it is armed again); the time to wake for the next slot
+        if it is not due yet, armed or not (an owner task that took a batch re-arms at that
+        slot: the thread then needs no nudge), infinity for a slot gone by unarmed; else the
+        poll is in flight from here, and (descriptor, request, reply size, timeout) says what
+        to do."""
         with self._lock:
             fd, poll = self._fd, self._poll
-            if not self._armed or fd is None or poll is None:
+            if fd is None or poll is None:
                 self._armed = False
                 return None
             if self._slot - EARLY_S > now:
                 return self._slot - EARLY_S
+            if not self._armed:
+                return math.inf
             self._in_flight = True
             packet, size, timeout = poll
             return fd, packet, size, timeout
@@ -342,7 +354,8 @@ class ThreadLink(Link):
         calls: list[Callable[[], None]] = []
         with self._lock:
             self._in_flight = False
-            self._flight_ended.notify_all()
+            if self._closing:
+                self._flight_ended.notify_all()
             paused, self._paused = self._paused, None
             self._prefetched.append((packet, entry))
             self.stats["scheduled"] += 1
@@ -569,7 +582,9 @@ class ThreadLink(Link):
     def _close_port(self) -> None:
         with self._lock:  # the poll thread's poll in flight ends first (its own timeout)
             self._armed = False
+            self._closing = True
             self._flight_ended.wait_for(lambda: not self._in_flight, CLOSE_TIMEOUT_S)
+            self._closing = False
             port, self._port, self._fd, self._poller = self._port, None, None, None
         if port is not None:
             try:
