@@ -29,12 +29,25 @@ each goal gets the wall time and the calling thread's CPU time (`time.thread_tim
     moved     the first published sample in which joint 2 moved (the poll after the write, or
               a later scheduled poll)
 
+    ws_take   the HTTP loop takes that sample for the angler's WebSocket (at rate=500 each
+              sample goes out as it is published: the telemetry route's prompt sender)
+
 and the client adds `sent`, `answered` and `seen` (the sample on its WebSocket). Every poll of
-every arm (start, end) and every garbage collection (gen, start, end) is recorded too, to tell
-a wait behind a poll or a collection from work of the goal's own. Figures: per hop p50, p90,
-p99 and max of the wall time, the CPU time where a hop stays on one thread, and for the slowest
-goals which hop holds their excess over the median. On a shared machine the figures move from
-run to run: compare hops within a run, not runs.
+every arm (start, end), every garbage collection (generation, start, end, and its own CPU time
+on the thread that ran it) and every write of the telemetry batcher (`Broadcast._write_slice`)
+is recorded too, to tell a wait behind a poll or a collection from work of the goal's own.
+Figures: per hop p50, p90, p99 and max of the wall time, the CPU time where a hop stays on one
+thread, for the slowest goals which hop holds their excess over the median, and what
+overlapped each goal from `sent` to `seen`: for all goals, the slowest 2 % and the slowest 1 %,
+how many met a collection of each generation (and in which hop it began), the share of their
+excess over the median that collections' pauses account for, how many were queued behind a
+poll, and the p99 with each goal's collection pauses taken out. On a shared machine the
+figures move from run to run: compare hops within a run, not runs.
+
+    python bench/goal_trace.py --n 1000 --no-hold
+
+runs the garbage-collection policy as it was before issue 23's change (no `hold` by a goal,
+no young collections on the policy's timer: app/runtime/gc_policy.py), for runs side by side.
 
     python bench/goal_trace.py --light --root /tmp/v030 --n 300
 

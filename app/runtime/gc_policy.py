@@ -1,4 +1,4 @@
-"""Garbage collection that cannot stall control for long (issue 11).
+"""Garbage collection that cannot stall control for long (issues 11 and 23).
 
 CPython's cyclic collector stops every thread while it runs, the control thread too (it holds
 the GIL). A full (generation 2) collection walks every tracked object of the process: with
@@ -17,9 +17,10 @@ So, while a server runs:
 The young generations (issue 23). A young collection stops every thread as a full one does,
 and CPython starts one at the allocation that crosses generation 0's threshold: a command's
 own path (HTTP parsing, validation, the check, the write) allocates, so that is where they
-fell. In a traced run of 400 Dynamixel goals (bench/goal_trace.py) 88 goals met one (a goal is
-some 7 ms in 80), and the generation-1 ones (2-4 ms of CPU, each over the young generations'
-few thousand live samples) were in 3 of the 4 slowest, which set the goal's p99. So:
+fell. In a traced run of 1,000 Dynamixel goals (bench/goal_trace.py) 184 goals met one (a
+goal is some 7 ms in 80), and a generation-1 or a full one was in 15 of the slowest 20, which
+set the goal's p99 (a generation-1 collection walks the young generations' thousands of live
+samples: 2-4 ms of CPU, more with the trace's own records). So:
 - the policy collects the young generations itself, on a timer (`YOUNG_EVERY_S`), once
   `YOUNG_AT` of generation 0's threshold waits, generation 1 as often as CPython would: the
   collections then come at moments of the timer, not of a command, and a command's
@@ -31,11 +32,12 @@ few thousand live samples) were in 3 of the 4 slowest, which set the goal's p99.
   allocations made due runs when the hold ends. No hold is granted while more than
   `HOLD_MAX_PENDING` times generation 0's threshold waits, so commands back to back cannot put
   collections off for good; the timer and a due full collection wait for no hold to be active.
-A full collection can still
-pause sampling (when it runs automatically, at most about once a minute under heavy client
-churn, or a scheduled one); the motion executor then goes on from its last setpoint (it never
-jumps, app/motion/stream.py). Without CPython's incremental collector (3.14) only a process
-of its own would make the control loop immune: see the README's reliability section.
+
+A full collection can still pause sampling (when it runs automatically, at most about once a
+minute under heavy client churn, or a scheduled one); the motion executor then goes on from
+its last setpoint (it never jumps, app/motion/stream.py). Without CPython's incremental
+collector (3.14) only a process of its own would make the control loop immune: see the
+README's reliability section.
 """
 
 from __future__ import annotations
