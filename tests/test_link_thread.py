@@ -316,3 +316,16 @@ async def test_one_poll_thread_serves_every_arm_on_shared_slots_and_wakes_them_t
             assert driver.stats["poll_failures"] == 0
         names = {t.name for t in threading.enumerate()}
         assert "link polls" in names
+
+
+def test_a_slot_is_the_next_grid_point_of_its_period():
+    """A link armed between two grid points polls at the next one: never before its owner task
+    asked (no two polls in a row), less than a period after."""
+    from app.links.poller import aligned
+
+    for period in (0.002, 0.005):
+        for slot in np.linspace(1000.0, 1000.0 + 3 * period, 37):
+            g = aligned(float(slot), period)
+            assert slot - 1e-9 <= g < slot + period
+            assert abs(g / period - round(g / period)) < 1e-6
+            assert aligned(g, period) == g  # on the grid already: kept

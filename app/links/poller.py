@@ -3,11 +3,11 @@
 A worker with 16 arms had 16 link threads, each woken twice a poll (its slot, its reply) and
 each taking the GIL back from the others: 16,000 wake-ups a second at 500 Hz. Here one thread
 serves them all. Its slots are on one grid per period (`aligned`: a link armed between two
-grid points polls at the nearer one, never more than half a period from where its owner
-asked), so at each slot it writes every due poll request, then waits for the replies of all
-of them in one `select.poll` over their descriptors (and its own wake-up pipe), and hands the
-owner tasks what they should take in one `call_soon_threadsafe` per event loop for the whole
-batch, not one per arm.
+grid points polls at the next one, never before its owner task asked and less than a period
+after, so never twice in a row), so at each slot it writes every due poll request, then
+waits for the replies of all of them in one `select.poll` over their descriptors (and its own
+wake-up pipe), and hands the owner tasks what they should take in one `call_soon_threadsafe`
+per event loop for the whole batch, not one per arm.
 
 What a link keeps of its own (app/links/threaded.py): its schedule and its replies read
 ahead, under its lock; `begin` and `end` there say what a poll is, this thread only does the
@@ -62,9 +62,10 @@ class PollLost(Exception):
 
 
 def aligned(slot: float, period: float) -> float:
-    """The grid point (a multiple of `period` of `time.monotonic()`) nearest `slot`: links of
-    one period share their slots, so that one wake-up serves all of them."""
-    return math.ceil(slot / period - 0.5) * period
+    """The first grid point (a multiple of `period` of `time.monotonic()`) at or after `slot`
+    (within a nanosecond): links of one period share their slots, so that one wake-up serves
+    all of them."""
+    return math.ceil((slot - 1e-9) / period) * period
 
 
 @dataclass
