@@ -160,3 +160,18 @@ def _no_hold_left() -> Any:
     with gc_policy._hold_lock:
         gc_policy._let_go()
     assert gc.isenabled()
+
+
+async def test_a_busy_check_that_fails_does_not_end_the_policy() -> None:
+    calls = [0]
+
+    def busy() -> bool:
+        calls[0] += 1
+        raise ValueError("an arm's reading of another shape")
+    col = gc_policy.Collector(busy, every_s=0.05)
+    col.start()
+    try:
+        await wait_for(lambda: col.full_collections >= 2, what="collections run as due")
+        assert calls[0] >= 2
+    finally:
+        await col.close()

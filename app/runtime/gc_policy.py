@@ -189,10 +189,19 @@ class Collector:
         while True:
             await asyncio.sleep(self.every_s)
             waited = 0.0
-            while (self.busy() or _held) and waited < self.defer_max_s:
+            while (self._busy() or _held) and waited < self.defer_max_s:
                 await asyncio.sleep(RETRY_S)
                 waited += RETRY_S
             self.collect_now()
+
+    def _busy(self) -> bool:
+        """`busy()`, or False (logged) if it fails: the policy's task must not end on an arm's
+        reading it could not judge."""
+        try:
+            return bool(self.busy())
+        except Exception:  # noqa: BLE001 - any arm's state; the collection then runs as due
+            log.debug("gc policy: busy() failed", exc_info=True)
+            return False
 
     async def _run_young(self) -> None:
         while True:
