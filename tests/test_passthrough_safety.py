@@ -52,6 +52,8 @@ from _safety_support import (
 )
 from fastapi import FastAPI
 
+from app.safety.guard import PASSTHROUGH_STEP_S
+
 pytestmark = pytest.mark.serial
 
 RB = f"{API}/arms/rbe3001"
@@ -95,8 +97,10 @@ async def move(client: httpx.AsyncClient, arm: str, q: Any, **kw: Any) -> dict[s
 async def set_pid_steps(client: httpx.AsyncClient, app: FastAPI, joint: int, goal: float,
                         hold: np.ndarray, timeout: float = 20.0) -> int:
     """Bring the rbe3001's `joint` to `goal` with SET_PID steps of at most SMALL_STEP from
-    where it is measured, the other joints told `hold`; each step waited for (bounded).
-    Answers how many steps it sent."""
+    where it is measured, the other joints told `hold`; each step waited for (bounded), and
+    sent no sooner than PASSTHROUGH_STEP_S after the arm's last command, as the step rule
+    paces a client (a step of SMALL_STEP from the last command needs that long at the limit;
+    sooner, it is refused `velocity_limit`, rightly: a planned move's last setpoint counts)."""
     svc = svc_of(app, "rbe3001")
     deadline = time.monotonic() + timeout
     sent = 0
@@ -105,6 +109,10 @@ async def set_pid_steps(client: httpx.AsyncClient, app: FastAPI, joint: int, goa
         if abs(q[joint] - goal) < 0.01:
             return sent
         assert time.monotonic() < deadline, f"SET_PID steps did not reach {goal} ({q})"
+        pace = PASSTHROUGH_STEP_S - (time.monotonic() - svc.driver.commanded_at)
+        if pace > 0:
+            await asyncio.sleep(pace)  # the rule's own pace, not a wait for something
+        q = measured(app, "rbe3001")
         target = hold.copy()
         target[joint] = q[joint] + float(np.clip(goal - q[joint], -SMALL_STEP, SMALL_STEP))
         r = await client.post(f"{RB}/rbe3001/set-pid", json=set_pid_body(svc, target))
