@@ -73,6 +73,10 @@ def _json_response(status: int, body: Any,
 REQUEST_TIMEOUT_S = 600.0
 #: How long a lab-wide list waits for each worker, s.
 ASK_TIMEOUT_S = 10.0
+#: An answer whose head gives a length up to this many bytes is read whole and sent in one
+#: piece (every JSON answer); a longer one, or one of no stated length (an MJPEG stream,
+#: chunked), is relayed chunk by chunk as it comes, until the client goes.
+WHOLE_BODY = 256 * 1024
 
 
 async def _relay_body(r: UpstreamResponse, send: Send) -> None:
@@ -254,6 +258,10 @@ class LabFront:
             if r.status_code == 404:  # small: read whole, maybe renamed
                 data = self._all_arms_named(scope["path"], await r.read())
                 return r.status_code, [(k, v) for k, v in r.headers if k not in HOP_BACK], data
+            if r.length is not None and r.length <= WHOLE_BODY:  # a JSON answer: its bytes
+                # as they came, read whole (no relay task and disconnect watch a request)
+                return r.status_code, [(k, v) for k, v in r.headers if k not in HOP], \
+                    await r.read()
             await send({"type": "http.response.start", "status": r.status_code,
                         "headers": [(k, v) for k, v in r.headers if k not in HOP_STREAM]})
             relay = asyncio.ensure_future(_relay_body(r, send))

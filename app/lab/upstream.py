@@ -52,6 +52,12 @@ class UpstreamResponse:
         if method == "HEAD" or status in (204, 304) or 100 <= status < 200:
             self._length, self._chunked = 0, False
 
+    @property
+    def length(self) -> int | None:
+        """The body's length in bytes where the answer's head says it (Content-Length, not
+        chunked), else None (a stream: to be relayed as it comes)."""
+        return self._length
+
     async def chunks(self) -> AsyncIterator[bytes]:
         """The body as it comes (de-chunked); the connection back to the pool at its end."""
         if self._conn is None:
