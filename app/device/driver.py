@@ -396,6 +396,15 @@ class Driver(OwnerTask, abc.ABC):
         (owner.py `_repeat`). Base: never; a driver says when."""
         return False
 
-    def _repeated(self) -> None:  # noqa: B027 - an optional hook
-        """A repeated poll reply was taken without the full path: what the full path would
-        have changed for the same bytes (a check's clock)."""
+    def _repeated(self, at: float) -> None:  # noqa: B027 - an optional hook
+        """A repeated poll reply, read at `at` (`time.time()`), was taken without the full
+        path: what the full path would have changed for the same bytes (a check's clock)."""
+
+    def read_at(self, at: float | None = None) -> float:
+        """When the reading being polled was taken, on `time.monotonic()`'s clock: now, or
+        for a reply the link read ahead (its `reply_time`, or `at`: `time.time()`) that long
+        ago."""
+        if at is None:
+            at = getattr(self.link, "reply_time", None)
+        now = time.monotonic()
+        return now if at is None else now - max(0.0, time.time() - at)

@@ -115,7 +115,7 @@ class OwnerTask:
 
         def _repeat_ok(self) -> bool: ...
 
-        def _repeated(self) -> None: ...
+        def _repeated(self, at: float) -> None: ...
 
     # ------------------------------------------------------------ owner task
 
@@ -435,7 +435,7 @@ class OwnerTask:
         at = link.take_repeat()
         if at is None:
             return False
-        self._repeated()
+        self._repeated(at)
         self.stats["polls"] += 1
         self.stats["repeats"] += 1
         self._seq += 1

@@ -160,8 +160,8 @@ class Rbe3001Driver(Driver):
         return not (self._dirty or self._ready or self._frames.pending
                     or self._matcher.outstanding is not None)
 
-    def _repeated(self) -> None:
-        self._last_q_t = time.monotonic()  # as `_poll` for a known reply: the jump check's clock
+    def _repeated(self, at: float) -> None:
+        self._last_q_t = self.read_at(at)  # as `_poll` for a known reply: the jump check's clock
 
     async def _drain(self) -> None:
         """After a timeout, discard input until the link has been quiet for one timeout (see
@@ -179,15 +179,16 @@ class Rbe3001Driver(Driver):
 
     async def _poll(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         reply: rb.StatusReply = await self._exchange(_STATUS, self.timeout)
+        read_at = self.read_at()
         known = self.converted(reply)
         if known is not None:
             # The matcher's reply for the same bytes (an arm at rest): the same readings,
             # converted already (read-only arrays); the jump check's clock moves on.
-            self._last_q_t = time.monotonic()
+            self._last_q_t = read_at
             return known
         tr = self.model.transmission
         q = tr.from_ticks(np.array(reply.position_ticks, dtype=float))
-        self._check_jump(q)
+        self._check_jump(q, read_at)
         qd = tr.velocity_from_ticks(np.array(reply.velocity_ticks_s, dtype=float))
         tau = None
         if self.profile.force is not None:
@@ -257,17 +258,22 @@ class Rbe3001Driver(Driver):
         else:
             self._ready.extend(self._frames.feed(data))
 
-    def _check_jump(self, q: np.ndarray) -> None:
+    def _check_jump(self, q: np.ndarray, now: float | None = None) -> None:
         """With no checksum, one changed byte in a reading can stay plausible (a soak caught
         834 ticks read as 1052). A joint cannot move more than JUMP_SPEEDS times its velocity
         limit (plus JUMP_SLACK_RAD) since the last reading accepted: such a reading is refused
         as corrupt. The bound grows with the time since, so a real fast move is accepted late,
-        never refused for ever."""
-        now = time.monotonic()
+        never refused for ever. `now`: when the reading was taken (`time.monotonic()`; for
+        replies read ahead on the poll thread, their read time: a batch of them is checked
+        back to back, and the time between them is the time between their readings); None:
+        now."""
+        if now is None:
+            now = time.monotonic()
         if self._last_units != self.units_version:  # a calibration moved the zero: a new start
             self._last_q, self._last_units = None, self.units_version
         if self._last_q is not None and q.tolist() != self._last_q.tolist():  # (at rest: equal)
-            bound = JUMP_SPEEDS * self.model.vmax * (now - self._last_q_t) + JUMP_SLACK_RAD
+            since = max(0.0, now - self._last_q_t)
+            bound = JUMP_SPEEDS * self.model.vmax * since + JUMP_SLACK_RAD
             jump = np.abs(q - self._last_q)
             if np.any(jump > bound):
                 k = int(np.argmax(jump - bound))
