@@ -329,3 +329,30 @@ def test_a_slot_is_the_next_grid_point_of_its_period():
             assert slot - 1e-9 <= g < slot + period
             assert abs(g / period - round(g / period)) < 1e-6
             assert aligned(g, period) == g  # on the grid already: kept
+
+
+async def test_a_cable_pulled_on_one_arm_leaves_the_others_polling_on_the_shared_thread():
+    """Three arms on the one poll thread; one's cable is pulled while a scheduled poll of it may
+    be in flight: it is a lost link and comes back, and the other two lose no sample and no
+    poll meanwhile."""
+    async with contextlib.AsyncExitStack() as stack:
+        pulled = await stack.enter_async_context(arm("rbe3001", reconnect_after_s=0.3))
+        others = [await stack.enter_async_context(arm("rbe3001")) for _ in range(2)]
+        subs = [d.hub.subscribe() for d, _l, _s in others]
+        for sub in subs:
+            stack.callback(sub.close)
+        driver, link, server = pulled
+        scheduled = link.stats["scheduled"]
+        await wait_for(lambda: link.stats["scheduled"] > scheduled + 10, what="thread polls")
+        server.disconnect()
+        await wait_for(lambda: driver.state.value in ("down", "connecting"), what="link down")
+        assert await driver.wait_connected(10.0)
+        scheduled = link.stats["scheduled"]
+        await wait_for(lambda: link.stats["scheduled"] > scheduled + 10,
+                       what="the pulled arm's polls on the thread again")
+        for (d, _l, _s), sub in zip(others, subs, strict=True):
+            samples = _samples(sub)
+            seqs = [s["seq"] for s in samples]
+            assert len(seqs) > 20 and seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+            assert not any(s["stale"] for s in samples)
+            assert d.stats["poll_failures"] == 0 and d.stats["reconnects"] == 0
