@@ -44,6 +44,9 @@ WRITE_WAIT_S = 1.0
 EARLY_S = 0.001
 _ERR = select.POLLERR | select.POLLHUP | select.POLLNVAL
 
+#: What a round of polls asks of each event loop (the owners' wake-ups, paused schedules).
+_Handover = dict[asyncio.AbstractEventLoop, list[Callable[[], None]]]
+
 
 class Polled(Protocol):
     """What the poll thread asks of a link (app/links/threaded.py `ThreadLink`)."""
@@ -123,15 +126,18 @@ class PollThread:
                 self._round(flights)
             except Exception:  # a bug must not end every arm's polls: log, drop, go on
                 log.exception("the link poll thread failed a round")
-                for f in list(flights.values()):
-                    self._finish(f, PollLost("internal error in the poll thread"), {}, flights)
+                handover: _Handover = {}
+                for f in list(flights.values()):  # each owner told (and a pause let go)
+                    self._finish(f, PollLost("internal error in the poll thread"), handover,
+                                 flights)
+                self._hand_over(handover)
                 time.sleep(0.01)
 
     def _round(self, flights: dict[int, _Flight]) -> None:
         now = time.monotonic()
         with self._lock:
             links = list(self._links)
-        handover: dict[asyncio.AbstractEventLoop, list[Callable[[], None]]] = {}
+        handover: _Handover = {}
         wake_at: float | None = None
         flying = {id(f.link) for f in flights.values()}
         for link in links:
@@ -196,6 +202,10 @@ class PollThread:
                              handover, flights)
             elif now >= f.deadline:
                 self._finish(f, None, handover, flights)  # short: the owner task resyncs
+        self._hand_over(handover)
+
+    def _hand_over(self, handover: _Handover) -> None:
+        """One `call_soon_threadsafe` per event loop for what this round asks of it."""
         for loop, calls in handover.items():
             self.stats["handovers"] += 1
             with contextlib.suppress(RuntimeError):  # a closed loop: nobody left to tell
@@ -222,7 +232,7 @@ class PollThread:
         f.data += data
 
     def _finish(self, f: _Flight, error: BaseException | None,
-                handover: dict[asyncio.AbstractEventLoop, list[Callable[[], None]]],
+                handover: _Handover,
                 flights: dict[int, _Flight]) -> None:
         flights.pop(f.fd, None)
         with contextlib.suppress(KeyError):
