@@ -93,3 +93,15 @@ def arm_routers() -> list[Any]:
             if module not in seen:
                 seen[module] = importlib.import_module(module).router
     return list(seen.values())
+
+
+def arm_fast_paths() -> list[Any]:
+    """The ASGI layers the routers' modules declare in `FAST_PATHS` (e.g. the Dynamixel
+    register write's, app/arms/dynamixel/api.py), each module once, in registry order: the
+    app installs them innermost, inside every gate."""
+    seen: dict[str, Any] = {}
+    for t in all_arm_types():
+        for module in t.routers:
+            if module not in seen:
+                seen[module] = getattr(importlib.import_module(module), "FAST_PATHS", ())
+    return [layer for layers in seen.values() for layer in layers]

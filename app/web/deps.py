@@ -25,6 +25,7 @@ from typing import Annotated, cast
 
 from fastapi import Depends, Header, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi.security.utils import get_authorization_scheme_param
 
 from app.classroom.lease import LeaseManager
 from app.config import Settings
@@ -132,13 +133,33 @@ async def control_arm(
     """An operator's (or instructor's) arm, with its lease checked: the same checks, in the
     same order, as `OperatorArm` then `OperatorCaller` then the lease, in one dependency
     (each dependency FastAPI solves costs a little on every command: this is the hot one)."""
-    who = get_access(request).require_identity(_token(cred), Role.OPERATOR)
-    svc = lookup_arm(request.app.state.services, arm)
+    state = request.app.state
+    return await check_control(state.access, state.services, state.leases, _token(cred), arm,
+                               x_arm_lease)
+
+
+async def check_control(access: Access, services: dict[str, ArmService], leases: LeaseManager,
+                        token: str | None, arm: str, lease_id: str | None) -> ArmService:
+    """`ControlArm`'s checks on plain values: 401/403 for the token (operator or above), 404
+    `unknown_arm`, 409 `leased` for the lease; the arm. The dependency above and the goal's
+    inner layer (`RegisterWriteFastPath`, app/arms/dynamixel/api.py) both call this one."""
+    who = access.require_identity(token, Role.OPERATOR)
+    svc = lookup_arm(services, arm)
     # an instructor may act on an arm that is nobody's (after a failed hand-off: release the
     # estop, bring the arm back); everyone else waits for the queue
-    leases: LeaseManager = request.app.state.leases
-    await leases.check(svc.name, x_arm_lease, gated=who.role < Role.INSTRUCTOR)
+    await leases.check(svc.name, lease_id, gated=who.role < Role.INSTRUCTOR)
     return svc
+
+
+def bearer_credentials(authorization: str | None) -> str | None:
+    """The token `Credentials` (FastAPI's `HTTPBearer(auto_error=False)`) gives for an
+    `Authorization` header value: its own rule, `get_authorization_scheme_param` then a
+    `bearer` scheme, so that a layer reading the raw header gets the very token the
+    dependency would."""
+    scheme, credentials = get_authorization_scheme_param(authorization)
+    if not (authorization and scheme and credentials) or scheme.lower() != "bearer":
+        return None
+    return credentials
 
 
 ViewerArm = Annotated[ArmService, Depends(viewer_arm)]

@@ -34,6 +34,14 @@ def error_response(detail: Any, code: str, status: int,
     return JSONResponse(_body(detail, code), status, headers=headers)
 
 
+def arm_error_response(exc: ArmError) -> JSONResponse:
+    """The answer to an `ArmError`: its status and code (401 with `WWW-Authenticate`). The
+    app's handler and the layers that answer below no handler (app/arms/dynamixel/api.py's
+    goal) both use it."""
+    headers = {"WWW-Authenticate": "Bearer"} if isinstance(exc, Unauthorized) else None
+    return error_response(exc.detail, exc.code, exc.status_code, headers)
+
+
 async def send_error(send: Send, status: int, detail: Any, code: str,
                      headers: Mapping[str, str] | None = None) -> None:
     """Write `error_response(...)` on a raw ASGI `send` (an HTTP response not yet started)."""
@@ -98,8 +106,7 @@ _HTTP_CODES = {400: "bad_request", 404: "not_found", 405: "method_not_allowed",
 def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(ArmError)
     async def arm_error(request: Request, exc: ArmError) -> JSONResponse:
-        headers = {"WWW-Authenticate": "Bearer"} if isinstance(exc, Unauthorized) else None
-        return error_response(exc.detail, exc.code, exc.status_code, headers)
+        return arm_error_response(exc)
 
     @app.exception_handler(RequestValidationError)
     async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -24,7 +24,7 @@ from starlette.staticfiles import StaticFiles
 from starlette.types import Scope
 
 from app import schemas
-from app.arms import arm_routers
+from app.arms import arm_fast_paths, arm_routers
 from app.arms.loading import load_arms
 from app.cameras.config import CameraConfig, load_cameras
 from app.cameras.hub import CameraHub
@@ -189,6 +189,8 @@ def create_app(settings: Settings | None = None,
     _document_websocket_messages(app)
     install_error_handlers(app)
 
+    for layer in arm_fast_paths():  # innermost, inside every gate (a goal's write: issue 23)
+        app.add_middleware(layer, app_ref=app)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(TokenGate, access=app.state.access)
     hosts = HostPolicy(settings)  # one policy for the guard and the state fast path

@@ -17,14 +17,18 @@ from __future__ import annotations
 from collections.abc import Awaitable, Callable
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Path
+from fastapi import APIRouter, Body, FastAPI, Path
+from pydantic import ValidationError
+from starlette.responses import Response
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app import schemas as s
 from app.arms import arm_type
 from app.arms.dynamixel.exchange import DynamixelBusDriver
-from app.errors import InUse, OutOfRange, ReadOnly, UnknownId, UnknownRegister
+from app.errors import ArmError, InUse, OutOfRange, ReadOnly, UnknownId, UnknownRegister
 from app.service import ArmService
-from app.web.deps import ControlArm
+from app.web.deps import ControlArm, bearer_credentials, check_control
+from app.web.error_responses import arm_error_response
 from app.web.routes.common import DEVICE, errors
 from protocol import mx28
 
@@ -190,12 +194,18 @@ async def read_register(svc: ControlArm, dxl_id: DxlId, name: RegName) -> s.Regi
 )
 async def write_register(svc: ControlArm, dxl_id: DxlId, name: RegName,
                          req: s.RegisterWrite) -> s.RegisterValue:
+    return await write_one(svc, dxl_id, name, req.raw)
+
+
+async def write_one(svc: ArmService, dxl_id: int, name: str, raw: int) -> s.RegisterValue:
+    """The register write's checks and its send, after the access, the arm and its lease:
+    the route above and `RegisterWriteFastPath` below run this one."""
     drv = _driver(svc)
     item = _item(svc, name)
-    _check_write(svc, item, dxl_id, req.raw)
-    await _send(svc, item, {dxl_id: req.raw},
-                lambda gated: drv.write_register(dxl_id, item, req.raw, gated=gated))
-    return _value(svc, dxl_id, item, req.raw)
+    _check_write(svc, item, dxl_id, raw)
+    await _send(svc, item, {dxl_id: raw},
+                lambda gated: drv.write_register(dxl_id, item, raw, gated=gated))
+    return _value(svc, dxl_id, item, raw)
 
 
 @router.post(
@@ -249,3 +259,112 @@ async def reboot(svc: ControlArm, dxl_id: DxlId) -> s.Ack:
     _driver(svc)
     await svc.reboot(dxl_id)
     return s.Ack(command=f"REBOOT {dxl_id}")
+
+
+class RegisterWriteFastPath:
+    """`PUT {prefix}/arms/{arm}/dynamixel/{id}/registers/{name}` (`write_register`) answered
+    by the same code without FastAPI's router and dependency solving: an ASGI layer inside
+    every other one (installed innermost, `FAST_PATHS`), so the audit log, the last-resort
+    errors, CORS, the Host and Origin guard, the token gate and the body limit have all run
+    on it as on any request.
+
+    A pass-through goal is the command whose latency is measured (issue 23: a goal's
+    `PUT` ends with the first sample that shows the move); the router walks every included
+    router's routes twice and FastAPI solves the dependencies: profiled, about 60 % of the
+    HTTP thread's CPU for a goal (`bench/goal_trace.py`, docs/performance.md). Here:
+    `check_control` (`ControlArm`'s token, role, arm and lease checks, the same function),
+    the body validated by `RegisterWrite` from its raw bytes, and `write_one` (the route's
+    checks and send, the same function). An `ArmError` is answered as the app's handler
+    answers it (`arm_error_response`), the value as FastAPI serialises the route's
+    `response_model`.
+
+    Only a request whose every part the route would take as it is comes here: a query
+    string, a `root_path`, a content type other than `application/json`, an id that is not
+    0-252 in plain digits, an arm or register name over 64 characters, an `X-Arm-Lease` over
+    128, or a body `RegisterWrite` refuses go down to the router exactly as before (its 422
+    answers, its order of checks), with the body replayed; so do all other requests."""
+
+    def __init__(self, app: ASGIApp, app_ref: FastAPI) -> None:
+        self.app = app
+        self.state = app_ref.state
+        self.head = s.API_PREFIX + "/arms/"
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        target = self._target(scope)
+        if target is None:
+            await self.app(scope, receive, send)
+            return
+        chunks: list[bytes] = []
+        while True:  # the body limit (outside) has bounded it
+            message = await receive()
+            if message["type"] != "http.request":  # a disconnect: the router sees it
+                await self.app(scope, _replay(message, receive), send)
+                return
+            chunks.append(message.get("body", b""))
+            if not message.get("more_body", False):
+                break
+        body = b"".join(chunks)
+        try:
+            req = s.RegisterWrite.model_validate_json(body)
+        except ValidationError:  # the router's 422, as it words it
+            await self.app(scope, _replay({"type": "http.request", "body": body,
+                                           "more_body": False}, receive), send)
+            return
+        arm, dxl_id, name, token, lease = target
+        response: Response
+        try:
+            svc = await check_control(self.state.access, self.state.services,
+                                      self.state.leases, token, arm, lease)
+            value = await write_one(svc, dxl_id, name, req.raw)
+        except ArmError as exc:
+            response = arm_error_response(exc)
+        else:
+            response = Response(value.model_dump_json(by_alias=True),
+                                media_type="application/json")
+        await response(scope, receive, send)
+
+    def _target(self, scope: Scope) -> tuple[str, int, str, str | None, str | None] | None:
+        """(arm, id, register name, token, lease id) of a register write this layer takes,
+        else None."""
+        if scope["type"] != "http" or scope.get("method") != "PUT" or scope.get("query_string") \
+                or scope.get("root_path"):
+            return None
+        path: str = scope["path"]
+        if not path.startswith(self.head):
+            return None
+        parts = path[len(self.head):].split("/")
+        if len(parts) != 5 or parts[1] != "dynamixel" or parts[3] != "registers":
+            return None
+        arm, dxl, name = parts[0], parts[2], parts[4]
+        if not (0 < len(arm) <= 64 and 0 < len(name) <= 64 and 0 < len(dxl) <= 3
+                and dxl.isascii() and dxl.isdigit() and int(dxl) <= 252):
+            return None
+        auth = lease = kind = None
+        for key, value in scope.get("headers", ()):
+            if key == b"content-type" and kind is None:
+                kind = value
+            elif key == b"authorization" and auth is None:
+                auth = value.decode("latin-1")
+            elif key == b"x-arm-lease" and lease is None:
+                lease = value.decode("latin-1")
+        if kind is None or kind.lower() != b"application/json" or (
+                lease is not None and len(lease) > 128):
+            return None
+        return arm, int(dxl), name, bearer_credentials(auth), lease
+
+
+def _replay(first: Message, receive: Receive) -> Receive:
+    """A `receive` that gives `first` once, then `receive`'s messages."""
+    given = False
+
+    async def again() -> Message:
+        nonlocal given
+        if not given:
+            given = True
+            return first
+        return await receive()
+    return again
+
+
+#: The ASGI layers of this router's module, innermost (app/arms `arm_fast_paths`).
+FAST_PATHS = [RegisterWriteFastPath]
