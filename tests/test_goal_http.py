@@ -10,6 +10,7 @@ write in order, and what reaches the servo."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
 from typing import Any
@@ -254,3 +255,42 @@ async def test_no_record_lost_when_the_answer_goes_first(n: int) -> None:
             return got if len(got) == n and all(x["status"] == 200 for x in got) else None
         got = await wait_for(done, what="the writes' records")
         assert [x["summary"] for x in reversed(got)] == [f'{{"raw":{k % 2}}}' for k in range(n)]
+
+
+async def test_a_long_request_keeps_its_start_record_and_its_place() -> None:
+    """A request that runs on gets its start record while it runs (the kill -9 case,
+    tests/test_audit_inflight.py), before the short writes that came after it; those are
+    recorded whole once answered; all in the order they passed the gates."""
+    async with running_client(_settings(), headers=H(ALICE)) as (_, c):
+        t0 = time.time()
+        move = asyncio.create_task(c.post(f"{API}/arms/rbe3001/move/joints", json={
+            "positions": [0.3, 0.6, 0.2], "speed": 0.3, "wait": True}))
+
+        async def rows() -> list[dict[str, Any]]:
+            r = await c.get(f"{API}/audit", params={"since": t0}, headers=H(TEACH))
+            out: list[dict[str, Any]] = r.json()
+            return out
+        await wait_for(lambda: _has(rows, lambda x: x[-1]["status"] is None),
+                       what="the move's start record")
+        for k in range(3):
+            r = await c.put(f"{DX}/1/registers/led", json={"raw": k % 2})
+            assert r.status_code == 200
+        got = await wait_for(lambda: _has(rows, lambda x: len(x) == 4), what="four records")
+        assert not move.done()
+        assert [(x["route"].rsplit("/", 1)[-1], x["status"]) for x in reversed(got)] == [
+            ("joints", None), ("led", 200), ("led", 200), ("led", 200)]
+        assert (await move).status_code == 200
+        got = await wait_for(lambda: _has(rows, lambda x: x[-1]["status"] == 200),
+                             what="the move's record completed")
+        times = [x["time"] for x in reversed(got)]
+        assert times == sorted(times)
+
+
+async def _has(rows: Any, cond: Any) -> list[dict[str, Any]] | None:
+    got: list[dict[str, Any]] = await rows()
+    if not got:
+        return None
+    try:
+        return got if cond(got) else None
+    except (IndexError, KeyError):
+        return None

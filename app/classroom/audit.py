@@ -4,10 +4,13 @@ One ASGI middleware, outermost, sees every /api/v1 request that may change somet
 method but GET, HEAD and OPTIONS) and its answer:
 
 - **A request that passes the gates** (Host and Origin, the token, the body limit: the app has
-  read its whole body) is recorded when it starts, with no status, and completed with its
-  status and code when it ends. The store writes the start within AUDIT_FLUSH_S (0.1 s), so a
-  kill -9 during a `wait: true` move keeps the attempt; on the next start such a record gets
-  the code `interrupted`.
+  read its whole body) is recorded once it has run START_DEFER_S (20 ms), with no status, and
+  completed with its status and code when it ends; one that ends sooner is recorded whole
+  when it ends, after its answer went out. Either way the records are queued in the order
+  the requests passed the gates, with the time each started, and none is built on the
+  request's own path (issue 23: a pass-through goal's). The store writes a start within
+  START_DEFER_S + AUDIT_FLUSH_S (0.12 s), so a kill -9 during a `wait: true` move keeps the
+  attempt; on the next start such a record gets the code `interrupted`.
 - **A refused request** (REFUSALS: 400 bad_host, 401 unauthorized, 403 forbidden and
   cross_origin, 404 not_found and unknown_arm, 405 method_not_allowed, 413 too_large: refused
   before any route's own work) is not recorded one by one: one `refusals` record per client
@@ -29,11 +32,15 @@ text: `=HYPERLINK(...)` is no arm); the CSV export neutralises formula cells
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import re
 import time
+from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
 from typing import Any, TypeVar
 
 from fastapi import FastAPI
@@ -59,6 +66,11 @@ ANSWER_KEEP = 2048
 REFUSALS = frozenset({(400, "bad_host"), (401, "unauthorized"), (403, "forbidden"),
                       (403, "cross_origin"), (404, "not_found"), (404, "unknown_arm"),
                       (405, "method_not_allowed"), (413, "too_large")})
+#: How long a request's start record may wait to be built, s: one that ends sooner gets one
+#: complete record, built after its answer went out (issue 23: the record's build was on a
+#: pass-through goal's path, before the route); one that runs on gets its start record then,
+#: in the store within this plus AUDIT_FLUSH_S (app/store.py).
+START_DEFER_S = 0.02
 #: `refusals` records of one interval at most (then the rest share one per reason).
 MAX_REFUSAL_KEYS = 100
 OTHERS = "(others)"
@@ -127,6 +139,17 @@ def _refused(n: int, status: int, code: str, address: str) -> str:
     return f"{n} request(s) refused {status} {code} from {address}"
 
 
+@dataclass(eq=False)
+class _Start:
+    """A request past the gates whose start record is not built yet (`AuditLog._defer`)."""
+
+    scope: Scope
+    path: str
+    started: float
+    body: bytes
+    entry: AuditEntry | None = None
+
+
 class AuditLog:
     """ASGI middleware recording every changing API request to `app.state.store`."""
 
@@ -136,6 +159,9 @@ class AuditLog:
         self.access = access
         settings = getattr(app_ref.state, "settings", None)
         self.refusals = Refusals(float(getattr(settings, "audit_refusal_interval_s", 60.0)))
+        #: start records not built yet, in the order their requests passed the gates
+        self._waiting: deque[_Start] = deque()
+        self._timer: asyncio.TimerHandle | None = None
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         path = scope.get("path", "")
@@ -148,17 +174,17 @@ class AuditLog:
         body = bytearray()
         answer = bytearray()
         status = 0
-        entry: AuditEntry | None = None
+        start: _Start | None = None
 
         async def _receive() -> Message:
-            nonlocal entry
+            nonlocal start
             message = await receive()
-            if message["type"] == "http.request" and entry is None:
+            if message["type"] == "http.request" and start is None:
                 if len(body) < BODY_KEEP:
                     body.extend(message.get("body", b"")[:BODY_KEEP - len(body)])
                 if not message.get("more_body", False):  # past the gates: the app reads it
-                    entry = self._guarded(lambda: store.audit(
-                        self._entry(scope, path, started, bytes(body))))
+                    start = _Start(scope, path, started, bytes(body))
+                    self._defer(store, start)
             return message
 
         async def _send(message: Message) -> None:
@@ -173,8 +199,41 @@ class AuditLog:
         try:
             await self.app(scope, _receive, _send)
         finally:
+            entry = None
+            if start is not None:  # its start record, built now if it still waits
+                self._guarded(lambda: self._starts(store, upto=start, last=False))
+                entry = start.entry
             self._guarded(lambda: self._end(store, scope, path, started, entry, bytes(body),
                                             status or 499, bytes(answer)))
+
+    def _defer(self, store: Store, start: _Start) -> None:
+        """Queue a request's start record, to be built at its end or START_DEFER_S from now,
+        whichever comes first (`_starts`): not on the request's path."""
+        self._waiting.append(start)
+        if self._timer is None:
+            self._timer = asyncio.get_running_loop().call_later(
+                START_DEFER_S, lambda: self._guarded(lambda: self._starts(store)))
+
+    def _starts(self, store: Store, upto: _Start | None = None, last: bool = True) -> None:
+        """Build the waiting start records in the order their requests passed the gates: all
+        of them (the timer), or up to `upto` (a request that ends), `upto`'s own only if
+        `last` (a request that ends gets one complete record instead: `_end`)."""
+        if upto is None:
+            self._timer = None
+        elif upto not in self._waiting:
+            return  # built already
+        while self._waiting:
+            s = self._waiting.popleft()
+            if s is not upto or last:
+                s.entry = self._guarded(partial(self._record_start, store, s))
+            if s is upto:
+                break
+        if not self._waiting and self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+    def _record_start(self, store: Store, s: _Start) -> AuditEntry:
+        return store.audit(self._entry(s.scope, s.path, s.started, s.body))
 
     def _guarded(self, fn: Callable[[], T]) -> T | None:
         """`fn()`; a bug in recording is logged and counted (as app/web/middleware.py's last resort
