@@ -15,7 +15,11 @@ each goal gets the wall time and the calling thread's CPU time (`time.thread_tim
 
     recv      the request's bytes reach the HTTP loop (the protocol's data_received)
     asgi      the ASGI app is called (httptools has parsed the head and body)
-    route     the route calls ArmService.command_passthrough (middleware, auth, lease, body)
+    route     the route calls ArmService.command_passthrough (middleware, auth, lease, body;
+              since issue 23's HTTP change the register write's inner layer,
+              app/arms/dynamixel/api.py `RegisterWriteFastPath`, in place of FastAPI's router
+              and dependencies: `--root` on an export of the code before it, for both sides;
+              bench/goal_http.py profiles this hop's CPU)
     ctrl      its body starts on the control thread (the hand-over: a thread switch and the
               control loop's wake-up, behind whatever that loop was running)
     check0/1  SafetyGuard.check_passthrough
