@@ -21,11 +21,12 @@ API = "/api/v1/arms/rbe3001"
 ELSEWHERE = [[0.0, 0.6, 0.3], [0.4, 1.0, 0.9], [-0.5, 0.3, -0.4], [0.2, 1.4, 1.8]]
 
 
-async def _at_rest(client: httpx.AsyncClient) -> dict[str, Any]:
-    """A sample once the arm stands still (velocities zero) with a tip force."""
+async def _at_rest(client: httpx.AsyncClient, after: int = -1) -> dict[str, Any]:
+    """A sample once the arm stands still (velocities zero) with a tip force, later than the
+    sample numbered `after` (the latest sample may be one published before a change)."""
     async def still() -> dict[str, Any] | None:
         s: dict[str, Any] = (await client.get(f"{API}/state")).json()
-        ok = s["tip_force"] is not None and not any(s["velocities"])
+        ok = s["tip_force"] is not None and not any(s["velocities"]) and s["seq"] > after
         return s if ok else None
     got: dict[str, Any] = await wait_for(still, what="the arm at rest")
     return got
@@ -91,7 +92,9 @@ async def test_after_a_gravity_calibration_the_tip_force_is_zero_at_every_pose()
         # the tool's weight (the sign is the model's tip-force convention)
         assert abs(abs(loaded["tip_force"]["z"]) - 0.05 * 9.81) < 0.1
         assert (await client.post(f"{API}/force/tare")).status_code == 200
-        s = await _at_rest(client)
+        # the latest sample when the tare answers may have been published before it
+        published = (await client.get(f"{API}/state")).json()["seq"]
+        s = await _at_rest(client, after=published)
         assert _norm(s["tip_force"]) < 0.1
 
 
