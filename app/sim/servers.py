@@ -130,7 +130,8 @@ class _Pump:
         if self._due:
             self._timer = self._loop.call_at(self._due[0][0], self._flush)
 
-    async def close(self) -> None:
+    def close(self) -> None:
+        """Send nothing more: the replies waiting are dropped (the connection is gone)."""
         self._closed = True
         if self._timer is not None:
             self._timer.cancel()
@@ -145,10 +146,6 @@ async def tick_all(devices: Sequence[SimDevice], period: float) -> None:
         for device in devices:
             device.advance(now)
         await asyncio.sleep(period)
-
-
-async def _ticker(device: SimDevice, period: float) -> None:
-    await tick_all([device], period)
 
 
 class PtyServer:
@@ -170,7 +167,7 @@ class PtyServer:
         self._loop = asyncio.get_running_loop()
         self._pump = _Pump(device, self._write, self.faults)
         self._loop.add_reader(self.master, self._on_readable)
-        self._tick = self._loop.create_task(_ticker(device, tick_s)) if tick_s else None
+        self._tick = self._loop.create_task(tick_all([device], tick_s)) if tick_s else None
         self._closed = False
 
     def set_faults(self, faults: FaultConfig) -> None:
@@ -208,7 +205,7 @@ class PtyServer:
             self._tick.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._tick
-        await self._pump.close()
+        self._pump.close()
         for fd in (self.master, self.slave):
             with contextlib.suppress(OSError):
                 os.close(fd)
@@ -254,7 +251,7 @@ class _Connection(asyncio.Protocol):
             self._timer.cancel()
         self.server._conns.discard(self)
         if self.pump is not None:
-            self.server._closing.add(asyncio.get_running_loop().create_task(self.pump.close()))
+            self.pump.close()
             self.pump = None
 
 
@@ -267,10 +264,9 @@ class TcpServer:
         self.faults = ReplyFaults(faults, seed)
         self.server: asyncio.Server | None = None
         self._conns: set[_Connection] = set()
-        self._closing: set[asyncio.Task[None]] = set()
         self._refuse_until = 0.0
         loop = asyncio.get_running_loop()
-        self._tick = loop.create_task(_ticker(device, tick_s)) if tick_s else None
+        self._tick = loop.create_task(tick_all([device], tick_s)) if tick_s else None
 
     @property
     def port(self) -> int:
@@ -300,7 +296,6 @@ class TcpServer:
         if self.server is not None:
             await self.server.wait_closed()
             self.server = None
-        await asyncio.gather(*self._closing, return_exceptions=True)
 
 
 async def serve_pty(device: SimDevice, link_path: str | os.PathLike[str],
