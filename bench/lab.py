@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import os
 import signal
 import socket
@@ -44,6 +45,7 @@ import urllib.request
 from pathlib import Path
 
 import httpx
+import websockets
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _server import ROOT, pct  # noqa: E402
@@ -125,10 +127,6 @@ async def estop_seen(c: httpx.AsyncClient, url: str, arms: list[str],
     """Seconds from each `POST /estop` to the first telemetry sample that shows the latch
     (`make bench-peers`' estop figure; the POST itself answers later, once the hold is
     commanded on the device), presses spread over `arms`, each released after."""
-    import json
-
-    import websockets
-
     ws_base = url.replace("http", "ws", 1) + API
     socks = [await websockets.connect(f"{ws_base}/arms/{a}/telemetry?rate=500",
                                       max_size=None, compression=None) for a in arms]
@@ -163,6 +161,20 @@ async def estop_seen(c: httpx.AsyncClient, url: str, arms: list[str],
     return out
 
 
+async def _presses(c: httpx.AsyncClient, arms: list[str], presses: int) -> list[float]:
+    """Seconds each `POST /estop` took to answer (the hold commanded on the device), presses
+    spread over `arms` in turn, each released after."""
+    out: list[float] = []
+    for i in range(presses):
+        arm = arms[i % len(arms)]
+        start = time.perf_counter()
+        r = await c.post(f"{API}/arms/{arm}/estop")
+        out.append(time.perf_counter() - start)
+        assert r.status_code == 200, r.text
+        assert (await c.delete(f"{API}/arms/{arm}/estop")).status_code == 200
+    return out
+
+
 async def measure(url: str, arms: list[str], seconds: float, presses: int,
                   uds: str | None, pids: list[int], sims: list[int]) -> None:
     async with httpx.AsyncClient(base_url=url, timeout=10) as c:
@@ -184,14 +196,7 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
             r = await c.get(f"{API}/arms/{arm}/state")
             rest.append(time.perf_counter() - start)
             assert r.status_code == 200, r.text
-        estop: list[float] = []
-        for i in range(presses):
-            arm = arms[i % len(arms)]
-            start = time.perf_counter()
-            r = await c.post(f"{API}/arms/{arm}/estop")
-            estop.append(time.perf_counter() - start)
-            assert r.status_code == 200, r.text
-            assert (await c.delete(f"{API}/arms/{arm}/estop")).status_code == 200
+        estop = await _presses(c, arms, presses)
         seen = await estop_seen(c, url, arms[:SEEN_ARMS], presses)
     direct: list[float] = []
     estop_direct: list[float] = []
@@ -204,12 +209,7 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
                 start = time.perf_counter()
                 await w.get(f"{API}/arms/{name}/state")
                 direct.append(time.perf_counter() - start)
-            for _ in range(presses):
-                start = time.perf_counter()
-                r = await w.post(f"{API}/arms/{name}/estop")
-                estop_direct.append(time.perf_counter() - start)
-                assert r.status_code == 200, r.text
-                assert (await w.delete(f"{API}/arms/{name}/estop")).status_code == 200
+            estop_direct = await _presses(w, [name], presses)
     rates = [(last[a][0] - first[a][0]) / (last[a][1] - first[a][1]) for a in arms]
     n = len(arms)
     print(f"server CPU        {100 * cpu:.0f} % of a core in all, {100 * cpu / n:.1f} % per arm")
