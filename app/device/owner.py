@@ -438,12 +438,8 @@ class OwnerTask:
         self._repeated(at)
         self.stats["polls"] += 1
         self.stats["repeats"] += 1
-        self._seq += 1
-        stamp = at if at > self._stamp else self._stamp
-        self._stamp = stamp
         again = dict(sample)
-        again["seq"] = self._seq
-        again["time"] = stamp
+        again["seq"], again["time"] = self._next_stamp(at)
         if inputs is None:
             self.hub.publish(again)
         else:  # its derived fields from the same readings, at its first read (as the full path)
@@ -453,17 +449,23 @@ class OwnerTask:
 
     # ------------------------------------------------------------ samples
 
+    def _next_stamp(self, at: float | None) -> tuple[int, float]:
+        """The next sample's seq and time: `at` (`time.time()` when its reading was taken; None:
+        now), never before the last sample's time."""
+        self._seq += 1
+        stamp = time.time() if at is None else at
+        if stamp < self._stamp:
+            stamp = self._stamp
+        self._stamp = stamp
+        return self._seq, stamp
+
     def _publish(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray | None, stale: bool,
                  at: float | None = None) -> tuple[dict[str, Any], Any]:
         """Publish one sample; `at`: when its reading was taken (`time.time()`), if not now.
         Sample times never go back: a reading the link's thread took before a sample published
         meanwhile (an estop's `publish_state`) is stamped with that sample's time. Answers the
         sample and the readings its derived fields wait for (None: derived already)."""
-        self._seq += 1
-        stamp = time.time() if at is None else at
-        if stamp < self._stamp:
-            stamp = self._stamp
-        self._stamp = stamp
+        _, stamp = self._next_stamp(at)
         positions = q.tolist()
         velocities = qd.tolist()
         torques = None if tau is None else tau.tolist()
