@@ -12,6 +12,10 @@ import enum
 import time
 from dataclasses import dataclass
 
+#: Bytes a stream link reads at once: several Dynamixel status packets, far above one reply
+#: or HID report.
+READ_CHUNK = 4096
+
 
 class LinkState(enum.StrEnum):
     CONNECTING = "connecting"

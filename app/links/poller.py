@@ -31,11 +31,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from app.links.base import Reply
+from app.links.base import READ_CHUNK, Reply
 
 log = logging.getLogger(__name__)
 
-READ_CHUNK = 4096  # bytes per read: several Dynamixel status packets, far above one reply
 #: Longest a full transmit buffer may hold back a poll request, s: then the link is lost.
 WRITE_WAIT_S = 1.0
 #: A poll may go this much before its slot (s): `poll` waits in whole milliseconds, and the
@@ -200,7 +199,7 @@ class PollThread:
             if f.out and now >= f.write_by:
                 self._finish(f, PollLost(f"the port took no bytes for {WRITE_WAIT_S:.0f} s"),
                              handover, flights)
-            elif now >= f.deadline:
+            else:
                 self._finish(f, None, handover, flights)  # short: the owner task resyncs
         self._hand_over(handover)
 

@@ -19,11 +19,10 @@ import logging
 import os
 
 from app.doors import serial_asyncio as serial_door
-from app.links.base import Link, LinkError, LinkState
+from app.links.base import READ_CHUNK, Link, LinkError, LinkState
 
 log = logging.getLogger(__name__)
 
-READ_CHUNK = 4096  # bytes per read: several Dynamixel status packets, far above one HID report
 CLOSE_TIMEOUT_S = 1.0  # closing a transport whose peer is gone must not hang the owner task
 
 

@@ -57,13 +57,12 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
-from app.links.base import Link, LinkError, LinkState, Reply
+from app.links.base import READ_CHUNK, Link, LinkError, LinkState, Reply
 from app.links.poller import EARLY_S, PollThread, aligned, shared
 from app.runtime.tasks import resolve
 
 log = logging.getLogger(__name__)
 
-READ_CHUNK = 4096  # bytes per read: several Dynamixel status packets, far above one reply
 CLOSE_TIMEOUT_S = 1.0  # closing must not hang the owner task on a thread stuck in a call
 #: Longest a scheduled poll's reply waits on the thread before the owner task is woken for it,
 #: s: replies that repeat (an arm at rest) reach the owner task in batches this far apart at
