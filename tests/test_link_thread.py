@@ -21,6 +21,7 @@ from collections.abc import AsyncIterator
 
 import numpy as np
 import pytest
+from _tcp import serving
 from _wait import wait_for
 
 from app.arms.dynamixel.driver import DynamixelDriver
@@ -200,28 +201,26 @@ async def test_a_read_given_up_leaves_its_bytes_to_the_next(tmp_path):
             writer.write(data)
             await writer.drain()
 
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
-    link = ThreadLink(f"socket://127.0.0.1:{server.sockets[0].getsockname()[1]}")
-    try:
-        await link.open()
-        pending = asyncio.ensure_future(link.read(2.0))
-        for _ in range(3):  # the read waiting for bytes
-            await asyncio.sleep(0)
-        assert not pending.done()
-        pending.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await pending
-        await link.write(b"kept")
-        got = b""
-        for _ in range(20):
-            got += await link.read(1.0)
-            if len(got) >= 4:
-                break
-        assert got == b"kept"
-    finally:
-        await link.close()
-        server.close()
-        await server.wait_closed()
+    async with serving(handle) as port:
+        link = ThreadLink(f"socket://127.0.0.1:{port}")
+        try:
+            await link.open()
+            pending = asyncio.ensure_future(link.read(2.0))
+            for _ in range(3):  # the read waiting for bytes
+                await asyncio.sleep(0)
+            assert not pending.done()
+            pending.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await pending
+            await link.write(b"kept")
+            got = b""
+            for _ in range(20):
+                got += await link.read(1.0)
+                if len(got) >= 4:
+                    break
+            assert got == b"kept"
+        finally:
+            await link.close()
 
 
 async def test_transact_reads_the_whole_reply_in_one_call_over_a_pty(tmp_path):

@@ -11,6 +11,7 @@ from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 
 import pytest
+from _tcp import serving
 
 from app.arms.rbe3001.sim import Rbe3001Firmware
 from app.config import FaultConfig
@@ -133,12 +134,8 @@ async def echo_server() -> AsyncIterator[int]:
             await writer.drain()
         writer.close()
 
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
-    try:
-        yield server.sockets[0].getsockname()[1]
-    finally:
-        server.close()
-        await server.wait_closed()
+    async with serving(handle) as port:
+        yield port
 
 
 async def test_serial_over_socket_url(serial_link: type[Link]) -> None:

@@ -18,6 +18,7 @@ from collections.abc import AsyncIterator
 
 import numpy as np
 import pytest
+from _tcp import serving
 from _wait import wait_for
 
 from app.arms.dynamixel.driver import DynamixelDriver
@@ -108,11 +109,8 @@ async def scripted_board() -> AsyncIterator[int]:
                 n += 1
         writer.close()
 
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
-    try:
-        yield server.sockets[0].getsockname()[1]
-    finally:
-        server.close()
+    async with serving(handle) as port:
+        yield port
 
 
 async def test_the_same_replies_give_the_same_samples_seq_by_seq():
