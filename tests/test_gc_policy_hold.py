@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+from collections import deque
 from typing import Any
 
 import pytest
@@ -104,13 +105,13 @@ async def test_the_policy_runs_young_collections_between_commands_not_inside_the
         t0 = max(1, gc.get_threshold()[0])
         seen, cb = collections()
         try:
-            # over the policy's line, under CPython's: only the policy's timer collects it
+            # under CPython's line: only the policy's timer collects it
             gc.collect(0)
             before = col.young_collections
-            kept = allocate(int(t0 * (gc_policy.YOUNG_AT + 1) / 2))
+            kept = allocate(t0 // 4)
             await wait_for(lambda: col.young_collections > before,
                            what="a young collection run by the policy's timer")
-            assert seen and gc.get_count()[0] < t0 * gc_policy.YOUNG_AT
+            assert seen and gc.get_count()[0] < t0
             # while a goal holds collections off, the timer runs none either
             assert gc_policy.hold(seconds=60.0)
             try:
@@ -123,6 +124,25 @@ async def test_the_policy_runs_young_collections_between_commands_not_inside_the
             del kept
         finally:
             gc.callbacks.remove(cb)
+
+
+async def test_the_policy_collects_a_young_generation_that_churn_hides_from_the_count() -> None:
+    """Issue 27: CPython's count of generation 0 is its allocations less the deallocations of
+    any generation, so a log that frees its oldest entry as it takes a new one (the telemetry
+    logs) keeps it near zero while generation 0 fills up: a lab worker's young collection came
+    after 64,000 samples' containers and took 20-30 ms. The policy's tick collects it anyway."""
+    async with running_client(make_settings(control_thread=False)) as (app, _):
+        col = app.state.collector
+        ring = deque(allocate(2000), maxlen=2000)
+        gc.collect(0)
+        for _ in range(6000):  # a new entry in, the oldest out
+            ring.append(Node())
+        assert gc.get_count()[0] < gc.get_threshold()[0] // 2  # CPython sees nothing due
+        young = sum(isinstance(o, Node) for o in gc.get_objects(0))
+        assert young >= 1000, young
+        assert col.collect_young() is not None
+        assert sum(isinstance(o, Node) for o in gc.get_objects(0)) == 0
+        del ring
 
 
 async def test_a_due_full_collection_waits_while_a_goal_holds_collections_off() -> None:

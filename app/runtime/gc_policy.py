@@ -21,11 +21,16 @@ fell. In a traced run of 1,000 Dynamixel goals (bench/goal_trace.py) 184 goals m
 goal is some 7 ms in 80), and a generation-1 or a full one was in 15 of the slowest 20, which
 set the goal's p99 (a generation-1 collection walks the young generations' thousands of live
 samples: 2-4 ms of CPU, more with the trace's own records). So:
-- the policy collects the young generations itself, on a timer (`YOUNG_EVERY_S`), once
-  `YOUNG_AT` of generation 0's threshold waits, generation 1 as often as CPython would: the
-  collections then come at moments of the timer, not of a command, and a command's
-  allocations seldom reach the threshold (which stays, for bursts the timer does not keep up
-  with);
+- the policy collects the young generations itself, at every tick of a timer
+  (`YOUNG_EVERY_S`), generation 1 at every third (`YOUNG_GEN1_AFTER`): the collections then
+  come at moments of the timer, not of a command, and a command's allocations seldom reach
+  the threshold (which stays, for bursts the timer does not keep up with). At every tick, not
+  once CPython's count says one is due (issue 27): that count is the allocations less the
+  deallocations of tracked objects of any generation, so a process that frees old objects as
+  fast as it makes new ones (the telemetry logs: a sample in, the oldest out) keeps it near
+  zero while its youngest generation grows without bound. A lab worker of 16 arms at 500 Hz
+  had 64,000 samples' containers there after 4 s, and the young collection that came at last
+  took 20-30 ms of CPU with every thread stopped: an estop's 50-140 ms tail (bench/lab.py);
 - a command in flight holds automatic collections off (`hold`): a pass-through goal
   (`ArmService.command_passthrough`) from the facade's call until `HOLD_S` later, by when its
   write, the poll after it and the sample that shows the move are through; the collection its
@@ -63,13 +68,15 @@ FULL_DEFER_MAX_S = 600.0
 #: How often a deferred collection looks again, s.
 RETRY_S = 0.5
 
-#: How often the policy looks whether a young collection is due, s.
+#: How often the policy runs a young collection, s: about 1,800 samples' containers a second
+#: are kept by the arms' telemetry logs (three simulated arms), 90 in a timer's period; 16,000
+#: in a lab worker of 16 arms at 500 Hz, 800 in a period (a collection of them: well under a
+#: millisecond).
 YOUNG_EVERY_S = 0.05
-#: The share of generation 0's threshold (CPython's: 700 allocations of containers less
-#: their deallocations) at which the policy runs the young collection itself: about 1,800
-#: samples' containers a second are kept by the arms' telemetry logs (three simulated arms),
-#: 90 in a timer's period, and a request's own path holds a few hundred at its peak.
-YOUNG_AT = 0.5
+#: Generation 0's collections after which the policy's next is of generation 1 (CPython's own
+#: second threshold is 10): every sample a log keeps goes through generation 1, so a worker of
+#: 16 arms had 8,000 containers there at 10, a 1-4.5 ms collection; at 3, about 2,400.
+YOUNG_GEN1_AFTER = 3
 #: How long a command in flight holds automatic collections off, s: a pass-through goal's
 #: check, write and status reply, the poll after it (its wait for the servo's first tick, at
 #: most a poll period: 5 ms at 200 Hz) and the moved sample's way to a WebSocket took 2-8 ms
@@ -209,17 +216,17 @@ class Collector:
             self.collect_young()
 
     def collect_young(self) -> int | None:
-        """The young collection CPython would run next, now, if `YOUNG_AT` of it is due and
-        no hold is active: generation 1 once generation 0 has been collected its threshold of
-        times since (CPython's second threshold), else generation 0. The generation collected,
-        or None."""
+        """A young collection now, unless a hold is active or automatic collection is off (a
+        threshold of 0): generation 1 once generation 0 has been collected `YOUNG_GEN1_AFTER`
+        times since, else generation 0; whatever CPython's count of generation 0 says (the
+        module doc: it stays near zero while old samples are freed as new ones come). The
+        generation collected, or None."""
         if _held or not gc.isenabled():
             return None
-        c0, c1, _ = gc.get_count()
-        t0, t1, _ = gc.get_threshold()
-        if t0 <= 0 or c0 < t0 * YOUNG_AT:  # (a threshold of 0: automatic collection off)
+        _, c1, _ = gc.get_count()
+        if gc.get_threshold()[0] <= 0:
             return None
-        gen = 1 if c1 >= t1 else 0
+        gen = 1 if c1 >= YOUNG_GEN1_AFTER else 0
         gc.collect(gen)
         self.young_collections += 1
         return gen
