@@ -102,6 +102,15 @@ def _target(scope: Scope) -> str:
     return str(url.decode("latin-1"))
 
 
+def _press(scope: Scope) -> bool:
+    """An estop press (`POST .../arms/{arm}/estop`): sent twice it does what it does once (a
+    press on a latched estop changes nothing; a release between the two, someone else's, is
+    latched again: the safe side), so it goes again on a new connection when a kept-alive one
+    turns out broken. Not the release: a second one could undo a press made between them."""
+    path: str = scope["path"]
+    return scope["method"] == "POST" and path.startswith(ARMS + "/") and path.endswith("/estop")
+
+
 def down_link(plan: LabPlan, arm: str, reason: str) -> dict[str, Any]:
     """The health entry (`LinkStatus`) of an arm whose worker is not answering."""
     link = plan.profile(arm).link
@@ -250,7 +259,8 @@ class LabFront:
             return self._down(worker)
         try:
             r = await worker.client.request(scope["method"], _target(scope),
-                                            forwarded_headers(scope), body, REQUEST_TIMEOUT_S)
+                                            forwarded_headers(scope), body, REQUEST_TIMEOUT_S,
+                                            retry=True if _press(scope) else None)
         except (UpstreamError, TimeoutError) as exc:
             log.warning("worker %d: %r", worker.index, exc)
             return self._down(worker)

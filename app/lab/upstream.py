@@ -7,15 +7,23 @@ headers as the client sent them, a Content-Length body; an answer framed by Cont
 chunked, or to the end of the connection. Only the worker (our own server, uvicorn) is at the
 other end, and only the front can reach its socket.
 
-A connection that broke while it waited in the pool (the worker restarted) fails the next
-request before any byte of an answer: a GET or HEAD is then tried once more on a new
-connection; any other request is the caller's failure (it may have reached the old worker).
+A connection the worker closed while it waited in the pool (uvicorn closes one idle for
+`timeout_keep_alive`, 5 s; the worker restarted) is not used again: one whose end has come is
+dropped as it is taken, and one idle for IDLE_MAX_S is not kept waiting for that end to come.
+The supervisor's health probes share the pool with the requests, so a second connection is
+opened whenever the two overlap, and then waits, mostly idle, under the one in use: an estop
+press through the front that took it after the worker's close answered 503 `link_down`
+(bench/lab.py, issue 27). A connection that breaks all the same (closed as the request went)
+fails the request before any byte of an answer: a request the caller says may be sent twice
+(`retry`: a GET or HEAD by default) is then tried once more on a new connection; any other is
+the caller's failure (it may have reached the old worker).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 from collections import deque
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -26,6 +34,9 @@ HEAD_LIMIT = 64 * 1024
 READ_CHUNK = 64 * 1024
 #: Methods tried again on a new connection when a kept-alive one turns out broken.
 RETRYABLE = frozenset({"GET", "HEAD"})
+#: Longest a connection waits in the pool, s: under the worker's `timeout_keep_alive` (uvicorn's
+#: 5 s), so that a request never goes out on one the worker is closing.
+IDLE_MAX_S = 4.0
 
 
 class UpstreamError(OSError):
@@ -112,28 +123,33 @@ class Upstream:
     def __init__(self, uds: Path, keepalive: int) -> None:
         self.uds = uds
         self.keepalive = keepalive
-        self._idle: deque[Conn] = deque()
+        #: Idle connections, each with the time it came back (`time.monotonic()`).
+        self._idle: deque[tuple[Conn, float]] = deque()
 
     async def request(self, method: str, target: str, headers: list[tuple[bytes, bytes]],
-                      body: bytes = b"", timeout: float | None = None) -> UpstreamResponse:
+                      body: bytes = b"", timeout: float | None = None,
+                      retry: bool | None = None) -> UpstreamResponse:
         """Send one request and read the answer's head (within `timeout` s); the body is
         the caller's to read or relay. `headers` go as given (no Content-Length: it is
-        computed; add Host yourself)."""
+        computed; add Host yourself). `retry`: the request may go twice (default: a GET or
+        HEAD), so a kept-alive connection that turns out broken is no failure."""
         head = [f"{method} {target} HTTP/1.1\r\n".encode("latin-1")]
         head += [k + b": " + v + b"\r\n" for k, v in headers]
         if body or method not in RETRYABLE:
             head.append(b"content-length: " + str(len(body)).encode() + b"\r\n")
         data = b"".join(head) + b"\r\n" + body
+        again = method in RETRYABLE if retry is None else retry
         for attempt in (0, 1):
-            reused = bool(self._idle)
-            conn = self._idle.pop() if reused else await self._open()
+            taken = self._take()
+            reused = taken is not None
+            conn = taken if taken is not None else await self._open()
             try:
                 async with asyncio.timeout(timeout):
                     conn[1].write(data)
                     raw = await conn[0].readuntil(b"\r\n\r\n")
             except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError) as exc:
                 self._release(conn, False)
-                if reused and attempt == 0 and method in RETRYABLE:
+                if reused and attempt == 0 and again:
                     continue
                 raise UpstreamError(f"worker socket {self.uds.name}: {exc!r}") from None
             except BaseException:
@@ -158,16 +174,30 @@ class Upstream:
         except OSError as exc:
             raise UpstreamError(f"worker socket {self.uds.name}: {exc!r}") from None
 
+    def _take(self) -> Conn | None:
+        """The idle connection that came back last, if one is left that the worker has not
+        closed (nor may be closing: idle for IDLE_MAX_S); those it passes are closed."""
+        now = time.monotonic()
+        while self._idle and now - self._idle[0][1] >= IDLE_MAX_S:  # the oldest first
+            self._idle.popleft()[0][1].close()
+        while self._idle:
+            conn, since = self._idle.pop()
+            if conn[0].at_eof() or conn[1].is_closing() or now - since >= IDLE_MAX_S:
+                conn[1].close()
+                continue
+            return conn
+        return None
+
     def _release(self, conn: Conn, reuse: bool) -> None:
         if reuse and len(self._idle) < self.keepalive and not conn[1].is_closing():
-            self._idle.append(conn)
+            self._idle.append((conn, time.monotonic()))
         else:
             conn[1].close()
 
     def reset(self) -> None:
         """Close every idle connection (the worker restarted: they lead nowhere)."""
         while self._idle:
-            self._idle.pop()[1].close()
+            self._idle.pop()[0][1].close()
 
     async def aclose(self) -> None:
         self.reset()
