@@ -16,9 +16,16 @@ while every arm runs at its poll rate prints:
   own sample clock);
 - then REST `GET /state` p50/p99 through the front, round robin over the arms, one client; the
   same request straight to a worker's Unix socket (the front's own cost is the difference);
-- estop p99 through the front: presses (`POST /estop`, each released after) spread over the arms,
-  until the POST's answer (the hold commanded on the device), and on SEEN_ARMS arms until the
-  first telemetry sample that shows the latch (`make bench-peers`' estop figure).
+- the estop through the front, two ways (presses spread over the arms, each released after,
+  with the pauses of `make bench-peers`' harness around it):
+  - answered: until the POST's answer, which comes once the hold is commanded on the device
+    (its status reply read: a device round trip behind the poll in flight); the first press
+    on each arm and the later ones apart, and the same straight to a worker's socket;
+  - seen: until the first telemetry sample that shows the latch (`make bench-peers`' estop
+    figure, and the one issue 27's "estop p99 under 5 ms" is read as), with one telemetry
+    client at rate=500 on the arm pressed, a socket opened for each press, as the harness;
+    and again with SEEN_STREAMS sockets streaming at 500 Hz all along (the front relays, and
+    this client reads, every sample of them).
 - with `--teleop` (3 arms or more, 2 workers): a teleoperation session's latency from a leader
   sample to the follower's command (p50/p99, as `GET /teleop` reports it), the leader moving
   back and forth, once with both arms on one worker and once with the leader on the other
@@ -35,6 +42,7 @@ import argparse
 import asyncio
 import json
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -43,6 +51,7 @@ import tempfile
 import time
 import urllib.request
 from pathlib import Path
+from typing import Any
 
 import httpx
 import websockets
@@ -118,61 +127,107 @@ def _idle_s() -> float:
         return int(f.readline().split()[4]) / os.sysconf("SC_CLK_TCK")
 
 
-#: Arms whose telemetry the "latch seen" figure reads (a stream at the poll rate each).
-SEEN_ARMS = 4
+#: Arms whose telemetry streams at once (each at the poll rate) in the second "latch seen"
+#: figure: the first has one stream open at a time, as `make bench-peers`' harness.
+SEEN_STREAMS = 4
+#: The harness's pauses (../shared/peers/rtt_armserver.py): before a press (uniform, s) and
+#: after its release (s): presses land at any phase of the poll schedule, not just after the
+#: release's answer.
+PAUSE_BEFORE_S = (0.01, 0.03)
+PAUSE_AFTER_S = 0.02
+
+
+async def _telemetry(url: str, arm: str) -> tuple[Any, asyncio.Queue[tuple[float, bool]],
+                                                  asyncio.Task[None]]:
+    """A telemetry socket on `arm` at rate=500 (each sample as it is published), its samples'
+    arrival times and estop flags as they come, and the task that reads them."""
+    ws = await websockets.connect(f"{url.replace('http', 'ws', 1)}{API}/arms/{arm}/telemetry"
+                                  "?rate=500", max_size=None, compression=None)
+    queue: asyncio.Queue[tuple[float, bool]] = asyncio.Queue()
+
+    async def read() -> None:
+        async for m in ws:
+            for smp in json.loads(m).get("samples", []):
+                queue.put_nowait((time.perf_counter(), bool(smp["estop"])))
+
+    return ws, queue, asyncio.create_task(read())
+
+
+async def _press_seen(c: httpx.AsyncClient, arm: str,
+                      queue: asyncio.Queue[tuple[float, bool]]) -> float:
+    """One press as the harness makes it: a pause, `POST /estop`, the time to the first sample
+    on `queue` that shows the latch; then the release and a pause."""
+    await asyncio.sleep(random.uniform(*PAUSE_BEFORE_S))
+    while not queue.empty():
+        queue.get_nowait()
+    start = time.perf_counter()
+    r = await c.post(f"{API}/arms/{arm}/estop")
+    assert r.status_code == 200, r.text
+    while True:
+        at, latched = await asyncio.wait_for(queue.get(), 5)
+        if latched:
+            break
+    r = await c.delete(f"{API}/arms/{arm}/estop")
+    assert r.status_code == 200, r.text
+    await asyncio.sleep(PAUSE_AFTER_S)
+    return at - start
 
 
 async def estop_seen(c: httpx.AsyncClient, url: str, arms: list[str],
                      presses: int) -> list[float]:
-    """Seconds from each `POST /estop` to the first telemetry sample that shows the latch
-    (`make bench-peers`' estop figure; the POST itself answers later, once the hold is
-    commanded on the device), presses spread over `arms`, each released after."""
-    ws_base = url.replace("http", "ws", 1) + API
-    socks = [await websockets.connect(f"{ws_base}/arms/{a}/telemetry?rate=500",
-                                      max_size=None, compression=None) for a in arms]
-    queues: list[asyncio.Queue[tuple[float, bool]]] = [asyncio.Queue() for _ in arms]
-
-    async def read(k: int) -> None:
-        async for m in socks[k]:
-            for smp in json.loads(m).get("samples", []):
-                queues[k].put_nowait((time.perf_counter(), bool(smp["estop"])))
-
-    readers = [asyncio.create_task(read(k)) for k in range(len(arms))]
+    """Seconds from each `POST /estop` to the first telemetry sample that shows the latch, as
+    `make bench-peers`' harness measures it: one telemetry client (rate=500) on the arm it
+    presses. Presses go over every arm in turn, each with a socket of its own opened before
+    and closed after (one stream at a time, as the harness's)."""
     out: list[float] = []
-    try:
-        for i in range(presses):
-            k = i % len(arms)
-            while not queues[k].empty():
-                queues[k].get_nowait()
-            start = time.perf_counter()
-            r = await c.post(f"{API}/arms/{arms[k]}/estop")
-            assert r.status_code == 200, r.text
-            while True:
-                at, latched = await asyncio.wait_for(queues[k].get(), 5)
-                if latched:
-                    out.append(at - start)
-                    break
-            assert (await c.delete(f"{API}/arms/{arms[k]}/estop")).status_code == 200
-    finally:
-        for t in readers:
-            t.cancel()
-        for ws in socks:
+    for i in range(presses):
+        arm = arms[i % len(arms)]
+        ws, queue, reader = await _telemetry(url, arm)
+        try:
+            await asyncio.wait_for(queue.get(), 5)  # streaming
+            out.append(await _press_seen(c, arm, queue))
+        finally:
+            reader.cancel()
             await ws.close()
     return out
 
 
-async def _presses(c: httpx.AsyncClient, arms: list[str], presses: int) -> list[float]:
-    """Seconds each `POST /estop` took to answer (the hold commanded on the device), presses
-    spread over `arms` in turn, each released after."""
+async def estop_seen_streams(c: httpx.AsyncClient, url: str, arms: list[str],
+                             presses: int) -> list[float]:
+    """The same with a telemetry client streaming on each of `arms` all along (rate=500
+    each: the front relays and this client reads every sample of them), presses spread over
+    them."""
+    socks = [await _telemetry(url, a) for a in arms]
     out: list[float] = []
+    try:
+        for i in range(presses):
+            k = i % len(arms)
+            out.append(await _press_seen(c, arms[k], socks[k][1]))
+    finally:
+        for ws, _, reader in socks:
+            reader.cancel()
+            await ws.close()
+    return out
+
+
+async def _presses(c: httpx.AsyncClient, arms: list[str],
+                   presses: int) -> tuple[list[float], list[float]]:
+    """Seconds each `POST /estop` took to answer (the hold commanded on the device), presses
+    spread over `arms` in turn, each released after, with the harness's pauses; the first
+    press on each arm and the later ones apart."""
+    first: list[float] = []
+    later: list[float] = []
     for i in range(presses):
         arm = arms[i % len(arms)]
+        await asyncio.sleep(random.uniform(*PAUSE_BEFORE_S))
         start = time.perf_counter()
         r = await c.post(f"{API}/arms/{arm}/estop")
-        out.append(time.perf_counter() - start)
+        (first if i < len(arms) else later).append(time.perf_counter() - start)
         assert r.status_code == 200, r.text
-        assert (await c.delete(f"{API}/arms/{arm}/estop")).status_code == 200
-    return out
+        r = await c.delete(f"{API}/arms/{arm}/estop")
+        assert r.status_code == 200, r.text
+        await asyncio.sleep(PAUSE_AFTER_S)
+    return first, later
 
 
 async def measure(url: str, arms: list[str], seconds: float, presses: int,
@@ -196,8 +251,9 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
             r = await c.get(f"{API}/arms/{arm}/state")
             rest.append(time.perf_counter() - start)
             assert r.status_code == 200, r.text
-        estop = await _presses(c, arms, presses)
-        seen = await estop_seen(c, url, arms[:SEEN_ARMS], presses)
+        estop_first, estop_later = await _presses(c, arms, presses)
+        seen = await estop_seen(c, url, arms, presses)
+        seen_streams = await estop_seen_streams(c, url, arms[:SEEN_STREAMS], presses)
     direct: list[float] = []
     estop_direct: list[float] = []
     if uds is not None:
@@ -209,7 +265,8 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
                 start = time.perf_counter()
                 await w.get(f"{API}/arms/{name}/state")
                 direct.append(time.perf_counter() - start)
-            estop_direct = await _presses(w, [name], presses)
+            one, more = await _presses(w, [name], presses)
+            estop_direct = one + more
     rates = [(last[a][0] - first[a][0]) / (last[a][1] - first[a][1]) for a in arms]
     n = len(arms)
     print(f"server CPU        {100 * cpu:.0f} % of a core in all, {100 * cpu / n:.1f} % per arm")
@@ -221,14 +278,21 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
     if direct:
         print(f"  straight to a worker's socket: p50 {1e3 * pct(direct, 0.5):.2f} ms  p99 "
               f"{1e3 * pct(direct, 0.99):.2f} ms (the front's hop: the difference)")
-    print(f"estop             p50 {1e3 * pct(estop, 0.5):.2f} ms  p99 {1e3 * pct(estop, 0.99):.2f}"
-          f" ms ({len(estop)} presses)")
+    estop = estop_first + estop_later
+    print(f"estop answered    p50 {1e3 * pct(estop, 0.5):.2f} ms  p99 {1e3 * pct(estop, 0.99):.2f}"
+          f" ms through the front ({len(estop)} presses: the hold commanded on the device)")
+    if estop_later:
+        print(f"  the first press on each arm: p50 {1e3 * pct(estop_first, 0.5):.2f} ms  p99 "
+              f"{1e3 * pct(estop_first, 0.99):.2f} ms; the later ones: p50 "
+              f"{1e3 * pct(estop_later, 0.5):.2f} ms  p99 {1e3 * pct(estop_later, 0.99):.2f} ms")
     if estop_direct:
         print(f"  straight to a worker's socket: p50 {1e3 * pct(estop_direct, 0.5):.2f} ms  p99 "
               f"{1e3 * pct(estop_direct, 0.99):.2f} ms")
-    print(f"  the latch seen on the telemetry (as `make bench-peers`): p50 "
-          f"{1e3 * pct(seen, 0.5):.2f} ms  p99 {1e3 * pct(seen, 0.99):.2f} ms ({len(seen)} "
-          f"presses on {min(SEEN_ARMS, n)} arms)")
+    print(f"estop seen        p50 {1e3 * pct(seen, 0.5):.2f} ms  p99 {1e3 * pct(seen, 0.99):.2f}"
+          f" ms: the latch in the first telemetry sample, one stream at a time on the arm "
+          f"pressed (as `make bench-peers`; {len(seen)} presses over {n} arms)")
+    print(f"  with {min(SEEN_STREAMS, n)} streams at 500 Hz all along: p50 "
+          f"{1e3 * pct(seen_streams, 0.5):.2f} ms  p99 {1e3 * pct(seen_streams, 0.99):.2f} ms")
 
 
 async def teleop_latency(url: str, leader: str, follower: str, seconds: float) -> str:
