@@ -54,6 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from app.arms.loading import load_profile  # noqa: E402
 from app.config import homed_at_start  # noqa: E402
+from app.runtime import gc_policy  # noqa: E402
 from app.service import ArmService  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -103,6 +104,12 @@ async def run(model: str, port: int, seconds: float, prof: cProfile.Profile | No
     if eager:
         svc.hub.deriver = None
     await svc.start()
+    # the server's garbage-collection policy (app/web/factory.py): the objects of the start-up
+    # frozen, the young generations collected on its timer; without it CPython's own count
+    # (allocations less deallocations) stays near zero while the telemetry log turns over,
+    # and a collection of a growing young generation comes at random (issue 27)
+    collector = gc_policy.Collector(gc_policy.moving({profile.name: svc}))
+    collector.start()
     tasks: list[asyncio.Task[None]] = []
     try:
         deadline = time.monotonic() + 30
@@ -133,6 +140,7 @@ async def run(model: str, port: int, seconds: float, prof: cProfile.Profile | No
         for r in await asyncio.gather(*tasks, return_exceptions=True):
             if isinstance(r, Exception):
                 print(f"(the arm's task failed: {r!r})")
+        await collector.close()
         await svc.close()
     rate = n / wall
     per = cpu / n

@@ -223,11 +223,12 @@ class OwnerTask:
     async def _session_scheduled(self, link: ThreadLink) -> None:
         """`_session` over a link with a thread of its own (app/links/threaded.py): while
         nothing is queued and the last poll succeeded, the link's thread polls on the schedule
-        and the owner task waits; woken (a batch of replies, a reply that changed or failed, a
-        request), it pauses the thread (the poll in flight ends first), serves a queued
-        request, passes each reply read ahead through the driver's poll, in order (after a
-        failed request the driver's quiet wait comes first, as before any exchange), then goes
-        on as `_session` does."""
+        and the owner task waits, publishing the batches of replies that repeat the last one
+        as they come (`_idle_scheduled`); woken for anything else (a reply that changed or
+        failed, a request), it pauses the thread (the poll in flight ends first), serves a
+        queued request, passes each reply read ahead through the driver's poll, in order
+        (after a failed request the driver's quiet wait comes first, as before any exchange),
+        then goes on as `_session` does."""
         period = 1.0 / self.profile.link.poll_hz
         loop = asyncio.get_running_loop()
         next_poll = loop.time()
@@ -267,7 +268,8 @@ class OwnerTask:
                             next_poll = loop.time() + period
                     continue
                 if alone:
-                    await self._idle_scheduled(loop, link, next_poll, period)
+                    if await self._idle_scheduled(loop, link, next_poll, period):
+                        polled = True
                     next_poll = max(next_poll, link.next_slot)
                 else:  # after a failed poll the driver polls itself (its quiet wait first)
                     await self._idle_until(loop, next_poll - POLL_EARLY_S)
@@ -275,22 +277,37 @@ class OwnerTask:
             await link.pause()
 
     async def _idle_scheduled(self, loop: asyncio.AbstractEventLoop, link: ThreadLink,
-                              slot: float, period: float) -> None:
+                              slot: float, period: float) -> bool:
         """Let the link's thread poll from `slot` while the owner task waits for its replies
-        or a request (`_wake_owner`); the schedule is paused again before this returns."""
+        or a request (`_wake_owner`). Woken for replies that all repeat the last poll's (an arm
+        at rest) with nothing queued, it publishes them (`_repeat`: no I/O, so the schedule
+        runs on) and waits again; anything else (a reply that changed or failed, a request,
+        the thread's silence) pauses the schedule before this returns. True if it published
+        any (polls made)."""
         fut = loop.create_future()
         self._idle = fut  # before the thread may wake it
-        if not link.arm(slot, period, self._wake_owner):
+        armed = link.arm(slot, period, self._wake_owner)
+        if not armed:
             timer = loop.call_at(max(slot - POLL_EARLY_S, loop.time() + LOOP_TICK_S),
                                  resolve, fut)
         else:  # the thread wakes it; the timer only bounds a thread that stopped answering
-            timer = loop.call_at(loop.time() + SCHEDULE_WAIT_MAX_S, resolve, fut)
+            timer = loop.call_at(loop.time() + SCHEDULE_WAIT_MAX_S, self._wake_owner)
+        took = False
         try:
             await fut
+            while (armed and link.armed and link.prefetched and self._queue.empty()
+                   and not self._poll_now and self._repeat(link) and not link.prefetched):
+                took = True
+                fut = loop.create_future()
+                self._idle = fut
+                if timer.when() <= loop.time():  # (it woke this batch: bound the next wait)
+                    timer = loop.call_at(loop.time() + SCHEDULE_WAIT_MAX_S, self._wake_owner)
+                await fut
         finally:
             self._idle = None
             timer.cancel()
             await link.pause()
+        return took
 
     async def _idle_until(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
         """Wait for a request or loop time `when`, whichever is first: one bare future and one
@@ -413,14 +430,14 @@ class OwnerTask:
         return True
 
     def _repeat(self, link: ThreadLink) -> bool:
-        """The next reply the link's thread read ahead, if it is byte for byte the last poll's
-        (`ThreadLink.take_repeat`: an arm at rest), published as the last sample again with
-        the reply's own time and the next seq, without parsing, converting and checking the
-        same bytes again; True if it was. Only where nothing a sample is made from has changed
-        since that sample (the readings, units, tare, gravity fit, gripper, faults, homing,
-        calibration; the driver's own state: `_repeat_ok`), else False and the full path
-        runs. What a subscriber sees is the same as from the full path
-        (tests/test_sample_repeat.py)."""
+        """The replies the link's thread read ahead, from the next on, that are byte for byte
+        the last poll's (`ThreadLink.take_repeats`: an arm at rest), published as the last
+        sample again, each with its reply's own time and the next seq, without parsing,
+        converting and checking the same bytes again (in one step: `publish_run`); True if
+        there were any. Only where nothing a sample is made from has changed since that sample
+        (the readings, units, tare, gravity fit, gripper, faults, homing, calibration; the
+        driver's own state: `_repeat_ok`), else False and the full path runs. What a
+        subscriber sees is the same as from the full path (tests/test_sample_repeat.py)."""
         t = self._template
         if (t is None or self._poll_failures or self.stale or not self.repeat_samples
                 or not self._repeat_ok()):
@@ -432,19 +449,23 @@ class OwnerTask:
                 or sample["faults"] != self.faults or sample["homed"] != self.homed
                 or sample["calibrated"] != self.calibrated):
             return False
-        at = link.take_repeat()
-        if at is None:
+        ats = link.take_repeats()
+        if not ats:
             return False
-        self._repeated(at)
-        self.stats["polls"] += 1
-        self.stats["repeats"] += 1
-        again = dict(sample)
-        again["seq"], again["time"] = self._next_stamp(at)
-        if inputs is None:
-            self.hub.publish(again)
-        else:  # its derived fields from the same readings, at its first read (as the full path)
-            again["tip"] = again["tip_velocity"] = again["tip_force"] = None
-            self.hub.publish(again, inputs)
+        self._repeated(ats[-1])  # (what it sets, each repeat would set again: the last holds)
+        n = len(ats)
+        self.stats["polls"] += n
+        self.stats["repeats"] += n
+        stamps = []
+        seq, last = self._seq, self._stamp
+        for at in ats:  # `_next_stamp` for each: times never go back
+            seq += 1
+            last = max(at, last)
+            stamps.append((seq, last))
+        self._seq, self._stamp = seq, last
+        if inputs is not None:  # derived fields from the same readings at their first read
+            sample = dict(sample, tip=None, tip_velocity=None, tip_force=None)
+        self.hub.publish_run(sample, stamps, inputs)
         return True
 
     # ------------------------------------------------------------ samples

@@ -10,7 +10,7 @@ from __future__ import annotations
 import abc
 import enum
 import time
-from dataclasses import dataclass
+from typing import NamedTuple
 
 #: Bytes a stream link reads at once: several Dynamixel status packets, far above one reply
 #: or HID report.
@@ -27,9 +27,9 @@ class LinkError(Exception):
     """The transport failed (cannot open, lost, closed). The link is DOWN afterwards."""
 
 
-@dataclass(frozen=True, slots=True)
-class Reply:
-    """What `Link.transact` read after writing its request."""
+class Reply(NamedTuple):
+    """What `Link.transact` read after writing its request (a named tuple: one is made for
+    every poll, on the poll thread's hot path, app/links/poller.py)."""
 
     #: The bytes that arrived (b"": none yet). Fewer than asked for: the reply was not
     #: complete by `deadline`; the caller may read on (`read`) for the rest or a late reply.

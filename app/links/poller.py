@@ -28,7 +28,6 @@ import select
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Protocol
 
 from app.links.base import READ_CHUNK, Reply
@@ -56,7 +55,7 @@ class Polled(Protocol):
     def poll_due(self, now: float) -> tuple[int, bytes, int, float] | float | None: ...
 
     def poll_ended(self, packet: bytes, entry: Reply | BaseException
-                   ) -> tuple[asyncio.AbstractEventLoop | None, list[Callable[[], None]]]: ...
+                   ) -> tuple[asyncio.AbstractEventLoop, list[Callable[[], None]]] | None: ...
 
 
 class PollLost(Exception):
@@ -70,18 +69,16 @@ def aligned(slot: float, period: float) -> float:
     return math.ceil((slot - 1e-9) / period) * period
 
 
-@dataclass
 class _Flight:
     """One poll in flight: its request still to write, its reply so far, its deadline."""
 
-    link: Polled
-    fd: int
-    packet: bytes
-    size: int
-    deadline: float
-    out: bytes
-    write_by: float
-    data: bytearray = field(default_factory=bytearray)
+    __slots__ = ("data", "deadline", "fd", "link", "out", "packet", "size", "write_by")
+
+    def __init__(self, link: Polled, fd: int, packet: bytes, size: int, deadline: float,
+                 out: bytes, write_by: float) -> None:
+        self.link, self.fd, self.packet, self.size = link, fd, packet, size
+        self.deadline, self.out, self.write_by = deadline, out, write_by
+        self.data = b""
 
 
 class PollThread:
@@ -89,7 +86,8 @@ class PollThread:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._links: set[Polled] = set()
+        #: The links served, replaced whole under the lock (the thread reads it without).
+        self._links: tuple[Polled, ...] = ()
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
         os.set_blocking(self._wake_w, False)
@@ -107,7 +105,8 @@ class PollThread:
         """Serve `link`'s schedule (armed, its first slot `slot`); wakes the thread if it
         sleeps past that slot."""
         with self._lock:
-            self._links.add(link)
+            if link not in self._links:
+                self._links = (*self._links, link)
             until = self._sleeps_until
             nudge = not self._nudged and (until is None or until > slot)
             if nudge:
@@ -115,6 +114,12 @@ class PollThread:
         if nudge:
             with contextlib.suppress(BlockingIOError):
                 os.write(self._wake_w, b"x")
+
+    def _forget(self, link: Polled) -> None:
+        """Stop serving `link` (closed) unless its owner armed it again meanwhile."""
+        with self._lock:
+            if not link.armed:
+                self._links = tuple(k for k in self._links if k is not link)
 
     # ------------------------------------------------------------ the thread
 
@@ -133,60 +138,51 @@ class PollThread:
                 time.sleep(0.01)
 
     def _round(self, flights: dict[int, _Flight]) -> None:
-        now = time.monotonic()
-        with self._lock:
-            links = list(self._links)
+        """Write the due polls' requests, wait for their replies, a slot or a nudge, take what
+        came. The hot path of every arm's sample: a few attribute reads besides the syscalls
+        (each link's poll is made once per arm: `poll_due` answers it whole)."""
         handover: _Handover = {}
-        wake_at: float | None = None
-        flying = {id(f.link) for f in flights.values()}
-        for link in links:
-            if id(link) in flying:
+        wake_at = math.inf
+        now = time.monotonic()
+        flying = {f.link for f in flights.values()} if flights else ()
+        for link in self._links:
+            if link in flying:
                 continue
             state = link.poll_due(now)
             if state is None:  # closed: served again when its owner arms it
-                with self._lock:
-                    if not link.armed:
-                        self._links.discard(link)
-                continue
-            if isinstance(state, float):
-                if state != math.inf:
-                    wake_at = state if wake_at is None else min(wake_at, state)
-                continue
-            fd, packet, size, timeout = state
-            t = time.monotonic()
-            f = _Flight(link, fd, packet, size, t + timeout, packet, t + WRITE_WAIT_S)
-            flights[fd] = f
-            try:
-                self._write(f)
-            except (OSError, PollLost) as exc:
-                self._finish(f, exc, handover, flights)
+                self._forget(link)
+            elif isinstance(state, float):
+                if state < wake_at:
+                    wake_at = state
+            else:
+                self._start(link, state, flights, handover)
         for f in flights.values():
-            wake_at = f.deadline if wake_at is None else min(wake_at, f.deadline)
-            self._poller.register(f.fd, select.POLLIN | (select.POLLOUT if f.out else 0))
+            if f.deadline < wake_at:
+                wake_at = f.deadline
         with self._lock:
-            self._sleeps_until = wake_at
-        # whole milliseconds, rounded up: never a spin; a slot's wake-up is EARLY_S before it
-        timeout_ms = (None if wake_at is None
-                      else max(0, math.ceil((wake_at - time.monotonic()) * 1e3)))
-        if not handover:
-            events = self._poller.poll(timeout_ms)
-        else:  # (a write that failed: told before waiting)
+            self._sleeps_until = None if wake_at == math.inf else wake_at
+        if handover:  # (a write that failed: told before waiting)
             events = []
+        elif wake_at == math.inf:
+            events = self._poller.poll()
+        else:  # whole milliseconds, rounded up: never a spin; a slot's wake-up is EARLY_S early
+            events = self._poller.poll(max(0, math.ceil((wake_at - time.monotonic()) * 1e3)))
         self.stats["wakes"] += 1
         with self._lock:
             self._sleeps_until = None
             self._nudged = False
         for fd, ev in events:
-            if fd == self._wake_r:
-                with contextlib.suppress(BlockingIOError):
-                    os.read(self._wake_r, 512)
-                continue
             got = flights.get(fd)
             if got is None:
+                if fd == self._wake_r:
+                    with contextlib.suppress(BlockingIOError):
+                        os.read(self._wake_r, 512)
                 continue
             try:
                 if ev & select.POLLOUT and got.out:
                     self._write(got)
+                    if not got.out:  # all written: the reply is all it waits for now
+                        self._poller.modify(fd, select.POLLIN)
                 if ev & (select.POLLIN | _ERR):
                     self._read(got)
             except (OSError, PollLost) as exc:
@@ -194,14 +190,32 @@ class PollThread:
                 continue
             if len(got.data) >= got.size:
                 self._finish(got, None, handover, flights)
-        now = time.monotonic()
-        for f in [f for f in flights.values() if now >= f.deadline]:
-            if f.out and now >= f.write_by:
-                self._finish(f, PollLost(f"the port took no bytes for {WRITE_WAIT_S:.0f} s"),
-                             handover, flights)
-            else:
-                self._finish(f, None, handover, flights)  # short: the owner task resyncs
-        self._hand_over(handover)
+        if flights:
+            now = time.monotonic()
+            for f in [f for f in flights.values() if now >= f.deadline]:
+                if f.out and now >= f.write_by:
+                    self._finish(f, PollLost(f"the port took no bytes for {WRITE_WAIT_S:.0f} s"),
+                                 handover, flights)
+                else:
+                    self._finish(f, None, handover, flights)  # short: the owner task resyncs
+        if handover:
+            self._hand_over(handover)
+
+    def _start(self, link: Polled, poll: tuple[int, bytes, int, float],
+               flights: dict[int, _Flight], handover: _Handover) -> None:
+        """Put `link`'s poll in flight: its request written (what the port takes now), its
+        descriptor watched for the reply (and the rest of the request) until its deadline,
+        counted from the write."""
+        fd, packet, size, timeout = poll
+        t = time.monotonic()
+        f = _Flight(link, fd, packet, size, t + timeout, packet, t + WRITE_WAIT_S)
+        flights[fd] = f
+        try:
+            self._write(f)
+        except (OSError, PollLost) as exc:
+            self._finish(f, exc, handover, flights)
+            return
+        self._poller.register(fd, select.POLLIN | (select.POLLOUT if f.out else 0))
 
     def _hand_over(self, handover: _Handover) -> None:
         """One `call_soon_threadsafe` per event loop for what this round asks of it."""
@@ -215,7 +229,7 @@ class PollThread:
             n = os.write(f.fd, f.out)
         except BlockingIOError:
             n = 0
-        f.out = f.out[n:]
+        f.out = f.out[n:] if n < len(f.out) else b""
 
     def _read(self, f: _Flight) -> None:
         try:
@@ -228,7 +242,7 @@ class PollThread:
             raise
         if not data:  # ready and nothing: a socket's end, a tty whose other end is gone
             raise PollLost("closed by the peer (end of file)")
-        f.data += data
+        f.data = f.data + data if f.data else data
 
     def _finish(self, f: _Flight, error: BaseException | None,
                 handover: _Handover,
@@ -238,10 +252,10 @@ class PollThread:
             self._poller.unregister(f.fd)
         self.stats["polls"] += 1
         entry: Reply | BaseException = (
-            error if error is not None
-            else Reply(bytes(f.data), f.deadline, time.time()))
-        loop, calls = f.link.poll_ended(f.packet, entry)
-        if loop is not None and calls:
+            error if error is not None else Reply(f.data, f.deadline, time.time()))
+        told = f.link.poll_ended(f.packet, entry)
+        if told is not None:
+            loop, calls = told
             handover.setdefault(loop, []).extend(calls)
 
 

@@ -9,7 +9,7 @@ timeout has passed), and keeps it here (`prefetched`). Links of one period share
 The owner tasks are woken for the replies together (one `call_soon_threadsafe` per event loop
 for a batch of polls of every arm on it) and pass each through the driver as if they had made
 the poll themselves (`begin_poll`): the same sans-IO parsing, matching and checks, in the same
-order; a reply byte for byte the last poll's is the last sample again (`take_repeat`). An idle
+order; a reply byte for byte the last poll's is the last sample again (`take_repeats`). An idle
 arm then costs the control loop one wake-up a batch instead of a timer, a write, a read and two
 wake-ups a poll.
 
@@ -22,10 +22,12 @@ on the schedule: the owner task makes every poll itself.
 
 What the owner task relies on (app/device/owner.py `_session_scheduled`, tested in
 tests/test_link_thread.py):
-- The poll thread polls this link only while the owner task waits: every call the owner task
-  makes (`transact`, `read`, `write`) first pauses the schedule and waits for the poll in
-  flight, so a request waits behind at most one poll and no byte of one exchange is read by
-  another; it polls again only after a good poll, every reply since whole (`can_schedule`).
+- The poll thread polls this link only while the owner task waits for it, or takes the
+  replies it read ahead without any I/O of its own (replies that repeat the last poll's:
+  `take_repeats`): every call the owner task makes (`transact`, `read`, `write`) first pauses
+  the schedule and waits for the poll in flight, so a request waits behind at most one poll
+  and no byte of one exchange is read by another; it polls again only after a good poll,
+  every reply since whole (`can_schedule`).
 - The owner task is woken at once for a reply that differs from the ones before (an arm that
   starts to move, a fault), for one that did not come whole within its timeout (and the
   schedule stops: the driver resynchronises as it does on any link, with its quiet wait,
@@ -132,6 +134,10 @@ class ThreadLink(Link):
         self._polls: PollThread | None = None
         #: The owner's poll request (bytes, reply size, timeout), from its last poll.
         self._poll: tuple[bytes, int, float] | None = None
+        #: What the poll thread does at each slot (descriptor, request, reply size, timeout):
+        #: the owner's poll request on this port, made once per `arm` (None: closed).
+        self._plan: tuple[int, bytes, int, float] | None = None
+        self._size = 0  # the reply size of `_plan`'s request
         #: Every reply whole by its timeout since the last poll's (the thread may poll alone).
         self._clean = False
         # the owner's current poll (loop side)
@@ -141,7 +147,7 @@ class ThreadLink(Link):
         #: read it ahead (None: just now).
         self.reply_time: float | None = None
         #: (request, reply) of the owner's last poll, if its reply came whole and nothing
-        #: else was written or read since (None otherwise): what `take_repeat` compares with.
+        #: else was written or read since (None otherwise): what `take_repeats` compares with.
         self._last_poll: tuple[bytes, bytes] | None = None
         #: Scheduled polls made on the thread, and those of them dropped unused.
         self.stats = {"scheduled": 0, "dropped": 0, "wakes": 0}
@@ -160,6 +166,7 @@ class ThreadLink(Link):
             self._armed = False
             self._in_flight = False
             self._prefetched.clear()
+            self._plan = None
         self._poll = None
         self._clean = False
         self._last_data = b""
@@ -264,24 +271,28 @@ class ThreadLink(Link):
         self._use_prefetched = prefetched
         self.reply_time = None
 
-    def take_repeat(self) -> float | None:
-        """Take the first reply read ahead if it repeats the owner's last poll byte for byte
-        (the same request, the same whole reply, nothing else written or read since: an arm at
-        rest), and answer when it was read (`time.time()`); None, and nothing taken,
-        otherwise. The owner task then publishes its last sample again instead of parsing
-        the same bytes (app/device/owner.py `_repeat`)."""
+    def take_repeats(self) -> list[float]:
+        """Take the replies read ahead, from the first on, that repeat the owner's last poll
+        byte for byte (the same request, the same whole reply, nothing else written or read
+        since: an arm at rest), and answer when each was read (`time.time()`, in order); none
+        taken (an empty list) where the first does not. The owner task then publishes its
+        last sample again for each instead of parsing the same bytes (app/device/owner.py
+        `_repeat`)."""
         last = self._last_poll
         if last is None:
-            return None
+            return []
+        request, reply = last
+        ats: list[float] = []
         with self._lock:
-            if not self._prefetched:
-                return None
-            packet, entry = self._prefetched[0]
-            if (not isinstance(entry, Reply) or packet != last[0] or entry.data != last[1]
-                    or entry.at is None):
-                return None
-            self._prefetched.popleft()
-        return entry.at
+            prefetched = self._prefetched
+            while prefetched:
+                packet, entry = prefetched[0]
+                if (not isinstance(entry, Reply) or entry.data != reply or packet != request
+                        or entry.at is None):
+                    break
+                prefetched.popleft()
+                ats.append(entry.at)
+        return ats
 
     @property
     def prefetched(self) -> int:
@@ -305,10 +316,16 @@ class ThreadLink(Link):
         """Poll on the thread from `slot` (`time.monotonic()`) every `period` s with the last
         poll request, calling `notify` (from the thread) when the owner task should take the
         replies; False (nothing armed) before a poll request is known."""
-        if not self.can_schedule or self._thread is None:
+        poll = self._poll
+        if not self.can_schedule or self._thread is None or poll is None:
             return False
         slot = aligned(slot, period)  # the slots every link of this period shares
+        packet, size, timeout = poll
         with self._lock:
+            fd = self._fd
+            if fd is None:  # (closed meanwhile, on the link's thread)
+                return False
+            self._plan, self._size = (fd, packet, size, timeout), size
             self._armed = True
             self._slot, self._period, self._notify = slot, period, notify
             self._batch_since = time.monotonic()
@@ -329,10 +346,9 @@ class ThreadLink(Link):
         if it is not due yet, armed or not (an owner task that took a batch re-arms at that
         slot: the thread then needs no nudge), infinity for a slot gone by unarmed; else the
         poll is in flight from here, and (descriptor, request, reply size, timeout) says what
-        to do."""
+        to do (made once per `arm`)."""
         with self._lock:
-            fd, poll = self._fd, self._poll
-            if fd is None or poll is None:
+            if self._plan is None:
                 self._armed = False
                 return None
             if self._slot - EARLY_S > now:
@@ -340,53 +356,57 @@ class ThreadLink(Link):
             if not self._armed:
                 return math.inf
             self._in_flight = True
-            packet, size, timeout = poll
-            return fd, packet, size, timeout
+            return self._plan
 
     def poll_ended(self, packet: bytes, entry: Reply | BaseException
-                   ) -> tuple[asyncio.AbstractEventLoop | None, list[Callable[[], None]]]:
+                   ) -> tuple[asyncio.AbstractEventLoop, list[Callable[[], None]]] | None:
         """For the poll thread: the scheduled poll of `packet` ended with `entry` (its reply,
         whole or short, or the failure). Keeps it for the owner task and moves the schedule
         on; answers the owner's loop and what to run there, in the batch (the owner's wake-up
-        where it should take the replies now, a `pause` that waited for this poll)."""
+        where it should take the replies now, a `pause` that waited for this poll), or None
+        (nothing to run: a repeat within its batch)."""
         now = time.monotonic()
-        calls: list[Callable[[], None]] = []
         with self._lock:
             self._in_flight = False
             if self._closing:
                 self._flight_ended.notify_all()
-            paused, self._paused = self._paused, None
-            self._prefetched.append((packet, entry))
+            paused = self._paused
+            prefetched = self._prefetched
+            prefetched.append((packet, entry))
             self.stats["scheduled"] += 1
             period = self._period
             self._slot += period
             if self._slot < now - CATCH_UP * period:  # far behind: skip ahead, on the grid
                 self._slot = aligned(now + period, period)
-            size = self._poll[1] if self._poll is not None else 0
-            failed = not isinstance(entry, Reply) or len(entry.data) != size
+            data = entry.data if isinstance(entry, Reply) else b""
+            failed = len(data) != self._size or not isinstance(entry, Reply)
             if failed:
                 self._clean = False
-            if failed or len(self._prefetched) >= MAX_PREFETCHED:
+            if failed or len(prefetched) >= MAX_PREFETCHED:
                 self._armed = False  # the owner task takes it from here
-            data = entry.data if isinstance(entry, Reply) else b""
             changed = data != self._last_data
-            since = now - self._batch_since
             # a reading that changes after repeats (a move starts: the samples a goal's or a
             # teleoperation's latency waits for) at once; while it goes on changing, every
             # MOVING_BATCH_S; repeats every BATCH_S
             wake = (failed or not self._armed or (changed and not self._changing)
-                    or since >= (MOVING_BATCH_S if changed else BATCH_S))
+                    or now - self._batch_since >= (MOVING_BATCH_S if changed else BATCH_S))
             self._changing = changed
             self._last_data = data
             if wake:
                 self._batch_since = now
             notify = self._notify
+            if paused is not None:
+                self._paused = None
+            elif not wake or notify is None:
+                return None
+        calls: list[Callable[[], None]] = []
         if paused is not None:
             calls.append(lambda: resolve(paused))
         if wake and notify is not None:
             self.stats["wakes"] += 1
             calls.append(notify)
-        return self._loop, calls
+        loop = self._loop
+        return None if loop is None else (loop, calls)
 
     async def pause(self) -> None:
         """Stop the schedule; return once no scheduled poll is in flight."""
@@ -585,6 +605,7 @@ class ThreadLink(Link):
             self._flight_ended.wait_for(lambda: not self._in_flight, CLOSE_TIMEOUT_S)
             self._closing = False
             port, self._port, self._fd, self._poller = self._port, None, None, None
+            self._plan = None
         if port is not None:
             try:
                 port.close()

@@ -26,3 +26,12 @@ class ArmHub(TelemetryHub):
     def publish(self, sample: dict[str, Any], inputs: Any = None) -> None:
         self._stamp(sample)
         super().publish(sample, inputs)
+
+    def publish_run(self, sample: dict[str, Any], stamps: list[tuple[int, float]],
+                    inputs: Any = None) -> None:
+        """`TelemetryHub.publish_run`, the arm's fields stamped once for the whole run: its
+        samples are published at once, in one call on the control loop, where the estop latch
+        and the motion change, so each would be stamped with the same."""
+        sample = dict(sample)
+        self._stamp(sample)
+        super().publish_run(sample, stamps, inputs)

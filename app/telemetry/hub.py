@@ -370,6 +370,36 @@ class TelemetryHub:
             waiting = list(self._waiting) if self._waiting else None
         self._after_publish(sample, waiting)
 
+    def publish_run(self, sample: dict[str, Any], stamps: list[tuple[int, float]],
+                    inputs: Any = None) -> None:
+        """Publish `sample` again once for each (seq, time) of `stamps`, in order: what
+        `publish` of each copy in turn gives (the log, `latest`, every subscriber's messages),
+        in one step (a run of replies that repeat the last one: app/device/owner.py `_repeat`).
+        Copies share the fields `sample` holds (never changed once published)."""
+        if inputs is None or self.deriver is None or self._listeners:
+            for seq, t in stamps:  # whole samples, or a listener to call for each: one by one
+                again = dict(sample)
+                again["seq"], again["time"] = seq, t
+                self.publish(again, inputs)
+            return
+        run = []
+        for seq, t in stamps:
+            again = dict(sample)
+            again["seq"], again["time"] = seq, t
+            run.append(_Lazy(again, inputs))
+        now = time.monotonic()
+        with self._lock:
+            self._latest = run[-1]
+            self._log.extend(run)
+            if self._subs:
+                self._unread.extend(run)
+            self._stamps.extend([now] * len(run))
+            self.published += len(run)
+            waiting = list(self._waiting) if self._waiting else None
+        if waiting:
+            for sub in waiting:
+                sub._wake()
+
     def _after_publish(self, sample: dict[str, Any], waiting: list[Subscription] | None) -> None:
         for fn in list(self._listeners):
             fn(sample)
