@@ -275,14 +275,18 @@ def main() -> int:
     p.add_argument("--floor", action="store_true")
     p.add_argument("--io", choices=("thread", "asyncio"), default="thread")
     p.add_argument("--compare", action="store_true")
+    p.add_argument("--pin", action="store_true",
+                   help="this process (the server's side) on the first CPU, the simulator on "
+                        "the others, as the issue measured")
     p.add_argument("--models", default="rbe3001,angler,openmanipulator_x")
     args = p.parse_args()
     if args.publish_only:
         asyncio.run(publish_only())
         return 0
     if args.compare:
-        return compare(args.models.split(","), args.seconds, args.moving, args.subscribe)
-    with _simulator(args.model) as port:
+        return compare(args.models.split(","), args.seconds, args.moving, args.subscribe,
+                       args.pin)
+    with _simulator(args.model, args.pin) as port:
         if args.floor:
             floor(port, args.seconds)
             return 0
@@ -295,29 +299,39 @@ def main() -> int:
 
 
 @contextlib.contextmanager
-def _simulator(model: str) -> Iterator[int]:
-    """`armserver sim MODEL` on a loopback port, in its own process: its port."""
+def _simulator(model: str, pin: bool = False) -> Iterator[int]:
+    """`armserver sim MODEL` on a loopback port, in its own process: its port. `pin`: this
+    process (the server's side) on the first CPU, the simulator on the others, as the issue
+    measured (and bench/lab.py --pin, bench/peers.py)."""
     port = _port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
     sim = subprocess.Popen([sys.executable, "-m", "app.cli", "sim", model, "--listen",
                             f"tcp://127.0.0.1:{port}"], cwd=ROOT, env=env,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    cpus = sorted(os.sched_getaffinity(0))
+    pinned = pin and len(cpus) > 1
+    if pinned:
+        os.sched_setaffinity(sim.pid, set(cpus[1:]))
+        os.sched_setaffinity(0, {cpus[0]})
     try:
         _wait_listening(port)
         yield port
     finally:
+        if pinned:
+            os.sched_setaffinity(0, set(cpus))
         sim.terminate()
         sim.wait(10)
 
 
-def compare(models: list[str], seconds: float, moving: bool, subscribe: float) -> int:
+def compare(models: list[str], seconds: float, moving: bool, subscribe: float,
+            pin: bool = False) -> int:
     """Each model with the asyncio link, then the thread link, then both again (A B B A), a
     fresh simulator each: CPU a sample and the ratio thread / asyncio of the means."""
     rows = []
     for model in models:
         per: dict[str, list[float]] = {"asyncio": [], "thread": []}
         for io in ("asyncio", "thread", "thread", "asyncio"):
-            with _simulator(model) as port:
+            with _simulator(model, pin) as port:
                 per[io].append(asyncio.run(run(model, port, seconds, None, moving, subscribe,
                                                False, io)))
         a, t = (sum(per[k]) / len(per[k]) for k in ("asyncio", "thread"))

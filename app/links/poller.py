@@ -103,17 +103,22 @@ class PollThread:
 
     def add(self, link: Polled, slot: float) -> None:
         """Serve `link`'s schedule (armed, its first slot `slot`); wakes the thread if it
-        sleeps past that slot."""
-        with self._lock:
+        sleeps past that slot, or is awake (it may have walked its links already).
+
+        No lock against the thread: it clears `_sleeps_until` when it wakes, before it walks
+        `_links`, and sets it just before it sleeps; `add` replaces `_links` before it reads
+        `_sleeps_until` (statements of either thread run in order under the GIL), so the
+        thread either sees the link or is nudged."""
+        with self._lock:  # (adders on several loops)
             if link not in self._links:
                 self._links = (*self._links, link)
-            until = self._sleeps_until
-            nudge = not self._nudged and (until is None or until > slot)
-            if nudge:
-                self._nudged = True
-        if nudge:
-            with contextlib.suppress(BlockingIOError):
+        until = self._sleeps_until
+        if not self._nudged and (until is None or until > slot):
+            self._nudged = True
+            try:
                 os.write(self._wake_w, b"x")
+            except BlockingIOError:  # (the pipe is full of nudges already)
+                pass
 
     def _forget(self, link: Polled) -> None:
         """Stop serving `link` (closed) unless its owner armed it again meanwhile."""
@@ -139,11 +144,14 @@ class PollThread:
 
     def _round(self, flights: dict[int, _Flight]) -> None:
         """Write the due polls' requests, wait for their replies, a slot or a nudge, take what
-        came. The hot path of every arm's sample: a few attribute reads besides the syscalls
-        (each link's poll is made once per arm: `poll_due` answers it whole)."""
+        came. The hot path of every arm's sample, run cold after each sleep: a few attribute
+        reads besides the syscalls (each link's poll is made once per arm: `poll_due` answers
+        it whole), no lock but a due link's own."""
         handover: _Handover = {}
         wake_at = math.inf
         now = time.monotonic()
+        self._sleeps_until = None  # awake: an `add` from here on nudges (before the walk)
+        self._nudged = False
         flying = {f.link for f in flights.values()} if flights else ()
         for link in self._links:
             if link in flying:
@@ -159,24 +167,24 @@ class PollThread:
         for f in flights.values():
             if f.deadline < wake_at:
                 wake_at = f.deadline
-        with self._lock:
-            self._sleeps_until = None if wake_at == math.inf else wake_at
         if handover:  # (a write that failed: told before waiting)
             events = []
         elif wake_at == math.inf:
+            self._sleeps_until = None
             events = self._poller.poll()
         else:  # whole milliseconds, rounded up: never a spin; a slot's wake-up is EARLY_S early
+            self._sleeps_until = wake_at
             events = self._poller.poll(max(0, math.ceil((wake_at - time.monotonic()) * 1e3)))
+        self._sleeps_until = None
         self.stats["wakes"] += 1
-        with self._lock:
-            self._sleeps_until = None
-            self._nudged = False
         for fd, ev in events:
             got = flights.get(fd)
             if got is None:
                 if fd == self._wake_r:
-                    with contextlib.suppress(BlockingIOError):
+                    try:
                         os.read(self._wake_r, 512)
+                    except BlockingIOError:
+                        pass
                 continue
             try:
                 if ev & select.POLLOUT and got.out:
@@ -248,8 +256,10 @@ class PollThread:
                 handover: _Handover,
                 flights: dict[int, _Flight]) -> None:
         flights.pop(f.fd, None)
-        with contextlib.suppress(KeyError):
+        try:
             self._poller.unregister(f.fd)
+        except KeyError:  # (a write that failed: never registered)
+            pass
         self.stats["polls"] += 1
         entry: Reply | BaseException = (
             error if error is not None else Reply(f.data, f.deadline, time.time()))

@@ -347,6 +347,9 @@ class ThreadLink(Link):
         slot: the thread then needs no nudge), infinity for a slot gone by unarmed; else the
         poll is in flight from here, and (descriptor, request, reply size, timeout) says what
         to do (made once per `arm`)."""
+        due = self._slot - EARLY_S
+        if due > now and self._plan is not None:  # (no lock: one `arm` moves meanwhile nudges)
+            return due
         with self._lock:
             if self._plan is None:
                 self._armed = False
