@@ -201,11 +201,23 @@ class PollThread:
         if flights:
             now = time.monotonic()
             for f in [f for f in flights.values() if now >= f.deadline]:
-                if f.out and now >= f.write_by:
-                    self._finish(f, PollLost(f"the port took no bytes for {WRITE_WAIT_S:.0f} s"),
-                                 handover, flights)
-                else:
-                    self._finish(f, None, handover, flights)  # short: the owner task resyncs
+                if f.out:
+                    if now >= f.write_by:
+                        self._finish(f, PollLost("the port took no bytes for "
+                                                 f"{WRITE_WAIT_S:.0f} s"), handover, flights)
+                    else:  # short: the owner task resyncs
+                        self._finish(f, None, handover, flights)
+                    continue
+                # what arrived by the time the thread looks counts, as where the owner task
+                # reads itself (threaded.py `_read_here` reads once more as its timer ends):
+                # a thread that got the GIL back only after its wait timed out (a loaded
+                # machine) finds the reply there, and takes it
+                try:
+                    self._read(f)
+                except (OSError, PollLost) as exc:
+                    self._finish(f, exc, handover, flights)
+                    continue
+                self._finish(f, None, handover, flights)  # whole, or short: the owner resyncs
         if handover:
             self._hand_over(handover)
 
