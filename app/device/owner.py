@@ -223,9 +223,9 @@ class OwnerTask:
     async def _session_scheduled(self, link: ThreadLink) -> None:
         """`_session` over a link with a thread of its own (app/links/threaded.py): while
         nothing is queued and the last poll succeeded, the link's thread polls on the schedule
-        and the owner task waits, publishing the batches of replies that repeat the last one
-        as they come (`_idle_scheduled`); woken for anything else (a reply that changed or
-        failed, a request), it pauses the thread (the poll in flight ends first), serves a
+        and the owner task waits, the batches of replies that repeat the last one published
+        as they are handed over (`_on_replies`); woken for anything else (a reply that changed
+        or failed, a request), it pauses the thread (the poll in flight ends first), serves a
         queued request, passes each reply read ahead through the driver's poll, in order
         (after a failed request the driver's quiet wait comes first, as before any exchange),
         then goes on as `_session` does."""
@@ -278,36 +278,41 @@ class OwnerTask:
 
     async def _idle_scheduled(self, loop: asyncio.AbstractEventLoop, link: ThreadLink,
                               slot: float, period: float) -> bool:
-        """Let the link's thread poll from `slot` while the owner task waits for its replies
-        or a request (`_wake_owner`). Woken for replies that all repeat the last poll's (an arm
-        at rest) with nothing queued, it publishes them (`_repeat`: no I/O, so the schedule
-        runs on) and waits again; anything else (a reply that changed or failed, a request,
-        the thread's silence) pauses the schedule before this returns. True if it published
-        any (polls made)."""
+        """Let the link's thread poll from `slot` while the owner task waits for a request
+        (`_wake_owner`) or for replies the thread hands over (`_on_replies`: a batch that
+        only repeats the last poll's reply is published there, and the owner task waits on
+        with the schedule running); anything else (a reply that changed or failed, a request,
+        the thread's silence) wakes it, and the schedule is paused again before this returns.
+        True if repeats were published meanwhile (polls made)."""
         fut = loop.create_future()
         self._idle = fut  # before the thread may wake it
-        armed = link.arm(slot, period, self._wake_owner)
-        if not armed:
+        repeats = self.stats["repeats"]
+        if not link.arm(slot, period, self._on_replies):
             timer = loop.call_at(max(slot - POLL_EARLY_S, loop.time() + LOOP_TICK_S),
                                  resolve, fut)
         else:  # the thread wakes it; the timer only bounds a thread that stopped answering
-            timer = loop.call_at(loop.time() + SCHEDULE_WAIT_MAX_S, self._wake_owner)
-        took = False
+            timer = loop.call_at(loop.time() + SCHEDULE_WAIT_MAX_S, resolve, fut)
         try:
             await fut
-            while (armed and link.armed and link.prefetched and self._queue.empty()
-                   and not self._poll_now and self._repeat(link) and not link.prefetched):
-                took = True
-                fut = loop.create_future()
-                self._idle = fut
-                if timer.when() <= loop.time():  # (it woke this batch: bound the next wait)
-                    timer = loop.call_at(loop.time() + SCHEDULE_WAIT_MAX_S, self._wake_owner)
-                await fut
         finally:
             self._idle = None
             timer.cancel()
             await link.pause()
-        return took
+        return self.stats["repeats"] != repeats
+
+    def _on_replies(self) -> None:
+        """The link's thread has replies for the owner task (called on its loop, in the
+        thread's hand-over). While the owner task waits in `_idle_scheduled` (the schedule
+        armed) with nothing queued, replies that all repeat the last poll's are published
+        here, as the owner task would publish them (`_repeat`: no I/O, nothing else of the
+        task's touched), and it is left waiting: no task step, no future, no re-arm for an
+        arm at rest. Anything else wakes it."""
+        link, fut = self.link, self._idle
+        if (fut is not None and not fut.done() and isinstance(link, ThreadLink)
+                and link.armed and self._queue.empty() and not self._poll_now
+                and self._repeat(link) and not link.prefetched):
+            return
+        self._wake_owner()
 
     async def _idle_until(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
         """Wait for a request or loop time `when`, whichever is first: one bare future and one
