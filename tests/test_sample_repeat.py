@@ -222,3 +222,65 @@ async def test_a_move_takes_the_full_path_and_the_rest_after_it_the_short_one():
         assert base[-1] > base[0]
         # (a reply late under a loaded machine is a failed poll, not a wrong value)
         assert driver.stats["corrupt"] == 0
+
+
+def test_a_run_published_in_one_step_reads_as_each_copy_published_in_turn():
+    """`publish_run` (a batch of repeated replies, app/device/owner.py `_repeat`) against
+    `publish` of each copy in turn, on two arm hubs of the same arm: the same log for
+    subscribers taking at every moment and rate (messages up to a time, takes, the latest
+    sample and its bytes for `GET /state`), derived fields included, and whole samples for a
+    listener (an estop's wait)."""
+    from app.arms import model_for
+    from app.telemetry.arm_hub import ArmHub
+
+    profile = load_profile("rbe3001")
+    model = model_for(profile)
+    q = np.array([0.1, -0.4, 0.7])
+    inputs = (q, np.zeros(3), np.array([0.05, -0.02, 0.01]))
+    base = {"seq": 0, "time": 0.0, "positions": q.tolist(), "velocities": [0.0] * 3,
+            "torques": inputs[2].tolist(), "tip": None, "tip_velocity": None,
+            "tip_force": None, "gripper": None, "motion": None, "estop": False, "link": "up",
+            "stale": False, "faults": [], "homed": [True] * 3, "calibrated": [True] * 3}
+    state = {"estop": False}
+
+    def stamp(sample: dict) -> None:
+        sample["estop"] = state["estop"]
+        sample["motion"] = {"id": "m1", "status": "done", "progress": 1.0}
+
+    hubs = [ArmHub("rbe3001", stamp) for _ in range(2)]
+    for h in hubs:
+        h.derive_with(lambda: model)
+    subs = [[h.subscribe() for _ in range(3)] for h in hubs]  # three readers each
+    seen: list[list[dict]] = [[], []]
+    runs = [[(1, 10.0)], [(2, 10.002), (3, 10.004), (4, 10.004)], [(5, 10.01)],
+            [(k, 10.01 + 0.002 * k) for k in range(6, 16)]]
+    for i, run in enumerate(runs):
+        state["estop"] = i == 2  # the arm's own state changes between runs
+        hubs[0].publish_run(dict(base), run, inputs)
+        for seq, t in run:
+            hubs[1].publish(dict(base, seq=seq, time=t), inputs)
+        # readers at different moments: one takes after every run, one at the end, one reads
+        # a message up to now after the second run
+        for k in range(2):
+            samples, _events, dropped = subs[k][0].take()
+            assert dropped == 0
+            seen[k] += [json.loads(s) for s in samples]
+        if i == 1:
+            assert subs[0][1].take_message(time.monotonic() + 1) == \
+                subs[1][1].take_message(time.monotonic() + 1)
+        assert hubs[0].latest_bytes == hubs[1].latest_bytes  # GET /state's body
+    assert seen[0] == seen[1]
+    assert [s["seq"] for s in seen[0]] == list(range(1, 16))
+    assert seen[0][-1]["tip"] is not None and seen[0][-1]["tip_force"] is not None
+    assert [s["estop"] for s in seen[0]][3:5] == [False, True]
+    assert subs[0][2].take_message() == subs[1][2].take_message()
+    assert hubs[0].published == hubs[1].published == 15
+    # with a listener every copy is published whole, one by one, as `publish` does
+    got: list[dict] = []
+    remove = hubs[0].add_listener(got.append)
+    hubs[0].publish_run(dict(base), [(16, 11.0), (17, 11.002)], inputs)
+    remove()
+    assert [s["seq"] for s in got] == [16, 17] and all(s["tip"] is not None for s in got)
+    for pair in subs:
+        for sub in pair:
+            sub.close()
