@@ -30,12 +30,13 @@ async def test_the_estop_event_comes_once_the_hold_was_answered_and_the_sample_b
             press = asyncio.create_task(client.post(f"{API}/estop"))
             latched_seen = False
             events: list[str] = []
-            while not events:
-                await sub.wait(1.0)
-                msg = sub.take_message()
-                latched_seen = latched_seen or (msg is not None and '"estop":true' in msg)
-                events = [e for e in sub.take_events() if '"event":"estop"' in e]
-                assert not press.done() or events, "answered before the event"
+            async with asyncio.timeout(10):  # (a bound: the event comes within 0.1 s)
+                while not events:
+                    await sub.wait(1.0)
+                    msg = sub.take_message()
+                    latched_seen = latched_seen or (msg is not None and '"estop":true' in msg)
+                    events = [e for e in sub.take_events() if '"event":"estop"' in e]
+                    assert not press.done() or events, "answered before the event"
             # the event: after the hold's reply (its request answered), the sample before it
             assert svc.driver.stats["replies"] > replies
             assert latched_seen
