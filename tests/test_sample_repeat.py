@@ -1,6 +1,7 @@
 """A poll reply byte for byte the last one (an arm at rest) is published as the last sample
 again, with its own read time and the next seq, without parsing, converting and checking the
-same bytes (issue 27: app/device/owner.py `_repeat`, app/links/threaded.py `take_repeat`).
+same bytes (issue 27: app/device/owner.py `_repeat`, app/links/threaded.py `take_repeats`; a
+run of them published in one step: `TelemetryHub.publish_run`).
 
 What a subscriber sees must not change: each test runs the arm type's simulator over a real
 loopback socket and the thread link, and compares the samples of a driver that repeats with
