@@ -53,15 +53,35 @@ Deriver = Callable[[list[tuple[dict[str, Any], Any]]], None]
 
 
 class _Lazy:
-    """A published sample whose derived fields and encoding wait for its first reader."""
+    """A published sample whose derived fields and encoding wait for its first reader. A run's
+    copy (`publish_run`) holds the run's sample, its own seq and time, and its dict is made
+    at its first read too (`_whole`): one small object a sample, no dict, in the log."""
 
-    __slots__ = ("data", "encoded", "inputs", "sample")
+    __slots__ = ("base", "data", "encoded", "inputs", "sample", "seq", "time")
 
-    def __init__(self, sample: dict[str, Any], inputs: Any) -> None:
+    def __init__(self, sample: dict[str, Any] | None, inputs: Any,
+                 base: dict[str, Any] | None = None, seq: int = 0, time: float = 0.0) -> None:
+        #: The sample (None: `base` with `seq` and `time`, until `_whole` makes it).
         self.sample = sample
         self.inputs = inputs
+        self.base, self.seq, self.time = base, seq, time
         self.encoded: str | None = None
         self.data: bytes | None = None
+
+
+_WHOLE = threading.Lock()
+
+
+def _whole(entries: list[_Lazy]) -> None:
+    """Make the sample dicts of a run's copies (`TelemetryHub.publish_run`) among `entries`,
+    once: under a lock of its own, as two readers may reach the same entries at once (and one
+    of them may hold the hub's lock)."""
+    with _WHOLE:
+        for e in entries:
+            if e.sample is None and e.base is not None:
+                sample = dict(e.base)
+                sample["seq"], sample["time"] = e.seq, e.time
+                e.sample, e.base = sample, None
 
 
 def dumps_bytes(obj: Any) -> bytes:
@@ -233,8 +253,10 @@ class TelemetryHub:
         todo = [e for e, inputs in pairs if inputs is not None]
         if not todo:
             return
+        _whole(todo)
         if self.deriver is not None:
-            self.deriver([(e.sample, inputs) for e, inputs in pairs if inputs is not None])
+            self.deriver([(e.sample, inputs) for e, inputs in pairs
+                          if inputs is not None and e.sample is not None])
         for e in todo:
             data = orjson.dumps(e.sample, option=_OPTIONS)
             e.data = data
@@ -255,7 +277,7 @@ class TelemetryHub:
         if snap is None or isinstance(snap, tuple):
             return snap
         self._ready([snap])
-        assert snap.encoded is not None and snap.data is not None
+        assert snap.encoded is not None and snap.data is not None and snap.sample is not None
         return snap.sample, snap.encoded, snap.data
 
     @property
@@ -375,18 +397,15 @@ class TelemetryHub:
         """Publish `sample` again once for each (seq, time) of `stamps`, in order: what
         `publish` of each copy in turn gives (the log, `latest`, every subscriber's messages),
         in one step (a run of replies that repeat the last one: app/device/owner.py `_repeat`).
-        Copies share the fields `sample` holds (never changed once published)."""
+        Copies share the fields `sample` holds (never changed once published); with derived
+        fields to wait for, each copy's dict is made at its first read too (`_Lazy`)."""
         if inputs is None or self.deriver is None or self._listeners:
             for seq, t in stamps:  # whole samples, or a listener to call for each: one by one
                 again = dict(sample)
                 again["seq"], again["time"] = seq, t
                 self.publish(again, inputs)
             return
-        run = []
-        for seq, t in stamps:
-            again = dict(sample)
-            again["seq"], again["time"] = seq, t
-            run.append(_Lazy(again, inputs))
+        run = [_Lazy(None, inputs, sample, seq, t) for seq, t in stamps]  # dicts when read
         now = time.monotonic()
         with self._lock:
             self._latest = run[-1]
