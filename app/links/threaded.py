@@ -32,8 +32,10 @@ tests/test_link_thread.py):
   starts to move, a fault), for one that did not come whole within its timeout (and the
   schedule stops: the driver resynchronises as it does on any link, with its quiet wait,
   before anything is written again) and for a request; replies that go on changing (a moving
-  arm) wait at most MOVING_BATCH_S, replies that repeat (an arm at rest) BATCH_S, and each
-  carries the time it was read (`Reply.at`).
+  arm) wait at most MOVING_BATCH_S, replies that repeat (an arm at rest) BATCH_S (a batch
+  that only repeats the last poll's reply is published in the hand-over itself, the owner task
+  left waiting: app/device/owner.py `_on_replies`), and each carries the time it was read
+  (`Reply.at`).
 - A reply is taken for the owner's poll only if the owner task asks for the same request
   bytes; otherwise the replies read ahead are dropped (they answer requests the driver never
   made).
