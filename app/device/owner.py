@@ -461,13 +461,7 @@ class OwnerTask:
         n = len(ats)
         self.stats["polls"] += n
         self.stats["repeats"] += n
-        stamps = []
-        seq, last = self._seq, self._stamp
-        for at in ats:  # `_next_stamp` for each: times never go back
-            seq += 1
-            last = max(at, last)
-            stamps.append((seq, last))
-        self._seq, self._stamp = seq, last
+        stamps = [self._next_stamp(at) for at in ats]  # (times never go back)
         if inputs is not None:  # derived fields from the same readings at their first read
             sample = dict(sample, tip=None, tip_velocity=None, tip_force=None)
         self.hub.publish_run(sample, stamps, inputs)
