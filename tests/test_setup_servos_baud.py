@@ -153,14 +153,17 @@ def test_setup_servos_finds_the_rate_past_the_garbled_one(
 
 async def test_the_link_tells_garbled_answers_from_silence(tmp_path: Path) -> None:
     """Servos at 4.5 Mbps, the profile at 4 Mbps: the set-up's PINGs come back garbled, the
-    connect scan says so and where the servos answer."""
+    connect scan says so and where the servos answer. The reply timeout is 0.3 s, not the
+    profile's 50 ms: the simulated bus answers from this test's own process, and beside the
+    parallel part's busy workers its garbled reply came after 50 ms and read as silence (a
+    real bus's bytes wait in the UART for a late reader; these were not yet written)."""
     bus = DynamixelBus(ids=(1, 2, 3, 4), baudrate=4_500_000, operating_modes={1: 4, 2: 4, 4: 4})
     path = tmp_path / "ttyDXL"
     server = await serve_pty(bus, path)
     p = load_profile("angler")
     profile = p.model_copy(update={"link": p.link.model_copy(update={
         "kind": "serial", "address": str(path), "baudrate": 4_000_000,
-        "homed_at_start": True})})
+        "homed_at_start": True, "timeout_s": 0.3})})
     app = create_app(make_settings(), profiles=[profile])  # never ready: no wait_ready
     try:
         async with app.router.lifespan_context(app), httpx.AsyncClient(

@@ -22,8 +22,15 @@ sync_api = _browser.sync_api_or_skip()
 
 def wait_for(fn: Callable[[], Any], what: str, timeout: float = 60.0) -> Any:
     # a bound, not a time: an assignment's verifying scan of the bus took over 20 s beside
-    # the parallel part's other workers on two cores (10 s for the whole test alone)
+    # the parallel part's other workers on two cores (10 s for the whole test alone); the file
+    # now runs in the serial part (tests/conftest.py SERIAL_FILES). A wait that ends says what
+    # the panel said.
     return _browser.poll(fn, what, timeout)
+
+
+def _said(page: Any) -> str:
+    return (f"said {page.locator('#setup-said').inner_text()!r}, error "
+            f"{page.locator('#setup-error').inner_text()!r}")
 
 
 def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
@@ -47,8 +54,11 @@ def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
         assert page.locator("#setup-joint").input_value() == "x"
 
         page.click("#setup-assign")
-        wait_for(lambda: found.get_attribute("data-servos") == '[[2,1000000,"x"]]',
-                 "x set up and verified by the scan after it")
+        try:
+            wait_for(lambda: found.get_attribute("data-servos") == '[[2,1000000,"x"]]',
+                     "x set up and verified by the scan after it")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}; the panel {_said(page)}") from None
         assert "joint x: set up and verified: ID 2 at 1,000,000 bps" in \
             page.locator("#setup-said").inner_text()
         assert page.locator("#setup-steps").get_attribute("data-next") == "y"
