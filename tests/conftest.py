@@ -191,22 +191,10 @@ SERIAL_FILES = frozenset({
 })
 
 
-#: The parallel part's longest files (`make test`'s --durations), run first: pytest-xdist's
-#: `--dist loadfile` hands files out in collection order, and in alphabetical order the sort
-#: examples (about 40 s) and the WebSocket fan-out came last, one worker busy while the others
-#: had nothing left.
-LONG_FILES = ("test_classroom_class.py", "test_sort_examples.py", "test_fuzz_api.py",
-              "test_camera_dashboard_e2e.py", "test_examples.py", "test_recording_kill.py",
-              "test_ws_fanout.py", "test_calibration_gravity.py", "test_envelope_props.py",
-              "test_setup_servos_routes.py")
-
-
 def pytest_collection_modifyitems(config: Any, items: list[Any]) -> None:
     for item in items:
         if item.path.name in SERIAL_FILES:
             item.add_marker(pytest.mark.serial)
-    first = {name: k for k, name in enumerate(LONG_FILES)}
-    items.sort(key=lambda item: first.get(item.path.name, len(LONG_FILES)))  # (stable)
 
 
 # ---------------------------------------------------------------- strict skips
