@@ -83,25 +83,26 @@ def builtin_profiles() -> dict[str, Path]:
     return out
 
 
-def arm_routers() -> list[Any]:
-    """The pass-through routers (FastAPI APIRouter) of every registered arm type, each module
-    once however many types name it, in registry order: the app mounts them all, so the
-    routes are the same whichever arms a server hosts."""
+def _router_modules() -> list[Any]:
+    """The modules the registered arm types name in `routers`, each once however many types
+    name it, in registry order."""
     seen: dict[str, Any] = {}
     for t in all_arm_types():
         for module in t.routers:
             if module not in seen:
-                seen[module] = importlib.import_module(module).router
+                seen[module] = importlib.import_module(module)
     return list(seen.values())
+
+
+def arm_routers() -> list[Any]:
+    """The pass-through routers (FastAPI APIRouter) of every registered arm type, each module
+    once however many types name it, in registry order: the app mounts them all, so the
+    routes are the same whichever arms a server hosts."""
+    return [m.router for m in _router_modules()]
 
 
 def arm_fast_paths() -> list[Any]:
     """The ASGI layers the routers' modules declare in `FAST_PATHS` (e.g. the Dynamixel
     register write's, app/arms/dynamixel/api.py), each module once, in registry order: the
     app installs them innermost, inside every gate."""
-    seen: dict[str, Any] = {}
-    for t in all_arm_types():
-        for module in t.routers:
-            if module not in seen:
-                seen[module] = getattr(importlib.import_module(module), "FAST_PATHS", ())
-    return [layer for layers in seen.values() for layer in layers]
+    return [layer for m in _router_modules() for layer in getattr(m, "FAST_PATHS", ())]
