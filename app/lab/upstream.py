@@ -178,11 +178,12 @@ class Upstream:
         """The idle connection that came back last, if one is left that the worker has not
         closed (nor may be closing: idle for IDLE_MAX_S); those it passes are closed."""
         now = time.monotonic()
-        while self._idle and now - self._idle[0][1] >= IDLE_MAX_S:  # the oldest first
+        # (they came back in order: those idle too long are at the left, the rest are not)
+        while self._idle and now - self._idle[0][1] >= IDLE_MAX_S:
             self._idle.popleft()[0][1].close()
         while self._idle:
-            conn, since = self._idle.pop()
-            if conn[0].at_eof() or conn[1].is_closing() or now - since >= IDLE_MAX_S:
+            conn, _ = self._idle.pop()
+            if conn[0].at_eof() or conn[1].is_closing():
                 conn[1].close()
                 continue
             return conn

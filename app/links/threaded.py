@@ -139,7 +139,6 @@ class ThreadLink(Link):
         #: What the poll thread does at each slot (descriptor, request, reply size, timeout):
         #: the owner's poll request on this port, made once per `arm` (None: closed).
         self._plan: tuple[int, bytes, int, float] | None = None
-        self._size = 0  # the reply size of `_plan`'s request
         #: Every reply whole by its timeout since the last poll's (the thread may poll alone).
         self._clean = False
         # the owner's current poll (loop side)
@@ -327,7 +326,7 @@ class ThreadLink(Link):
             fd = self._fd
             if fd is None:  # (closed meanwhile, on the link's thread)
                 return False
-            self._plan, self._size = (fd, packet, size, timeout), size
+            self._plan = (fd, packet, size, timeout)
             self._armed = True
             self._slot, self._period, self._notify = slot, period, notify
             self._batch_since = time.monotonic()
@@ -384,7 +383,9 @@ class ThreadLink(Link):
             if self._slot < now - CATCH_UP * period:  # far behind: skip ahead, on the grid
                 self._slot = aligned(now + period, period)
             data = entry.data if isinstance(entry, Reply) else b""
-            failed = len(data) != self._size or not isinstance(entry, Reply)
+            plan = self._plan
+            failed = len(data) != (plan[2] if plan is not None else 0) \
+                or not isinstance(entry, Reply)
             if failed:
                 self._clean = False
             if failed or len(prefetched) >= MAX_PREFETCHED:
