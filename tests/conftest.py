@@ -9,8 +9,10 @@ never hit (a request that reaches it is a bug, whatever status it got).
 from __future__ import annotations
 
 import asyncio
+import atexit
 import contextlib
 import os
+import shutil
 import socket
 import tempfile
 import threading
@@ -34,13 +36,29 @@ OPERATOR = "op-token-1"
 VIEWER = "viewer-token-1"
 
 
+#: The stores of make_settings' servers, a folder each under one folder per test process,
+#: removed when that process exits (a store outlives its test: module-scoped servers, and a
+#: restart test opens it again); before, each was a folder of its own in /tmp, left behind.
+_DATA_ROOT = tempfile.mkdtemp(prefix="armserver-tests-")
+_ROOT_PID = os.getpid()
+
+
+@atexit.register
+def _remove_data_root() -> None:
+    if os.getpid() == _ROOT_PID:  # not a forked child's exit
+        shutil.rmtree(_DATA_ROOT, ignore_errors=True)
+
+
 def make_settings(**over: Any) -> Settings:
-    """Settings independent of the environment the tests run in."""
+    """Settings independent of the environment the tests run in. `warm_start` off: the suite
+    starts a server per test, and building every route and a full collection at each start
+    were some 0.25 s of CPU a test (tests/test_warm_routes.py starts its servers warm)."""
     base: dict[str, Any] = {"config": None, "operator_tokens": "", "viewer_tokens": "",
                             "instructor_tokens": "", "cors_origins": "", "lease_ttl_s": 5.0,
+                            "warm_start": False,
                             # a fresh store for each server (module-scoped servers start before
                             # the per-test ARMSERVER_DATA_DIR below is set)
-                            "data_dir": tempfile.mkdtemp(prefix="armserver-data-"),
+                            "data_dir": tempfile.mkdtemp(prefix="data-", dir=_DATA_ROOT),
                             # the Host names of the in-process clients (httpx below, and
                             # schemathesis's ASGI client): an open server answers only its own
                             "allowed_hosts": "armserver.test,testserver"}

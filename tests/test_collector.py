@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import weakref
 from typing import Any
 
 import pytest
@@ -34,6 +35,33 @@ async def test_frozen_rare_and_restored() -> None:
         await col.close()
     assert gc.get_threshold() == before
     assert gc.get_freeze_count() == (0 if others == 0 else frozen)
+
+
+class _Cycle:
+    def __init__(self) -> None:
+        self.me = self
+
+
+@pytest.mark.parametrize("collect", [True, False])
+async def test_start_frees_the_garbage_before_it_freezes_unless_told_not_to(
+        collect: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`start(collect=False)` (Settings.warm_start off) freezes start-up's garbage with the
+    rest; stopping unfreezes it, and the next collection frees it."""
+    monkeypatch.setattr(c, "_active", 0)  # this collector is the process's first
+    monkeypatch.setattr(c, "_saved", None)
+    gc.collect()
+    garbage = _Cycle()
+    gone = weakref.ref(garbage)
+    del garbage  # a cycle: only a collection frees it
+    col = Collector(lambda: False, every_s=3600.0)
+    col.start(collect=collect)
+    try:
+        gc.collect()  # frozen objects are not walked
+        assert (gone() is None) is collect
+    finally:
+        await col.close()
+    gc.collect()
+    assert gone() is None
 
 
 async def test_two_servers_in_one_process_restore_once_the_last_ends(

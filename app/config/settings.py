@@ -72,6 +72,12 @@ class Settings(BaseSettings):
     #: Run the arms (links, polls, motion) on their own thread and loop
     #: (app.runtime.control_thread).
     control_thread: bool = True
+    #: At start-up, build every route (app/web/warm.py: the first request, an estop press, does
+    #: no framework work) and collect garbage before the start-up objects are frozen
+    #: (app/runtime/gc_policy.py): some 0.15-0.3 s of CPU. Off, for a process that starts many
+    #: short-lived servers (the test suite starts one per test): each router is built by its
+    #: first request and start-up's garbage stays frozen until the server stops.
+    warm_start: bool = True
     #: Largest request head (request line and headers), bytes: more is refused with 400 after
     #: that many bytes, before any parsing of the rest (uvicorn's h11 parser).
     max_header_bytes: int = 32 * 1024

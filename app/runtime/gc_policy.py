@@ -162,13 +162,16 @@ class Collector:
         self._task: asyncio.Task[None] | None = None
         self._young: asyncio.Task[None] | None = None
 
-    def start(self) -> None:
+    def start(self, collect: bool = True) -> None:
+        """Freeze what exists (the first collector of the process; `collect`: after a full
+        collection, so no garbage is frozen with it) and start the timers."""
         global _active, _saved
         if self._task is not None:
             return
         if _active == 0:
             _saved = gc.get_threshold()
-            gc.collect()
+            if collect:
+                gc.collect()
             gc.freeze()
             gc.set_threshold(_saved[0], _saved[1], GEN2_THRESHOLD)
         _active += 1

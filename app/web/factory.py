@@ -125,8 +125,9 @@ def create_app(settings: Settings | None = None,
             room.load(app.state.access.names)  # entries of names no token has: dropped
             room.start()
             # every route built now, not by its first request (an estop press: app/web/warm.py)
-            await warm_routes(app.router, API_PREFIX)
-            collector.start()  # after start-up: what exists now is frozen
+            if settings.warm_start:
+                await warm_routes(app.router, API_PREFIX)
+            collector.start(collect=settings.warm_start)  # after start-up: what exists is frozen
             access: Access = app.state.access
             log.log(logging.INFO if access.enabled else logging.WARNING, "access: %s",
                     access.describe())
