@@ -43,6 +43,7 @@ import asyncio
 import json
 import os
 import random
+import shutil
 import signal
 import socket
 import subprocess
@@ -392,6 +393,7 @@ def main() -> int:
             s.terminate()
         for s in sims:
             s.wait(10)
+        shutil.rmtree(folder, ignore_errors=True)  # its config and the workers' stores
     return 0
 
 

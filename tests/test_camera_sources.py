@@ -80,8 +80,9 @@ async def unplug_and_replug(app: FastAPI, client: httpx.AsyncClient, cam: str,
     unplug()  # type: ignore[operator]
     down = await until(client, cam, False)
     assert reason in str(down["last_error"]), down["last_error"]
-    health = (await client.get(f"{API}/health")).json()
-    assert health["cameras"][cam] == {"up": False, "last_error": down["last_error"]}
+    health = (await client.get(f"{API}/health")).json()["cameras"][cam]
+    # (a reconnect that failed since may have said it in its own words: "cannot open ...")
+    assert health["up"] is False and reason in str(health["last_error"]), health
     r = await client.get(f"{API}/cameras/{cam}/frame.jpg")
     assert r.status_code == 503 and r.json()["code"] == "camera_down"
     while_down = await samples_per_s(app)  # the camera reconnecting meanwhile

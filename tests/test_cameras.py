@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import tempfile
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -162,7 +161,7 @@ DEGENERATE = [
 async def test_calibration_refusals_say_why_and_change_nothing(tmp_path: Path) -> None:
     h = camera_homography()
     folder = write_folder(tmp_path / "t", [render(scene(0), h)])
-    data_dir = tempfile.mkdtemp(prefix="armserver-cam-")
+    data_dir = str(tmp_path / "data")
     async with serve([folder_camera("t", folder)], data_dir) as (_, client):
         ok = await client.post(f"{API}/cameras/t/calibration",
                                json=calibration_body(clicked(h)))
