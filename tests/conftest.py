@@ -66,6 +66,19 @@ def make_settings(**over: Any) -> Settings:
     return Settings(**base)
 
 
+#: A reply timeout for a simulator that answers from the test's own process over a real
+#: transport (a pty, `socket://`): beside busy workers its reply came after the profiles' 50 ms
+#: and read as silence, where a real device's bytes wait in the UART for a late reader. Tests
+#: that judge timeouts themselves keep the profile's own.
+IN_PROCESS_REPLY_S = 0.3
+
+
+def with_reply_timeout(profile: ArmProfile, seconds: float = IN_PROCESS_REPLY_S) -> ArmProfile:
+    """`profile` with its link's per-request reply timeout set to `seconds`."""
+    return profile.model_copy(update={"link": profile.link.model_copy(
+        update={"timeout_s": seconds})})
+
+
 async def wait_ready(app: FastAPI, timeout: float = READY_TIMEOUT_S) -> None:
     """Until every arm has published a fresh sample."""
     deadline = time.monotonic() + timeout

@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pytest
 from _wait import held_still, new_samples, wait_for
+from conftest import with_reply_timeout
 
 from app.arms.dynamixel.driver import DynamixelDriver
 from app.arms.loading import load_profile
@@ -37,8 +38,12 @@ def serial_link(request):
 
 
 
-async def started(name: str, link, timeout: float = 5.0):
+async def started(name: str, link, timeout: float = 5.0, in_process: bool = False):
+    """`in_process`: the simulator answers from this process over a real transport and no
+    timeout is judged: the profile gets conftest's IN_PROCESS_REPLY_S."""
     profile = load_profile(name)
+    if in_process:
+        profile = with_reply_timeout(profile)
     driver = DRIVERS[name](profile, link, TelemetryHub(name))
     await driver.start()
     assert await driver.wait_connected(timeout), f"{name} never connected: {link.last_error}"
@@ -57,7 +62,7 @@ async def test_angler_over_a_real_pty(tmp_path, serial_link):
     device = make_sim_device(load_profile("angler"))
     path = tmp_path / "ttyDXL"
     server = await serve_pty(device, path)
-    driver = await started("angler", serial_link(str(path)))
+    driver = await started("angler", serial_link(str(path)), in_process=True)
     try:
         pings = await driver.ping(None)
         assert [p[0] for p in pings] == [1, 2, 3, 4]
@@ -74,7 +79,8 @@ async def test_angler_over_a_real_pty(tmp_path, serial_link):
 async def test_angler_moves_over_socket_url(serial_link):
     device = make_sim_device(load_profile("angler"))
     server = await serve_tcp(device)
-    driver = await started("angler", serial_link(f"socket://127.0.0.1:{server.port}"))
+    driver = await started("angler", serial_link(f"socket://127.0.0.1:{server.port}"),
+                           in_process=True)
     try:
         target = np.array([0.01, -0.02, 0.3, 0.05])
         await driver.command_joints(target)
@@ -92,7 +98,8 @@ async def test_angler_moves_over_socket_url(serial_link):
 async def test_rbe3001_over_socket_url_with_stream_framing(serial_link):
     device = make_sim_device(load_profile("rbe3001"))
     server = await serve_tcp(device)
-    driver = await started("rbe3001", serial_link(f"socket://127.0.0.1:{server.port}"))
+    driver = await started("rbe3001", serial_link(f"socket://127.0.0.1:{server.port}"),
+                           in_process=True)
     try:
         status = await driver.status()
         assert isinstance(status, rb.StatusReply) and len(status.position_ticks) == 3

@@ -13,7 +13,7 @@ import httpx
 import numpy as np
 import pytest
 from _wait import fresh_state, new_samples, wait_for
-from conftest import OPERATOR, VIEWER, make_settings, running_client
+from conftest import OPERATOR, VIEWER, make_settings, running_client, with_reply_timeout
 
 from app.arms import model_for
 from app.arms.loading import load_profile
@@ -38,6 +38,10 @@ def serial_link(request):
     the default for a profile's serial link)."""
     return request.param
 
+
+
+#: The firmware served from this process over a real transport: conftest's reply timeout for it.
+IN_PROCESS = with_reply_timeout(load_profile("rbe3001"))
 
 
 async def _started(link, profile=None) -> Rbe3001Driver:
@@ -71,7 +75,7 @@ async def _exercise(driver: Rbe3001Driver) -> None:
 @pytest.mark.parametrize("echo", [False, True], ids=["zeroing", "echoing"])
 async def test_driver_over_a_socket_url_against_both_firmware_builds(echo, serial_link):
     server = await serve_tcp(Rbe3001Firmware(load_profile("rbe3001"), echo=echo))
-    driver = await _started(serial_link(f"socket://127.0.0.1:{server.port}"))
+    driver = await _started(serial_link(f"socket://127.0.0.1:{server.port}"), IN_PROCESS)
     try:
         await _exercise(driver)
     finally:
@@ -83,7 +87,7 @@ async def test_driver_over_a_socket_url_against_both_firmware_builds(echo, seria
 async def test_driver_over_a_pty_against_both_firmware_builds(echo, tmp_path, serial_link):
     path = tmp_path / "ttyRBE"
     server = await serve_pty(Rbe3001Firmware(load_profile("rbe3001"), echo=echo), path)
-    driver = await _started(serial_link(str(path)))
+    driver = await _started(serial_link(str(path)), IN_PROCESS)
     try:
         await _exercise(driver)
     finally:
