@@ -6,9 +6,11 @@ unreported; afterwards both arms are healthy. `make soak` runs the long version.
 
 from __future__ import annotations
 
+import struct
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
@@ -43,3 +45,38 @@ async def test_soak_under_faults() -> None:
     assert t.correct > 100 and t.motions["done"] >= 2, text
     assert t.samples > 100, text
     assert t.events["link_lost"] >= 2 and t.events["link_back"] >= 2, text  # faults were on
+
+
+#: The failure the old check reported (one `/state` sample, 2026-11-26): the rbe3001 settled at
+#: base -268 ticks (-0.4111 rad) for a target of -0.4116, and the sample read -151 ticks
+#: (float32 c3 86 00 00 -> c3 17 00 00: one corrupted byte, within the driver's jump bound).
+TARGET = np.array([-0.4116, 0.7464, 0.3659])
+AT_TARGET = [-0.4111, 0.7378, 0.3682]
+CORRUPTED = [-0.2316, 0.7378, 0.3682]
+OFF = [-0.2316, 0.7378, 0.3682]  # an arm really 0.18 rad away reads so in every sample
+
+
+def test_one_corrupted_byte_is_the_failed_reading() -> None:
+    k = 4096 / (2 * np.pi)  # the rbe3001 profile's ticks per radian
+    settled = struct.pack("<f", round(AT_TARGET[0] * k))
+    read = struct.pack("<f", round(CORRUPTED[0] * k))
+    assert sum(a != b for a, b in zip(settled, read, strict=True)) == 1
+    assert abs(round(CORRUPTED[0] * k) / k - CORRUPTED[0]) < 5e-5
+
+
+def test_done_check_rides_over_one_corrupted_sample() -> None:
+    tol = np.full(3, soak.TOL["revolute"])
+    for samples in ([AT_TARGET, CORRUPTED, AT_TARGET], [CORRUPTED, AT_TARGET, AT_TARGET],
+                    [CORRUPTED, AT_TARGET]):
+        ok, q = soak.judge_done(samples, TARGET, tol)
+        assert ok, samples
+    assert soak.judge_done([AT_TARGET] * 3, TARGET, tol)[1].tolist() == AT_TARGET
+
+
+def test_done_check_still_catches_an_arm_away_from_its_target() -> None:
+    tol = np.full(3, soak.TOL["revolute"])
+    for samples in ([OFF] * 3, [OFF, OFF, AT_TARGET], [OFF], [OFF, OFF],
+                    [[np.inf] * 3]):  # no fresh sample and no final_positions
+        ok, q = soak.judge_done(samples, TARGET, tol)
+        assert not ok, samples
+    assert soak.judge_done([OFF, AT_TARGET, OFF], TARGET, tol)[1].tolist() == OFF
