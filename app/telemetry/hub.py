@@ -70,9 +70,6 @@ class _Lazy:
 
 
 _WHOLE = threading.Lock()
-#: Tries of `subscribe` to take the latest sample derived outside the hub's lock, before it
-#: derives it under the lock (a publisher that publishes a sample between each try).
-SUBSCRIBE_TRIES = 4
 
 
 def _whole(entries: list[_Lazy]) -> None:
@@ -307,27 +304,24 @@ class TelemetryHub:
 
     def subscribe(self, backlog: int | None = None) -> Subscription:
         backlog = backlog or self.backlog
-        for attempt in range(SUBSCRIBE_TRIES):
-            self._snapshot()  # the latest sample derived before the lock is taken
-            with self._lock:
-                snap = self._latest
-                if isinstance(snap, _Lazy) and snap.encoded is None:
-                    # one published between the two (the publisher's thread took the GIL
-                    # there: a loaded machine): without this the subscription began with no
-                    # initial sample; derive the new one, outside the lock unless this keeps up
-                    if attempt < SUBSCRIBE_TRIES - 1:
-                        continue
-                    self._ready([snap])
-                if backlog > (self._log.maxlen or 0):  # the shared log holds the longest
-                    self._log = deque(self._log, maxlen=backlog)
-                    self._stamps = deque(self._stamps, maxlen=backlog)
-                    self._unread = deque(self._unread, maxlen=backlog)
-                initial = (snap.encoded if isinstance(snap, _Lazy) else
-                           None if snap is None else snap[1])
-                sub = Subscription(self, backlog, self.published, initial)
-                self._subs.add(sub)
-                return sub
-        raise AssertionError("unreachable: the last try returns")
+        with self._lock:
+            if backlog > (self._log.maxlen or 0):  # the shared log holds the longest backlog
+                self._log = deque(self._log, maxlen=backlog)
+                self._stamps = deque(self._stamps, maxlen=backlog)
+                self._unread = deque(self._unread, maxlen=backlog)
+            snap = self._latest  # the latest as of the cursor, taken with it
+            sub = Subscription(self, backlog, self.published, None)
+            self._subs.add(sub)
+        # derived after the lock (a sample published meanwhile is in the log after the cursor:
+        # none lost, none twice). Deriving "the latest" before the lock and reading it again
+        # under it began the subscription with no initial sample when the publisher's thread
+        # published in between (a loaded machine).
+        if isinstance(snap, _Lazy):
+            self._ready([snap])
+            sub.initial = snap.encoded
+        elif snap is not None:
+            sub.initial = snap[1]
+        return sub
 
     def _unsubscribe(self, sub: Subscription) -> None:
         with self._lock:
