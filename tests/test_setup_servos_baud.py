@@ -24,7 +24,7 @@ from app.sim.servers import serve_pty
 from app.sim.uart import resample
 from app.web.factory import create_app
 from protocol import dynamixel as dxl
-from tests.conftest import make_settings
+from tests.conftest import IN_PROCESS_REPLY_S, make_settings
 
 RATES = (9_600, 57_600, 115_200, 1_000_000, 2_000_000, 3_000_000, 4_000_000, 4_500_000)
 STATUS = dxl.encode_status(1, 0, bytes((30, 0, 45)))  # an MX-28's answer to PING
@@ -153,17 +153,18 @@ def test_setup_servos_finds_the_rate_past_the_garbled_one(
 
 async def test_the_link_tells_garbled_answers_from_silence(tmp_path: Path) -> None:
     """Servos at 4.5 Mbps, the profile at 4 Mbps: the set-up's PINGs come back garbled, the
-    connect scan says so and where the servos answer. The reply timeout is 0.3 s, not the
-    profile's 50 ms: the simulated bus answers from this test's own process, and beside the
-    parallel part's busy workers its garbled reply came after 50 ms and read as silence (a
-    real bus's bytes wait in the UART for a late reader; these were not yet written)."""
+    connect scan says so and where the servos answer. The reply timeout is conftest's
+    IN_PROCESS_REPLY_S (0.3 s), not the profile's 50 ms: the simulated bus answers from this
+    test's own process, and beside the parallel part's busy workers its garbled reply came
+    after 50 ms and read as silence (a real bus's bytes wait in the UART for a late reader;
+    these were not yet written)."""
     bus = DynamixelBus(ids=(1, 2, 3, 4), baudrate=4_500_000, operating_modes={1: 4, 2: 4, 4: 4})
     path = tmp_path / "ttyDXL"
     server = await serve_pty(bus, path)
     p = load_profile("angler")
     profile = p.model_copy(update={"link": p.link.model_copy(update={
         "kind": "serial", "address": str(path), "baudrate": 4_000_000,
-        "homed_at_start": True, "timeout_s": 0.3})})
+        "homed_at_start": True, "timeout_s": IN_PROCESS_REPLY_S})})
     app = create_app(make_settings(), profiles=[profile])  # never ready: no wait_ready
     try:
         async with app.router.lifespan_context(app), httpx.AsyncClient(
