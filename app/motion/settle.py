@@ -18,6 +18,14 @@ from app.links.base import LinkState
 
 #: How long a finished trajectory may take to settle before the motion fails, s.
 SETTLE_TIMEOUT_S = 2.0
+#: How often the joints are looked at while they settle, s (every arm type polls faster).
+SETTLE_CHECK_S = 0.01
+#: Checks in a row, SETTLE_CHECK_S apart, that must find every joint in tolerance before the
+#: actuators are asked: an arm in position for a dwell, not one reading that says so. A reading
+#: the link corrupted (the rbe3001's packets carry no checksum; a byte changed within the
+#: driver's jump bound is published) could otherwise end a motion `done` a poll early, with
+#: the arm still on its way (bench/soak.py's 2 % corruption showed such a reading).
+SETTLE_CONFIRM = 2
 
 #: done; halted (stopped meanwhile: nothing to do); watchdog (the device says the motion
 #: cannot end well: fail it and hold); failed (it did not settle in time: fail it).
@@ -35,31 +43,39 @@ class Settle:
     async def wait(self, target: np.ndarray, tol: np.ndarray,
                    halted: Callable[[], bool]) -> Verdict:
         """`done` only when every joint is within its settle tolerance of where it was sent
-        and its actuator holds torque and says it has arrived (where it tells: Dynamixel
-        Moving / Moving Status); a joint without torque fails the motion at once."""
+        at SETTLE_CONFIRM checks in a row and its actuator holds torque and says it has
+        arrived (where it tells: Dynamixel Moving / Moving Status); a joint without torque
+        fails the motion at once."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + SETTLE_TIMEOUT_S
         err = np.full(len(self.names), np.inf)
         moving = await self._arrived()  # a joint without torque fails at once
         if isinstance(moving, ArmError):
             return "watchdog", moving
+        inside = 0  # checks in a row that found every joint in tolerance
+        first = True
         while loop.time() < deadline:
+            if not first:
+                await asyncio.sleep(SETTLE_CHECK_S)
+            first = False
             if halted():
                 return "halted", None
             fault = self.device_fault()
             if fault is not None:  # silent device or lost link: say so, not "did not settle"
                 return "watchdog", fault
             q = self.device.positions
-            if q is not None and not self.device.stale:
-                err = np.abs(q - target)
-                if np.all(err <= tol):
-                    verdict = await self._arrived()
-                    if isinstance(verdict, ArmError):
-                        return "watchdog", verdict
-                    moving = verdict
-                    if not moving:
-                        return "done", None
-            await asyncio.sleep(0.01)
+            if q is None or self.device.stale:
+                inside = 0
+                continue
+            err = np.abs(q - target)
+            inside = inside + 1 if np.all(err <= tol) else 0
+            if inside >= SETTLE_CONFIRM:
+                verdict = await self._arrived()
+                if isinstance(verdict, ArmError):
+                    return "watchdog", verdict
+                moving = verdict
+                if not moving:
+                    return "done", None
         if moving and np.all(err <= tol):
             names = ", ".join(self.names[k] for k in moving)
             reason = f"{names} within tolerance but its servo still reports moving"
