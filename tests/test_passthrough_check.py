@@ -90,8 +90,9 @@ def _reference_step(g: SafetyGuard, target: np.ndarray, here: np.ndarray, speed:
         raise VelocityLimit(
             "pass-through step the device would take faster than the joint's velocity "
             "limit: " + "; ".join(over) + f". Send a planned move (POST /api/v1/arms/"
-            f"{g.name}/move/joints), or setpoints within {PASSTHROUGH_STEP_S:g} s of "
-            "motion at the limit from where the joint is, moving no faster than the limit")
+            f"{g.name}/move/joints), or setpoints at most {PASSTHROUGH_STEP_S:g} s of "
+            "motion at the limit from where the joint is, and from the last command no "
+            "further than the limit allows in the time since it")
 
 
 def reference_check(g: SafetyGuard, target: np.ndarray, pace: np.ndarray | None) -> None:

@@ -97,10 +97,13 @@ async def move(client: httpx.AsyncClient, arm: str, q: Any, **kw: Any) -> dict[s
 async def set_pid_steps(client: httpx.AsyncClient, app: FastAPI, joint: int, goal: float,
                         hold: np.ndarray, timeout: float = 20.0) -> int:
     """Bring the rbe3001's `joint` to `goal` with SET_PID steps of at most SMALL_STEP from
-    where it is measured, the other joints told `hold`; each step waited for (bounded), and
-    sent no sooner than PASSTHROUGH_STEP_S after the arm's last command, as the step rule
-    paces a client (a step of SMALL_STEP from the last command needs that long at the limit;
-    sooner, it is refused `velocity_limit`, rightly: a planned move's last setpoint counts)."""
+    where it is measured and from its last command (the step rule judges both: from the
+    one less far on toward the goal), the other joints told `hold`; each step waited for
+    (bounded), and sent no sooner than PASSTHROUGH_STEP_S after the arm's last command, as the
+    step rule paces a client (a step of SMALL_STEP from the last command needs that long at
+    the limit; sooner, it is refused `velocity_limit`, rightly: a planned move's last setpoint
+    counts). A step from the measured position alone was refused on a loaded machine, where
+    the joint lagged its last command by more than the rule's margin."""
     svc = svc_of(app, "rbe3001")
     deadline = time.monotonic() + timeout
     sent = 0
@@ -113,11 +116,16 @@ async def set_pid_steps(client: httpx.AsyncClient, app: FastAPI, joint: int, goa
         if pace > 0:
             await asyncio.sleep(pace)  # the rule's own pace, not a wait for something
         q = measured(app, "rbe3001")
+        told = svc.driver.commanded
+        behind = q[joint]
+        if told is not None and np.isfinite(told[joint]):
+            behind = (min(behind, told[joint]) if goal > behind
+                      else max(behind, told[joint]))
         target = hold.copy()
-        target[joint] = q[joint] + float(np.clip(goal - q[joint], -SMALL_STEP, SMALL_STEP))
+        target[joint] = behind + float(np.clip(goal - behind, -SMALL_STEP, SMALL_STEP))
         r = await client.post(f"{RB}/rbe3001/set-pid", json=set_pid_body(svc, target))
         assert r.status_code == 200, (f"a {SMALL_STEP} rad SET_PID step from where the arm is "
-                                      f"was refused: {r.text}")
+                                      f"and from its last command was refused: {r.text}")
         sent += 1
         step_deadline = time.monotonic() + 2.0
         while (abs(measured(app, "rbe3001")[joint] - target[joint]) > 0.01

@@ -207,8 +207,9 @@ class SafetyGuard:
         raise VelocityLimit(
             "pass-through step the device would take faster than the joint's velocity "
             "limit: " + "; ".join(over) + f". Send a planned move (POST /api/v1/arms/"
-            f"{self.name}/move/joints), or setpoints within {PASSTHROUGH_STEP_S:g} s of "
-            "motion at the limit from where the joint is, moving no faster than the limit")
+            f"{self.name}/move/joints), or setpoints at most {PASSTHROUGH_STEP_S:g} s of "
+            "motion at the limit from where the joint is, and from the last command no "
+            "further than the limit allows in the time since it")
 
     def check_passthrough_velocity_ticks(self, velocities: np.ndarray) -> None:
         """Raw joint velocities (ticks/s, one per joint: SET_PID's velocity_ticks_s, which the
