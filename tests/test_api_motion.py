@@ -4,6 +4,7 @@ over the simulated arms (the motion executor and drivers are the real ones)."""
 from __future__ import annotations
 
 import asyncio
+import time
 
 import httpx
 import numpy as np
@@ -23,8 +24,16 @@ async def _state(client: httpx.AsyncClient, arm: str) -> Sample:
 
 
 async def _settled_state(client: httpx.AsyncClient, arm: str) -> Sample:
-    await asyncio.sleep(0.05)  # a sample taken after the motion ended
-    return await _state(client, arm)
+    """A sample published after this call (so after the motion that was answered ended):
+    waited for, bounded, not slept for."""
+    first = await _state(client, arm)
+    deadline = time.monotonic() + 5.0
+    while True:
+        s = await _state(client, arm)
+        if s.seq > first.seq:
+            return s
+        assert time.monotonic() < deadline, f"no new {arm} sample in 5 s after seq {first.seq}"
+        await asyncio.sleep(0.005)
 
 
 async def test_move_joints_wait_ends_done_at_the_target(app_client: httpx.AsyncClient) -> None:
