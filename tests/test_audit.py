@@ -4,7 +4,6 @@ the queues survive a restart."""
 
 from __future__ import annotations
 
-import asyncio
 import csv
 import io
 import sqlite3
@@ -142,7 +141,10 @@ async def test_full_disk_keeps_audit_records(tmp_path: Path) -> None:
         big = "x" * 4000
         for i in range(40):
             st.audit((float(i), "bob", "operator", "angler", "POST", "/y", big, 200, None))
-        await asyncio.sleep(0.3)
+        async def full() -> bool:
+            return not st.health().ok
+
+        await until(full, timeout=10.0, what="the store to say the disk is full")
         h = st.health()
         assert not h.ok and "full" in (h.error or "") and h.pending > 0
         assert len(await st.query_audit(limit=100)) == 40  # none lost
