@@ -72,10 +72,12 @@ async def test_an_arm_at_the_target_is_done_on_its_second_check() -> None:
     assert verdict == "done" and arm.looks == SETTLE_CONFIRM
 
 
+@pytest.mark.parametrize("far_first", [True, False])
 async def test_readings_that_only_flicker_into_tolerance_fail_the_motion(
-        monkeypatch: pytest.MonkeyPatch) -> None:
+        monkeypatch: pytest.MonkeyPatch, far_first: bool) -> None:
+    # the reason names the worse of the last two checks, whichever came last
     monkeypatch.setattr(settle, "SETTLE_TIMEOUT_S", 0.3)
-    arm = ScriptedArm([FAR, NEAR] * 200)
+    arm = ScriptedArm([FAR, NEAR] * 200 if far_first else [NEAR, FAR] * 200)
     verdict, err = await Settle("rbe3001", ["base", "shoulder", "elbow"], arm).wait(
         TARGET, TOL, lambda: False)
     assert verdict == "failed" and err is not None

@@ -53,6 +53,7 @@ class Settle:
         if isinstance(moving, ArmError):
             return "watchdog", moving
         inside = 0  # checks in a row that found every joint in tolerance
+        worst = err  # per joint, the larger error of the last two checks (for the reason)
         first = True
         while loop.time() < deadline:
             if not first:
@@ -67,7 +68,8 @@ class Settle:
             if q is None or self.device.stale:
                 inside = 0
                 continue
-            err = np.abs(q - target)
+            last, err = err, np.abs(q - target)
+            worst = np.maximum(last, err) if np.all(np.isfinite(last)) else err
             inside = inside + 1 if np.all(err <= tol) else 0
             if inside >= SETTLE_CONFIRM:
                 verdict = await self._arrived()
@@ -76,12 +78,12 @@ class Settle:
                 moving = verdict
                 if not moving:
                     return "done", None
-        if moving and np.all(err <= tol):
+        if moving and np.all(worst <= tol):
             names = ", ".join(self.names[k] for k in moving)
             reason = f"{names} within tolerance but its servo still reports moving"
-        else:
-            worst = int(np.argmax(err / tol))
-            reason = f"{self.names[worst]} is {err[worst]:.6f} off (tolerance {tol[worst]:.6f})"
+        else:  # the worse of the last two checks: a joint that only flickers into tolerance
+            k = int(np.argmax(worst / tol))
+            reason = f"{self.names[k]} is {worst[k]:.6f} off (tolerance {tol[k]:.6f})"
         return "failed", NotSettled(f"did not settle at the target within {SETTLE_TIMEOUT_S} s: "
                                     f"{reason}")
 
