@@ -58,6 +58,7 @@ import httpx
 import websockets
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _machine  # noqa: E402
 from _server import ROOT, pct  # noqa: E402
 
 API = "/api/v1"
@@ -339,6 +340,7 @@ def main() -> int:
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
     env["ARMSERVER_DATA_DIR"] = str(folder / "data")
     cpus = sorted(os.sched_getaffinity(0))
+    machine = _machine.describe()  # (before anything of the bench's runs)
     sims = []
     config = []
     per = max(1, args.per_sim)
@@ -372,7 +374,7 @@ def main() -> int:
                 os.sched_setaffinity(pid, {cpus[0]})
         time.sleep(1.0)  # past start-up's bursts
         print(f"{args.arms} {args.model} arms, {args.workers} worker(s), {args.seconds:.0f} s"
-              f"{', pinned' if args.pin else ''}")
+              f"{', pinned' if args.pin else ''}; before the arms ran: {machine}")
         uds = _worker_socket(pids) if args.workers > 1 else None
         asyncio.run(measure(url, [f"arm-{i + 1}" for i in range(args.arms)], args.seconds,
                             args.presses, uds, pids, [p.pid for p in sims]))

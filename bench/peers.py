@@ -23,6 +23,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import _machine
+
 ROOT = Path(__file__).resolve().parent.parent
 PY = str(ROOT / ".venv" / "bin" / "python")
 
@@ -347,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
     if remote is not None:
         (a.out / "armserver-remote-idle.json").write_text(json.dumps(remote))
     rows = table(a.out, remote)
-    print(f"\nload average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end\n")
+    print(f"\nat the end: {_machine.describe()}\n")
     print("| measure | pypot 5.0.2 | armserver | target | |")
     print("|---|---|---|---|---|")
     for r in rows:

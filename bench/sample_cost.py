@@ -52,6 +52,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+import _machine  # noqa: E402
+
 from app.arms.loading import load_profile  # noqa: E402
 from app.config import homed_at_start  # noqa: E402
 from app.runtime import gc_policy  # noqa: E402
@@ -150,8 +152,8 @@ async def run(model: str, port: int, seconds: float, prof: cProfile.Profile | No
     print(f"{model} ({how}, io={io}): {n} samples in {wall:.1f} s ({rate:.0f}/s, poll_hz "
           f"{profile.link.poll_hz:.0f}); CPU {1e6 * per:.0f} µs a sample, "
           f"({1e6 * user / n:.0f} user, {1e6 * system / n:.0f} system), "
-          f"{100 * cpu / wall:.1f} % of a core for this arm; load average "
-          f"{os.getloadavg()[0]:.1f}", flush=True)
+          f"{100 * cpu / wall:.1f} % of a core for this arm; {_machine.describe()}",
+          flush=True)
     split = sorted(((th1[k] - th0.get(k, 0.0), k) for k in th1), reverse=True)
     print("  by thread: " + ", ".join(f"{name} {1e6 * c / n:.0f} µs" for c, name in split
                                       if c > 0), flush=True)
