@@ -1,7 +1,7 @@
 """How fast this machine is right now, printed beside a bench's figures.
 
 The development machine is a 2-core virtual machine whose host is shared. On 26 Nov 2026 the
-same code measured one rbe3001's sample at 80 µs at 21:24 and at 120-160 µs at 22:15-22:25
+same code measured one rbe3001's sample at 80 µs at 21:24 and at 120-160 µs at 22:12-22:20
 (`bench/sample_cost.py`), the machine idle both times, and `make bench-peers` moved with it
 (pypot's own figures too). The load average does not show that: the host's other tenants are
 not in it. What does, in part, is what a thread pays to wake from a short sleep and run a
