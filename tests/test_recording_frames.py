@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.recording.inputs import CameraFeed, CameraFrame
+from app.recording.inputs import CameraFeed, CameraFrame, CameraTrack
 from app.recording.manager import Recordings
 from tests._lerobot import check_dataset, decode
 from tests._wait import wait_for
@@ -77,3 +77,26 @@ async def test_each_image_is_the_frame_nearest_its_grid_time(tmp_path: Path) -> 
         got = (int(round(img[..., 2].mean())), int(round(img[..., 1].mean())))
         want = int(np.argmin(np.abs(times - (t0 + k / FPS))))
         assert np.allclose(got, colour(want), atol=5), (k, got, colour(want))
+
+
+def test_frame_zero_can_be_the_frame_the_camera_gave_just_before_the_episode() -> None:
+    """The latest frame as a track starts (taken before t0) is a candidate for frame 0: with
+    the first tick late, after a frame 15 ms past t0 came, the one 5 ms before t0 is nearer
+    and is the image (it was the later one before: the listener never hears the earlier)."""
+    img = np.zeros((H, W, 3), np.uint8)
+    before, after = CameraFrame(10, 99.995, img), CameraFrame(11, 100.015, img)
+    frames = [before]
+    heard: list[Callable[[CameraFrame], None]] = []
+
+    def listen(fn: Callable[[CameraFrame], None]) -> Callable[[], None]:
+        heard.append(fn)
+        return lambda: heard.remove(fn)
+
+    track = CameraTrack(CameraFeed("num", W, H, lambda: frames[-1], listen), 100.0, FPS)
+    frames.append(after)  # the camera's next frame, told to the track as it comes
+    for fn in heard:
+        fn(after)
+    track.poll(0)  # the first tick, late: the latest frame is the later one now
+    assert track.frame_for(0).seq == 10
+    track.close()
+    assert heard == []

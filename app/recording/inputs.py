@@ -115,6 +115,12 @@ class CameraTrack:
         self.best: dict[int, CameraFrame] = {}
         self.last_seq = -1
         self._unlisten = feed.listen(self.incoming.append) if feed.listen is not None else None
+        # the camera's latest frame as the episode starts: taken before t0, it may be the
+        # nearest to frame 0's grid time, and the listener never hears it (a first tick late
+        # on a loaded machine found a later frame as the latest, and imaged that one)
+        first = feed.latest()
+        if first is not None:
+            self.incoming.append(first)
 
     def at(self, k: int) -> float:
         return self.t0 + k / self.fps
