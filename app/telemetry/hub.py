@@ -89,6 +89,15 @@ def dumps_bytes(obj: Any) -> bytes:
     return orjson.dumps(obj, option=_OPTIONS)
 
 
+def _encode(obj: Any) -> tuple[str, bytes]:
+    """A sample's JSON as text and as bytes, each its own size. orjson (3.13) returns bytes
+    that keep the buffer it wrote into, 4 KiB for a 560-byte sample (tracemalloc): kept in
+    the log, that was 4 KiB a sample read, the soak's memory growth (docs/performance.md).
+    The bytes are made again from the text (one copy of a few hundred bytes)."""
+    encoded = orjson.dumps(obj, option=_OPTIONS).decode()
+    return encoded, encoded.encode()
+
+
 def _dumps(obj: Any) -> str:
     return orjson.dumps(obj, option=_OPTIONS).decode()
 
@@ -258,9 +267,9 @@ class TelemetryHub:
             self.deriver([(e.sample, inputs) for e, inputs in pairs
                           if inputs is not None and e.sample is not None])
         for e in todo:
-            data = orjson.dumps(e.sample, option=_OPTIONS)
-            e.data = data
-            e.encoded = data.decode()
+            encoded, data = _encode(e.sample)
+            e.data = data  # before `encoded`: a reader that sees it set finds both
+            e.encoded = encoded
             e.inputs = None
 
     def _ready_unread(self) -> None:
@@ -388,8 +397,7 @@ class TelemetryHub:
                 self._ready([lazy])
             self._after_publish(sample, waiting)
             return
-        data = orjson.dumps(sample, option=_OPTIONS)
-        encoded = data.decode()
+        encoded, data = _encode(sample)
         with self._lock:
             self._latest = (sample, encoded, data)
             self._log.append(encoded)
