@@ -12,19 +12,10 @@ import tracemalloc
 
 import numpy as np
 
-from app.arms import model_for
-from app.arms.loading import load_profile
 from app.telemetry import hub as hub_module
-from app.telemetry.hub import TelemetryHub
+from tests.test_hub_subscribe import _hub
 
-N = 1000
-
-
-def _hub() -> TelemetryHub:
-    hub = TelemetryHub("rbe3001", backlog=N)
-    model = model_for(load_profile("rbe3001"))
-    hub.derive_with(lambda: model)
-    return hub
+N = 1000  # (within the hub's default backlog: every sample stays in the log)
 
 
 def test_a_read_sample_keeps_its_json_at_its_own_size() -> None:

@@ -54,11 +54,7 @@ class Settle:
             return "watchdog", moving
         inside = 0  # checks in a row that found every joint in tolerance
         worst = err  # per joint, the larger error of the last two checks (for the reason)
-        first = True
         while loop.time() < deadline:
-            if not first:
-                await asyncio.sleep(SETTLE_CHECK_S)
-            first = False
             if halted():
                 return "halted", None
             fault = self.device_fault()
@@ -67,10 +63,10 @@ class Settle:
             q = self.device.positions
             if q is None or self.device.stale:
                 inside = 0
-                continue
-            last, err = err, np.abs(q - target)
-            worst = np.maximum(last, err) if np.all(np.isfinite(last)) else err
-            inside = inside + 1 if np.all(err <= tol) else 0
+            else:
+                last, err = err, np.abs(q - target)
+                worst = np.maximum(last, err) if np.all(np.isfinite(last)) else err
+                inside = inside + 1 if np.all(err <= tol) else 0
             if inside >= SETTLE_CONFIRM:
                 verdict = await self._arrived()
                 if isinstance(verdict, ArmError):
@@ -78,6 +74,7 @@ class Settle:
                 moving = verdict
                 if not moving:
                     return "done", None
+            await asyncio.sleep(SETTLE_CHECK_S)
         if moving and np.all(worst <= tol):
             names = ", ".join(self.names[k] for k in moving)
             reason = f"{names} within tolerance but its servo still reports moving"

@@ -94,7 +94,7 @@ def _encode(obj: Any) -> tuple[str, bytes]:
     that keep the buffer it wrote into, 4 KiB for a 560-byte sample (tracemalloc): kept in
     the log, that was 4 KiB a sample read, the soak's memory growth (docs/performance.md).
     The bytes are made again from the text (one copy of a few hundred bytes)."""
-    encoded = orjson.dumps(obj, option=_OPTIONS).decode()
+    encoded = _dumps(obj)
     return encoded, encoded.encode()
 
 
