@@ -84,11 +84,6 @@ def _whole(entries: list[_Lazy]) -> None:
                 e.sample, e.base = sample, None
 
 
-def dumps_bytes(obj: Any) -> bytes:
-    """Compact JSON bytes (orjson; numpy scalars and arrays allowed, NaN becomes null)."""
-    return orjson.dumps(obj, option=_OPTIONS)
-
-
 def _encode(obj: Any) -> tuple[str, bytes]:
     """A sample's JSON as text and as bytes, each its own size. orjson (3.13) returns bytes
     that keep the buffer it wrote into, 4 KiB for a 560-byte sample (tracemalloc): kept in
@@ -99,6 +94,7 @@ def _encode(obj: Any) -> tuple[str, bytes]:
 
 
 def _dumps(obj: Any) -> str:
+    """Compact JSON text (orjson; numpy scalars and arrays allowed, NaN becomes null)."""
     return orjson.dumps(obj, option=_OPTIONS).decode()
 
 
