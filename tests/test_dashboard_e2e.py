@@ -381,6 +381,47 @@ def test_asks_for_a_token_when_the_server_needs_one(browser: Any) -> None:
             pg.close()
 
 
+def test_a_refusal_of_a_request_sent_before_the_token_does_not_ask_again(browser: Any) -> None:
+    """Requests that left without a token and are refused after one was entered are sent again
+    with it; the form stays closed. (A late refusal once opened the form again over the page,
+    and the form took the next click: a CI failure.)"""
+    with serving(make_settings(operator_tokens=OPERATOR)) as srv:
+        pg = browser.new_page(viewport=VIEWPORT)
+        held: list[Any] = []
+
+        def hold_tokenless(route: Any) -> None:
+            if route.request.headers.get("authorization") is None:
+                held.append(route)  # answered (401) only once the token is in
+            else:
+                route.continue_()
+
+        try:
+            pg.route("**/api/v1/**", hold_tokenless)
+            pg.goto(srv.url + "/")
+            wait_for(lambda: pg.evaluate("1") == 1
+                     and any(r.request.url.endswith("/api/v1/arms") for r in held),
+                     10, "the page's first GET /arms held")
+            assert not pg.evaluate("document.querySelector('#token-dialog').open")
+            pg.click("#token-button")
+            pg.fill("#token-input", OPERATOR)
+            pg.click("#token-form button[type=submit]")
+            n_held = len(held)
+            with pg.expect_response(lambda r: r.url.endswith("/api/v1/arms")
+                                    and r.request.headers.get("authorization")
+                                    == f"Bearer {OPERATOR}", timeout=10_000) as again:
+                for route in held[:n_held]:
+                    route.continue_()  # each refused by the server: it carries no token
+            assert again.value.status == 200
+            wait_for(lambda: (dash(pg, "rbe3001") or {}).get("ws") == "live", 15, "live with token")
+            assert len(held) == n_held  # nothing was sent without the token since
+            assert not pg.evaluate("document.querySelector('#token-dialog').open")
+            with pg.expect_response(lambda r: r.url.endswith("/arms/rbe3001/stop")) as answer:
+                pg.click("#rbe3001-stop", timeout=5_000)
+            assert answer.value.status == 200, answer.value.status
+        finally:
+            pg.close()
+
+
 def test_safety_zones_are_drawn_and_the_speed_slider_changes_the_override(browser: Any,
                                                                           tmp_path: Path) -> None:
     with serving(make_settings(data_dir=str(tmp_path))) as srv:

@@ -108,8 +108,9 @@ function describe(detail) {
 async function api(method, path, body) {
   for (;;) {
     const headers = {};
+    const sent = token();   // the token this try carries
     if (body !== undefined) headers["Content-Type"] = "application/json";
-    if (token()) headers.Authorization = `Bearer ${token()}`;
+    if (sent) headers.Authorization = `Bearer ${sent}`;
     if (leaseFor(path)) headers["X-Arm-Lease"] = leaseFor(path);
     let res;
     try {
@@ -122,7 +123,9 @@ async function api(method, path, body) {
     let data = null;
     try { data = await res.json(); } catch { /* empty or not JSON */ }
     if (res.status === 401) {
-      await askToken(token() ? "The token was refused; enter another." : describe(data?.detail));
+      // sent before a token was entered (or changed): try again with it, without asking again
+      if (token() !== sent) continue;
+      await askToken(sent ? "The token was refused; enter another." : describe(data?.detail));
       continue;
     }
     if (!res.ok) {
