@@ -14,7 +14,7 @@ from pathlib import Path
 import httpx
 import pytest
 import serial
-from _wait import wait_for
+from _wait import wait_for, wait_until
 
 from app.arms.dynamixel.setup import EXIT_OK
 from app.arms.dynamixel.sim_bus import DynamixelBus
@@ -179,3 +179,44 @@ async def test_the_link_tells_garbled_answers_from_silence(tmp_path: Path) -> No
             assert "set link.baudrate = 4500000" in error
     finally:
         await server.close()
+
+
+# ------------------------------------------------------------------ a scan held up
+
+
+class HeldUpClock:
+    """`time` for app.arms.dynamixel.setup whose every reading after the first is taken by a
+    thread held up past any window (a busy machine): it returns once the servo's reply is in
+    the port's buffer, and far later than the window's end."""
+
+    def __init__(self, port: serial.SerialBase) -> None:
+        self.port, self.readings = port, 0
+
+    def monotonic(self) -> float:
+        self.readings += 1
+        if self.readings == 1:
+            return 0.0
+        wait_until(lambda: self.port.in_waiting > 0, 10, "the reply in the port's buffer")
+        return 1e6
+
+
+def test_a_reply_that_came_within_the_window_counts_when_the_reader_is_held_up(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A broadcast PING's window, and a servo's reply timeout, end after the replies that came
+    within them are read: the reader held up past the end once dropped them with the buffer
+    (the scan of the README's practice bus, read as empty, once, beside six busy workers)."""
+    from app.arms.dynamixel import setup
+
+    served = Served(DynamixelBus.factory(1, baudrate=57_600), tmp_path / "ttyDXL")
+    try:
+        bus = setup.Bus(served.url, timeout=0.3)
+        try:
+            monkeypatch.setattr(setup, "time", HeldUpClock(bus.port))
+            packets, errors = bus.exchange(dxl.ping(dxl.BROADCAST_ID))
+            assert ([(p.id, p.params) for p in packets], errors) == ([(1, bytes((30, 0, 45)))], [])
+            monkeypatch.setattr(setup, "time", HeldUpClock(bus.port))
+            assert bus.read(1, setup._T["baud_rate"]) == 1  # code 1: 57,600 bps
+        finally:
+            bus.close()
+    finally:
+        served.close()

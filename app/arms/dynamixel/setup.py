@@ -155,7 +155,11 @@ class Bus:
         got: list[dxl.Packet] = []
         errors: list[dxl.ParseError] = []
         end = time.monotonic() + (self.timeout if window is None else window)
-        while time.monotonic() < end:
+        past = False
+        while not past:
+            # one read begins after the window: what came within it is read even where this
+            # thread was held up past its end (a busy machine), not dropped with the buffer
+            past = time.monotonic() >= end
             data = self.port.read(4096)
             if data:
                 parser.feed(data)
@@ -178,7 +182,9 @@ class Bus:
         self.port.write(packet)
         parser = dxl.Parser()
         garbage = self.garbage
-        while time.monotonic() < deadline and not got:
+        past = False
+        while not past and not got:
+            past = time.monotonic() >= deadline  # a last read after it, as in `exchange`
             data = self.port.read(4096)
             if data:
                 parser.feed(data)
