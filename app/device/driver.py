@@ -203,11 +203,13 @@ class Driver(OwnerTask, abc.ABC):
     def wait_connected(self, timeout: float) -> asyncio.Future[bool]:
         async def _wait() -> bool:
             deadline = time.monotonic() + timeout
-            while time.monotonic() < deadline:
+            while True:
+                past = time.monotonic() >= deadline  # a last look after it (a held-up loop)
                 if self.link.state is LinkState.UP and not self.stale:
                     return True
+                if past:
+                    return False
                 await asyncio.sleep(0.01)
-            return False
         return asyncio.ensure_future(_wait())
 
     # ------------------------------------------------------------ the commanded state
