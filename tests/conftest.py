@@ -204,7 +204,7 @@ def live_server() -> Iterator[LiveServer]:
         yield live
 
 
-#: Files whose tests run alone, after the parallel part of `make test` (pytest-xdist): the
+#: Files whose tests run after the parallel part of `make test` (pytest-xdist), in two lanes: the
 #: browser tests (Chromium under two busy workers stalls) and the tests that time the server
 #: itself (a bounded shutdown, a held-up executor (test_control.py, test_replan.py: the hold-up
 #: is the scenario and its setpoints' speed is measured), the measured peak speed of a device
@@ -222,10 +222,26 @@ SERIAL_FILES = frozenset({
 })
 
 
+#: The serial part runs in two lanes side by side (`-n 2 --dist loadgroup`): it keeps the
+#: machine about 40 % of one core busy, waiting on arms moving in real time. The tests that
+#: measure a speed or a hold (a joint's peak speed, a held-up executor, an estop's hold, moves
+#: between link cuts) go one after another in the `timing` lane; the browser tests and the
+#: rest in the `browser` lane. One test of each at a time, never two timing tests together.
+TIMING_LANE_FILES = frozenset({
+    "test_safety_machine.py", "test_passthrough_safety.py", "test_passthrough_check_poll.py",
+    "test_tracking.py", "test_motion.py", "test_envelope_props.py", "test_control.py",
+    "test_replan.py", "test_soak.py",
+})
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own, which reads the xdist_group marks
 def pytest_collection_modifyitems(config: Any, items: list[Any]) -> None:
     for item in items:
         if item.path.name in SERIAL_FILES:
             item.add_marker(pytest.mark.serial)
+        if item.get_closest_marker("serial") is not None:
+            lane = "timing" if item.path.name in TIMING_LANE_FILES else "browser"
+            item.add_marker(pytest.mark.xdist_group(lane))
 
 
 # ---------------------------------------------------------------- strict skips
