@@ -41,7 +41,7 @@ def test_the_readme_block_runs_as_written() -> None:
                              timeout=120, cwd=ROOT)
     assert run.returncode == 0, run.stderr
     scan, assign, plugged, stopped = answers(run.stdout)
-    assert len(scan["servos"]) == 1, scan  # the whole answer: collisions, garbled rates
+    assert len(scan["servos"]) == 1, json.dumps(scan)  # all of it: collisions, garbled rates
     [servo] = scan["servos"]
     assert (servo["id"], servo["baudrate"], servo["factory"]) == (1, 57_600, True)
     assert assign["joint"] == "x"

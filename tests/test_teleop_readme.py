@@ -101,7 +101,8 @@ def test_the_readme_block_runs_as_written() -> None:
                 else:
                     wait_until(lambda job=job: any(ln.startswith("teleop t")
                                                    for ln in job.lines)
-                               or job.proc.poll() is not None, what="the session started")
+                               or job.proc.poll() is not None, timeout=60,  # a start
+                               what="the session started")  # on a busy machine
                     assert job.proc.poll() is None, "\n".join(job.lines)
                     assert "leader by hand" in job.lines[0], job.lines
                 continue
