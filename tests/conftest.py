@@ -216,9 +216,10 @@ SERIAL_FILES = frozenset({
     "test_dashboard_e2e.py", "test_dashboard_classroom_e2e.py", "test_lab_view_e2e.py",
     "test_omx_dashboard_e2e.py", "test_shutdown.py", "test_control.py", "test_tracking.py",
     "test_soak.py", "test_replan.py",
-    # its practice bus answers from the server's own process: beside busy workers, a scan's
-    # PING answered after the scan's window (the bus read as empty, a set-up left undone)
-    "test_setup_servos_e2e.py",
+    # their practice bus answers from the server's own process: beside busy workers, a scan's
+    # PING answered after the scan's window (the bus read as empty, a set-up left undone;
+    # the README block's test twice in five runs beside six workers, session 14)
+    "test_setup_servos_e2e.py", "test_setup_servos_readme.py", "test_setup_servos_routes.py",
 })
 
 
