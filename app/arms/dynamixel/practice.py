@@ -17,14 +17,23 @@ hear each other's rate. A pty carries the termios rate the host sets, which the 
 (app/sim/servers.py `set_host_baudrate`), so the scan of each rate is the hardware's. The pty's
 symlink sits in a private (0700) folder of the system's temporary directory.
 
-The bus runs on its own thread and event loop (`practice-bus`), never on the HTTP loop nor the
-control thread: its physics tick and replies cost neither anything.
+The bus runs in a process of its own (`python -m app.arms.dynamixel.practice`, on a thread
+and event loop there), never in the server's: a scan's PING it read after the scan had moved
+on to the next rate would be read at that rate (the pty's rate is the one set when the bus
+reads), and in the server's process its thread shared the GIL with the server's threads; beside
+busy workers it read a PING late enough for the factory servo to stay silent (session 14).
+Its own process waits only for a core. The server talks to it over the child's stdin and
+stdout, a JSON line each way; the child ends when its stdin closes (the server gone).
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
+import select
 import shutil
+import subprocess
+import sys
 import tempfile
 import threading
 from collections.abc import Callable, Coroutine
@@ -52,8 +61,75 @@ class PracticeServo:
 
 
 class PracticeBus:
-    """A factory-state simulated bus on a pseudo-terminal, owned by its own thread; `port` is
-    the path to open."""
+    """A factory-state simulated bus on a pseudo-terminal, served by a process of its own
+    (`_BusThread` there); `port` is the path to open. Blocking calls, one at a time."""
+
+    def __init__(self, servos: int = 1) -> None:
+        self._lock = threading.Lock()
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", __name__, str(int(servos))], stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, text=True, bufsize=1, close_fds=True)
+        try:
+            self.port: str = self._answer()
+        except BaseException:
+            self._end()
+            raise
+
+    def _answer(self) -> Any:
+        """The child's next answer line; ValueError for its refusal, or once it has ended."""
+        out = self._proc.stdout
+        assert out is not None
+        ready, _, _ = select.select([out], [], [], CALL_TIMEOUT_S)
+        line = out.readline() if ready else ""
+        if not line:
+            raise ValueError("the practice bus is stopped")
+        answer = json.loads(line)
+        if "error" in answer:
+            raise ValueError(answer["error"])
+        return answer["ok"]
+
+    def _ask(self, op: str) -> list[PracticeServo]:
+        with self._lock:
+            if self._proc.poll() is not None or self._proc.stdin is None:
+                raise ValueError("the practice bus is stopped")
+            try:
+                self._proc.stdin.write(op + "\n")
+                self._proc.stdin.flush()
+            except (BrokenPipeError, ValueError):
+                raise ValueError("the practice bus is stopped") from None
+            return [PracticeServo(i, b) for i, b in self._answer()]
+
+    def servos(self) -> list[PracticeServo]:
+        """Every servo on the bus, in the order plugged in."""
+        return self._ask("servos")
+
+    def plug(self) -> list[PracticeServo]:
+        """Plug one more factory servo (ID 1, 57,600 bps) into the bus; ValueError past
+        MAX_SERVOS."""
+        return self._ask("plug")
+
+    def close(self) -> None:
+        """Stop listening and end the process (idempotent)."""
+        with self._lock:
+            self._end()
+
+    def _end(self) -> None:
+        if self._proc.stdin is not None and not self._proc.stdin.closed:
+            try:
+                self._proc.stdin.close()  # the child closes its bus and ends
+            except BrokenPipeError:
+                pass
+        try:
+            self._proc.wait(CALL_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait(CALL_TIMEOUT_S)
+        if self._proc.stdout is not None:
+            self._proc.stdout.close()
+
+
+class _BusThread:
+    """The bus itself, in the child process: owned by its own thread and event loop."""
 
     def __init__(self, servos: int = 1) -> None:
         self.bus = DynamixelBus.factory(servos, baudrate=FACTORY_BAUDRATE)
@@ -112,3 +188,31 @@ class PracticeBus:
         if not self._thread.is_alive():
             self._loop.close()
         shutil.rmtree(self._dir, ignore_errors=True)
+
+
+def _serve(servos: int) -> None:
+    """The child: the bus, then one answer line for each request line until stdin closes."""
+    def say(**answer: Any) -> None:
+        sys.stdout.write(json.dumps(answer) + "\n")
+        sys.stdout.flush()
+
+    bus = _BusThread(servos)
+    try:
+        say(ok=bus.port)
+        for line in sys.stdin:
+            op = line.strip()
+            if op not in ("plug", "servos"):
+                say(error=f"unknown request {op!r}")
+                continue
+            try:
+                if op == "plug":
+                    bus.plug()
+                say(ok=[[p.id, p.baudrate] for p in bus.servos()])
+            except ValueError as exc:
+                say(error=str(exc))
+    finally:
+        bus.close()
+
+
+if __name__ == "__main__":
+    _serve(int(sys.argv[1]))

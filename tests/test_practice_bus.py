@@ -1,0 +1,43 @@
+"""The practice bus (app/arms/dynamixel/practice.py) in a process of its own (in the server's,
+its thread shared the GIL with the server's threads and read a scan's PING late): its process
+ends with the server's pipe, its port with it; a bus whose process died is told as stopped;
+its servos as plugged in, eight at most. The scans of it: test_setup_servos_routes.py,
+test_setup_servos_readme.py, test_setup_servos_e2e.py."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from app.arms.dynamixel.practice import PracticeBus, PracticeServo
+
+
+def test_its_process_ends_with_the_pipe_and_takes_its_port() -> None:
+    bus = PracticeBus(2)
+    assert bus.servos() == [PracticeServo(1, 57_600), PracticeServo(1, 57_600)]
+    assert bus.plug()[-1] == PracticeServo(1, 57_600)
+    port = Path(bus.port)
+    assert port.is_symlink() and bus._proc.pid != os.getpid()
+    bus.close()
+    assert bus._proc.returncode == 0
+    assert not port.exists() and not port.parent.exists()
+    bus.close()  # again: nothing
+    with pytest.raises(ValueError, match="stopped"):
+        bus.servos()
+
+
+def test_a_bus_whose_process_died_is_told_stopped_and_past_eight_servos_is_refused() -> None:
+    bus = PracticeBus(7)
+    try:
+        assert len(bus.plug()) == 8
+        with pytest.raises(ValueError, match="8 servos at most"):
+            bus.plug()
+        assert len(bus.servos()) == 8  # the refusal changed nothing
+        bus._proc.kill()
+        bus._proc.wait(10)
+        with pytest.raises(ValueError, match="stopped"):
+            bus.plug()
+    finally:
+        bus.close()
