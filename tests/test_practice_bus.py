@@ -41,3 +41,4 @@ def test_a_bus_whose_process_died_is_told_stopped_and_past_eight_servos_is_refus
             bus.plug()
     finally:
         bus.close()
+    assert not Path(bus.port).parent.exists()  # the killed child's folder, removed here

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import select
 import shutil
 import subprocess
@@ -48,6 +49,8 @@ T = TypeVar("T")
 
 #: How long starting or stopping the bus's thread, or one change to its bus, may take, s.
 CALL_TIMEOUT_S = 10.0
+#: The pty's symlink's private folder, in the system's temporary directory.
+FOLDER_PREFIX = "armserver-practice-"
 #: Servos one practice bus holds at most (the set-up scan waits for 20 replies).
 MAX_SERVOS = 8
 
@@ -126,6 +129,9 @@ class PracticeBus:
             self._proc.wait(CALL_TIMEOUT_S)
         if self._proc.stdout is not None:
             self._proc.stdout.close()
+        folder = os.path.dirname(getattr(self, "port", "") or "")
+        if os.path.basename(folder).startswith(FOLDER_PREFIX):  # a killed child's, left
+            shutil.rmtree(folder, ignore_errors=True)
 
 
 class _BusThread:
@@ -133,7 +139,7 @@ class _BusThread:
 
     def __init__(self, servos: int = 1) -> None:
         self.bus = DynamixelBus.factory(servos, baudrate=FACTORY_BAUDRATE)
-        self._dir = tempfile.mkdtemp(prefix="armserver-practice-")
+        self._dir = tempfile.mkdtemp(prefix=FOLDER_PREFIX)
         self.port = f"{self._dir}/ttyDXL"
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name="practice-bus",
