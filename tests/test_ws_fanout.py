@@ -84,8 +84,10 @@ def test_many_clients_share_one_broadcast_and_each_gets_every_sample(n: int) -> 
 
     async def run(live: LiveServer) -> None:
         url = live.ws_url + WS.format(arm="rbe3001") + "?rate=20"
-        clients = await asyncio.gather(*[connect(url, compression=None, open_timeout=60)
-                                         for _ in range(n)])
+        # max_queue=None: a client keeps reading its socket while this one process serves
+        # the other 249 (or has its 4 batches and waits for them): only the server may drop
+        clients = await asyncio.gather(*[connect(url, compression=None, open_timeout=60,
+                                                 max_queue=None) for _ in range(n)])
         try:
             # 4 batches each (a busy machine once took 1.5 s for two; bounded)
             results = await asyncio.gather(*[_collect(c, 60.0, messages=4) for c in clients])
