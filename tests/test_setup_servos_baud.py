@@ -220,3 +220,36 @@ def test_a_reply_that_came_within_the_window_counts_when_the_reader_is_held_up(
             bus.close()
     finally:
         served.close()
+
+
+def test_a_late_answer_to_an_earlier_request_is_not_taken_for_this_ones(tmp_path: Path) -> None:
+    """Protocol 2.0's status names no instruction: a PING's answer (3 bytes) that comes late,
+    in a READ's time, is skipped by its size, and the READ's own answer taken (it once failed
+    the set-up: "READ operating_mode: servo 1 answered 3 bytes, expected 1")."""
+    import os
+    import tty
+
+    from app.arms.dynamixel import setup
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link = tmp_path / "ttyLATE"
+    link.symlink_to(os.ttyname(slave))
+    heard = bytearray()
+
+    def servo() -> None:  # answers the one READ with the late PING status first
+        while len(heard) < 14:  # a READ of 1 byte is 14 bytes
+            heard.extend(os.read(master, 64))
+        os.write(master, STATUS + dxl.encode_status(1, 0, bytes((3,))))
+
+    thread = threading.Thread(target=servo, daemon=True)
+    bus = setup.Bus(str(link), timeout=2.0)
+    try:
+        thread.start()
+        assert bus.read(1, setup._T["operating_mode"]) == 3
+        assert bytes(heard) == dxl.read(1, setup._T["operating_mode"].address, 1)
+    finally:
+        bus.close()
+        thread.join(5)
+        os.close(master)
+        os.close(slave)

@@ -173,8 +173,12 @@ class Bus:
                     got.append(ev)
         return got, errors
 
-    def one(self, packet: bytes, dxl_id: int, what: str) -> dxl.Packet:
-        """The status of servo `dxl_id` to `packet`; SetupError if none, garbled or an error."""
+    def one(self, packet: bytes, dxl_id: int, what: str, size: int | None = None
+            ) -> dxl.Packet:
+        """The status of servo `dxl_id` to `packet`; SetupError if none, garbled or an error.
+        `size`: the parameters its status carries (a READ's item, 0 for a WRITE, 3 for a
+        PING); a status of another size is a late answer to an earlier request (Protocol 2.0's
+        status names no instruction), skipped, not taken for this one's."""
         deadline = time.monotonic() + self.reply_timeout
         got: list[dxl.Packet] = []
         errors: list[dxl.ParseError] = []
@@ -194,7 +198,8 @@ class Bus:
                         errors.append(ev)
                     else:
                         self.garbage += 1
-                elif ev.instruction == dxl.Instruction.STATUS and ev.id == dxl_id:
+                elif (ev.instruction == dxl.Instruction.STATUS and ev.id == dxl_id
+                      and (size is None or len(ev.params) == size or ev.error)):
                     got.append(ev)
         if not got:
             why = (f"garbled replies ({errors[0].kind}): two servos on ID {dxl_id}?"
@@ -209,7 +214,8 @@ class Bus:
         return p
 
     def read(self, dxl_id: int, item: ControlItem) -> int:
-        p = self.one(dxl.read(dxl_id, item.address, item.size), dxl_id, f"READ {item.name}")
+        p = self.one(dxl.read(dxl_id, item.address, item.size), dxl_id, f"READ {item.name}",
+                     item.size)
         if len(p.params) != item.size:
             raise SetupError(f"READ {item.name}: servo {dxl_id} answered {len(p.params)} "
                              f"bytes, expected {item.size}", EXIT_VERIFY)
@@ -217,7 +223,7 @@ class Bus:
 
     def write(self, dxl_id: int, item: ControlItem, value: int) -> None:
         self.one(dxl.write(dxl_id, item.address, dxl.to_bytes(value, item.size)), dxl_id,
-                 f"WRITE {item.name} = {value}")
+                 f"WRITE {item.name} = {value}", 0)
 
 
 def scan(bus: Bus, rates: Iterable[int] = SCAN_ORDER) -> Scan:
@@ -361,7 +367,7 @@ def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 
         if dxl_id != want["id"]:
             bus.exchange(dxl.write(dxl_id, _T["id"].address, bytes((want["id"],))))
             dxl_id = want["id"]
-            bus.one(dxl.ping(dxl_id), dxl_id, f"PING at the new ID {dxl_id}")
+            bus.one(dxl.ping(dxl_id), dxl_id, f"PING at the new ID {dxl_id}", 3)
         rate = BAUD_RATES[want["baud_rate"]]
         if servo.baudrate != rate:
             bus.exchange(dxl.write(dxl_id, _T["baud_rate"].address, bytes((want["baud_rate"],))))
