@@ -223,7 +223,8 @@ SERIAL_FILES = frozenset({
 })
 
 
-#: The serial part runs in two lanes side by side (`-n 2 --dist loadgroup`): it keeps the
+#: With `make test SERIAL_LANES=2` the serial part runs in two lanes side by side (`-n 2
+#: --dist loadgroup`; without it, one test at a time, the default): it keeps the
 #: machine about 40 % of one core busy, waiting on arms moving in real time. The tests that
 #: measure a speed or a hold (a joint's peak speed, a held-up executor, an estop's hold, moves
 #: between link cuts) go one after another in the `timing` lane; the browser tests and the

@@ -47,8 +47,8 @@ VIEWPORT = {"width": 1440, "height": 1000}
 TIP_TOL_REST_M = 0.002
 #: While moving (tip speed <= 0.15 m/s on the rbe3001): a batch and the page's frames, beyond
 #: the time between the server's state read before the page's and the page's
-#: (`segment_error`). The page shares the two cores with the serial part's other lane (make
-#: test): 31.6 mm once in a clean clone against 30 then, so 50 mm (about 330 ms of motion); a
+#: (`segment_error`). With the serial part in two lanes (`make test SERIAL_LANES=2`) the page
+#: shares the cores with the other lane: 31.6 mm once against 30 then, so 50 mm (330 ms); a
 #: page that fell behind for good (a queue that grows) is far beyond it, and at rest the
 #: check is to 2 mm.
 TIP_TOL_MOVING_M = 0.05
