@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -146,31 +146,36 @@ class Bus:
             if not self.port.read(4096):
                 break
 
-    def exchange(self, packet: bytes, window: float | None = None
-                 ) -> tuple[list[dxl.Packet], list[dxl.ParseError]]:
-        """Send `packet`; every status packet and framing error seen within `window`."""
-        self.port.reset_input_buffer()
-        self.port.write(packet)
+    def _events(self, end: float) -> Iterator[dxl.Packet | dxl.ParseError]:
+        """The packets and framing errors the port gives until `end` (garbage counted in
+        `garbage`, not given). One read begins after `end`: what came before it is read even
+        where this thread was held up past it (a busy machine), not dropped with the buffer."""
         parser = dxl.Parser()
-        got: list[dxl.Packet] = []
-        errors: list[dxl.ParseError] = []
-        end = time.monotonic() + (self.timeout if window is None else window)
         past = False
         while not past:
-            # one read begins after the window: what came within it is read even where this
-            # thread was held up past its end (a busy machine), not dropped with the buffer
             past = time.monotonic() >= end
             data = self.port.read(4096)
             if data:
                 parser.feed(data)
             while (ev := parser.next_event()) is not None:
-                if isinstance(ev, dxl.ParseError):
-                    if ev.kind != "garbage":
-                        errors.append(ev)
-                    else:
-                        self.garbage += 1
-                elif ev.instruction == dxl.Instruction.STATUS:
-                    got.append(ev)
+                if isinstance(ev, dxl.ParseError) and ev.kind == "garbage":
+                    self.garbage += 1
+                else:
+                    yield ev
+
+    def exchange(self, packet: bytes, window: float | None = None
+                 ) -> tuple[list[dxl.Packet], list[dxl.ParseError]]:
+        """Send `packet`; every status packet and framing error seen within `window`."""
+        self.port.reset_input_buffer()
+        self.port.write(packet)
+        got: list[dxl.Packet] = []
+        errors: list[dxl.ParseError] = []
+        end = time.monotonic() + (self.timeout if window is None else window)
+        for ev in self._events(end):
+            if isinstance(ev, dxl.ParseError):
+                errors.append(ev)
+            elif ev.instruction == dxl.Instruction.STATUS:
+                got.append(ev)
         return got, errors
 
     def one(self, packet: bytes, dxl_id: int, what: str, size: int | None = None
@@ -184,23 +189,14 @@ class Bus:
         errors: list[dxl.ParseError] = []
         self.port.reset_input_buffer()
         self.port.write(packet)
-        parser = dxl.Parser()
         garbage = self.garbage
-        past = False
-        while not past and not got:
-            past = time.monotonic() >= deadline  # a last read after it, as in `exchange`
-            data = self.port.read(4096)
-            if data:
-                parser.feed(data)
-            while (ev := parser.next_event()) is not None:
-                if isinstance(ev, dxl.ParseError):
-                    if ev.kind != "garbage":
-                        errors.append(ev)
-                    else:
-                        self.garbage += 1
-                elif (ev.instruction == dxl.Instruction.STATUS and ev.id == dxl_id
-                      and (size is None or len(ev.params) == size or ev.error)):
-                    got.append(ev)
+        for ev in self._events(deadline):
+            if isinstance(ev, dxl.ParseError):
+                errors.append(ev)
+            elif (ev.instruction == dxl.Instruction.STATUS and ev.id == dxl_id
+                  and (size is None or len(ev.params) == size or ev.error)):
+                got.append(ev)
+                break
         if not got:
             why = (f"garbled replies ({errors[0].kind}): two servos on ID {dxl_id}?"
                    if errors else f"garbled answers at {self.port.baudrate:,} bps: a servo at "
