@@ -21,7 +21,7 @@ from collections.abc import AsyncIterator
 
 import numpy as np
 import pytest
-from _tcp import serving
+from _tcp import LoopThread, serving
 from _wait import wait_for
 
 from app.arms.dynamixel.driver import DynamixelDriver
@@ -163,14 +163,34 @@ async def test_a_silent_device_goes_stale_and_the_thread_polls_again_once_it_ans
 async def test_a_late_status_reply_never_answers_a_later_poll_or_request():
     """As tests/test_rbe3001_hardware.py's test over the in-process link, over the thread: a
     STATUS times out, its reply comes later with the old reading while the arm reads 1000
-    ticks further on; no later answer, request or poll, is the old reading."""
-    fw = Rbe3001Firmware(load_profile("rbe3001"))
-    async with arm("rbe3001", fw) as (driver, _link, server):
-        server.set_faults(FaultConfig(latency_s=driver.timeout * 1.6))
-        with pytest.raises(DeviceTimeout):
-            await driver.status()
+    ticks further on; no later answer, request or poll, is the old reading.
+
+    The case made certain: the thread's poll times out while the owner task is held up (its
+    loop busy), a request is queued meanwhile, and the poll's reply comes within the
+    request's time. The board answers from a loop of its own, as a real one does. The
+    request must wait for the driver's quiet wait (which drops the late reply), so it times
+    out too; served before the failed poll was passed on, it took the poll's old reading."""
+    profile = load_profile("rbe3001")
+    fw = Rbe3001Firmware(profile)
+    board = LoopThread()
+    server = board.run(serve_tcp(fw))
+    link = ThreadLink(f"socket://127.0.0.1:{server.port}")
+    driver = Rbe3001Driver(profile, link, TelemetryHub("rbe3001"))
+    await driver.start()
+    try:
+        assert await driver.wait_connected(10.0), f"never connected: {link.last_error}"
+        await wait_for(lambda: link.armed, what="the thread polling on its own")
+        # a reply 1.9 timeouts late: after the poll's timeout, within a request's made then
+        server.set_faults(FaultConfig(latency_s=driver.timeout * 1.9))
+        deadline = time.monotonic() + 10.0
+        while link.clean or not link.prefetched:  # the owner task held up: no step of it runs
+            assert time.monotonic() < deadline, "the thread's poll never failed"
+            time.sleep(0.001)  # noqa: ASYNC251 - the loop held up on purpose
         fw.offset[0] += 1000.0  # the base encoder now reads 1000 ticks more ...
         fw.setpoint[0] += 1000.0  # ... and the controller holds it there
+        asked = asyncio.ensure_future(driver.status())  # queued before the owner task wakes
+        with pytest.raises(DeviceTimeout):
+            await asked
         await wait_for(lambda: fw.position_ticks[0] > 900.0, what="the encoder average")
         sub = driver.hub.subscribe()
         cleared = time.time()  # a reading taken from now on is the new one
@@ -190,6 +210,10 @@ async def test_a_late_status_reply_never_answers_a_later_poll_or_request():
         finally:
             sub.close()
         assert driver.stats["stale_replies"] >= 1  # the late ones were seen and dropped
+    finally:
+        await driver.close()
+        board.run(server.close())
+        board.stop()
 
 
 async def test_a_read_given_up_leaves_its_bytes_to_the_next(tmp_path):

@@ -240,8 +240,12 @@ class OwnerTask:
                 due = now >= next_poll - POLL_EARLY_S
                 # as `_session`: a queued request goes between two polls (replies the thread
                 # read ahead are polls made: it goes before their samples, an estop's hold
-                # waits for no sample), a poll a request asked for (`poll_after`) right after
-                if (not self._queue.empty() and not self._poll_now
+                # waits for no sample), a poll a request asked for (`poll_after`) right after;
+                # but not before a poll read ahead that failed: its reply may still come, and
+                # would answer the request (a STATUS's reply names no poll), so the driver
+                # takes the failure first and its quiet wait comes before the request
+                failed_ahead = link.prefetched and not link.clean
+                if (not self._queue.empty() and not self._poll_now and not failed_ahead
                         and (polled or not due or link.prefetched)):
                     polled = False
                     await self._serve(self._queue.get_nowait())

@@ -301,6 +301,14 @@ class ThreadLink(Link):
         return len(self._prefetched)
 
     @property
+    def clean(self) -> bool:
+        """The last exchange ended clean: every reply whole by its timeout. False after a poll
+        read ahead failed: its late reply may still come, so the driver's quiet wait must
+        come before anything else is written (the owner task passes the failed poll to the
+        driver before a queued request, app/device/owner.py)."""
+        return self._clean
+
+    @property
     def can_schedule(self) -> bool:
         """`arm` would poll: a poll request is known, the last exchange ended clean (every
         reply whole by its timeout, the last poll's among them) and the port has a descriptor
