@@ -21,11 +21,20 @@ from typing import Any
 
 import numpy as np
 
-#: Long enough for a loaded two-core machine; a test that passes waits far less.
-TIMEOUT_S = 10.0
+#: Long enough for a loaded two-core machine (CI's is slower than ours: a browser's page took
+#: over 10 s there once); a test that passes waits far less.
+TIMEOUT_S = 30.0
+
+#: What is waited for: words, or a function giving them at the deadline (the state then).
+What = str | Callable[[], str] | None
 
 
-def _describe(cond: Callable[..., Any], what: str | None) -> str:
+def _describe(cond: Callable[..., Any], what: What) -> str:
+    if callable(what):
+        try:
+            return what()
+        except Exception as exc:  # noqa: BLE001 - the description must not hide the timeout
+            return f"{_describe(cond, None)} (describing it failed: {exc!r})"
     if what:
         return what
     try:
@@ -34,7 +43,7 @@ def _describe(cond: Callable[..., Any], what: str | None) -> str:
         return repr(cond)
 
 
-async def wait_for(cond: Callable[[], Any], timeout: float = TIMEOUT_S, what: str | None = None,
+async def wait_for(cond: Callable[[], Any], timeout: float = TIMEOUT_S, what: What = None,
                    every: float = 0.01) -> Any:
     """Until `cond()` (sync, or returning an awaitable) is truthy: its value. After `timeout`
     seconds an AssertionError naming `what`; an exception raised by `cond` counts as "not yet"
@@ -56,7 +65,7 @@ async def wait_for(cond: Callable[[], Any], timeout: float = TIMEOUT_S, what: st
         await asyncio.sleep(every)
 
 
-def wait_until(cond: Callable[[], Any], timeout: float = TIMEOUT_S, what: str | None = None,
+def wait_until(cond: Callable[[], Any], timeout: float = TIMEOUT_S, what: What = None,
                every: float = 0.02) -> Any:
     """`wait_for` for plain threads (blocking)."""
     deadline = time.monotonic() + timeout

@@ -61,7 +61,13 @@ def test_camera_panel_calibrate_by_clicks_then_click_to_reach() -> None:
                 near = tip is not None and np.hypot(tip["x"] - x, tip["y"] - y) < 0.01
                 same = near and all(abs(tip[a] - now[a]) < 5e-4 for a in "xyz")
                 return tip if same else None
-            tip = wait_until(there, what=f"the page's tip at mark {k + 1}")
+            def seen(k: int = k) -> str:  # at the deadline: what the page had
+                dash = page.evaluate(f"window.armDashboard.state('{ARM}')")
+                link = {key: dash.get(key) for key in ("ws", "lastSeq", "gaps", "dropped")}
+                return (f"the page's tip at mark {k + 1}: the panel's {state()['tip']}, the "
+                        f"server's {svc.state()['tip']} (seq {svc.hub.latest['seq']}), the "
+                        f"page's telemetry {link}")
+            tip = wait_until(there, what=seen)
             # the marker is where the tip is: click its pixel
             u, v = view.project(np.array([tip["x"], tip["y"], tip["z"]]))
             click(float(u), float(v))
