@@ -312,6 +312,7 @@ class Arm {
     this.jogTimer = null;
     this.frames = 0;
     this.tipDrawn = null;
+    this.tipDrawnSeq = null;  // the sample it was drawn from (the tests' check)
     this.plotted = { positions: [], velocities: [] };
     this.lastEvent = null;
     this.build();
@@ -767,6 +768,7 @@ class Arm {
       pts = this.fkKnown ? chainPoints(this.detail.chain, q) : [[this.latest.tip.x, this.latest.tip.y, this.latest.tip.z]];
       const tip = pts[pts.length - 1];
       this.tipDrawn = { x: tip[0], y: tip[1], z: tip[2] };
+      this.tipDrawnSeq = this.latest.seq;
       this.el.tipText.textContent = `tip  x ${(tip[0] * 1000).toFixed(1)}  y ${(tip[1] * 1000).toFixed(1)}  z ${(tip[2] * 1000).toFixed(1)} mm`;
     }
     if (!this.visible) return;
@@ -1030,6 +1032,7 @@ class Arm {
     return {
       lastSeq: this.lastSeq,
       tipDrawn: this.tipDrawn,
+      tipDrawnSeq: this.tipDrawnSeq,
       plotted: this.plotted,
       frames: this.frames,
       visible: this.visible,
