@@ -212,10 +212,11 @@ def live_server() -> Iterator[LiveServer]:
 #: faults soak, whose moves must finish between link cuts). A single test of another file is
 #: marked `@pytest.mark.serial` where it is (the measured speed of test_envelope_props.py, the
 #: measured line deviation of test_motion.py).
+#: Every browser test (`pytest.mark.browser`) is serial too: beside four workers a page took
+#: four times as long as alone (the camera panel's 52 s against 13 s) and, on CI's slower host,
+#: over 10 s to draw an arm at rest (stop 35).
 SERIAL_FILES = frozenset({
-    "test_dashboard_e2e.py", "test_dashboard_classroom_e2e.py", "test_lab_view_e2e.py",
-    "test_omx_dashboard_e2e.py", "test_shutdown.py", "test_control.py", "test_tracking.py",
-    "test_soak.py", "test_replan.py",
+    "test_shutdown.py", "test_control.py", "test_tracking.py", "test_soak.py", "test_replan.py",
     # their practice bus answers from the server's own process: beside busy workers, a scan's
     # PING answered after the scan's window (the bus read as empty, a set-up left undone;
     # the README block's test twice in five runs beside six workers, session 14)
@@ -239,7 +240,7 @@ TIMING_LANE_FILES = frozenset({
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own, which reads the xdist_group marks
 def pytest_collection_modifyitems(config: Any, items: list[Any]) -> None:
     for item in items:
-        if item.path.name in SERIAL_FILES:
+        if item.path.name in SERIAL_FILES or item.get_closest_marker("browser") is not None:
             item.add_marker(pytest.mark.serial)
         if item.get_closest_marker("serial") is not None:
             lane = "timing" if item.path.name in TIMING_LANE_FILES else "browser"
