@@ -234,6 +234,8 @@ TIMING_LANE_FILES = frozenset({
     "test_safety_machine.py", "test_passthrough_safety.py", "test_passthrough_check_poll.py",
     "test_tracking.py", "test_motion.py", "test_envelope_props.py", "test_control.py",
     "test_replan.py", "test_soak.py",
+    # a replayed path judged against wall-clock servos (and the lanes then take about as long)
+    "test_replay.py", "test_replay_gripper.py", "test_replay_recording.py",
 })
 
 
