@@ -239,6 +239,16 @@ TIMING_LANE_FILES = frozenset({
 })
 
 
+#: The parallel part's longest files (`--durations=0`, session 15: 20-80 s each), handed to the
+#: workers first: `--dist loadfile` deals the files out in collection order, and one of them
+#: dealt last finishes after the rest (longest first keeps the workers' ends together).
+LONG_FILES_FIRST = (
+    "test_fuzz_api.py", "test_classroom_class.py", "test_drivers.py", "test_examples.py",
+    "test_sort_examples.py", "test_camera_sources.py", "test_fuzz_hostile.py",
+    "test_hardening.py", "test_envelope_props.py", "test_mqtt.py", "test_setup_servos.py",
+)
+
+
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own, which reads the xdist_group marks
 def pytest_collection_modifyitems(config: Any, items: list[Any]) -> None:
     for item in items:
@@ -247,6 +257,8 @@ def pytest_collection_modifyitems(config: Any, items: list[Any]) -> None:
         if item.get_closest_marker("serial") is not None:
             lane = "timing" if item.path.name in TIMING_LANE_FILES else "browser"
             item.add_marker(pytest.mark.xdist_group(lane))
+    first = {name: k for k, name in enumerate(LONG_FILES_FIRST)}
+    items.sort(key=lambda item: first.get(item.path.name, len(first)))  # stable: files whole
 
 
 # ---------------------------------------------------------------- strict skips
