@@ -61,7 +61,9 @@ def _parser() -> argparse.ArgumentParser:
                        "(/dev/ttyUSB0, a simulator's pty, socket://127.0.0.1:7000)")
     setup.add_argument("--profile", required=True, help="built-in profile name or TOML path")
     setup.add_argument("--joint", help="the joint whose servo is the one on the bus")
-    setup.add_argument("--timeout", type=float, default=0.1, help="reply timeout, s")
+    setup.add_argument("--timeout", type=float, default=0.1,
+                       help="how long a broadcast PING waits for answers, s (a servo heard "
+                            "has at least 1 s to answer a READ or a WRITE)")
     setup.add_argument("--baudrates", help="rates to scan, comma separated (default: every "
                        "standard rate, 57600 first)")
     setup.set_defaults(func=_setup_servos)

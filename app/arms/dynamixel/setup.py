@@ -52,6 +52,11 @@ FACTORY_RATE = 57_600
 SCAN_ORDER = (57_600, 1_000_000, 115_200, 9_600, 2_000_000, 3_000_000, 4_000_000, 4_500_000)
 #: Replies a broadcast PING waits for, at most (a bus of more: raise --timeout).
 SCAN_SERVOS = 20
+#: How long a servo already heard may take to answer, s, at least: spent only when one does
+#: not. A real servo answers within a millisecond or two; a simulated bus on a loaded machine
+#: answered after the 0.1 s broadcast window three times in one `make test-loaded` (session
+#: 15), and the set-up reported "no reply". Longer is only a slower failure.
+REPLY_TIMEOUT_S = 1.0
 #: Model numbers (Model Number (0)) this tool knows by name.
 MODELS = {30: "MX-28(2.0)", 1020: "XM430-W350", 1030: "XM430-W210"}
 #: The exit codes of `armserver setup-servos`.
@@ -118,15 +123,17 @@ class Bus:
     def __init__(self, url: str, baudrate: int = 57_600, timeout: float = 0.1,
                  opener: Callable[..., Any] | None = None,
                  reply_timeout: float | None = None) -> None:
-        """`timeout`: how long a broadcast waits for answers; `reply_timeout` (default the
-        same): how long a servo already heard may take to answer (only spent on a failure)."""
+        """`timeout`: how long a broadcast waits for answers; `reply_timeout` (default
+        `timeout`, at least REPLY_TIMEOUT_S): how long a servo already heard may take to
+        answer (only spent on a failure)."""
         if opener is None:
             import serial
 
             opener = serial.serial_for_url
         self.url = url
         self.timeout = timeout
-        self.reply_timeout = timeout if reply_timeout is None else reply_timeout
+        self.reply_timeout = (max(timeout, REPLY_TIMEOUT_S) if reply_timeout is None
+                              else reply_timeout)
         #: Bytes skipped as no packet's, counted (garbled answers, told apart from silence).
         self.garbage = 0
         self.port = opener(url, baudrate=baudrate, timeout=0.005, exclusive=True) \
