@@ -44,13 +44,19 @@ DRIVERS = {"rbe3001": Rbe3001Driver, "angler": DynamixelDriver}
 
 
 @contextlib.asynccontextmanager
-async def arm(name: str, device=None, **faults) -> AsyncIterator[tuple[Driver, ThreadLink, object]]:
+async def arm(name: str, device=None, pty=None, **faults
+              ) -> AsyncIterator[tuple[Driver, ThreadLink, object]]:
     """A driver over a ThreadLink to `device` (default: the arm type's simulator) served on a
-    loopback socket."""
+    loopback socket, or on a pseudo-terminal at `pty` (a path)."""
     profile = load_profile(name)
     device = device or make_sim_device(profile)
-    server = await serve_tcp(device, faults=FaultConfig(**faults) if faults else None)
-    link = ThreadLink(f"socket://127.0.0.1:{server.port}")
+    fc = FaultConfig(**faults) if faults else None
+    if pty is not None:
+        server = await serve_pty(device, pty, faults=fc)
+        link = ThreadLink(str(pty))
+    else:
+        server = await serve_tcp(device, faults=fc)
+        link = ThreadLink(f"socket://127.0.0.1:{server.port}")
     driver = DRIVERS[name](profile, link, TelemetryHub(name))
     await driver.start()
     try:
@@ -140,8 +146,14 @@ async def test_the_angler_register_write_is_read_back_by_the_poll_after_it():
         assert link.stats["scheduled"] > 0
 
 
-async def test_a_silent_device_goes_stale_and_the_thread_polls_again_once_it_answers():
-    async with arm("rbe3001") as (driver, link, server):
+@pytest.mark.parametrize("over", ["socket", "pty"])
+async def test_a_silent_device_goes_stale_and_the_thread_polls_again_once_it_answers(
+        over: str, tmp_path) -> None:
+    """Over a pty too: a tty read with nothing to read answers 0 bytes (VMIN 0), not EAGAIN.
+    The poll thread's last read at a poll's deadline took that for a peer's end of file, and
+    a device that answered late (a loaded machine) cost the link: "closed by the peer"."""
+    pty = tmp_path / "ttyRBE" if over == "pty" else None
+    async with arm("rbe3001", pty=pty) as (driver, link, server):
         sub = driver.hub.subscribe()
         try:
             server.set_faults(FaultConfig(drop=1.0))
@@ -155,6 +167,7 @@ async def test_a_silent_device_goes_stale_and_the_thread_polls_again_once_it_ans
             _, events, _ = sub.take()
             assert any('"device_stale"' in e for e in events)
             assert any('"device_back"' in e for e in events)
+            assert not any('"link_lost"' in e for e in events), events  # a timeout, no more
             assert link.state is LinkState.UP
         finally:
             sub.close()

@@ -213,7 +213,7 @@ class PollThread:
                 # a thread that got the GIL back only after its wait timed out (a loaded
                 # machine) finds the reply there, and takes it
                 try:
-                    self._read(f)
+                    self._read(f, ready=False)
                 except (OSError, PollLost) as exc:
                     self._finish(f, exc, handover, flights)
                     continue
@@ -251,7 +251,10 @@ class PollThread:
             n = 0
         f.out = f.out[n:] if n < len(f.out) else b""
 
-    def _read(self, f: _Flight) -> None:
+    def _read(self, f: _Flight, ready: bool = True) -> None:
+        """What `f`'s port has; `ready`: poll said it had something. Nothing read where it
+        said so is a lost port (a socket's end, a tty whose other end is gone); nothing read
+        unasked is nothing yet: a tty with no input reads 0 bytes (VMIN 0), not EAGAIN."""
         try:
             data = os.read(f.fd, READ_CHUNK)
         except BlockingIOError:
@@ -260,8 +263,10 @@ class PollThread:
             if exc.errno == errno.EAGAIN:
                 return
             raise
-        if not data:  # ready and nothing: a socket's end, a tty whose other end is gone
-            raise PollLost("closed by the peer (end of file)")
+        if not data:
+            if ready:
+                raise PollLost("closed by the peer (end of file)")
+            return
         f.data = f.data + data if f.data else data
 
     def _finish(self, f: _Flight, error: BaseException | None,
