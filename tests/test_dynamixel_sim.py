@@ -6,12 +6,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import sys
-import threading
 import time
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import _tcp
 import pytest
 from dynamixel_sdk import (
     COMM_RX_TIMEOUT,
@@ -181,7 +181,7 @@ def test_motion_trapezoid_torque_gating_and_velocity_mode() -> None:
 
 # over a real pseudo-terminal with DynamixelSDK --------------------------------------------------
 
-class LoopThread:
+class LoopThread(_tcp.LoopThread):
     """An asyncio loop in a thread, so the SDK's blocking, busy-polling calls run here.
 
     The SDK polls the port without sleeping, holding the GIL; with the default 5 ms switch
@@ -192,17 +192,10 @@ class LoopThread:
     def __init__(self) -> None:
         self._switch = sys.getswitchinterval()
         sys.setswitchinterval(2e-4)
-        self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
-        self.thread.start()
-
-    def run(self, coro: Coroutine[Any, Any, Any]) -> Any:
-        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout=10)
+        super().__init__()
 
     def stop(self) -> None:
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(timeout=5)
-        self.loop.close()
+        super().stop()
         sys.setswitchinterval(self._switch)
 
 
