@@ -199,6 +199,9 @@ async def test_a_late_status_reply_never_answers_a_later_poll_or_request():
         while link.clean or not link.prefetched:  # the owner task held up: no step of it runs
             assert time.monotonic() < deadline, "the thread's poll never failed"
             time.sleep(0.001)  # noqa: ASYNC251 - the loop held up on purpose
+        # the request's own reply never comes (however late the loop looks): only the poll's
+        # can answer it, and must not
+        server.set_faults(FaultConfig(drop=1.0))
         fw.offset[0] += 1000.0  # the base encoder now reads 1000 ticks more ...
         fw.setpoint[0] += 1000.0  # ... and the controller holds it there
         asked = asyncio.ensure_future(driver.status())  # queued before the owner task wakes
