@@ -650,6 +650,10 @@ class ArmService:
 
     async def _release_estop(self) -> s.EstopState:
         if self.guard.release():
+            # As the latch: the release shows at once, in a sample of the latest reading, so a
+            # client that reads the state after the DELETE sees it (an arm at rest publishes
+            # its repeats in batches; its latest sample could still say latched).
+            self.driver.publish_state()
             log.info("%s: emergency stop released", self.name)
             self.hub.event("estop_released", latched=False)
         return s.EstopState(estop=False)

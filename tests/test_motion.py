@@ -145,6 +145,8 @@ async def test_estop_latches_refuses_moves_and_release_reenables(rbe):
     np.testing.assert_allclose(rbe.driver.positions, held, atol=0.05)
     assert rbe.hub.latest["estop"] is True
     await rbe.release_estop()
+    # at once, as the latch: a client that reads the state after the release sees it released
+    assert rbe.hub.latest["estop"] is False
     m2 = await rbe.motion.move_joints(s.MoveJoints(positions=[0.0, 0.7, 0.4]))
     await m2.wait()
     assert m2.status == "done"
