@@ -121,19 +121,17 @@ class Bus:
     """A blocking Protocol 2.0 exchange on one pyserial port."""
 
     def __init__(self, url: str, baudrate: int = 57_600, timeout: float = 0.1,
-                 opener: Callable[..., Any] | None = None,
-                 reply_timeout: float | None = None) -> None:
-        """`timeout`: how long a broadcast waits for answers; `reply_timeout` (default
-        `timeout`, at least REPLY_TIMEOUT_S): how long a servo already heard may take to
-        answer (only spent on a failure)."""
+                 opener: Callable[..., Any] | None = None) -> None:
+        """`timeout`: how long a broadcast waits for answers; a servo already heard may take
+        that long to answer, REPLY_TIMEOUT_S at least (`reply_timeout`: only spent on a
+        failure)."""
         if opener is None:
             import serial
 
             opener = serial.serial_for_url
         self.url = url
         self.timeout = timeout
-        self.reply_timeout = (max(timeout, REPLY_TIMEOUT_S) if reply_timeout is None
-                              else reply_timeout)
+        self.reply_timeout = max(timeout, REPLY_TIMEOUT_S)
         #: Bytes skipped as no packet's, counted (garbled answers, told apart from silence).
         self.garbage = 0
         self.port = opener(url, baudrate=baudrate, timeout=0.005, exclusive=True) \
@@ -325,15 +323,14 @@ def others_in_place(profile: ArmProfile, joint: str, found: list[Found]) -> dict
 
 def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 0.1,
                  rates: Iterable[int] = SCAN_ORDER, say: Callable[[str], None] = print,
-                 opener: Callable[..., Any] | None = None,
-                 reply_timeout: float | None = None) -> Found:
+                 opener: Callable[..., Any] | None = None) -> Found:
     """Find the one servo on the bus that is not another joint's (its ID at the profile's
     rate: never touched), give it `joint`'s ID, baud rate, operating mode and limits (EEPROM,
     torque off) and verify them. SetupError with the reason and exit code when there is no
     such servo, several (two on the joint's ID among them), a collision (two on one ID at one
     rate), a servo with torque on, or a value that does not read back."""
     want = wanted(profile, joint)
-    bus = Bus(url, timeout=timeout, opener=opener, reply_timeout=reply_timeout)
+    bus = Bus(url, timeout=timeout, opener=opener)
     try:
         result = scan(bus, rates)
         for f in result.found:
@@ -389,10 +386,9 @@ def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 
 
 
 def scan_port(url: str, *, timeout: float = 0.1, rates: Iterable[int] = SCAN_ORDER,
-              opener: Callable[..., Any] | None = None,
-              reply_timeout: float | None = None) -> Scan:
+              opener: Callable[..., Any] | None = None) -> Scan:
     """Open `url`, scan it (`scan`) and close it."""
-    bus = Bus(url, timeout=timeout, opener=opener, reply_timeout=reply_timeout)
+    bus = Bus(url, timeout=timeout, opener=opener)
     try:
         return scan(bus, rates)
     finally:

@@ -202,9 +202,9 @@ def _rates(req: s.ServoScanRequest) -> tuple[int, ...]:
     return tuple(req.baudrates) if req.baudrates else setup.SCAN_ORDER
 
 
-def _timeouts(req: s.ServoScanRequest) -> dict[str, float]:
-    timeout = req.timeout or TIMEOUT_S
-    return {"timeout": timeout}  # (a servo heard: setup.REPLY_TIMEOUT_S at least)
+def _timeout(req: s.ServoScanRequest) -> float:
+    """The broadcast's window (a servo heard has setup.REPLY_TIMEOUT_S at least)."""
+    return req.timeout or TIMEOUT_S
 
 
 async def _run_setup(request: Request, fn: Any, *args: Any, **kw: Any) -> Any:
@@ -262,7 +262,7 @@ async def scan_servos(request: Request, req: s.ServoScanRequest,
                       _: InstructorRole) -> s.ServoScan:
     profile = _checked(request, req)
     result: setup.Scan = await _run_setup(request, setup.scan_port, req.port,
-                                          rates=_rates(req), **_timeouts(req))
+                                          rates=_rates(req), timeout=_timeout(req))
     servos = [_found(profile, f) for f in result.found]
     placed = {f.joint for f in servos if f.joint is not None}
     return s.ServoScan(port=req.port, profile=profile.name, servos=servos,
@@ -291,7 +291,7 @@ async def assign_servo(request: Request, req: s.ServoAssignRequest,
     said: list[str] = []
     done: setup.Found = await _run_setup(request, setup.set_up_joint, req.port, profile,
                                          req.joint, rates=_rates(req), say=said.append,
-                                         **_timeouts(req))
+                                         timeout=_timeout(req))
     return s.ServoAssigned(port=req.port, profile=profile.name, joint=req.joint,
                            servo=_found(profile, done), said=said)
 
