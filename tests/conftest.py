@@ -204,28 +204,28 @@ def live_server() -> Iterator[LiveServer]:
         yield live
 
 
-#: Files whose tests run after the parallel part of `make test` (pytest-xdist), in two lanes: the
-#: browser tests (Chromium under two busy workers stalls) and the tests that time the server
-#: itself (a bounded shutdown, a held-up executor (test_control.py, test_replan.py: the hold-up
-#: is the scenario and its setpoints' speed is measured), the measured peak speed of a device
-#: tracking a plan: a PID catching up after a tick that two busy workers held up overshoots; the
-#: faults soak, whose moves must finish between link cuts). A single test of another file is
-#: marked `@pytest.mark.serial` where it is (the measured speed of test_envelope_props.py, the
-#: measured line deviation of test_motion.py).
-#: Every browser test (`pytest.mark.browser`) is serial too: beside four workers a page took
-#: four times as long as alone (the camera panel's 52 s against 13 s) and, on CI's slower host,
-#: over 10 s to draw an arm at rest (stop 35).
+#: Files whose tests run after the parallel part of `make test` (pytest-xdist), besides every
+#: browser test (`pytest.mark.browser`: beside four workers a page took four times as long as
+#: alone, the camera panel's 52 s against 13 s, and on CI's slower host over 10 s to draw an arm
+#: at rest, stop 35): the tests that time the server itself (a bounded shutdown, a held-up
+#: executor (test_control.py, test_replan.py: the hold-up is the scenario and its setpoints'
+#: speed is measured), the measured peak speed of a device tracking a plan: a PID catching up
+#: after a tick that two busy workers held up overshoots; the faults soak, whose moves must
+#: finish between link cuts). A single test of another file is marked `@pytest.mark.serial`
+#: where it is (the measured speed of test_envelope_props.py, the measured line deviation of
+#: test_motion.py).
 SERIAL_FILES = frozenset({
     "test_shutdown.py", "test_control.py", "test_tracking.py", "test_soak.py", "test_replan.py",
-    # their practice bus answers from the server's own process: beside busy workers, a scan's
-    # PING answered after the scan's window (the bus read as empty, a set-up left undone;
-    # the README block's test twice in five runs beside six workers, session 14)
+    # the practice bus: beside six busy workers a scan's PING was answered after the scan's
+    # window (the README block's test twice in five runs, session 14, when the bus answered
+    # from the server's own process); kept here until runs beside busy workers show the bus
+    # in its own process holds
     "test_setup_servos_e2e.py", "test_setup_servos_readme.py", "test_setup_servos_routes.py",
 })
 
 
-#: With `make test SERIAL_LANES=2` the serial part runs in two lanes side by side (`-n 2
-#: --dist loadgroup`; without it, one test at a time, the default): it keeps the
+#: `make test` runs the serial part in two lanes side by side (SERIAL_LANES=2, the default:
+#: `-n 2 --dist loadgroup`; SERIAL_LANES=1, one test at a time): each lane keeps the
 #: machine about 40 % of one core busy, waiting on arms moving in real time. The tests that
 #: measure a speed or a hold (a joint's peak speed, a held-up executor, an estop's hold, moves
 #: between link cuts) go one after another in the `timing` lane; the browser tests and the
@@ -239,16 +239,6 @@ TIMING_LANE_FILES = frozenset({
 })
 
 
-#: The parallel part's longest files (`--durations=0`, session 15: 20-80 s each), handed to the
-#: workers first: `--dist loadfile` deals the files out in collection order, and one of them
-#: dealt last finishes after the rest (longest first keeps the workers' ends together).
-LONG_FILES_FIRST = (
-    "test_fuzz_api.py", "test_classroom_class.py", "test_drivers.py", "test_examples.py",
-    "test_sort_examples.py", "test_camera_sources.py", "test_fuzz_hostile.py",
-    "test_hardening.py", "test_envelope_props.py", "test_mqtt.py", "test_setup_servos.py",
-)
-
-
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own, which reads the xdist_group marks
 def pytest_collection_modifyitems(config: Any, items: list[Any]) -> None:
     for item in items:
@@ -257,8 +247,6 @@ def pytest_collection_modifyitems(config: Any, items: list[Any]) -> None:
         if item.get_closest_marker("serial") is not None:
             lane = "timing" if item.path.name in TIMING_LANE_FILES else "browser"
             item.add_marker(pytest.mark.xdist_group(lane))
-    first = {name: k for k, name in enumerate(LONG_FILES_FIRST)}
-    items.sort(key=lambda item: first.get(item.path.name, len(first)))  # stable: files whole
 
 
 # ---------------------------------------------------------------- strict skips
