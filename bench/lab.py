@@ -31,6 +31,13 @@ while every arm runs at its poll rate prints:
   back and forth, once with both arms on one worker and once with the leader on the other
   worker (read over its worker's telemetry socket: the hop is the difference).
 
+The simulators run at niceness `--sims-nice` (default 19): they stand in for devices that
+compute on processors of their own, so they take what CPU the server leaves and never hold a
+core the server's threads want (what issue 27's first table got by pinning them to the other
+core; `--pin` below). `--sims-nice 0` runs them as the server's equals: on two cores they then
+delay the server's wake-ups by their own (at 32 arms, estop seen p99 14.6 / 15.9 ms against
+10.2 / 7.1 ms niced, runs alternated on one busy hour, 27 Nov 2026).
+
 `--pin` puts the server's processes on core 0 and the simulators and this client on the
 others (as issue 27's table was measured). The figures need a quiet machine: on a shared one,
 quote ratios from one run, not these numbers.
@@ -330,6 +337,9 @@ def main() -> int:
     p.add_argument("--per-sim", type=int, default=16, metavar="K",
                    help="arms each simulator process serves (one device and address each, "
                         "one process's loop for all: `armserver sim MODEL --listen A --listen B`)")
+    p.add_argument("--sims-nice", type=int, default=19, metavar="N",
+                   help="the simulators' niceness (19: they take what the server leaves, as "
+                        "devices with processors of their own; 0: the server's equals)")
     p.add_argument("--pin", action="store_true",
                    help="server on core 0; simulators and this client on the others")
     p.add_argument("--io", choices=("thread", "asyncio"), default="thread",
@@ -347,8 +357,9 @@ def main() -> int:
     for k in range(0, args.arms, per):  # one simulator process serves `per` arms
         listen = [a for port in ports[1 + k:1 + k + per]
                   for a in ("--listen", f"tcp://127.0.0.1:{port}")]
-        sims.append(subprocess.Popen(
-            [sys.executable, "-m", "app.cli", "sim", args.model, *listen], cwd=ROOT, env=env,
+        sims.append(subprocess.Popen(  # (nice: every thread of the simulator inherits it)
+            ["nice", "-n", str(args.sims_nice), sys.executable, "-m", "app.cli", "sim",
+             args.model, *listen], cwd=ROOT, env=env,
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
     for i, port in enumerate(ports[1:]):
         config.append(f'[[arms]]\nprofile = "{args.model}"\nname = "arm-{i + 1}"\n'
@@ -374,7 +385,8 @@ def main() -> int:
                 os.sched_setaffinity(pid, {cpus[0]})
         time.sleep(1.0)  # past start-up's bursts
         print(f"{args.arms} {args.model} arms, {args.workers} worker(s), {args.seconds:.0f} s"
-              f"{', pinned' if args.pin else ''}; before the arms ran: {machine}")
+              f"{', pinned' if args.pin else ''}, simulators at nice {args.sims_nice}; before "
+              f"the arms ran: {machine}")
         uds = _worker_socket(pids) if args.workers > 1 else None
         asyncio.run(measure(url, [f"arm-{i + 1}" for i in range(args.arms)], args.seconds,
                             args.presses, uds, pids, [p.pid for p in sims]))
