@@ -1,11 +1,10 @@
 """What the dashboard's browser tests share: Chromium (found by tests/_deps.py, as the Makefile
 finds it) and its flags, playwright's sync API, the skip when either is missing (a failure
-under ARMSERVER_STRICT_SKIPS: `make test` installs both), and a bounded poll of the page."""
+under ARMSERVER_STRICT_SKIPS: `make test` installs both) and a page to test. Their waits are
+tests/_wait.py's `wait_until`."""
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from types import ModuleType
 from typing import Any
 
@@ -27,21 +26,6 @@ def sync_api_or_skip() -> ModuleType:
                     allow_module_level=True)
     return pytest.importorskip("playwright.sync_api",
                                reason="the playwright package is missing")
-
-
-def poll(fn: Callable[[], Any], what: str, timeout: float = 20.0) -> Any:
-    """`fn()`'s first truthy value within `timeout` s; an exception (a page mid-render) counts
-    as not yet. AssertionError naming `what` at the deadline."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            value = fn()
-        except Exception:  # noqa: BLE001 - retried until the deadline
-            value = None
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out: {what}")
 
 
 def open_page(pw: Any, url: str, viewport: dict[str, int] | None = None) -> tuple[Any, list[str]]:

@@ -5,13 +5,12 @@ on the simulated board as it ships (not calibrated, powered on in its jig)."""
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import _browser
 import httpx
 import pytest
+from _wait import wait_until
 from conftest import serve_live
 
 from app.arms.loading import load_arms
@@ -23,25 +22,21 @@ CONFIG = Path(__file__).resolve().parents[1] / "config" / "rbe3001-day-one.examp
 sync_api = _browser.sync_api_or_skip()
 
 
-def wait_for(fn: Callable[[], Any], what: str, timeout: float = 15.0) -> Any:
-    return _browser.poll(fn, what, timeout)
-
-
 def test_the_panel_leads_through_declaring_the_jig_pose() -> None:
     with serve_live(profiles=load_arms(str(CONFIG))) as live, \
             sync_api.sync_playwright() as pw:
         page, errors = _browser.open_page(pw, live.url + "/", {"width": 1440, "height": 1000})
         joints = page.locator("#rbe3001-cal-joints")
-        wait_for(lambda: joints.get_attribute("data-calibrated") == "[false,false,false]",
-                 "the panel shows no joint calibrated")
+        wait_until(lambda: joints.get_attribute("data-calibrated") == "[false,false,false]",
+                   what="the panel shows no joint calibrated")
         steps = page.locator("#rbe3001-cal-steps").inner_text()
         assert "Not calibrated on this hardware: base, shoulder, elbow" in steps
         assert "jig" in steps
         assert page.locator("#rbe3001-cal-pose").input_value() == "jig"
 
         page.click("#rbe3001-cal-declare")
-        wait_for(lambda: joints.get_attribute("data-calibrated") == "[true,true,true]",
-                 "the panel shows every joint calibrated")
+        wait_until(lambda: joints.get_attribute("data-calibrated") == "[true,true,true]",
+                   what="the panel shows every joint calibrated")
         assert "calibrated" in page.locator("#rbe3001-cal-note").inner_text()
         cal = httpx.get(f"{live.url}/api/v1/arms/rbe3001/calibration", timeout=5).json()
         assert [j["source"] for j in cal["joints"]] == ["declared"] * 3 and cal["stored"]

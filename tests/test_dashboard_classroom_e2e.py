@@ -12,8 +12,9 @@ from typing import Any
 
 import httpx
 import pytest
+from _wait import wait_until
 from conftest import OPERATOR, make_settings
-from test_dashboard_e2e import OUT, VIEWPORT, browser, serving, shot, wait_for  # noqa: F401
+from test_dashboard_e2e import OUT, VIEWPORT, browser, serving, shot  # noqa: F401
 
 pytestmark = pytest.mark.browser
 
@@ -51,17 +52,17 @@ def test_join_take_turn_renew_and_instructor_revoke(browser: Any) -> None:  # no
         pg = open_as(browser, srv.url, ALICE, errors)
         teach = None
         try:
-            wait_for(lambda: classroom(pg, "angler").get("data"), 15, "the queue panel")
+            wait_until(lambda: classroom(pg, "angler").get("data"), what="the queue panel")
             assert classroom(pg, "angler")["me"] == {"name": "alice", "role": "operator"}
             assert pg.is_hidden("#angler-queue-instructor")
             pg.click("#angler-queue-join")
-            wait_for(lambda: pg.is_visible("#angler-queue-claim"), 10, "the offer shown")
+            wait_until(lambda: pg.is_visible("#angler-queue-claim"), what="the offer shown")
             pg.click("#angler-queue-claim")
-            wait_for(lambda: classroom(pg, "angler").get("lease"), 10, "the lease claimed")
+            wait_until(lambda: classroom(pg, "angler").get("lease"), what="the lease claimed")
             time.sleep(2.3 * LEASE_TTL_S)  # under test: over two ttls, only renewals keep it
             q = queue()
             assert q["holder"] == "alice" and q["entries"][0]["status"] == "holding"
-            wait_for(lambda: "held by alice" in pg.inner_text("#angler-holder"), 5, "holder")
+            wait_until(lambda: "held by alice" in pg.inner_text("#angler-holder"), what="holder")
             # the page's requests carry the lease: a move from the page is accepted
             status = pg.evaluate("""async () => {
                 const r = await fetch('/api/v1/arms/angler/move/joints', {method: 'POST',
@@ -74,13 +75,13 @@ def test_join_take_turn_renew_and_instructor_revoke(browser: Any) -> None:  # no
             # the instructor revokes from their page
             # (opened only now: Chromium slows the timers of a page in the background)
             teach = open_as(browser, srv.url, TEACH, errors)
-            wait_for(lambda: teach.is_visible("#angler-queue-revoke"), 15, "instructor controls")
+            wait_until(lambda: teach.is_visible("#angler-queue-revoke"), what="instructor controls")
             shot(teach, "08-classroom")
             teach.click("#angler-queue-revoke")
-            wait_for(lambda: queue()["holder"] is None, 10, "the lease revoked")
-            wait_for(lambda: classroom(pg, "angler").get("lease") is None, 10,
-                     "the student's page dropped the lease")
-            wait_for(lambda: pg.is_visible("#angler-queue-join"), 10, "join offered again")
+            wait_until(lambda: queue()["holder"] is None, what="the lease revoked")
+            wait_until(lambda: classroom(pg, "angler").get("lease") is None,
+                       what="the student's page dropped the lease")
+            wait_until(lambda: pg.is_visible("#angler-queue-join"), what="join offered again")
         finally:
             pg.close()
             if teach is not None:

@@ -22,7 +22,7 @@ import shutil
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,7 @@ import _browser
 import httpx
 import pytest
 import uvicorn
+from _wait import wait_until
 from conftest import OPERATOR, make_settings
 
 from app.web.factory import create_app
@@ -83,10 +84,11 @@ class Server:
         self._server = server = ArmServer(config, app)  # the real server's shutdown
         self._thread = threading.Thread(target=server.run, name="dashboard-uvicorn", daemon=True)
         self._thread.start()
-        wait_for(lambda: server.started, 15, "uvicorn did not start")
+        wait_until(lambda: server.started, what="uvicorn did not start")
         headers = {"Authorization": f"Bearer {OPERATOR}"} if self.settings.auth_enabled else {}
-        wait_for(lambda: httpx.get(f"{self.url}/api/v1/arms/rbe3001/state", headers=headers,
-                                   timeout=2).status_code == 200, 15, "no sample from the arm")
+        wait_until(lambda: httpx.get(f"{self.url}/api/v1/arms/rbe3001/state", headers=headers,
+                                     timeout=2).status_code == 200,
+                   what="no sample from the arm")
 
     def stop(self) -> None:
         if self._server is not None:
@@ -107,21 +109,6 @@ def serving(settings: Any = None) -> Iterator[Server]:
         yield server
     finally:
         server.stop()
-
-
-def wait_for(fn: Callable[[], Any], timeout: float, what: str, every: float = 0.05) -> Any:
-    deadline = time.monotonic() + timeout
-    last_exc: Exception | None = None
-    while time.monotonic() < deadline:
-        try:
-            value = fn()
-        except Exception as exc:  # noqa: BLE001 - retried until the deadline, then reported
-            last_exc = exc
-            value = None
-        if value:
-            return value
-        time.sleep(every)
-    raise AssertionError(f"timed out: {what}" + (f" (last error: {last_exc})" if last_exc else ""))
 
 
 # ---------------------------------------------------------------- fixtures
@@ -148,8 +135,9 @@ def page(server: Server, browser: Any) -> Iterator[Any]:
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
     pg.goto(server.url + "/")
-    wait_for(lambda: dash(pg, "rbe3001") and dash(pg, "rbe3001")["lastSeq"] is not None
-             and dash(pg, "angler")["lastSeq"] is not None, 15, "telemetry on the page")
+    wait_until(lambda: dash(pg, "rbe3001") and dash(pg, "rbe3001")["lastSeq"] is not None
+               and dash(pg, "angler")["lastSeq"] is not None,
+               what="telemetry on the page")
     yield pg
     pg.close()
     assert not errors, f"uncaught errors in the page: {errors}"
@@ -171,7 +159,7 @@ def at_rest(server: Server, arm: str = "rbe3001") -> dict[str, Any]:
         m = st["motion"]
         busy = m is not None and m["status"] in ("queued", "running")
         return None if busy or max(map(abs, st["velocities"])) > 1e-3 else st
-    return wait_for(still, 15, f"{arm} at rest")
+    return wait_until(still, what=f"{arm} at rest")
 
 
 def tip_error(drawn: dict[str, float], tip: dict[str, float]) -> float:
@@ -183,12 +171,12 @@ def assert_page_matches_server(pg: Any, server: Server) -> None:
     # an arm card out of sight is not drawn: the rbe3001's in view (a click on another arm's
     # card scrolls the page, and the cards are taller since the camera and calibration panels)
     pg.locator("#rbe3001-card").scroll_into_view_if_needed()
-    wait_for(lambda: dash(pg, "rbe3001")["visible"], 5, "the rbe3001 card in sight")
+    wait_until(lambda: dash(pg, "rbe3001")["visible"], what="the rbe3001 card in sight")
     st = at_rest(server)
     frames = dash(pg, "rbe3001")["frames"]
     # wait for telemetry newer than the state read, then for a frame drawn from it
-    wait_for(lambda: dash(pg, "rbe3001")["lastSeq"] > st["seq"], 5, "newer telemetry")
-    wait_for(lambda: dash(pg, "rbe3001")["frames"] > frames + 2, 5, "frames drawn")
+    wait_until(lambda: dash(pg, "rbe3001")["lastSeq"] > st["seq"], what="newer telemetry")
+    wait_until(lambda: dash(pg, "rbe3001")["frames"] > frames + 2, what="frames drawn")
     d = dash(pg, "rbe3001")
     assert tip_error(d["tipDrawn"], st["tip"]) < TIP_TOL_REST_M, (d["tipDrawn"], st["tip"])
     for plotted, actual in zip(d["plotted"]["positions"], st["positions"], strict=True):
@@ -209,8 +197,9 @@ def test_page_draws_and_plots_the_telemetry(page: Any, server: Server) -> None:
     assert d0["ws"] == "live"
     time.sleep(1.0)  # the window the counts below are judged over (at least a second)
     # a loaded machine may draw and deliver less in a second: wait for the counts, bounded
-    d1 = wait_for(lambda: (d := dash(page, "rbe3001"))["lastSeq"] - d0["lastSeq"] > 50
-                  and d["frames"] - d0["frames"] > 3 and d, 10, "samples and frames")
+    d1 = wait_until(lambda: (d := dash(page, "rbe3001"))["lastSeq"] - d0["lastSeq"] > 50
+                    and d["frames"] - d0["frames"] > 3 and d,
+                    what="samples and frames")
     # drawn once per animation frame, not once per sample: 500 Hz of samples, ~60 frames a second
     # (the bounds are loose: a loaded two-core test machine runs slower than a laptop)
     samples = d1["lastSeq"] - d0["lastSeq"]
@@ -233,8 +222,8 @@ def test_jog_buttons_move_the_joint(page: Any, server: Server) -> None:
     page.click("#rbe3001-jog-0-plus")
     page.click("#rbe3001-jog-0-plus")  # a quick second click adds to the first
     want = before[0] + 2 * math.radians(5)
-    wait_for(lambda: abs(api(server, "GET", "/arms/rbe3001/state")["positions"][0] - want) < 0.01,
-             10, f"base at {want:.3f} rad")
+    wait_until(lambda: abs(api(server, "GET", "/arms/rbe3001/state")["positions"][0] - want) < 0.01,
+               what=f"base at {want:.3f} rad")
     after = at_rest(server)["positions"]
     assert abs(after[0] - want) < 0.01 and all(abs(a - b) < 0.01 for a, b in
                                                zip(after[1:], before[1:], strict=True))
@@ -249,7 +238,7 @@ def test_plan_shows_the_path_then_run_moves_the_arm(page: Any, server: Server) -
     page.fill("#rbe3001-target-z", str(z))
     page.select_option("#rbe3001-path", "line")
     page.click("#rbe3001-plan")
-    wait_for(lambda: dash(page, "rbe3001")["plannedPath"] > 1, 5, "planned path drawn")
+    wait_until(lambda: dash(page, "rbe3001")["plannedPath"] > 1, what="planned path drawn")
     assert page.is_enabled("#rbe3001-run")
     assert "straight line" in page.inner_text("#rbe3001-plan-text")
     shot(page, "01-planned")
@@ -305,7 +294,7 @@ def test_unreachable_target_is_refused_in_words(page: Any) -> None:
     page.fill("#rbe3001-target-z", str(z))
     page.click("#rbe3001-plan")
     err = page.locator("#rbe3001-pose-error")
-    wait_for(lambda: err.inner_text() != "", 5, "error shown")
+    wait_until(lambda: err.inner_text() != "", what="error shown")
     assert err.get_attribute("data-code") == "unreachable"
     text = err.inner_text()
     assert text.startswith("Out of reach:") and len(text) > len("Out of reach: ") + 10, text
@@ -315,24 +304,27 @@ def test_unreachable_target_is_refused_in_words(page: Any) -> None:
 
 def test_emergency_stop_latches_shows_and_releases(page: Any, server: Server) -> None:
     page.click("#estop-button")
-    wait_for(lambda: api(server, "GET", "/arms/rbe3001")["estop"], 5, "estop latched on the server")
+    wait_until(lambda: api(server, "GET", "/arms/rbe3001")["estop"],
+               what="estop latched on the server")
     assert api(server, "GET", "/arms/angler")["estop"]
-    wait_for(lambda: "LATCHED" in page.inner_text("#rbe3001-estop"), 5, "estop shown on the arm")
+    wait_until(lambda: "LATCHED" in page.inner_text("#rbe3001-estop"),
+               what="estop shown on the arm")
     assert "rbe3001" in page.inner_text("#estop-status")
     # a move while latched is refused, in words, next to the control
     page.click("#rbe3001-jog-1-minus")
     err = page.locator("#rbe3001-jog-error")
-    wait_for(lambda: err.get_attribute("data-code") == "estop_latched", 5, "estop refusal shown")
+    wait_until(lambda: err.get_attribute("data-code") == "estop_latched",
+               what="estop refusal shown")
     assert "Emergency stop latched" in err.inner_text()
     shot(page, "05-estop")
 
     page.click("#estop-release")
-    wait_for(lambda: not api(server, "GET", "/arms/rbe3001")["estop"], 5, "estop released")
-    wait_for(lambda: "estop clear" in page.inner_text("#rbe3001-estop"), 5, "release shown")
+    wait_until(lambda: not api(server, "GET", "/arms/rbe3001")["estop"], what="estop released")
+    wait_until(lambda: "estop clear" in page.inner_text("#rbe3001-estop"), what="release shown")
     assert page.inner_text("#estop-status") == "not latched"
     # the estop panel is fixed: still on screen when the page is scrolled to the end
     page.mouse.wheel(0, 5000)
-    wait_for(lambda: page.evaluate("window.scrollY") > 0, 5, "the page scrolled")
+    wait_until(lambda: page.evaluate("window.scrollY") > 0, what="the page scrolled")
     box = page.locator("#estop-button").bounding_box()
     assert box is not None and 0 <= box["y"] < VIEWPORT["height"]
 
@@ -345,26 +337,28 @@ def test_faults_and_homing_shown_reboot_and_home_clear_them(page: Any, server: S
     assert page.locator("#rbe3001-tare").count() == 1  # the rbe3001 senses force
     bus = server.app.state.services["angler"].driver.link.device
     bus.inject_hardware_error(2, "overload")  # servo 2 drives x
-    wait_for(lambda: page.locator("#angler-faults").get_attribute("data-count") == "1", 10,
-             "fault shown")
+    wait_until(lambda: page.locator("#angler-faults").get_attribute("data-count") == "1",
+               what="fault shown")
     text = page.inner_text("#angler-faults")
     assert "Servo 2 (x): overload" in text and "reboot" in text
     # a move is refused in words while the fault stands
     page.click("#angler-jog-2-plus")
     err = page.locator("#angler-jog-error")
-    wait_for(lambda: err.get_attribute("data-code") == "fault", 5, "fault refusal shown")
+    wait_until(lambda: err.get_attribute("data-code") == "fault", what="fault refusal shown")
     assert "Servo fault" in err.inner_text()
     shot(page, "07-fault")
     page.click("#angler-reboot-2")
-    wait_for(lambda: page.locator("#angler-faults").get_attribute("data-count") == "0", 10,
-             "fault cleared")
-    wait_for(lambda: page.locator("#angler-homed").get_attribute("data-homed")
-             == "[false,true,true,true]", 5, "x not homed after the reboot")
+    wait_until(lambda: page.locator("#angler-faults").get_attribute("data-count") == "0",
+               what="fault cleared")
+    wait_until(lambda: page.locator("#angler-homed").get_attribute("data-homed")
+               == "[false,true,true,true]",
+               what="x not homed after the reboot")
     assert api(server, "GET", "/arms/angler")["homed"] == [False, True, True, True]
     assert "x ✗" in page.inner_text("#angler-homed")
     page.click("#angler-home")
-    wait_for(lambda: page.locator("#angler-homed").get_attribute("data-homed")
-             == "[true,true,true,true]", 5, "homed shown")
+    wait_until(lambda: page.locator("#angler-homed").get_attribute("data-homed")
+               == "[true,true,true,true]",
+               what="homed shown")
     assert api(server, "GET", "/arms/angler")["homed"] == [True] * 4
     assert page.inner_text("#angler-faults-error") == ""
     shot(page, "08-homed")
@@ -373,13 +367,13 @@ def test_faults_and_homing_shown_reboot_and_home_clear_them(page: Any, server: S
 def test_survives_a_server_restart(page: Any, server: Server) -> None:
     gaps = dash(page, "rbe3001")["gaps"]
     server.stop()
-    wait_for(lambda: dash(page, "rbe3001")["ws"] == "reconnecting", 10, "reconnecting shown")
+    wait_until(lambda: dash(page, "rbe3001")["ws"] == "reconnecting", what="reconnecting shown")
     assert "reconnecting" in page.inner_text("#rbe3001-ws")
     time.sleep(1.0)  # not before an assert: a second of the reconnecting page, for the shot
     shot(page, "06-reconnecting")
     server.start()
-    wait_for(lambda: dash(page, "rbe3001")["ws"] == "live", 20, "live again")
-    wait_for(lambda: dash(page, "rbe3001")["gaps"] > gaps, 5, "the gap is marked in the plots")
+    wait_until(lambda: dash(page, "rbe3001")["ws"] == "live", what="live again")
+    wait_until(lambda: dash(page, "rbe3001")["gaps"] > gaps, what="the gap is marked in the plots")
     assert_page_matches_server(page, server)
 
 
@@ -391,7 +385,8 @@ def test_asks_for_a_token_when_the_server_needs_one(browser: Any) -> None:
             pg.wait_for_selector("#token-dialog[open]", timeout=10_000)
             pg.fill("#token-input", OPERATOR)
             pg.click("#token-form button[type=submit]")
-            wait_for(lambda: (dash(pg, "rbe3001") or {}).get("ws") == "live", 15, "live with token")
+            wait_until(lambda: (dash(pg, "rbe3001") or {}).get("ws") == "live",
+                       what="live with token")
             assert pg.evaluate("sessionStorage.getItem('armserver.token')") == OPERATOR
             # an operator request from the page carries the token
             with pg.expect_response(lambda r: r.url.endswith("/arms/rbe3001/stop")) as answer:
@@ -419,9 +414,9 @@ def test_a_refusal_of_a_request_sent_before_the_token_does_not_ask_again(browser
         try:
             pg.route("**/api/v1/**", hold_tokenless)
             pg.goto(srv.url + "/")
-            wait_for(lambda: pg.evaluate("1") == 1
-                     and any(r.request.url.endswith("/api/v1/arms") for r in held),
-                     10, "the page's first GET /arms held")
+            wait_until(lambda: pg.evaluate("1") == 1
+                       and any(r.request.url.endswith("/api/v1/arms") for r in held),
+                       what="the page's first GET /arms held")
             assert not pg.evaluate("document.querySelector('#token-dialog').open")
             pg.click("#token-button")
             pg.fill("#token-input", OPERATOR)
@@ -433,7 +428,8 @@ def test_a_refusal_of_a_request_sent_before_the_token_does_not_ask_again(browser
                 for route in held[:n_held]:
                     route.continue_()  # each refused by the server: it carries no token
             assert again.value.status == 200
-            wait_for(lambda: (dash(pg, "rbe3001") or {}).get("ws") == "live", 15, "live with token")
+            wait_until(lambda: (dash(pg, "rbe3001") or {}).get("ws") == "live",
+                       what="live with token")
             assert len(held) == n_held  # nothing was sent without the token since
             assert not pg.evaluate("document.querySelector('#token-dialog').open")
             with pg.expect_response(lambda r: r.url.endswith("/arms/rbe3001/stop")) as answer:
@@ -459,8 +455,8 @@ def test_safety_zones_are_drawn_and_the_speed_slider_changes_the_override(browse
                 return pg.evaluate("(a) => window.armDashboard && window.armDashboard.safety(a)",
                                    "rbe3001")
 
-            wait_for(lambda: (safety() or {}).get("drawn", {}).get("side") == 1, 15,
-                     "the zone drawn in the side view")
+            wait_until(lambda: (safety() or {}).get("drawn", {}).get("side") == 1,
+                       what="the zone drawn in the side view")
             st = safety()
             assert st is not None and st["zones"] == ["camera"] and st["floor_z"] == -0.05
             assert st["drawn"] == {"top": 1, "side": 1, "floor": True}
@@ -470,14 +466,15 @@ def test_safety_zones_are_drawn_and_the_speed_slider_changes_the_override(browse
             pg.eval_on_selector("#rbe3001-speed-override",
                                 "(el) => { el.value = '0.5'; "
                                 "el.dispatchEvent(new Event('change')); }")
-            wait_for(lambda: api(srv, "GET", "/arms/rbe3001/safety")["speed_override"] == 0.5,
-                     5, "override set on the server")
-            wait_for(lambda: "speed 50%" in pg.inner_text("#rbe3001-safety-summary"), 5,
-                     "override shown")
+            wait_until(lambda: api(srv, "GET", "/arms/rbe3001/safety")["speed_override"] == 0.5,
+                       what="override set on the server")
+            wait_until(lambda: "speed 50%" in pg.inner_text("#rbe3001-safety-summary"),
+                       what="override shown")
             # a change from elsewhere (a "safety" event on the socket) reaches the page
             api(srv, "PUT", "/arms/rbe3001/safety", json={"zones": []})
-            wait_for(lambda: (safety() or {}).get("zones") == [], 5, "zones cleared on the page")
-            wait_for(lambda: (safety() or {})["drawn"]["top"] == 0, 5, "zone no longer drawn")
+            wait_until(lambda: (safety() or {}).get("zones") == [],
+                       what="zones cleared on the page")
+            wait_until(lambda: (safety() or {})["drawn"]["top"] == 0, what="zone no longer drawn")
             # a move into a zone is refused in words next to the control
             api(srv, "PUT", "/arms/rbe3001/safety", json={"zones": [zone]})
             pg.fill("#rbe3001-target-x", "200")
@@ -486,7 +483,7 @@ def test_safety_zones_are_drawn_and_the_speed_slider_changes_the_override(browse
             pg.select_option("#rbe3001-path", "line")
             pg.click("#rbe3001-plan")
             err = pg.locator("#rbe3001-pose-error")
-            wait_for(lambda: err.get_attribute("data-code") == "keep_out", 5, "refusal shown")
+            wait_until(lambda: err.get_attribute("data-code") == "keep_out", what="refusal shown")
             assert err.inner_text().startswith("Keep-out zone:")
             assert "'camera'" in err.inner_text() and "tip" in err.inner_text()
             shot(pg, "07-safety")

@@ -15,8 +15,9 @@ import httpx
 import pytest
 from _deps import missing_message
 from _mosquitto import MOSQUITTO, Broker
+from _wait import wait_until
 from conftest import make_settings, serve_live
-from test_dashboard_e2e import CHROMIUM, CHROMIUM_ARGS, OUT, sync_api, wait_for
+from test_dashboard_e2e import CHROMIUM, CHROMIUM_ARGS, OUT, sync_api
 
 pytestmark = pytest.mark.browser
 
@@ -58,8 +59,9 @@ def test_lab_view_shows_every_arm_of_every_server(tmp_path: Path) -> None:
         pg.on("pageerror", lambda e: errors.append(str(e)))
         pg.goto(f"{a.url}/lab.html?broker=ws://127.0.0.1:{broker.ws_port}")
 
-        wait_for(lambda: want <= {k for k, t in tiles(pg).items()
-                                  if t["online"] and t["sample"]}, 20, "all four arms online")
+        wait_until(lambda: want <= {k for k, t in tiles(pg).items()
+                                    if t["online"] and t["sample"]},
+                   what="all four arms online")
         assert pg.evaluate("() => window.labView.broker") == "up"
         assert set(tiles(pg)) == want, "a tile that is no arm"
 
@@ -72,8 +74,8 @@ def test_lab_view_shows_every_arm_of_every_server(tmp_path: Path) -> None:
 
         # the emergency stop of one arm shows on its tile, and only there
         httpx.post(f"{a.url}/api/v1/arms/angler/estop", timeout=5).raise_for_status()
-        wait_for(lambda: pg.locator('[data-key="armserver/angler"] .estop').count() == 1, 10,
-                 "ESTOP on the angler tile")
+        wait_until(lambda: pg.locator('[data-key="armserver/angler"] .estop').count() == 1,
+                   what="ESTOP on the angler tile")
         assert pg.locator('[data-key="armserver/rbe3001"] .estop').count() == 0
         assert tiles(pg)["armserver/angler"]["lastEvent"]["event"] == "estop"
         OUT.mkdir(exist_ok=True)
@@ -82,8 +84,8 @@ def test_lab_view_shows_every_arm_of_every_server(tmp_path: Path) -> None:
 
         # server B goes away: its arms go offline, server A's stay online
         stop_b()
-        wait_for(lambda: not tiles(pg)["armserver/bench2/lab-1"]["online"], 10,
-                 "bench2 arms offline")
+        wait_until(lambda: not tiles(pg)["armserver/bench2/lab-1"]["online"],
+                   what="bench2 arms offline")
         t = tiles(pg)
         assert not t["armserver/bench2/lab-2"]["online"]
         assert t["armserver/rbe3001"]["online"] and t["armserver/angler"]["online"]

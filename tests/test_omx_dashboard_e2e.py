@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _wait import wait_until
 from conftest import make_settings
 
 from tests.test_dashboard_e2e import (
@@ -27,7 +28,6 @@ from tests.test_dashboard_e2e import (
     serving,
     sync_api,
     tip_error,
-    wait_for,
 )
 
 pytestmark = pytest.mark.browser
@@ -50,8 +50,9 @@ def page(server: Server) -> Iterator[Any]:
         errors: list[str] = []
         pg.on("pageerror", lambda e: errors.append(str(e)))
         pg.goto(server.url + "/")
-        wait_for(lambda: all((dash(pg, a) or {}).get("lastSeq") is not None
-                             for a in ("rbe3001", "angler", "omx")), 15, "telemetry of all three")
+        wait_until(lambda: all((dash(pg, a) or {}).get("lastSeq") is not None
+                               for a in ("rbe3001", "angler", "omx")),
+                   what="telemetry of all three")
         yield pg
         pg.close()
         browser.close()
@@ -60,9 +61,9 @@ def page(server: Server) -> Iterator[Any]:
 
 def _drawn_matches_state(pg: Any, server: Server) -> dict[str, Any]:
     st = at_rest(server, "omx")
-    wait_for(lambda: dash(pg, "omx")["lastSeq"] > st["seq"], 5, "newer telemetry")
+    wait_until(lambda: dash(pg, "omx")["lastSeq"] > st["seq"], what="newer telemetry")
     frames = dash(pg, "omx")["frames"]
-    wait_for(lambda: dash(pg, "omx")["frames"] > frames + 2, 5, "frames drawn")
+    wait_until(lambda: dash(pg, "omx")["frames"] > frames + 2, what="frames drawn")
     drawn = dash(pg, "omx")["tipDrawn"]
     assert tip_error(drawn, st["tip"]) < TIP_TOL_REST_M, (drawn, st["tip"])
     return st
@@ -83,15 +84,15 @@ def test_jog_moves_the_wrist(page: Any, server: Server) -> None:
     before = at_rest(server, "omx")["positions"]
     page.click("#omx-jog-3-plus")
     want = before[3] + math.radians(5)
-    wait_for(lambda: abs(api(server, "GET", "/arms/omx/state")["positions"][3] - want) < 0.01,
-             10, f"wrist at {want:.3f} rad")
+    wait_until(lambda: abs(api(server, "GET", "/arms/omx/state")["positions"][3] - want) < 0.01,
+               what=f"wrist at {want:.3f} rad")
     _drawn_matches_state(page, server)
 
 
 def test_gripper_slider_drives_servo_15(page: Any, server: Server) -> None:
     bus = server.app.state.services["omx"].driver.link.device
     page.locator("#omx-gripper").fill("1")
-    wait_for(lambda: bus.servo(15).get("goal_position") == 2483, 5, "gripper goal written")
-    wait_for(lambda: abs(api(server, "GET", "/arms/omx/state")["gripper"] - 1.0) < 0.01, 10,
-             "gripper closed")
+    wait_until(lambda: bus.servo(15).get("goal_position") == 2483, what="gripper goal written")
+    wait_until(lambda: abs(api(server, "GET", "/arms/omx/state")["gripper"] - 1.0) < 0.01,
+               what="gripper closed")
     assert page.inner_text("#omx-gripper-error") == ""
