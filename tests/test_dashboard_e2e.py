@@ -84,11 +84,11 @@ class Server:
         self._server = server = ArmServer(config, app)  # the real server's shutdown
         self._thread = threading.Thread(target=server.run, name="dashboard-uvicorn", daemon=True)
         self._thread.start()
-        wait_until(lambda: server.started, what="uvicorn did not start")
+        wait_until(lambda: server.started, what="uvicorn to start")
         headers = {"Authorization": f"Bearer {OPERATOR}"} if self.settings.auth_enabled else {}
         wait_until(lambda: httpx.get(f"{self.url}/api/v1/arms/rbe3001/state", headers=headers,
                                      timeout=2).status_code == 200,
-                   what="no sample from the arm")
+                   what="a sample from the arm")
 
     def stop(self) -> None:
         if self._server is not None:
