@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from conftest import IN_PROCESS_REPLY_S
 
 from app.arms.dynamixel.setup import EXIT_NONE, EXIT_SEVERAL
 from app.arms.dynamixel.sim_bus import DynamixelBus
@@ -63,8 +64,11 @@ def factory_bus(tmp_path: Path) -> Iterator[Served]:
 
 def setup(url: str, joint: str | None = None, rates: str | None = "57600,1000000") -> int:
     """`armserver setup-servos` on `url` for the angler; at the two rates the servos here run
-    at (the full scan of every standard rate is `test_factory_servo_found_at_57600`'s)."""
-    argv = ["setup-servos", "--port", url, "--profile", "angler", "--timeout", "0.15"]
+    at (the full scan of every standard rate is `test_factory_servo_found_at_57600`'s). The
+    scan's window is IN_PROCESS_REPLY_S (the bus answers from a thread of this process): at
+    0.15 s, beside stress-ng, a scan once heard none of four servos."""
+    argv = ["setup-servos", "--port", url, "--profile", "angler", "--timeout",
+            str(IN_PROCESS_REPLY_S)]
     if rates:
         argv += ["--baudrates", rates]
     return main([*argv, "--joint", joint] if joint else argv)
