@@ -15,6 +15,7 @@ const BACKOFF_MIN_S = 0.5;
 const BACKOFF_MAX_S = 8;
 const JOG_THROTTLE_MS = 150;    // live jog while a slider is dragged
 const JOG_REST_TOLERANCE = 0.03; // rad or m: the arm still stands at the last jog's targets
+const DRAWN_LOG = 600;          // tips drawn from new samples the page keeps for its tests (20 s at WS_RATE)
 const COLORS = ["#4cc9f0", "#f472b6", "#a3e635", "#fbbf24", "#a78bfa", "#fb923c"];
 const AXIS_COLORS = ["#f87171", "#4ade80", "#60a5fa"];
 const CODE_WORDS = {
@@ -313,6 +314,7 @@ class Arm {
     this.frames = 0;
     this.tipDrawn = null;
     this.tipDrawnSeq = null;  // the sample it was drawn from (the tests' check)
+    this.drawnLog = [];       // the latest DRAWN_LOG tips drawn from new samples: [seq, x, y, z, at]
     this.plotted = { positions: [], velocities: [] };
     this.lastEvent = null;
     this.build();
@@ -768,6 +770,11 @@ class Arm {
       pts = this.fkKnown ? chainPoints(this.detail.chain, q) : [[this.latest.tip.x, this.latest.tip.y, this.latest.tip.z]];
       const tip = pts[pts.length - 1];
       this.tipDrawn = { x: tip[0], y: tip[1], z: tip[2] };
+      if (this.tipDrawnSeq !== this.latest.seq) {
+        // what the page drew and when (the tests judge each against the server's sample)
+        this.drawnLog.push([this.latest.seq, tip[0], tip[1], tip[2], Date.now() / 1000]);
+        if (this.drawnLog.length > DRAWN_LOG) this.drawnLog.splice(0, this.drawnLog.length - DRAWN_LOG);
+      }
       this.tipDrawnSeq = this.latest.seq;
       this.el.tipText.textContent = `tip  x ${(tip[0] * 1000).toFixed(1)}  y ${(tip[1] * 1000).toFixed(1)}  z ${(tip[2] * 1000).toFixed(1)} mm`;
     }
@@ -1033,6 +1040,7 @@ class Arm {
       lastSeq: this.lastSeq,
       tipDrawn: this.tipDrawn,
       tipDrawnSeq: this.tipDrawnSeq,
+      drawnLog: this.drawnLog.slice(),
       plotted: this.plotted,
       frames: this.frames,
       visible: this.visible,
