@@ -202,7 +202,7 @@ async def test_factory_servos_to_a_first_move(tmp_path: Path) -> None:
 
     from app.arms.loading import load_profile
     from app.web.factory import create_app
-    from tests.conftest import make_settings, wait_ready
+    from tests.conftest import make_settings, wait_ready, with_reply_timeout
 
     served = Served(DynamixelBus.factory(1), tmp_path / "ttyDXL")
     try:
@@ -216,8 +216,10 @@ async def test_factory_servos_to_a_first_move(tmp_path: Path) -> None:
         # 4096 - 341 ticks at power-up (extended position mode restarts within one turn)
         served.call(lambda: setattr(bus.servo(3), "pos", 4096.0 - 341.0))
         p = load_profile("angler")
-        profile = p.model_copy(update={"link": p.link.model_copy(
-            update={"kind": "serial", "address": served.url})})
+        # the bus answers from a thread of this process: IN_PROCESS_REPLY_S, not the profile's
+        # 50 ms (beside stress-ng a SYNC_READ's status came later, and the move failed)
+        profile = with_reply_timeout(p.model_copy(update={"link": p.link.model_copy(
+            update={"kind": "serial", "address": served.url})}))
         app = create_app(make_settings(), profiles=[profile])
         async with app.router.lifespan_context(app), httpx.AsyncClient(
                 transport=httpx.ASGITransport(app=app), base_url="http://armserver.test",
