@@ -7,50 +7,47 @@ from __future__ import annotations
 
 import asyncio
 import math
-import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any, TypeVar
 
 import pytest
-from conftest import IN_PROCESS_REPLY_S
+from _tcp import LoopThread
 
 from app.arms.dynamixel.setup import EXIT_NONE, EXIT_SEVERAL
 from app.arms.dynamixel.sim_bus import DynamixelBus
 from app.arms.dynamixel.sim_mx28 import BAUD_CODES
 from app.cli import main
 from app.sim.servers import serve_pty, serve_tcp
+from tests.conftest import IN_PROCESS_REPLY_S
+
+T = TypeVar("T")
 
 ANGLER = {"x": 2, "y": 1, "theta3": 3, "z": 4}  # the profile's motor ids
 
 
-class Served:
-    """A bus served on a pty (or TCP) from a loop in its own thread, for a blocking client."""
+class Served(LoopThread):
+    """A bus served on a pty (or TCP) from a loop in its own thread, for a blocking client
+    (tests/test_setup_servos_baud.py's too)."""
 
     def __init__(self, bus: DynamixelBus, path: Path | None) -> None:
+        super().__init__()
         self.bus = bus
-        self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
-        self.thread.start()
         if path is not None:
-            self.server: object = self.run(serve_pty(bus, path))
+            self.server: Any = self.run(serve_pty(bus, path))
             self.url = str(path)
         else:
             srv = self.run(serve_tcp(bus))
             self.server, self.url = srv, f"socket://127.0.0.1:{srv.port}"
 
-    def run(self, coro: object) -> object:
-        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(10)  # type: ignore[arg-type]
-
-    def call(self, fn: object) -> object:
-        async def go() -> object:
-            return fn()  # type: ignore[operator]
+    def call(self, fn: Callable[[], T]) -> T:
+        async def go() -> T:
+            return fn()
         return self.run(go())
 
     def close(self) -> None:
-        self.run(self.server.close())  # type: ignore[attr-defined]
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(5)
-        self.loop.close()
+        self.run(self.server.close())
+        self.stop()
 
 
 @pytest.fixture

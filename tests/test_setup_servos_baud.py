@@ -7,7 +7,6 @@ from silence and still find the servos' rate: the link's on connect, `armserver 
 
 from __future__ import annotations
 
-import asyncio
 import threading
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import httpx
 import pytest
 import serial
 from _wait import TIMEOUT_S, wait_for, wait_until
+from test_setup_servos import Served
 
 from app.arms.dynamixel.setup import EXIT_OK
 from app.arms.dynamixel.sim_bus import DynamixelBus
@@ -92,24 +92,6 @@ def test_the_bus_is_silent_between_standard_rates_but_one_pair_garbles() -> None
             assert got == b"", (s, h, got.hex())
     # a broadcast PING draws nothing from a servo at another rate (a CRC error on ID 254)
     assert _heard(4_500_000, 4_000_000, dxl.ping(dxl.BROADCAST_ID)) == b""
-
-
-class Served:
-    """A bus on a pty from a loop in its own thread, for blocking pyserial clients."""
-
-    def __init__(self, bus: DynamixelBus, path: Path) -> None:
-        self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
-        self.thread.start()
-        self.server = asyncio.run_coroutine_threadsafe(serve_pty(bus, path),
-                                                       self.loop).result(10)
-        self.url = str(path)
-
-    def close(self) -> None:
-        asyncio.run_coroutine_threadsafe(self.server.close(), self.loop).result(10)
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(5)
-        self.loop.close()
 
 
 @pytest.fixture
