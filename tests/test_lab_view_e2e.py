@@ -77,7 +77,10 @@ def test_lab_view_shows_every_arm_of_every_server(tmp_path: Path) -> None:
         wait_until(lambda: pg.locator('[data-key="armserver/angler"] .estop').count() == 1,
                    what="ESTOP on the angler tile")
         assert pg.locator('[data-key="armserver/rbe3001"] .estop').count() == 0
-        assert tiles(pg)["armserver/angler"]["lastEvent"]["event"] == "estop"
+        # the event comes on its own topic, after the hold was commanded: the latched sample
+        # (the badge above) may come first
+        wait_until(lambda: (tiles(pg)["armserver/angler"]["lastEvent"] or {}).get("event")
+                   == "estop", what="the estop event on the angler tile")
         OUT.mkdir(exist_ok=True)
         pg.screenshot(path=str(OUT / "lab-view.png"))
         httpx.delete(f"{a.url}/api/v1/arms/angler/estop", timeout=5).raise_for_status()
