@@ -84,10 +84,15 @@ async def test_a_held_up_move_with_a_duration_is_planned_again_to_end_on_time() 
     assert "motion_held_up" in names
     replans = [e["data"] for e in events if e["event"] == "motion_replanned"]
     _consistent(m, asked, replans)
-    # the first re-plan after our hold-up (0.5 s, 1 s into a move of fastest + 2 s): the rest
-    # planned from the last setpoint, at rest, to end at the asked end, 1 s from now at most
-    ours = next(r for r in replans if r["remaining_s"] <= asked - 1.0 + 1e-3)
-    assert ours["remaining_s"] > 0.0
+    # our hold-up (0.5 s, from 0.5 s into a move of fastest + 2 s) is reported with at least
+    # its length, and the first re-plan after it plans the rest, from the last setpoint at
+    # rest, to end at the asked end: at most what is left of the asked duration after the
+    # hold-up. (Found by the events' order, not by the time left: the executor starts the
+    # move a little after this test's clock does, more so on a loaded host.)
+    held = next(i for i, e in enumerate(events)
+                if e["event"] == "motion_held_up" and e["data"]["held_up_s"] >= 0.5)
+    ours = next(e["data"] for e in events[held:] if e["event"] == "motion_replanned")
+    assert 0.0 < ours["remaining_s"] <= asked - events[held]["data"]["held_up_s"] + 1e-3
     _within_limits(svc, setpoints)
 
 
