@@ -20,8 +20,10 @@ sensitive to a loaded machine): eager as before issue 27, lazy with no reader, a
 reader taking every 10 samples (a 50 Hz client of a 500 Hz arm).
 `--floor` measures what any server pays for the round trip alone against the same simulator
 (rbe3001 only): a STATUS request written and its 64-byte reply read at 500 Hz, once with
-asyncio streams and a timer (what the owner task's machinery cannot go below) and once with a
-blocking socket on one thread.
+asyncio streams and a timer (what the owner task's machinery cannot go below), once with a
+blocking socket on one thread, and once with the same loop in C (bench/floor.c, built with
+the system's `cc` where there is one): the least any implementation pays, the kernel's part
+(the loopback's TCP and the wake-ups) alone.
 `--io thread|asyncio` picks the serial link (`[link] io`: the link on a thread of its own,
 the default, or the asyncio link); `--compare` runs each of `--models` (default: the three arm
 types) with both, back to back, and prints each figure with the load average and the ratio.
@@ -40,9 +42,11 @@ import contextlib
 import cProfile
 import os
 import pstats
+import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -256,10 +260,38 @@ def _wait_listening(port: int, timeout: float = 30.0) -> None:
             time.sleep(0.1)
 
 
+def _floor_compiled(port: int, n: int) -> tuple[float, float] | str:
+    """`_floor_blocking`'s loop in C (bench/floor.c, built here with the system's `cc`): what
+    a server in any language pays at least; or why it could not run."""
+    from protocol import rbe3001 as rb
+
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        return "no C compiler (`cc`) on this machine"
+    packet = rb.ReplyMatcher().request(rb.Status())
+    with tempfile.TemporaryDirectory() as folder:
+        exe = str(Path(folder) / "floor")
+        built = subprocess.run([cc, "-O2", "-o", exe, str(ROOT / "bench" / "floor.c")],
+                               capture_output=True, text=True)
+        if built.returncode != 0:
+            return f"bench/floor.c did not build: {built.stderr.strip()[:200]}"
+        ran = subprocess.run([exe, str(port), str(n), packet.hex(), "64"],
+                             capture_output=True, text=True)
+        if ran.returncode != 0:
+            return f"bench/floor.c failed: {ran.stderr.strip()[:200]}"
+    user, system = (float(v) * 1e-6 for v in ran.stdout.split())
+    return user, system
+
+
 def floor(port: int, seconds: float) -> None:
     n = int(500 * seconds)
-    for how, (user, system) in (("asyncio streams", asyncio.run(_floor_asyncio(port, n))),
-                                ("blocking socket", _floor_blocking(port, n))):
+    for how, got in (("asyncio streams", asyncio.run(_floor_asyncio(port, n))),
+                     ("blocking socket", _floor_blocking(port, n)),
+                     ("blocking socket in C", _floor_compiled(port, n))):
+        if isinstance(got, str):
+            print(f"round trip alone, {how}: not measured: {got}")
+            continue
+        user, system = got
         print(f"round trip alone, {how}: {1e6 * (user + system):.0f} µs a poll ({1e6 * user:.0f}"
               f" user, {1e6 * system:.0f} system), {5e4 * (user + system):.1f} % of a "
               "core at 500 Hz")
