@@ -32,6 +32,15 @@ def _said(page: Any) -> str:
             f"{page.locator('#setup-error').inner_text()!r}")
 
 
+def _assigned(page: Any, cond: Any, what: str) -> None:
+    """Wait (up to ASSIGN_S) for an assignment's outcome; a wait that ends says what the
+    panel said."""
+    try:
+        wait_until(cond, what=what, timeout=ASSIGN_S)
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}; the panel {_said(page)}") from None
+
+
 def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
     with serve_live() as live, sync_api.sync_playwright() as pw:
         page, errors = _browser.open_page(pw, live.url + "/", {"width": 1440, "height": 1000})
@@ -53,11 +62,8 @@ def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
         assert page.locator("#setup-joint").input_value() == "x"
 
         page.click("#setup-assign")
-        try:
-            wait_until(lambda: found.get_attribute("data-servos") == '[[2,1000000,"x"]]',
-                       what="x set up and verified by the scan after it", timeout=ASSIGN_S)
-        except AssertionError as exc:
-            raise AssertionError(f"{exc}; the panel {_said(page)}") from None
+        _assigned(page, lambda: found.get_attribute("data-servos") == '[[2,1000000,"x"]]',
+                  "x set up and verified by the scan after it")
         assert "joint x: set up and verified: ID 2 at 1,000,000 bps" in \
             page.locator("#setup-said").inner_text()
         assert page.locator("#setup-steps").get_attribute("data-next") == "y"
@@ -71,8 +77,8 @@ def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
         wait_until(lambda: len(json.loads(found.get_attribute("data-servos") or "[]")) == 2,
                    what="two servos found")
         page.click("#setup-assign")
-        wait_until(lambda: page.locator("#setup-steps").get_attribute("data-next") == "theta3",
-                   what="y set up; theta3 next", timeout=ASSIGN_S)
+        _assigned(page, lambda: page.locator("#setup-steps").get_attribute("data-next") == "theta3",
+                  "y set up; theta3 next")
         assert sorted(json.loads(found.get_attribute("data-servos") or "[]")) == \
             [[1, 1_000_000, "y"], [2, 1_000_000, "x"]]
 
