@@ -27,18 +27,17 @@ sync_api = _browser.sync_api_or_skip()
 ASSIGN_S = 60.0
 
 
-def _said(page: Any) -> str:
-    return (f"said {page.locator('#setup-said').inner_text()!r}, error "
-            f"{page.locator('#setup-error').inner_text()!r}")
+def _panel(page: Any, what: str) -> Any:
+    """`what` for a wait on the panel: at its deadline, with what the panel found and said."""
+    return lambda: (f"{what}; the panel found "
+                    f"{page.locator('#setup-found').get_attribute('data-servos')!r}, said "
+                    f"{page.locator('#setup-said').inner_text()!r}, error "
+                    f"{page.locator('#setup-error').inner_text()!r}")
 
 
 def _assigned(page: Any, cond: Any, what: str) -> None:
-    """Wait (up to ASSIGN_S) for an assignment's outcome; a wait that ends says what the
-    panel said."""
-    try:
-        wait_until(cond, what=what, timeout=ASSIGN_S)
-    except AssertionError as exc:
-        raise AssertionError(f"{exc}; the panel {_said(page)}") from None
+    """Wait up to ASSIGN_S for an assignment's outcome."""
+    wait_until(cond, what=_panel(page, what), timeout=ASSIGN_S)
 
 
 def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
@@ -56,7 +55,7 @@ def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
         found = page.locator("#setup-found")
         page.click("#setup-scan")
         wait_until(lambda: found.get_attribute("data-servos") == "[[1,57600,null]]",
-                   what="the factory servo found")
+                   what=_panel(page, "the factory servo found"))
         steps = page.locator("#setup-steps").inner_text()
         assert "Connect only the servo for joint x" in steps and "factory state" in steps
         assert page.locator("#setup-joint").input_value() == "x"
@@ -75,7 +74,7 @@ def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
                    what="one more factory servo")
         page.click("#setup-scan")
         wait_until(lambda: len(json.loads(found.get_attribute("data-servos") or "[]")) == 2,
-                   what="two servos found")
+                   what=_panel(page, "two servos found"))
         page.click("#setup-assign")
         _assigned(page, lambda: page.locator("#setup-steps").get_attribute("data-next") == "theta3",
                   "y set up; theta3 next")
@@ -92,7 +91,7 @@ def test_the_panel_walks_factory_servos_through_scan_and_assign() -> None:
         page.click("#setup-assign")
         error = page.locator("#setup-error")
         wait_until(lambda: error.get_attribute("data-code") == "several_servos",
-                   what="the refusal shown")
+                   what=_panel(page, "the refusal shown"))
         assert "connect one servo at a time" in error.inner_text()
         state = page.evaluate("() => window.armServoSetup.state()")
         assert state["errorCode"] == "several_servos"
