@@ -7,6 +7,10 @@ from __future__ import annotations
 
 import asyncio
 import math
+import os
+import subprocess
+import sys
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
@@ -14,6 +18,7 @@ from typing import Any, TypeVar
 import pytest
 from _tcp import LoopThread
 
+from app.arms.dynamixel.practice import NICENESS
 from app.arms.dynamixel.setup import EXIT_NONE, EXIT_SEVERAL
 from app.arms.dynamixel.sim_bus import DynamixelBus
 from app.arms.dynamixel.sim_mx28 import BAUD_CODES
@@ -57,6 +62,22 @@ def factory_bus(tmp_path: Path) -> Iterator[Served]:
         yield served
     finally:
         served.close()
+
+
+def test_the_bus_answers_from_a_thread_above_the_rest_of_the_machine_where_allowed(
+        factory_bus: Served) -> None:
+    """The bus's loop thread runs at the practice bus's NICENESS where the system lets a
+    process raise its priority (root, as `make test` runs in CI), else at this thread's
+    (tests/_tcp.py LoopThread): it stands for a board with a processor of its own."""
+    mine = os.getpriority(os.PRIO_PROCESS, 0)
+    probe = f"import os; os.setpriority(os.PRIO_PROCESS, 0, {NICENESS})"
+    allowed = subprocess.run([sys.executable, "-c", probe], capture_output=True).returncode == 0
+    tid = factory_bus.thread.native_id
+    assert tid is not None and tid != threading.get_native_id()
+    stat = Path(f"/proc/self/task/{tid}/stat").read_text()
+    assert int(stat[stat.rindex(")") + 2:].split()[16]) == (NICENESS if allowed else mine)
+    assert os.getpriority(os.PRIO_PROCESS, 0) == mine  # this thread's own is as it was
+    assert setup(factory_bus.url) == 0  # and it serves (a scan: the factory servo found)
 
 
 def setup(url: str, joint: str | None = None, rates: str | None = "57600,1000000") -> int:
