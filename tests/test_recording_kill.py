@@ -52,8 +52,9 @@ def _record(url: str, frames: int, stop: bool = True) -> dict:
     r = httpx.post(f"{url}{API}/recordings/k/episodes", timeout=10)
     assert r.status_code == 201, r.text
     deadline = time.monotonic() + 30
+    cur = None
     while True:
-        assert time.monotonic() < deadline, "the episode did not record"
+        assert time.monotonic() < deadline, f"the episode did not record {frames} frames: {cur}"
         cur = httpx.get(f"{url}{API}/recordings/k", timeout=5).json()["current"]
         if cur is not None and cur["frames"] >= frames:
             break
