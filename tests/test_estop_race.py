@@ -128,11 +128,14 @@ async def test_estop_against_set_pid_at_varying_offsets() -> None:
         seen = watch_rbe3001(svc)
         cap = svc.model.vmax * PASSTHROUGH_STEP_S * 2 + svc.guard.tolerance()
         through = refused = 0
-        for k in range(ROUNDS):
+        for _ in range(ROUNDS):
             await settle(svc)
             here = np.asarray(svc.driver.positions, dtype=float)
-            sign = 1.0 if k % 2 == 0 else -1.0
             told = np.asarray(svc.driver.told(), dtype=float)
+            # each joint a small step towards the middle of its range: the rounds' outcomes
+            # (through, refused, held part way) must not walk the arm to a limit (alternating
+            # steps did, when the ones up were refused and the ones down went through)
+            sign = np.where(told < (svc.model.lower + svc.model.upper) / 2, 1.0, -1.0)
             goal = told + sign * svc.model.vmax * PASSTHROUGH_STEP_S * 0.6
             ticks = tr.to_ticks(goal)
             body = {"joints": [{"position_ticks": float(t)} for t in ticks]}
