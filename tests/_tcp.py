@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import os
 import threading
 from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine
 from typing import Any, TypeVar
 
-from app.arms.dynamixel.practice import NICENESS
+from app.arms.dynamixel.practice import raise_priority
 
 T = TypeVar("T")
 Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
@@ -40,8 +39,7 @@ class LoopThread:
         self.thread.start()
 
     def _run(self) -> None:
-        with contextlib.suppress(OSError):  # (not allowed: the test's niceness)
-            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), NICENESS)
+        raise_priority()
         self.loop.run_forever()
 
     def run(self, coro: Coroutine[Any, Any, T]) -> T:

@@ -14,6 +14,8 @@ import contextlib
 import os
 import shutil
 import socket
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -77,6 +79,20 @@ def with_reply_timeout(profile: ArmProfile, seconds: float = IN_PROCESS_REPLY_S)
     """`profile` with its link's per-request reply timeout set to `seconds`."""
     return profile.model_copy(update={"link": profile.link.model_copy(
         update={"timeout_s": seconds})})
+
+
+def thread_niceness(pid: int, tid: int) -> int:
+    """A thread's niceness, from /proc (field 19 of its stat, after the command's parentheses)."""
+    with open(f"/proc/{pid}/task/{tid}/stat") as f:
+        stat = f.read()
+    return int(stat[stat.rindex(")") + 2:].split()[16])
+
+
+def may_raise_priority(niceness: int) -> bool:
+    """Whether a process here may set itself to `niceness` (root, CAP_SYS_NICE), asked of a
+    child so that this one keeps its own."""
+    probe = f"import os; os.setpriority(os.PRIO_PROCESS, 0, {niceness})"
+    return subprocess.run([sys.executable, "-c", probe], capture_output=True).returncode == 0
 
 
 async def wait_ready(app: FastAPI, timeout: float = READY_TIMEOUT_S) -> None:

@@ -7,11 +7,10 @@ test_setup_servos_readme.py, test_setup_servos_e2e.py."""
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from conftest import may_raise_priority, thread_niceness
 
 from app.arms.dynamixel.practice import PracticeBus, PracticeServo
 
@@ -46,12 +45,6 @@ def test_a_bus_whose_process_died_is_told_stopped_and_past_eight_servos_is_refus
     assert not Path(bus.port).parent.exists()  # the killed child's folder, removed here
 
 
-def _niceness(pid: int, tid: int) -> int:
-    """A thread's niceness, from /proc (field 19 of its stat, after the command's parentheses)."""
-    stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
-    return int(stat[stat.rindex(")") + 2:].split()[16])
-
-
 def test_its_servos_answer_before_the_rest_of_the_machine_where_the_system_allows() -> None:
     """Every thread of the bus's process (the bus's own among them) runs at NICENESS where
     the system lets a process raise its priority (root, as `make test` runs in CI), else at
@@ -59,15 +52,14 @@ def test_its_servos_answer_before_the_rest_of_the_machine_where_the_system_allow
     from app.arms.dynamixel import practice
 
     mine = os.getpriority(os.PRIO_PROCESS, 0)
-    probe = f"import os; os.setpriority(os.PRIO_PROCESS, 0, {practice.NICENESS})"
-    allowed = subprocess.run([sys.executable, "-c", probe], capture_output=True).returncode == 0
+    allowed = may_raise_priority(practice.NICENESS)
     bus = PracticeBus(1)
     try:
         pid = bus._proc.pid
         tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
         assert len(tids) >= 2  # the main thread and the bus's
         want = practice.NICENESS if allowed else mine
-        assert {_niceness(pid, t) for t in tids} == {want}
+        assert {thread_niceness(pid, t) for t in tids} == {want}
         assert bus.servos() == [PracticeServo(1, 57_600)]  # and it serves
     finally:
         bus.close()

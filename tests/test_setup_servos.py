@@ -8,8 +8,6 @@ from __future__ import annotations
 import asyncio
 import math
 import os
-import subprocess
-import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -24,7 +22,7 @@ from app.arms.dynamixel.sim_bus import DynamixelBus
 from app.arms.dynamixel.sim_mx28 import BAUD_CODES
 from app.cli import main
 from app.sim.servers import serve_pty, serve_tcp
-from tests.conftest import IN_PROCESS_REPLY_S
+from tests.conftest import IN_PROCESS_REPLY_S, may_raise_priority, thread_niceness
 
 T = TypeVar("T")
 
@@ -70,12 +68,10 @@ def test_the_bus_answers_from_a_thread_above_the_rest_of_the_machine_where_allow
     process raise its priority (root, as `make test` runs in CI), else at this thread's
     (tests/_tcp.py LoopThread): it stands for a board with a processor of its own."""
     mine = os.getpriority(os.PRIO_PROCESS, 0)
-    probe = f"import os; os.setpriority(os.PRIO_PROCESS, 0, {NICENESS})"
-    allowed = subprocess.run([sys.executable, "-c", probe], capture_output=True).returncode == 0
+    allowed = may_raise_priority(NICENESS)
     tid = factory_bus.thread.native_id
     assert tid is not None and tid != threading.get_native_id()
-    stat = Path(f"/proc/self/task/{tid}/stat").read_text()
-    assert int(stat[stat.rindex(")") + 2:].split()[16]) == (NICENESS if allowed else mine)
+    assert thread_niceness(os.getpid(), tid) == (NICENESS if allowed else mine)
     assert os.getpriority(os.PRIO_PROCESS, 0) == mine  # this thread's own is as it was
     assert setup(factory_bus.url) == 0  # and it serves (a scan: the factory servo found)
 

@@ -207,6 +207,14 @@ class _BusThread:
         shutil.rmtree(self._dir, ignore_errors=True)
 
 
+def raise_priority(tid: int = 0) -> None:
+    """Thread `tid` (0: the calling one) at NICENESS, where the system allows it (else as it
+    is: not allowed, it keeps the niceness it had). Also for a simulated board served from a
+    test's thread (tests/_tcp.py `LoopThread`)."""
+    with contextlib.suppress(OSError):
+        os.setpriority(os.PRIO_PROCESS, tid, NICENESS)
+
+
 def _raise_priority() -> None:
     """This process's threads at NICENESS, where the system allows it (else as they are).
     Niceness is a thread's own on Linux: each thread there now (the imports' own, numpy's
@@ -216,8 +224,7 @@ def _raise_priority() -> None:
     except OSError:  # (no /proc: this thread)
         threads = [0]
     for tid in threads:
-        with contextlib.suppress(OSError):  # (not allowed: the server's niceness, as before)
-            os.setpriority(os.PRIO_PROCESS, tid, NICENESS)
+        raise_priority(tid)
 
 
 def _serve(servos: int) -> None:
