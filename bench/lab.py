@@ -26,6 +26,10 @@ while every arm runs at its poll rate prints:
     client at rate=500 on the arm pressed, a socket opened for each press, as the harness;
     and again with SEEN_STREAMS sockets streaming at 500 Hz all along (the front relays, and
     this client reads, every sample of them).
+- the WebSocket relay's cost: `--relay-clients` telemetry clients (default SEEN_STREAMS) at
+  `--relay-rate` (default 500: each sample as it is published), spread over the arms: the
+  messages a second the front relayed, and its CPU a message (less what it spends with no
+  client; user time apart: the rest is the kernel's, the sockets and the wake-ups);
 - with `--teleop` (3 arms or more, 2 workers): a teleoperation session's latency from a leader
   sample to the follower's command (p50/p99, as `GET /teleop` reports it), the leader moving
   back and forth, once with both arms on one worker and once with the leader on the other
@@ -47,6 +51,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import os
 import random
@@ -90,15 +95,29 @@ def _tree(pid: int) -> list[int]:
     return [pid, *(int(k) for k in kids)]
 
 
-def _cpu_s(pids: list[int]) -> float:
+def _cpu_s(pids: list[int], part: slice = slice(0, 2)) -> float:
+    """CPU time of `pids`, s: user and system (`part`: user alone 0:1, system alone 1:2)."""
     total = 0
     for pid in pids:
         try:
             f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
         except FileNotFoundError:
             continue
-        total += int(f[11]) + int(f[12])
+        total += sum(int(x) for x in f[11:13][part])
     return total / os.sysconf("SC_CLK_TCK")
+
+
+def _sched_s(pid: int) -> float:
+    """CPU time of every thread of `pid` by the scheduler's own count (ns, not ticks), s."""
+    total = 0
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except FileNotFoundError:
+        return 0.0
+    for tid in tids:
+        with contextlib.suppress(OSError):  # (a thread ended meanwhile)
+            total += int(Path(f"/proc/{pid}/task/{tid}/schedstat").read_text().split()[0])
+    return total / 1e9
 
 
 def _worker_socket(pids: list[int]) -> str | None:
@@ -219,6 +238,39 @@ async def estop_seen_streams(c: httpx.AsyncClient, url: str, arms: list[str],
     return out
 
 
+async def relay_cost(url: str, arms: list[str], seconds: float, front: int,
+                     rate: int = 500) -> tuple[float, float, float, float]:
+    """Messages and bytes a second the front relayed to one telemetry client (at `rate`; 500:
+    each sample as it is published, and an arm at rest hands its repeats over in batches) per
+    entry of `arms` over `seconds`, and the front's CPU meanwhile (s a second), in all and
+    user."""
+    got = [0, 0]
+
+    async def read(arm: str) -> None:
+        async with websockets.connect(f"{url.replace('http', 'ws', 1)}{API}/arms/{arm}"
+                                      f"/telemetry?rate={rate}", max_size=None,
+                                      compression=None) as ws:
+            async for m in ws:
+                got[0] += 1
+                got[1] += len(m)
+
+    readers = [asyncio.create_task(read(a)) for a in arms]
+    try:
+        await asyncio.sleep(1.0)  # streaming
+        n0, b0 = got
+        cpu0, user0, t0 = _sched_s(front), _cpu_s([front], slice(0, 1)), time.monotonic()
+        await asyncio.sleep(seconds)
+        span = time.monotonic() - t0
+        cpu = (_sched_s(front) - cpu0) / span
+        user = (_cpu_s([front], slice(0, 1)) - user0) / span
+        n, b = got[0] - n0, got[1] - b0
+    finally:
+        for r in readers:
+            r.cancel()
+        await asyncio.gather(*readers, return_exceptions=True)
+    return n / span, b / span, cpu, user
+
+
 async def _presses(c: httpx.AsyncClient, arms: list[str],
                    presses: int) -> tuple[list[float], list[float]]:
     """Seconds each `POST /estop` took to answer (the hold commanded on the device), presses
@@ -239,14 +291,16 @@ async def _presses(c: httpx.AsyncClient, arms: list[str],
     return first, later
 
 
-async def measure(url: str, arms: list[str], seconds: float, presses: int,
+async def measure(url: str, arms: list[str], seconds: float, presses: int, relay: tuple[int, int],
                   uds: str | None, pids: list[int], sims: list[int]) -> None:
     async with httpx.AsyncClient(base_url=url, timeout=10) as c:
         first = await _rates(c, arms)
         cpu0, sim0, idle0, t0 = _cpu_s(pids), _cpu_s(sims), _idle_s(), time.monotonic()
+        front0 = _sched_s(pids[0])
         await asyncio.sleep(seconds)  # the arms alone: their cost, no client's
         span = time.monotonic() - t0
         cpu = (_cpu_s(pids) - cpu0) / span
+        front_idle = (_sched_s(pids[0]) - front0) / span
         sim_cpu = (_cpu_s(sims) - sim0) / span
         busy = (os.cpu_count() or 1) - (_idle_s() - idle0) / span
         last = await _rates(c, arms)
@@ -263,6 +317,9 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
         estop_first, estop_later = await _presses(c, arms, presses)
         seen = await estop_seen(c, url, arms, presses)
         seen_streams = await estop_seen_streams(c, url, arms[:SEEN_STREAMS], presses)
+        watchers = [arms[k % len(arms)] for k in range(relay[0])]
+        relayed, relayed_bytes, front_busy, front_user = await relay_cost(
+            url, watchers, seconds, pids[0], relay[1])
     direct: list[float] = []
     estop_direct: list[float] = []
     if uds is not None:
@@ -302,6 +359,12 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int,
           f"pressed (as `make bench-peers`; {len(seen)} presses over {n} arms)")
     print(f"  with {min(SEEN_STREAMS, n)} streams at 500 Hz all along: p50 "
           f"{1e3 * pct(seen_streams, 0.5):.2f} ms  p99 {1e3 * pct(seen_streams, 0.99):.2f} ms")
+    per = (front_busy - front_idle) / relayed if relayed else float("nan")
+    per_user = front_user / relayed if relayed else float("nan")
+    print(f"WebSocket relay   {relayed:.0f} messages/s ({relayed_bytes / 1e6:.2f} MB/s) on "
+          f"{relay[0]} streams at rate={relay[1]}: the "
+          f"front {100 * front_busy:.1f} % of a core ({100 * front_idle:.1f} % with none), "
+          f"{1e6 * per:.0f} µs a message ({1e6 * per_user:.0f} of them user)")
 
 
 async def teleop_latency(url: str, leader: str, follower: str, seconds: float) -> str:
@@ -340,6 +403,10 @@ def main() -> int:
     p.add_argument("--sims-nice", type=int, default=19, metavar="N",
                    help="the simulators' niceness (19: they take what the server leaves, as "
                         "devices with processors of their own; 0: the server's equals)")
+    p.add_argument("--relay-clients", type=int, default=SEEN_STREAMS, metavar="N",
+                   help="telemetry clients for the relay's cost, spread over the arms")
+    p.add_argument("--relay-rate", type=int, default=500, metavar="HZ",
+                   help="their rate (500: each sample as published; 30: a dashboard)")
     p.add_argument("--pin", action="store_true",
                    help="server on core 0; simulators and this client on the others")
     p.add_argument("--io", choices=("thread", "asyncio"), default="thread",
@@ -389,7 +456,8 @@ def main() -> int:
               f"the arms ran: {machine}")
         uds = _worker_socket(pids) if args.workers > 1 else None
         asyncio.run(measure(url, [f"arm-{i + 1}" for i in range(args.arms)], args.seconds,
-                            args.presses, uds, pids, [p.pid for p in sims]))
+                            args.presses, (args.relay_clients, args.relay_rate), uds, pids,
+                            [p.pid for p in sims]))
         if args.teleop and args.arms >= 3 and args.workers == 2:
             # placement: arm-1 and arm-3 on worker 0, arm-2 on worker 1
             same = asyncio.run(teleop_latency(url, "arm-1", "arm-3", args.seconds))

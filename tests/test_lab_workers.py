@@ -326,7 +326,16 @@ async def _outage(lab: Lab, harm: Any) -> float:
 
 @pytest.mark.serial  # reads a sample rate while a process dies: alone, not beside other tests
 async def test_a_killed_worker_comes_back_and_the_other_never_notices(lab: Lab) -> None:
-    back_after = await _outage(lab, lambda pid: os.kill(pid, signal.SIGKILL))
+    """... and a telemetry socket on the killed worker's arm is closed 1012 (service restart:
+    reconnect) by the front."""
+    async with connect(f"{lab.ws}/api/v1/arms/right/telemetry?rate=50",
+                       additional_headers=AUTH) as right:
+        await asyncio.wait_for(right.recv(), 10)
+        back_after = await _outage(lab, lambda pid: os.kill(pid, signal.SIGKILL))
+        with pytest.raises(ConnectionClosed) as closed:
+            while True:  # what came before the kill, then the close
+                await asyncio.wait_for(right.recv(), 10)
+    assert closed.value.rcvd is not None and closed.value.rcvd.code == 1012
     print(f"the right arm was back {back_after:.2f} s after its worker's SIGKILL")
 
 
