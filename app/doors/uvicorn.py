@@ -6,9 +6,11 @@ version lacks, instead of letting the server lose a figure or a limit silently.
 
 - The telemetry fan-out writes frames of its own to the transport under uvicorn's
   websockets-sansio protocol (`websocket_protocol`, `ws_transport`, `ws_closed`): one task
-  and one built frame for every client of an arm at a rate. uvicorn has no public way to
-  write a pre-built frame, and a `send_text` per client per message cost more than a core at
-  1,000 clients and 30 msg/s (`make bench-peers`: 29.6 % of a core with this door).
+  and one built frame for every client of an arm at a rate. The lab front's WebSocket relay
+  (app/lab/ws_relay.py) writes a worker's frames there the same way, as they come. uvicorn
+  has no public way to write a pre-built frame, and a `send_text` per client per message
+  cost more than a core at 1,000 clients and 30 msg/s (`make bench-peers`: 29.6 % of a core
+  with this door).
 - `LimitedHttpToolsProtocol`: uvicorn's httptools protocol (a C parser: the REST figure of
   `make bench-peers`, about twice h11's) with what uvicorn's options do not give with it: a
   bound on the request head (httptools has none; h11's `h11_max_incomplete_event_size` is

@@ -12,16 +12,17 @@ How a message crosses (issue 27). The worker's side is websockets' sans-I/O clie
 (`websockets.client.ClientProtocol`) over the worker's Unix socket, driven by `WorkerSocket`,
 an asyncio protocol: each frame the worker sends is parsed once, in the callback that read it.
 Where the client's socket is uvicorn's websockets-sansio protocol with no extension negotiated
-(the telemetry fan-out's condition: app/web/ws_fanout.py `RawSocket`), the frame is written to
-the client's transport as it came (a server's frames are unmasked both sides of the front): no
-task, no message assembled, no text decoded and encoded again. With 200 dashboards at 30 Hz
-through the front (`bench/lab.py --relay-clients 200 --relay-rate 30`) the front spent 41-45 µs
-of CPU a relayed message when it went through the asyncio client's messages and the ASGI
-`send`, 27-31 of them in user space; it spends 32-33, 15-16 of them in user space: the rest is
-the kernel's (the two sockets). Where the client
-negotiated compression, messages are assembled and go through the ASGI `send` (uvicorn
-compresses them), one task for the socket. The worker's keepalive pings are answered here (the
-client never sees them); the client's are answered by the front's uvicorn.
+(the telemetry fan-out's condition: app/web/ws_fanout.py `RawSocket`, through the door of
+app/doors/uvicorn.py), the frame is written to the client's transport as it came (a server's
+frames are unmasked both sides of the front): no task, no message assembled, no text decoded
+and encoded again. With 200 dashboards at 30 Hz through the front (`bench/lab.py
+--relay-clients 200 --relay-rate 30`) the front spent 41-45 µs of CPU a relayed message when
+it went through the asyncio client's messages and the ASGI `send`, 27-31 of them in user
+space; it spends 32-33, 15-16 of them in user space: the rest is the kernel's (the two
+sockets). Where the client negotiated compression, messages are assembled and go through the
+ASGI `send` (uvicorn compresses them), one task for the socket. The worker's keepalive pings
+are answered here (the client never sees them); the client's are answered by the front's
+uvicorn.
 """
 
 from __future__ import annotations
