@@ -3,8 +3,8 @@
 A "worker" (uvicorn on a Unix socket, a Starlette app whose sockets each do one thing) and a
 "front" (uvicorn on a loopback port, its app the relay to that worker) run on one loop in a
 thread of their own, as a lab's processes would; the client is `websockets` on the test's loop.
-The worker pings every 50 ms and closes a socket whose pong does not come in 100 ms, so a
-relay that did not answer its pings would lose every socket here.
+The worker pings every 50 ms and closes a socket whose pong does not come in 2 s, so a relay
+that did not answer its pings would lose a socket kept open longer.
 """
 
 from __future__ import annotations
@@ -32,9 +32,10 @@ from app.lab import ws_relay
 from app.lab.supervisor import Worker
 from app.web.ws_fanout import RawSocket
 
-#: The worker's keepalive: a ping this often, the socket closed (1011) if no pong in PONG_S.
+#: The worker's keepalive: a ping this often, the socket closed (1011) if no pong in PONG_S
+#: (long enough for a loaded machine's stalls; the ping test watches a socket for longer).
 PING_S = 0.05
-PONG_S = 0.1
+PONG_S = 2.0
 FLOOD_MESSAGE = 64 * 1024
 
 
@@ -211,11 +212,12 @@ async def test_a_handshake_the_worker_refuses_is_refused(relay: Relay) -> None:
 
 
 async def test_the_workers_pings_are_answered_by_the_relay(relay: Relay) -> None:
-    """Over 20 of the worker's ping intervals the stream goes on, every message in order."""
+    """Past the worker's pong timeout (some 40 pings) the stream goes on, every message in
+    order."""
     async with connect(relay.url + "/tick", ping_interval=None) as ws:
         got = [int(await asyncio.wait_for(ws.recv(), 10))]
         t0 = time.monotonic()
-        while time.monotonic() - t0 < 20 * PING_S:
+        while time.monotonic() - t0 < PING_S + PONG_S + 0.5:
             got.append(int(await asyncio.wait_for(ws.recv(), 10)))
     assert got == list(range(got[0], got[0] + len(got)))
     assert len(got) > 20
