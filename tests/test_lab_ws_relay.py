@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import socket
 import threading
 import time
@@ -110,10 +111,13 @@ def _serve(front_deflate: bool, folder: Path, ping: bool = True) -> Iterator[Rel
     state = WorkerState()
     uds = folder / "worker.sock"
     worker = Worker(0, ("a",), uds, client=None, ready=True)  # type: ignore[arg-type]
+    # a worker whose socket is not there (it died, and its restart has not listened yet)
+    gone = Worker(1, ("b",), folder / "gone.sock", client=None, ready=True)  # type: ignore[arg-type]
 
     async def front(scope: Any, receive: Any, send: Any) -> None:
         assert scope["type"] == "websocket"
-        await ws_relay.relay_websocket(scope, receive, send, worker)
+        await ws_relay.relay_websocket(scope, receive, send,
+                                       gone if scope["path"] == "/gone" else worker)
 
     sock = socket.socket()
     sock.bind(("127.0.0.1", 0))
@@ -221,6 +225,15 @@ async def test_the_workers_pings_are_answered_by_the_relay(relay: Relay) -> None
             got.append(int(await asyncio.wait_for(ws.recv(), 10)))
     assert got == list(range(got[0], got[0] + len(got)))
     assert len(got) > 20
+
+
+async def test_a_worker_that_cannot_be_reached_is_try_again_later(relay: Relay) -> None:
+    async with connect(relay.url + "/gone") as ws:
+        with pytest.raises(ConnectionClosed) as closed:
+            await asyncio.wait_for(ws.recv(), 10)
+    assert closed.value.rcvd is not None
+    assert closed.value.rcvd.code == ws_relay.CLOSE_TRY_AGAIN
+    assert json.loads(closed.value.rcvd.reason)["code"] == "link_down"
 
 
 async def test_a_worker_gone_under_the_socket_closes_it_service_restart(relay: Relay) -> None:

@@ -113,6 +113,8 @@ class WorkerSocket(asyncio.Protocol):
                 await loop.create_unix_connection(lambda: sock, str(uds))
                 await sock.opened
         except BaseException:
+            if not sock.opened.done():  # (no one left to read how it ends)
+                sock.opened.cancel()
             sock.abort()
             raise
         return sock
