@@ -35,6 +35,29 @@ def wake_us(groups: int = 5, n: int = 100) -> float:
     return statistics.median(means)
 
 
+def threads_cpu_s(pid: int | str = "self") -> dict[int, float]:
+    """CPU time (s) of each thread of process `pid`, by thread id: the scheduler's own count
+    in ns (/proc/PID/task/TID/schedstat, first field), not the 10 ms ticks of /stat. A thread
+    that ended meanwhile is left out; a process that is gone gives {}."""
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return {}
+    out: dict[int, float] = {}
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
+                out[int(tid)] = int(f.read().split()[0]) / 1e9
+        except OSError:
+            continue
+    return out
+
+
+def process_cpu_s(pid: int | str = "self") -> float:
+    """CPU time (s) of every thread of process `pid` together (`threads_cpu_s`)."""
+    return sum(threads_cpu_s(pid).values())
+
+
 def describe() -> str:
     """One line: the load average, the cores, and `wake_us` now."""
     return (f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; a wake-up and "

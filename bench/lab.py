@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import json
 import os
 import random
@@ -105,19 +104,6 @@ def _cpu_s(pids: list[int], part: slice = slice(0, 2)) -> float:
             continue
         total += sum(int(x) for x in f[11:13][part])
     return total / os.sysconf("SC_CLK_TCK")
-
-
-def _sched_s(pid: int) -> float:
-    """CPU time of every thread of `pid` by the scheduler's own count (ns, not ticks), s."""
-    total = 0
-    try:
-        tids = os.listdir(f"/proc/{pid}/task")
-    except FileNotFoundError:
-        return 0.0
-    for tid in tids:
-        with contextlib.suppress(OSError):  # (a thread ended meanwhile)
-            total += int(Path(f"/proc/{pid}/task/{tid}/schedstat").read_text().split()[0])
-    return total / 1e9
 
 
 def _worker_socket(pids: list[int]) -> str | None:
@@ -258,10 +244,11 @@ async def relay_cost(url: str, arms: list[str], seconds: float, front: int,
     try:
         await asyncio.sleep(1.0)  # streaming
         n0, b0 = got
-        cpu0, user0, t0 = _sched_s(front), _cpu_s([front], slice(0, 1)), time.monotonic()
+        cpu0, user0 = _machine.process_cpu_s(front), _cpu_s([front], slice(0, 1))
+        t0 = time.monotonic()
         await asyncio.sleep(seconds)
         span = time.monotonic() - t0
-        cpu = (_sched_s(front) - cpu0) / span
+        cpu = (_machine.process_cpu_s(front) - cpu0) / span
         user = (_cpu_s([front], slice(0, 1)) - user0) / span
         n, b = got[0] - n0, got[1] - b0
     finally:
@@ -296,11 +283,11 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int, relay
     async with httpx.AsyncClient(base_url=url, timeout=10) as c:
         first = await _rates(c, arms)
         cpu0, sim0, idle0, t0 = _cpu_s(pids), _cpu_s(sims), _idle_s(), time.monotonic()
-        front0 = _sched_s(pids[0])
+        front0 = _machine.process_cpu_s(pids[0])
         await asyncio.sleep(seconds)  # the arms alone: their cost, no client's
         span = time.monotonic() - t0
         cpu = (_cpu_s(pids) - cpu0) / span
-        front_idle = (_sched_s(pids[0]) - front0) / span
+        front_idle = (_machine.process_cpu_s(pids[0]) - front0) / span
         sim_cpu = (_cpu_s(sims) - sim0) / span
         busy = (os.cpu_count() or 1) - (_idle_s() - idle0) / span
         last = await _rates(c, arms)

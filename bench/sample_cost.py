@@ -165,18 +165,13 @@ async def run(model: str, port: int, seconds: float, prof: cProfile.Profile | No
 
 
 def _thread_cpu() -> dict[str, float]:
-    """CPU time (s) of each of this process's threads, by Python thread name: the scheduler's
-    own count, in ns (/proc/self/task/TID/schedstat, first field), not the ticks of /stat."""
+    """CPU time (s) of each of this process's threads, by Python thread name
+    (`_machine.threads_cpu_s`: the scheduler's count, not the ticks of /stat)."""
     names = {t.native_id: t.name for t in threading.enumerate()}
     out: dict[str, float] = {}
-    for tid in os.listdir("/proc/self/task"):
-        try:
-            with open(f"/proc/self/task/{tid}/schedstat") as f:
-                ns = int(f.read().split()[0])
-        except OSError:  # the thread ended meanwhile
-            continue
-        name = names.get(int(tid), f"thread {tid}")
-        out[name] = out.get(name, 0.0) + ns / 1e9
+    for tid, s in _machine.threads_cpu_s().items():
+        name = names.get(tid, f"thread {tid}")
+        out[name] = out.get(name, 0.0) + s
     return out
 
 
