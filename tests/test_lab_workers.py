@@ -427,10 +427,11 @@ def _contains(fn: Any, part: str) -> Any:
 
 
 def test_a_slow_worker_is_not_a_hung_one() -> None:
-    """The supervisor's rule: unanswered probes are a hang only with no CPU used (stopped,
-    wholly deadlocked), or after SILENT_S of silence however busy it is; `cpu_ticks` tells a
-    running process from a stopped one (real processes: this one and a stopped child)."""
-    from app.lab.supervisor import PROBE_MISSES, SILENT_S, cpu_ticks, is_hung, is_stopped
+    """The supervisor's rule: unanswered probes are a hang only with no activity (stopped,
+    wholly deadlocked), or after SILENT_S of silence however busy it is; `activity` tells a
+    running process and a starved one from a stopped one (real processes: this one, a
+    stopped child, and two busy children on one CPU)."""
+    from app.lab.supervisor import PROBE_MISSES, SILENT_S, activity, is_hung, is_stopped
 
     assert not is_hung(1, True, 1.5)  # one miss: asked again at once
     assert is_hung(1, True, 1.5, stopped=True)  # ... unless stopped by a signal
@@ -439,26 +440,39 @@ def test_a_slow_worker_is_not_a_hung_one() -> None:
     assert not is_hung(PROBE_MISSES, False, 2.5)  # two, but it runs: slow, not hung
     assert not is_hung(7, False, SILENT_S - 0.5)
     assert is_hung(8, False, SILENT_S)  # its HTTP side stuck while it runs
-    mine = cpu_ticks(os.getpid())
+    mine = activity(os.getpid())
     assert mine is not None
-    deadline = time.monotonic() + 10  # burn CPU until the kernel counts a tick (10 ms)
-    while cpu_ticks(os.getpid()) == mine and time.monotonic() < deadline:
+    deadline = time.monotonic() + 10  # run until the scheduler's count of it is updated
+    while activity(os.getpid()) == mine and time.monotonic() < deadline:
         sum(range(10_000))
-    assert cpu_ticks(os.getpid()) != mine
-    child = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    now = activity(os.getpid())
+    assert now is not None and now[0] > mine[0]  # it ran
+    busy = "while True: pass"
+    child = subprocess.Popen([sys.executable, "-c", busy])
+    rival = subprocess.Popen([sys.executable, "-c", busy])
     try:
+        # two busy processes on one CPU: each waits on the run queue while the other runs
+        # (what a live worker does on a machine busy beyond its cores): active, not frozen
+        cpu = min(os.sched_getaffinity(0))
+        for p in (child, rival):
+            os.sched_setaffinity(p.pid, {cpu})
+        before = activity(child.pid)
+        assert before is not None
+        wait_until(lambda: (a := activity(child.pid)) is not None and a[1] > before[1],
+                   what="the child waited for its CPU")
         os.kill(child.pid, signal.SIGSTOP)
         wait_until(lambda: Path(f"/proc/{child.pid}/stat").read_text().rsplit(")", 1)[1]
                    .split()[0] == "T", what="the child stopped")
         assert is_stopped(child.pid) and not is_stopped(os.getpid())
-        stopped = cpu_ticks(child.pid)
+        stopped = activity(child.pid)
         assert stopped is not None
-        time.sleep(0.3)  # the window under test: a stopped process uses no CPU in it
-        assert cpu_ticks(child.pid) == stopped
+        time.sleep(0.3)  # the window under test: a stopped process neither runs nor waits
+        assert activity(child.pid) == stopped
         os.kill(child.pid, signal.SIGCONT)
         wait_until(lambda: not is_stopped(child.pid), what="the child continued")
     finally:
-        child.kill()
-        child.wait()
-    assert cpu_ticks(child.pid) is None  # gone: unreadable
+        for p in (child, rival):
+            p.kill()
+            p.wait()
+    assert activity(child.pid) is None  # gone: unreadable
     assert not is_stopped(child.pid)

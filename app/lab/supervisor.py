@@ -16,9 +16,10 @@ a live worker's HTTP loop has been seen silent for over 2 s during the tests at 
 its arms for nothing. So a worker is taken for hung when
 - a probe went unanswered and the process is stopped by a signal (`is_stopped`: state `T`,
   SIGSTOP or SIGTSTP; it gets SIGKILL at once, as a SIGTERM would wait for it to continue), or
-- PROBE_MISSES probes in a row went unanswered and the process used no CPU at all during the
-  last one (`cpu_ticks`: a stopped or wholly deadlocked process; a live one, its control
-  thread polling its arms, uses some every second however loaded the machine), or
+- PROBE_MISSES probes in a row went unanswered and during the last one the process neither
+  ran nor waited on a run queue to run (`activity`: a stopped or wholly deadlocked process;
+  a live one, its control thread polling its arms, runs every second, or waits for a CPU on
+  a machine busy beyond its cores), or
 - nothing answered for SILENT_S although it runs (its HTTP loop stuck, its control thread
   still holding the arms).
 Then it gets SIGTERM, SIGKILL after KILL_GRACE_S (a stopped or deadlocked process runs no
@@ -27,7 +28,7 @@ handler), and is restarted as a dead one is; `ready` is false from the kill (its
 then its start: 1.5-2 s), a frozen one's within about 5 s (2.5 s of probes, 0.5 s of grace,
 its start); tests/test_lab_workers.py stops one with SIGSTOP. A worker
 that hangs in its start, before its first answer, is killed and restarted the same way once it
-has used no CPU for START_FROZEN_S, or after START_S without an answer.
+has neither run nor waited to run for START_FROZEN_S, or after START_S without an answer.
 
 `ready` is the front's one question: has the worker answered its health since it last started
 (and not been taken for hung since).
@@ -60,13 +61,13 @@ READY_ASK_S = 1.0
 #: How long the other workers wait for the first one at start-up, s (then they start anyway).
 FIRST_READY_S = 60.0
 #: A ready worker's health is asked this often, s, and must answer within PROBE_DEADLINE_S;
-#: PROBE_MISSES misses in a row with no CPU used during the last, or SILENT_S s without an
+#: PROBE_MISSES misses in a row with no activity during the last, or SILENT_S s without an
 #: answer, and it is killed and restarted (a hung worker: see the module doc).
 PROBE_EVERY_S = 0.5
 PROBE_DEADLINE_S = 1.0
 PROBE_MISSES = 2
 SILENT_S = 10.0
-#: A starting worker (not yet answering) is hung once it has used no CPU for START_FROZEN_S
+#: A starting worker (not yet answering) is hung once it has had no activity for START_FROZEN_S
 #: (its start is imports and set-up, all CPU; a store locked by another process waits 1 s at
 #: most, app/store.py), or when it has not answered for START_S.
 START_FROZEN_S = 5.0
@@ -87,14 +88,27 @@ def _stat(pid: int) -> list[bytes] | None:
         return None
 
 
-def cpu_ticks(pid: int) -> int | None:
-    """The CPU time process `pid` has used, clock ticks (Linux: /proc/PID/stat, utime +
-    stime; proc(5)); None where it cannot be read."""
-    fields = _stat(pid)
+def activity(pid: int) -> tuple[int, int] | None:
+    """What the threads of process `pid` have done, summed, ns: (time on a CPU, time waiting
+    on a run queue for one), the scheduler's own count (Linux: /proc/PID/task/TID/schedstat,
+    proc(5)); None where it cannot be read (gone). A process whose count does not move neither
+    ran nor waited to run: stopped, or wholly blocked (a deadlock). One starved by a machine
+    busy beyond its cores waits on a run queue: not hung. (The CPU ticks of /proc/PID/stat
+    are sampled at the timer's tick: a live worker that ran in short bursts on such a machine
+    once showed none through a probe, and was killed for it.)"""
     try:
-        return int(fields[11]) + int(fields[12]) if fields is not None else None
-    except (IndexError, ValueError):
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
         return None
+    ran = waited = 0
+    for tid in tids:
+        try:
+            with open(f"/proc/{pid}/task/{tid}/schedstat", "rb") as f:
+                fields = f.read().split()
+            ran, waited = ran + int(fields[0]), waited + int(fields[1])
+        except (OSError, IndexError, ValueError):  # (a thread that ended meanwhile)
+            continue
+    return ran, waited
 
 
 def is_stopped(pid: int) -> bool:
@@ -106,7 +120,7 @@ def is_stopped(pid: int) -> bool:
 
 
 def is_hung(misses: int, frozen: bool, silent_s: float, stopped: bool = False) -> bool:
-    """After `misses` unanswered probes in a row, the last with no CPU used (`frozen`), and
+    """After `misses` unanswered probes in a row, the last with no activity (`frozen`), and
     `silent_s` s since the last answer, the process `stopped` by a signal or not: is the
     worker hung (see the module doc)?"""
     return ((misses >= 1 and stopped) or (misses >= PROBE_MISSES and frozen)
@@ -206,14 +220,14 @@ class Supervisor:
             return
         misses = 0
         answered_at = time.monotonic()
-        cpu = cpu_ticks(proc.pid)
+        cpu = activity(proc.pid)
         while True:
             if not misses:  # after a miss, ask again at once
                 await asyncio.sleep(PROBE_EVERY_S)
             answered = await self._answers(w)
             if self._stopping:  # the lab stops: its workers stop answering, on purpose
                 return
-            now, before, cpu = time.monotonic(), cpu, cpu_ticks(proc.pid)
+            now, before, cpu = time.monotonic(), cpu, activity(proc.pid)
             if answered:
                 if misses:
                     log.info("worker %d answers again after %.1f s", w.index,
@@ -226,12 +240,12 @@ class Supervisor:
             silent = now - answered_at
             log.warning("worker %d (pid %d): no health answer for %.1f s (%s)", w.index,
                         proc.pid, silent, "stopped by a signal" if stopped else
-                        "no CPU used" if frozen else "it runs")
+                        "neither ran nor waited to" if frozen else "it runs")
             if is_hung(misses, frozen, silent, stopped):
                 w.hangs, w.hung = w.hangs + 1, "hung (no health answer)"
                 w.ready = False
-                why = ("stopped by a signal" if stopped else "no CPU used" if frozen
-                       else f"nothing answered for {silent:.0f} s")
+                why = ("stopped by a signal" if stopped else "it neither ran nor waited to"
+                       if frozen else f"nothing answered for {silent:.0f} s")
                 log.error("worker %d (pid %d) hangs (%s): killing it to restart its arms "
                           "(%s)", w.index, proc.pid, why, ", ".join(w.arms))
                 await self._kill(proc)
@@ -269,10 +283,10 @@ class Supervisor:
             proc.kill()
 
     async def _until_ready(self, w: Worker, proc: asyncio.subprocess.Process) -> bool:
-        """Ask a starting worker's health until it answers (True), or until it has used no
-        CPU for START_FROZEN_S or not answered for START_S (False: it hangs in its start)."""
+        """Ask a starting worker's health until it answers (True), or until it has had no
+        activity for START_FROZEN_S or not answered for START_S (False: it hangs in its start)."""
         started = changed = time.monotonic()
-        cpu = cpu_ticks(proc.pid)
+        cpu = activity(proc.pid)
         while True:
             with contextlib.suppress(UpstreamError, TimeoutError):
                 r = await w.client.request("GET", "/api/v1/health",
@@ -286,12 +300,12 @@ class Supervisor:
             await asyncio.sleep(READY_POLL_S)
             if self._stopping:
                 return False
-            now, before, cpu = time.monotonic(), cpu, cpu_ticks(proc.pid)
+            now, before, cpu = time.monotonic(), cpu, activity(proc.pid)
             if cpu is None or cpu != before:
                 changed = now
             if now - changed >= START_FROZEN_S or now - started >= START_S:
                 log.error("worker %d (pid %d) hangs in its start (%s): killing it", w.index,
-                          proc.pid, f"no CPU used for {now - changed:.0f} s"
+                          proc.pid, f"it neither ran nor waited to for {now - changed:.0f} s"
                           if now - changed >= START_FROZEN_S else f"{START_S:.0f} s")
                 return False
 
