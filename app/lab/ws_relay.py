@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any, cast
 from starlette.types import Receive, Scope, Send
 from websockets.client import ClientProtocol
 from websockets.exceptions import InvalidHandshake, InvalidState, InvalidStatus
-from websockets.frames import CloseCode, Frame, Opcode
+from websockets.frames import EXTERNAL_CLOSE_CODES, CloseCode, Frame, Opcode
 from websockets.http11 import Response
 from websockets.uri import parse_uri
 
@@ -77,9 +77,6 @@ FINISH_TIMEOUT_S = 5.0
 stats = {"direct": 0, "messages": 0}
 
 _DATA = (Opcode.TEXT, Opcode.BINARY, Opcode.CONT)
-#: Close codes of RFC 6455 an endpoint may send (not 1005, 1006, 1015: those only say what
-#: happened), below the registered and private ranges (3000-4999).
-SENDABLE = frozenset(range(1000, 1015)) - {1004, 1005, 1006}
 
 
 class WorkerSocket(asyncio.Protocol):
@@ -348,7 +345,9 @@ async def _to_worker(upstream: WorkerSocket, receive: Receive) -> None:
         message = await receive()
         if message["type"] == "websocket.disconnect":
             code = message.get("code", CloseCode.NORMAL_CLOSURE)
-            upstream.close(code if code in SENDABLE or 3000 <= code < 5000
+            # a code an endpoint may send (websockets' own rule, `Close.check`): not 1005,
+            # 1006, 1015, which only say what happened
+            upstream.close(code if code in EXTERNAL_CLOSE_CODES or 3000 <= code < 5000
                            else CloseCode.NORMAL_CLOSURE)
             return
         if message.get("text") is not None:
