@@ -88,27 +88,38 @@ def _stat(pid: int) -> list[bytes] | None:
         return None
 
 
-def activity(pid: int) -> tuple[int, int] | None:
-    """What the threads of process `pid` have done, summed, ns: (time on a CPU, time waiting
-    on a run queue for one), the scheduler's own count (Linux: /proc/PID/task/TID/schedstat,
-    proc(5)); None where it cannot be read (gone). A process whose count does not move neither
-    ran nor waited to run: stopped, or wholly blocked (a deadlock). One starved by a machine
-    busy beyond its cores waits on a run queue: not hung. (The CPU ticks of /proc/PID/stat
-    are sampled at the timer's tick: a live worker that ran in short bursts on such a machine
-    once showed none through a probe, and was killed for it.)"""
+def thread_activity(pid: int | str) -> dict[int, tuple[int, int]] | None:
+    """Each thread of process `pid` (or "self") by its id: (time on a CPU, time waiting on a
+    run queue for one), ns, the scheduler's own count (Linux: /proc/PID/task/TID/schedstat,
+    proc(5)); a thread that ended meanwhile is left out; None where the process cannot be read
+    (gone). (The benches read their threads' CPU from here too: bench/_machine.py.)"""
     try:
         tids = os.listdir(f"/proc/{pid}/task")
     except OSError:
         return None
-    ran = waited = 0
+    out: dict[int, tuple[int, int]] = {}
     for tid in tids:
         try:
             with open(f"/proc/{pid}/task/{tid}/schedstat", "rb") as f:
                 fields = f.read().split()
-            ran, waited = ran + int(fields[0]), waited + int(fields[1])
+            out[int(tid)] = int(fields[0]), int(fields[1])
         except (OSError, IndexError, ValueError):  # (a thread that ended meanwhile)
             continue
-    return ran, waited
+    return out
+
+
+def activity(pid: int) -> tuple[int, int] | None:
+    """What the threads of process `pid` have done, summed, ns: (time on a CPU, time waiting
+    on a run queue for one) (`thread_activity`); None where it cannot be read (gone). A
+    process whose count does not move neither ran nor waited to run: stopped, or wholly
+    blocked (a deadlock). One starved by a machine busy beyond its cores waits on a run queue:
+    not hung. (The CPU ticks of /proc/PID/stat are sampled at the timer's tick: a live worker
+    that ran in short bursts on such a machine once showed none through a probe, and was
+    killed for it.)"""
+    threads = thread_activity(pid)
+    if threads is None:
+        return None
+    return sum(t[0] for t in threads.values()), sum(t[1] for t in threads.values())
 
 
 def is_stopped(pid: int) -> bool:
@@ -220,14 +231,14 @@ class Supervisor:
             return
         misses = 0
         answered_at = time.monotonic()
-        cpu = activity(proc.pid)
+        act = activity(proc.pid)
         while True:
             if not misses:  # after a miss, ask again at once
                 await asyncio.sleep(PROBE_EVERY_S)
             answered = await self._answers(w)
             if self._stopping:  # the lab stops: its workers stop answering, on purpose
                 return
-            now, before, cpu = time.monotonic(), cpu, activity(proc.pid)
+            now, before, act = time.monotonic(), act, activity(proc.pid)
             if answered:
                 if misses:
                     log.info("worker %d answers again after %.1f s", w.index,
@@ -235,7 +246,7 @@ class Supervisor:
                 misses, answered_at = 0, now
                 continue
             misses += 1
-            frozen = cpu is not None and cpu == before
+            frozen = act is not None and act == before
             stopped = is_stopped(proc.pid)
             silent = now - answered_at
             log.warning("worker %d (pid %d): no health answer for %.1f s (%s)", w.index,
@@ -286,7 +297,7 @@ class Supervisor:
         """Ask a starting worker's health until it answers (True), or until it has had no
         activity for START_FROZEN_S or not answered for START_S (False: it hangs in its start)."""
         started = changed = time.monotonic()
-        cpu = activity(proc.pid)
+        act = activity(proc.pid)
         while True:
             with contextlib.suppress(UpstreamError, TimeoutError):
                 r = await w.client.request("GET", "/api/v1/health",
@@ -300,8 +311,8 @@ class Supervisor:
             await asyncio.sleep(READY_POLL_S)
             if self._stopping:
                 return False
-            now, before, cpu = time.monotonic(), cpu, activity(proc.pid)
-            if cpu is None or cpu != before:
+            now, before, act = time.monotonic(), act, activity(proc.pid)
+            if act is None or act != before:
                 changed = now
             if now - changed >= START_FROZEN_S or now - started >= START_S:
                 log.error("worker %d (pid %d) hangs in its start (%s): killing it", w.index,
