@@ -7,12 +7,14 @@ from silence and still find the servos' rate: the link's on connect, `armserver 
 
 from __future__ import annotations
 
+import os
 import threading
 from pathlib import Path
 
 import httpx
 import pytest
 import serial
+from _tcp import LoopThread
 from _wait import TIMEOUT_S, wait_for, wait_until
 from test_setup_servos import Served
 
@@ -242,3 +244,74 @@ def test_a_late_answer_to_an_earlier_request_is_not_taken_for_this_ones(tmp_path
         thread.join(5)
         os.close(master)
         os.close(slave)
+
+
+class StarvedBus(Served):
+    """The factory servo on a pty, behind a bus process that reads the host's Baud Rate WRITE
+    late, once (starved beside a load: `make test-loaded`): the WRITE and whatever follows it
+    are taken in `LATE_S` after they came, at the rate the pty has by then, as the practice
+    bus reads them (app/sim/servers.py `PtyServer._on_readable`)."""
+
+    LATE_S = 3 * IN_PROCESS_REPLY_S  # past the set-up's broadcast window, within a reply's
+
+    def __init__(self, path: Path) -> None:
+        from app.arms.dynamixel.setup import _T
+        from app.sim.servers import PtyServer, pty_baudrate
+
+        LoopThread.__init__(self)  # (Served's own would serve the bus as it comes)
+        self.bus = DynamixelBus.factory(1, baudrate=57_600)
+        self.held: list[bytes] = []
+        self.late: list[int] = []  # the rate (the pty's) each held chunk was taken in at
+        baud = _T["baud_rate"].address
+        outer = self
+
+        class Late(PtyServer):
+            def _on_readable(self) -> None:
+                data = os.read(self.master, 4096)
+                parser = dxl.Parser()
+                parser.feed(data)
+                writes_baud = any(isinstance(p, dxl.Packet)
+                                  and p.instruction == dxl.Instruction.WRITE
+                                  and dxl.decode_write(p.params)[0] == baud for p in parser)
+                if outer.held or (writes_baud and not outer.late):
+                    outer.held.append(data)
+                    if len(outer.held) == 1:
+                        self._loop.call_later(outer.LATE_S, self.release)
+                    return
+                self.take(data)
+
+            def take(self, data: bytes) -> None:
+                self.device.set_host_baudrate(pty_baudrate(self.slave))
+                self._pump.on_data(data)
+
+            def release(self) -> None:
+                for data in outer.held:
+                    outer.late.append(pty_baudrate(self.slave))
+                    self.take(data)
+                outer.held.clear()
+
+        async def start() -> PtyServer:
+            return Late(self.bus, path)
+
+        self.server = self.run(start())
+        self.url = str(path)
+
+
+def test_the_host_changes_its_rate_only_once_the_servo_has_read_the_baud_rate_write(
+        tmp_path: Path) -> None:
+    """The servo's status to the WRITE of its Baud Rate comes at the old rate (it answers the
+    packet it read at that rate): the set-up waits for it before it sets the port to the new
+    rate, as ROBOTIS's Dynamixel2Arduino `setBaudrate` (a WRITE that waits for its status)
+    before `begin(new_rate)`. It used to wait only the broadcast window; a bus that read the
+    WRITE after it read it at the new rate, as noise, and the servo stayed at 57,600 ("READ
+    id: servo 2: no reply", the README's practice bus beside stress-ng)."""
+    served = StarvedBus(tmp_path / "ttyDXL")
+    try:
+        argv = ["setup-servos", "--port", served.url, "--profile", "angler", "--timeout",
+                str(IN_PROCESS_REPLY_S), "--baudrates", "57600,1000000", "--joint", "x"]
+        assert main(argv) == EXIT_OK
+        assert served.late and served.late[0] == 57_600  # the WRITE was read late, at 57,600
+        [servo] = served.bus.servos
+        assert (servo.id, servo.get("baud_rate"), servo.get("operating_mode")) == (2, 3, 4)
+    finally:
+        served.close()

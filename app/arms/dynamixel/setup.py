@@ -370,7 +370,18 @@ def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 
             bus.one(dxl.ping(dxl_id), dxl_id, f"PING at the new ID {dxl_id}", 3)
         rate = BAUD_RATES[want["baud_rate"]]
         if servo.baudrate != rate:
-            bus.exchange(dxl.write(dxl_id, _T["baud_rate"].address, bytes((want["baud_rate"],))))
+            # The port moves to the new rate only once the servo has read this WRITE: its
+            # status, at the rate the servo read the WRITE at, or the reply timeout (as
+            # ROBOTIS's Dynamixel2Arduino, whose `setBaudrate` is a WRITE that waits for its
+            # status before `begin(new_rate)`). A broadcast's window was too short for a
+            # bus that read the WRITE late: it read it at the new rate, as noise.
+            code = want["baud_rate"]
+            try:
+                bus.one(dxl.write(dxl_id, _T["baud_rate"].address, bytes((code,))), dxl_id,
+                        f"WRITE baud_rate = {code}", 0)
+            except SetupError as exc:
+                if exc.kind != "no_reply":  # (silence: verified at the new rate below)
+                    raise
             if carries_baud(url):
                 bus.set_rate(rate)
         for name, value in want.items():
