@@ -319,6 +319,59 @@ async def test_a_cable_pulled_while_the_thread_polls_is_a_lost_link_and_it_comes
             sub.close()
 
 
+async def test_an_arm_at_rest_hands_its_repeats_over_as_often_as_someone_takes_them():
+    """Replies that repeat (an arm at rest) wait on the thread IDLE_BATCH_S while nobody takes
+    the samples as they come (a REST client reads the latest: the same reading), BATCH_S
+    while a subscriber does (issue 27: the control loop's wake-ups of an arm at rest); a
+    subscriber that comes gets the batch being made within BATCH_S, not at its end; once it
+    has gone, the batches are long again."""
+    from app.links.threaded import IDLE_BATCH_S
+
+    async with arm("rbe3001") as (driver, link, _server):
+        hub = driver.hub
+        assert hub.readers == 0
+
+        async def at_rest() -> None:  # until 100 polls in a row repeat (settled after connect)
+            seen = {"parsed": -1, "repeats": 0}
+
+            def still() -> bool:
+                parsed = driver.stats["polls"] - driver.stats["repeats"]
+                if parsed != seen["parsed"]:
+                    seen.update(parsed=parsed, repeats=driver.stats["repeats"])
+                return driver.stats["repeats"] - seen["repeats"] >= 100
+            await wait_for(still, what="the arm at rest")
+
+        async def handed_over() -> None:  # until the next batch is published
+            published = hub.published
+            await wait_for(lambda: hub.published > published, what="a batch handed over")
+
+        async def owner_wakes_over_300_polls() -> tuple[int, float]:
+            wakes, scheduled, t0 = link.stats["wakes"], link.stats["scheduled"], time.monotonic()
+            await wait_for(lambda: link.stats["scheduled"] > scheduled + 300, what="300 polls")
+            return link.stats["wakes"] - wakes, time.monotonic() - t0
+
+        await at_rest()
+        wakes, took = await owner_wakes_over_300_polls()
+        assert wakes <= took / IDLE_BATCH_S + 2, (wakes, took)  # at BATCH_S: about 30
+        await handed_over()  # a batch begins: nobody would see it for IDLE_BATCH_S
+        since = time.time()
+        sub = hub.subscribe()
+        try:
+            assert hub.readers == 1
+            await wait_for(lambda: sub.pending, what="the subscriber's first batch")
+            samples = _samples(sub)
+            assert samples[-1]["time"] - since < IDLE_BATCH_S / 2, samples[-1]["time"] - since
+            wakes, took = await owner_wakes_over_300_polls()
+            assert wakes > took / IDLE_BATCH_S + 2, (wakes, took)  # about 30 in 0.6 s
+        finally:
+            sub.close()
+        assert hub.readers == 0
+        await handed_over()
+        wakes, took = await owner_wakes_over_300_polls()
+        assert wakes <= took / IDLE_BATCH_S + 2, (wakes, took)
+        assert driver.stats["poll_failures"] == 0
+
+
 async def test_one_poll_thread_serves_every_arm_on_shared_slots_and_wakes_them_together():
     """Six arms (four rbe3001 at 500 Hz, two angler at 200 Hz): their scheduled polls are the
     process's one poll thread's (app/links/poller.py), each link's slots on its period's grid,

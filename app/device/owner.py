@@ -20,7 +20,7 @@ import numpy as np
 
 from app.errors import ArmError, DeviceError, DeviceTimeout, LinkDown
 from app.links.base import Link, LinkError, LinkState
-from app.links.threaded import ThreadLink
+from app.links.threaded import BATCH_S, IDLE_BATCH_S, ThreadLink
 from app.runtime.tasks import resolve
 from app.telemetry.hub import TelemetryHub
 
@@ -234,6 +234,11 @@ class OwnerTask:
         next_poll = loop.time()
         polled = False  # the last thing done was a poll
         ok = False  # the last poll succeeded: the thread may poll on its own
+
+        def readers(n: int) -> None:  # repeats as often as someone takes the samples
+            link.batch_repeats(BATCH_S if n else IDLE_BATCH_S)
+        self.hub.on_readers = readers
+        readers(self.hub.readers)
         try:
             while True:
                 now = loop.time()
@@ -278,6 +283,7 @@ class OwnerTask:
                 else:  # after a failed poll the driver polls itself (its quiet wait first)
                     await self._idle_until(loop, next_poll - POLL_EARLY_S)
         finally:
+            self.hub.on_readers = None
             await link.pause()
 
     async def _idle_scheduled(self, loop: asyncio.AbstractEventLoop, link: ThreadLink,

@@ -32,7 +32,8 @@ tests/test_link_thread.py):
   starts to move, a fault), for one that did not come whole within its timeout (and the
   schedule stops: the driver resynchronises as it does on any link, with its quiet wait,
   before anything is written again) and for a request; replies that go on changing (a moving
-  arm) wait at most MOVING_BATCH_S, replies that repeat (an arm at rest) BATCH_S (a batch
+  arm) wait at most MOVING_BATCH_S, replies that repeat (an arm at rest) BATCH_S, or
+  IDLE_BATCH_S while nobody takes the samples as they come (`batch_repeats`) (a batch
   that only repeats the last poll's reply is published in the hand-over itself, the owner task
   left waiting: app/device/owner.py `_on_replies`), and each carries the time it was read
   (`Reply.at`).
@@ -73,6 +74,13 @@ CLOSE_TIMEOUT_S = 1.0  # closing must not hang the owner task on a thread stuck 
 #: most (a 50 Hz subscriber's period); a reply that differs, one that failed and a request
 #: wake it at once.
 BATCH_S = 0.02
+#: ... and while nobody takes the arm's samples as they come (no telemetry subscriber and no
+#: listener on its hub: the owner task says so, `batch_repeats`), every IDLE_BATCH_S: an arm at
+#: rest that only answers reads of its latest sample then wakes its control loop ten times a
+#: second, not fifty (issue 27: half its control loop's CPU at rest); that latest sample is
+#: then up to this old, and the same reading (an arm at rest). A reader that comes gets the
+#: batch being made within BATCH_S.
+IDLE_BATCH_S = 0.1
 #: ... and replies that go on changing (an arm that moves), after the first of them, which
 #: wakes it at once: a subscriber at the poll rate sees a moving arm this much later at most.
 MOVING_BATCH_S = 0.005
@@ -129,6 +137,8 @@ class ThreadLink(Link):
         self._last_data = b""
         self._changing = False  # the last reply differed from the one before
         self._batch_since = 0.0
+        #: How long repeats wait on the thread, s (BATCH_S or IDLE_BATCH_S: `batch_repeats`).
+        self._repeat_batch_s = BATCH_S
         #: Signalled as a scheduled poll ends (`poll_ended`) while the port is closing.
         self._flight_ended = threading.Condition(self._lock)
         self._closing = False
@@ -344,6 +354,13 @@ class ThreadLink(Link):
         polls.add(self, slot)
         return True
 
+    def batch_repeats(self, seconds: float) -> None:
+        """Hand repeats over every `seconds` from the last hand-over on (BATCH_S while someone
+        takes the samples as they come, IDLE_BATCH_S while nobody does): a reader that comes
+        gets the batch being made within BATCH_S, as every reader did."""
+        with self._lock:
+            self._repeat_batch_s = seconds
+
     @property
     def armed(self) -> bool:
         """The poll thread polls this link on its schedule (until `pause`)."""
@@ -401,9 +418,10 @@ class ThreadLink(Link):
             changed = data != self._last_data
             # a reading that changes after repeats (a move starts: the samples a goal's or a
             # teleoperation's latency waits for) at once; while it goes on changing, every
-            # MOVING_BATCH_S; repeats every BATCH_S
+            # MOVING_BATCH_S; repeats every BATCH_S (IDLE_BATCH_S with no reader)
             wake = (failed or not self._armed or (changed and not self._changing)
-                    or now - self._batch_since >= (MOVING_BATCH_S if changed else BATCH_S))
+                    or now - self._batch_since >= (MOVING_BATCH_S if changed
+                                                   else self._repeat_batch_s))
             self._changing = changed
             self._last_data = data
             if wake:

@@ -215,6 +215,10 @@ class TelemetryHub:
         #: Samples subscribers have lost to their backlog bound, all of them together (what
         #: their `dropped` fields told them): 0 means every subscriber got every sample.
         self.dropped_total = 0
+        #: Called with the number of readers (`readers`) whenever it changes, from the thread
+        #: that changed it: the owner task's hook (how often an arm at rest hands over the
+        #: replies that repeat, app/links/threaded.py `batch_repeats`).
+        self.on_readers: Callable[[int], None] | None = None
         #: The fan-out's loop and thread (the HTTP loop), when the publisher runs elsewhere.
         self._fanout_loop: asyncio.AbstractEventLoop | None = None
         self._fanout_thread: int | None = None
@@ -307,6 +311,16 @@ class TelemetryHub:
     def subscriber_count(self) -> int:
         return len(self._subs)
 
+    @property
+    def readers(self) -> int:
+        """Who takes the samples as they are published: subscribers and listeners."""
+        return len(self._subs) + len(self._listeners)
+
+    def _readers_changed(self) -> None:
+        hook = self.on_readers
+        if hook is not None:
+            hook(self.readers)
+
     def subscribe(self, backlog: int | None = None) -> Subscription:
         backlog = backlog or self.backlog
         with self._lock:
@@ -317,6 +331,7 @@ class TelemetryHub:
             snap = self._latest  # the latest as of the cursor, taken with it
             sub = Subscription(self, backlog, self.published, None)
             self._subs.add(sub)
+        self._readers_changed()
         # derived after the lock (a sample published meanwhile is in the log after the cursor:
         # none lost, none twice). Deriving "the latest" before the lock and reading it again
         # under it began the subscription with no initial sample when the publisher's thread
@@ -332,6 +347,7 @@ class TelemetryHub:
         with self._lock:
             self._subs.discard(sub)
         self._remove_waiter(sub)
+        self._readers_changed()
 
     def _add_waiter(self, sub: Subscription) -> None:
         with self._lock:
@@ -345,7 +361,13 @@ class TelemetryHub:
         """Call `fn(sample)` on every sample, in the publisher's task (on the control thread
         when there is one); returns an unsubscribe."""
         self._listeners.append(fn)
-        return lambda: self._listeners.remove(fn) if fn in self._listeners else None
+        self._readers_changed()
+
+        def remove() -> None:
+            if fn in self._listeners:
+                self._listeners.remove(fn)
+                self._readers_changed()
+        return remove
 
     async def sample_where(self, pred: Callable[[dict[str, Any]], bool], timeout: float,
                            then: Callable[[], None] | None = None) -> bool:
