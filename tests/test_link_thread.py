@@ -26,6 +26,7 @@ from _wait import wait_for
 
 from app.arms.dynamixel.driver import DynamixelDriver
 from app.arms.loading import load_profile
+from app.arms.openmanipulator_x.driver import OmxDriver
 from app.arms.rbe3001.driver import Rbe3001Driver
 from app.arms.rbe3001.sim import Rbe3001Firmware
 from app.config import FaultConfig
@@ -40,7 +41,8 @@ from app.telemetry.hub import TelemetryHub
 from protocol import mx28
 from protocol import rbe3001 as rb
 
-DRIVERS = {"rbe3001": Rbe3001Driver, "angler": DynamixelDriver}
+DRIVERS = {"rbe3001": Rbe3001Driver, "angler": DynamixelDriver,
+           "openmanipulator_x": OmxDriver}
 
 
 @contextlib.asynccontextmanager
@@ -346,21 +348,28 @@ async def test_an_arm_at_rest_hands_its_repeats_over_as_often_as_someone_takes_t
             await wait_for(lambda: hub.published > published, what="a batch handed over")
 
         async def owner_wakes_over_300_polls() -> tuple[int, float]:
-            wakes, scheduled, t0 = link.stats["wakes"], link.stats["scheduled"], time.monotonic()
+            """The owner's wake-ups over 300 polls, less those for polls that failed (a reply
+            late on a loaded machine wakes it at once), and the seconds the 300 took."""
+            wakes, failures = link.stats["wakes"], driver.stats["poll_failures"]
+            scheduled, t0 = link.stats["scheduled"], time.monotonic()
             await wait_for(lambda: link.stats["scheduled"] > scheduled + 300, what="300 polls")
-            return link.stats["wakes"] - wakes, time.monotonic() - t0
+            failed = driver.stats["poll_failures"] - failures
+            return link.stats["wakes"] - wakes - 2 * failed, time.monotonic() - t0
 
         await at_rest()
         wakes, took = await owner_wakes_over_300_polls()
         assert wakes <= took / IDLE_BATCH_S + 2, (wakes, took)  # at BATCH_S: about 30
         await handed_over()  # a batch begins: nobody would see it for IDLE_BATCH_S
-        since = time.time()
+        before = hub.latest["time"]  # (the last sample of the batch before, as it was read)
         sub = hub.subscribe()
         try:
             assert hub.readers == 1
             await wait_for(lambda: sub.pending, what="the subscriber's first batch")
             samples = _samples(sub)
-            assert samples[-1]["time"] - since < IDLE_BATCH_S / 2, samples[-1]["time"] - since
+            # the batch closed about BATCH_S, not IDLE_BATCH_S, after the one before (the read
+            # times of their last samples: the thread's clock, not this test's)
+            span = samples[-1]["time"] - before
+            assert span < 0.75 * IDLE_BATCH_S, span
             wakes, took = await owner_wakes_over_300_polls()
             assert wakes > took / IDLE_BATCH_S + 2, (wakes, took)  # about 30 in 0.6 s
         finally:
@@ -369,7 +378,35 @@ async def test_an_arm_at_rest_hands_its_repeats_over_as_often_as_someone_takes_t
         await handed_over()
         wakes, took = await owner_wakes_over_300_polls()
         assert wakes <= took / IDLE_BATCH_S + 2, (wakes, took)
-        assert driver.stats["poll_failures"] == 0
+
+
+async def test_a_reply_in_parts_wakes_the_poll_thread_for_its_first_part_and_its_last():
+    """The OpenManipulator-X's poll is one SYNC_READ of five servos, answered with five status
+    packets one after another (the simulated bus times each as on the wire): over a socket
+    the thread sets SO_RCVLOWAT to the rest of the reply after its first part, so `poll`
+    wakes it once more, for the whole rest (issue 27: 4.7 wake-ups a poll, 2.2 with it); the
+    owner task's own request after the scheduled polls is answered as at once (the socket's
+    low mark is back at 1 before the owner task may read it)."""
+    from app.links import poller
+
+    poller._shared = None  # (a poll thread of this test's niceness, as the test below)
+    async with arm("openmanipulator_x") as (driver, link, _server):
+        thread = poller.shared()
+        await wait_for(lambda: link.stats["scheduled"] > 20, what="scheduled polls")
+        stats0, scheduled0 = dict(thread.stats), link.stats["scheduled"]
+        await wait_for(lambda: link.stats["scheduled"] > scheduled0 + 100, what="100 polls")
+        polls = thread.stats["polls"] - stats0["polls"]
+        wakes = thread.stats["wakes"] - stats0["wakes"]
+        # a slot, the reply's first part, its rest (and a poll now and then that the owner
+        # task makes, or a nudge): not a wake-up for each of the five statuses
+        assert wakes < 3.5 * polls, (wakes, polls)
+        assert driver.stats["poll_failures"] == 0 and driver.stats["corrupt"] == 0
+        for k in range(5):  # the owner's own exchanges between the scheduled polls: each
+            # READ's one status would wait out its timeout under a low mark left at 5 statuses
+            t0 = time.monotonic()
+            await driver.write_register(11, mx28.TABLE["led"], k % 2)
+            assert await driver.read_register(11, mx28.TABLE["led"]) == k % 2
+            assert time.monotonic() - t0 < driver.profile.link.timeout_s, "a reply held back"
 
 
 async def test_one_poll_thread_serves_every_arm_on_shared_slots_and_wakes_them_together():

@@ -25,6 +25,7 @@ import logging
 import math
 import os
 import select
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -72,13 +73,16 @@ def aligned(slot: float, period: float) -> float:
 class _Flight:
     """One poll in flight: its request still to write, its reply so far, its deadline."""
 
-    __slots__ = ("data", "deadline", "fd", "link", "out", "packet", "size", "write_by")
+    __slots__ = ("data", "deadline", "fd", "link", "lowat", "out", "packet", "size", "write_by")
 
     def __init__(self, link: Polled, fd: int, packet: bytes, size: int, deadline: float,
                  out: bytes, write_by: float) -> None:
         self.link, self.fd, self.packet, self.size = link, fd, packet, size
         self.deadline, self.out, self.write_by = deadline, out, write_by
         self.data = b""
+        #: Whether the socket's SO_RCVLOWAT was set for the rest of the reply (None: not yet
+        #: tried; False: not a socket).
+        self.lowat: bool | None = None
 
 
 class PollThread:
@@ -198,6 +202,8 @@ class PollThread:
                 continue
             if len(got.data) >= got.size:
                 self._finish(got, None, handover, flights)
+            elif got.data and got.lowat is None:  # the first part of a reply: wake for the rest
+                got.lowat = _set_lowat(fd, got.size - len(got.data))
         if flights:
             now = time.monotonic()
             for f in [f for f in flights.values() if now >= f.deadline]:
@@ -277,6 +283,8 @@ class PollThread:
             self._poller.unregister(f.fd)
         except KeyError:  # (a write that failed: never registered)
             pass
+        if f.lowat:  # before the owner task may read the port itself (its `pause` ends)
+            _set_lowat(f.fd, 1)
         self.stats["polls"] += 1
         entry: Reply | BaseException = (
             error if error is not None else Reply(f.data, f.deadline, time.time()))
@@ -284,6 +292,25 @@ class PollThread:
         if told is not None:
             loop, calls = told
             handover.setdefault(loop, []).extend(calls)
+
+
+def _set_lowat(fd: int, n: int) -> bool:
+    """Have `poll` report socket `fd` readable only once `n` bytes are there (SO_RCVLOWAT;
+    Linux's TCP honours it in `poll` and wakes no reader before): a reply that comes in parts
+    (a Dynamixel bus's statuses one after another, each timed by the simulator as on the wire)
+    wakes the thread for its first part and its last, not for each. False if `fd` is no
+    socket (a tty: each part wakes it)."""
+    try:  # (a socket object over the descriptor, no syscall, then let go of it)
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM, 0, fd)
+    except OSError:
+        return False
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVLOWAT, n)
+    except OSError:  # not a socket (ENOTSOCK), or closed under us
+        return False
+    finally:
+        sock.detach()
+    return True
 
 
 def _run_all(calls: list[Callable[[], None]]) -> None:
