@@ -216,8 +216,9 @@ class TelemetryHub:
         #: their `dropped` fields told them): 0 means every subscriber got every sample.
         self.dropped_total = 0
         #: Called with the number of readers (`readers`) whenever it changes, from the thread
-        #: that changed it: the owner task's hook (how often an arm at rest hands over the
-        #: replies that repeat, app/links/threaded.py `batch_repeats`).
+        #: that changed it and under the hub's lock (changes told in the order they were made;
+        #: it must not take that lock): the owner task's hook (how often an arm at rest hands
+        #: over the replies that repeat, app/links/threaded.py `batch_repeats`).
         self.on_readers: Callable[[int], None] | None = None
         #: The fan-out's loop and thread (the HTTP loop), when the publisher runs elsewhere.
         self._fanout_loop: asyncio.AbstractEventLoop | None = None
@@ -317,6 +318,7 @@ class TelemetryHub:
         return len(self._subs) + len(self._listeners)
 
     def _readers_changed(self) -> None:
+        """Tell `on_readers` (under the lock)."""
         hook = self.on_readers
         if hook is not None:
             hook(self.readers)
@@ -331,7 +333,7 @@ class TelemetryHub:
             snap = self._latest  # the latest as of the cursor, taken with it
             sub = Subscription(self, backlog, self.published, None)
             self._subs.add(sub)
-        self._readers_changed()
+            self._readers_changed()
         # derived after the lock (a sample published meanwhile is in the log after the cursor:
         # none lost, none twice). Deriving "the latest" before the lock and reading it again
         # under it began the subscription with no initial sample when the publisher's thread
@@ -346,8 +348,8 @@ class TelemetryHub:
     def _unsubscribe(self, sub: Subscription) -> None:
         with self._lock:
             self._subs.discard(sub)
+            self._readers_changed()
         self._remove_waiter(sub)
-        self._readers_changed()
 
     def _add_waiter(self, sub: Subscription) -> None:
         with self._lock:
@@ -360,13 +362,15 @@ class TelemetryHub:
     def add_listener(self, fn: Callable[[dict[str, Any]], None]) -> Callable[[], None]:
         """Call `fn(sample)` on every sample, in the publisher's task (on the control thread
         when there is one); returns an unsubscribe."""
-        self._listeners.append(fn)
-        self._readers_changed()
+        with self._lock:
+            self._listeners.append(fn)
+            self._readers_changed()
 
         def remove() -> None:
-            if fn in self._listeners:
-                self._listeners.remove(fn)
-                self._readers_changed()
+            with self._lock:
+                if fn in self._listeners:
+                    self._listeners.remove(fn)
+                    self._readers_changed()
         return remove
 
     async def sample_where(self, pred: Callable[[dict[str, Any]], bool], timeout: float,
