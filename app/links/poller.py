@@ -80,8 +80,8 @@ class _Flight:
         self.link, self.fd, self.packet, self.size = link, fd, packet, size
         self.deadline, self.out, self.write_by = deadline, out, write_by
         self.data = b""
-        #: Whether the socket's SO_RCVLOWAT was set for the rest of the reply (None: not yet
-        #: tried; False: not a socket).
+        #: Whether the socket's SO_RCVLOWAT is set to what the reply still lacks (None: not
+        #: yet tried; False: not a socket).
         self.lowat: bool | None = None
 
 
@@ -202,7 +202,9 @@ class PollThread:
                 continue
             if len(got.data) >= got.size:
                 self._finish(got, None, handover, flights)
-            elif got.data and got.lowat is None:  # the first part of a reply: wake for the rest
+            elif got.data and got.lowat is not False:  # a part of a reply: wake for the rest
+                # (again after a second part, which the kernel gives early under memory
+                # pressure: a mark left at the larger rest would hold the reply to its deadline)
                 got.lowat = _set_lowat(fd, got.size - len(got.data))
         if flights:
             now = time.monotonic()
