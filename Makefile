@@ -1,5 +1,12 @@
 # The README's two commands: `make run` and `make test`.
-PYTHON ?= python3
+# The interpreter the venv is made from: Debian's python3 where there is one, else the first
+# python3 on the PATH. On this project's machines the PATH's python3 is a pyenv build
+# (`--enable-shared`, without `--enable-optimizations`: no profile-guided or link-time
+# optimisation); Debian's is one executable with the interpreter linked in, and it runs the
+# server's Python faster (one rbe3001's sample 92-102 -> 67-87 µs in four alternated runs,
+# docs/performance.md "Session 20"). `make PYTHON=python3.12` picks another; an existing .venv
+# is kept (`make clean` first).
+PYTHON ?= $(or $(wildcard /usr/bin/python3),python3)
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 HOST   ?= 127.0.0.1
@@ -8,6 +15,7 @@ PORT   ?= 8000
 .PHONY: run test test-run test-loaded test-deps install install-test browser mosquitto stress-ng run-lab bench bench-peers bench-lab fuzz soak lint check-lerobot clean
 
 $(BIN)/python:
+	@missing="$$($(PYTHON) -c 'import ensurepip' 2>/dev/null || echo python3-venv)"; $(apt_missing)
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
@@ -28,8 +36,9 @@ install-test: $(VENV)/.installed-test
 # target installs the missing packages with apt-get (as root, or through a password-less sudo)
 # and FAILS if a program is still missing afterwards; a test never skips for want of one.
 TEST_TOOLS := chromium mosquitto mosquitto_passwd node
-define need
-	@missing="$$($(PYTHON) tests/_deps.py packages $(1))"; \
+# (the Debian packages named in the shell's $$missing, if any: apt-get installs them or it fails;
+# Debian's python3 makes venvs only with its python3-venv, which `$(BIN)/python` asks for so)
+define apt_missing
 	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then sudo=""; \
 	  elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then sudo="sudo -n"; \
@@ -39,7 +48,10 @@ define need
 	  $$sudo apt-get update -qq || true; \
 	  $$sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing \
 	    || { echo "error: apt-get could not install $$missing" >&2; exit 1; }; \
-	fi; \
+	fi
+endef
+define need
+	@missing="$$($(PYTHON) tests/_deps.py packages $(1))"; $(apt_missing); \
 	$(PYTHON) tests/_deps.py check $(1)
 endef
 
@@ -121,10 +133,16 @@ bench: install-test
 # pypot 5.0.2 and armserver measured by the shared harness in one run (server on CPU 0, load on
 # CPU 1), then the issue-12 table as ratios. PEERS: the harness (../shared/peers from the main
 # checkout, ../../shared/peers from a worktree); PEERS_OUT: where its figures go.
+# PEERS_VENV: pypot's venv and the harness's clients, made from the interpreter the project's venv
+# is made from (PYTHON), so that both servers run the same Python build.
 PEERS     ?= $(firstword $(wildcard ../shared/peers ../../shared/peers))
 PEERS_OUT ?= /tmp/peers-out
+PEERS_VENV ?= $(HOME)/.cache/armserver-peers/venv-$(subst /,-,$(patsubst /%,%,$(PYTHON)))
+export PEERS_VENV
 bench-peers: install-test
 	@test -n "$(PEERS)" || { echo "no ../shared/peers harness found (set PEERS=)"; exit 2; }
+	test -x $(PEERS_VENV)/bin/python || { $(PYTHON) -m venv $(PEERS_VENV) \
+	  && $(PEERS_VENV)/bin/python -m pip install --quiet -r $(PEERS)/requirements.lock; }
 	rm -rf $(PEERS_OUT)
 	-DUR=$${DUR:-8} $(PEERS)/run.sh $(PEERS_OUT)
 	$(BIN)/python bench/peers.py $(PEERS_OUT) --harness $(PEERS)
