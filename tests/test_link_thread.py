@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
 import threading
 import time
 from collections.abc import AsyncIterator
@@ -23,6 +24,7 @@ import numpy as np
 import pytest
 from _tcp import LoopThread, serving
 from _wait import wait_for
+from conftest import may_raise_priority, thread_niceness
 
 from app.arms.dynamixel.driver import DynamixelDriver
 from app.arms.loading import load_profile
@@ -380,6 +382,48 @@ async def test_an_arm_at_rest_hands_its_repeats_over_as_often_as_someone_takes_t
         assert wakes <= took / IDLE_BATCH_S + 2, (wakes, took)
 
 
+@pytest.fixture
+def poll_thread_at_test_niceness(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The test's own poll thread, at the niceness of the test's thread (poller.NICENESS None):
+    its simulators answer from its own loop, at niceness 0. A poll thread at the control
+    thread's -10 above them is woken by each reply as it comes instead of once for a slot's,
+    and makes more wake-ups than polls (it did after the servo set-up's day-one test)."""
+    from app.links import poller
+
+    monkeypatch.setattr(poller, "NICENESS", None)
+    monkeypatch.setattr(poller, "_shared", None)
+
+
+def test_the_poll_thread_runs_at_the_control_threads_niceness_whoever_starts_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The process's poll thread does the I/O of every arm's polls: it asks for the control
+    thread's niceness as it starts, where the system allows it, whichever thread starts it
+    (a bench's or an in-process server's own thread at 0, not only a server's control thread).
+    Where it may not, it keeps its starter's."""
+    from app.links import poller
+    from app.runtime.control_thread import CONTROL_NICE
+
+    monkeypatch.setattr(poller, "_shared", None)
+    allowed = may_raise_priority(CONTROL_NICE)
+    got: dict[str, object] = {}
+
+    def start() -> None:  # a thread at the test's niceness starts it
+        got["starter"] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        got["thread"] = poller.shared()
+
+    starter = threading.Thread(target=start)
+    starter.start()
+    starter.join(10)
+    thread = got["thread"]
+    assert isinstance(thread, poller.PollThread)
+    tid = thread._thread.native_id
+    assert tid is not None
+    want = CONTROL_NICE if allowed else got["starter"]
+    assert thread_niceness(os.getpid(), tid) == want
+    assert thread.niceness == (CONTROL_NICE if allowed else None)
+
+
+@pytest.mark.usefixtures("poll_thread_at_test_niceness")
 async def test_a_reply_in_parts_wakes_the_poll_thread_for_its_first_part_and_its_last():
     """The OpenManipulator-X's poll is one SYNC_READ of five servos, answered with five status
     packets one after another (the simulated bus times each as on the wire): over a socket
@@ -389,7 +433,6 @@ async def test_a_reply_in_parts_wakes_the_poll_thread_for_its_first_part_and_its
     low mark is back at 1 before the owner task may read it)."""
     from app.links import poller
 
-    poller._shared = None  # (a poll thread of this test's niceness, as the test below)
     async with arm("openmanipulator_x") as (driver, link, _server):
         thread = poller.shared()
         await wait_for(lambda: link.stats["scheduled"] > 20, what="scheduled polls")
@@ -409,6 +452,7 @@ async def test_a_reply_in_parts_wakes_the_poll_thread_for_its_first_part_and_its
             assert time.monotonic() - t0 < driver.profile.link.timeout_s, "a reply held back"
 
 
+@pytest.mark.usefixtures("poll_thread_at_test_niceness")
 async def test_one_poll_thread_serves_every_arm_on_shared_slots_and_wakes_them_together():
     """Six arms (four rbe3001 at 500 Hz, two angler at 200 Hz): their scheduled polls are the
     process's one poll thread's (app/links/poller.py), each link's slots on its period's grid,
@@ -416,13 +460,6 @@ async def test_one_poll_thread_serves_every_arm_on_shared_slots_and_wakes_them_t
     serve several arms (fewer hand-overs to the loop than wake-ups of owner tasks)."""
     from app.links import poller
 
-    # A poll thread started by this test's thread: the process's shared one runs at the
-    # niceness of the thread that started it, the control thread's (-10, where allowed) if an
-    # earlier test in this process ran a server. Above this test's simulators (they answer
-    # from its own loop, at niceness 0) it is woken by each reply as it comes instead of once
-    # for a slot's, and makes more wake-ups than polls (it did after the servo set-up's
-    # day-one test).
-    poller._shared = None
     async with contextlib.AsyncExitStack() as stack:
         arms = [await stack.enter_async_context(arm(name))
                 for name in ("rbe3001",) * 4 + ("angler",) * 2]

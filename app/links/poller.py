@@ -32,6 +32,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from app.links.base import READ_CHUNK, Reply
+from app.runtime.control_thread import CONTROL_NICE, raise_priority
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +43,12 @@ WRITE_WAIT_S = 1.0
 #: itself stays absolute.
 EARLY_S = 0.001
 _ERR = select.POLLERR | select.POLLHUP | select.POLLNVAL
+#: The niceness the poll thread asks for as it starts, where the system allows it (root or
+#: CAP_SYS_NICE): the control thread's. It does the I/O of every arm's polls, so it is set
+#: here, not inherited from whichever thread armed the process's first link (a server's
+#: control thread, at that niceness; a bench's or an in-process server's own thread, at 0).
+#: None: it keeps its starter's (the tests whose simulators answer from their own thread).
+NICENESS: int | None = CONTROL_NICE
 
 #: What a round of polls asks of each event loop (the owners' wake-ups, paused schedules).
 _Handover = dict[asyncio.AbstractEventLoop, list[Callable[[], None]]]
@@ -100,10 +107,15 @@ class PollThread:
         #: When the thread wakes by itself next (monotonic s; None: only when nudged).
         self._sleeps_until: float | None = None
         self._nudged = False
-        self._thread = threading.Thread(target=self._main, name="link polls", daemon=True)
-        self._thread.start()
         #: Wake-ups of the thread, and the batches it handed to event loops.
         self.stats = {"wakes": 0, "handovers": 0, "polls": 0}
+        #: The niceness the thread got (None: its starter's: NICENESS None, or not allowed).
+        self.niceness: int | None = None
+        started = threading.Event()
+        self._thread = threading.Thread(target=self._main, args=(started,), name="link polls",
+                                        daemon=True)
+        self._thread.start()
+        started.wait()  # (its niceness set before any link is served)
 
     def add(self, link: Polled, slot: float) -> None:
         """Serve `link`'s schedule (armed, its first slot `slot`); wakes the thread if it
@@ -132,7 +144,12 @@ class PollThread:
 
     # ------------------------------------------------------------ the thread
 
-    def _main(self) -> None:
+    def _main(self, started: threading.Event) -> None:
+        try:
+            if NICENESS is not None:
+                self.niceness = raise_priority(NICENESS)
+        finally:
+            started.set()
         flights: dict[int, _Flight] = {}
         while True:
             try:

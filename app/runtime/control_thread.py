@@ -71,7 +71,7 @@ class ControlThread:
         ready = threading.Event()
 
         def run() -> None:
-            self.niceness = _raise_priority()
+            self.niceness = raise_priority()
 
             async def main() -> None:
                 self.loop = asyncio.get_running_loop()
@@ -115,11 +115,12 @@ class ControlThread:
             self._old_switch = None
 
 
-def _raise_priority() -> int | None:
-    """Give the calling thread CONTROL_NICE if permitted; the niceness it got, or None."""
+def raise_priority(niceness: int = CONTROL_NICE) -> int | None:
+    """Give the calling thread `niceness` if permitted (the control thread's, and the link
+    poll thread's, app/links/poller.py); the niceness it got, or None."""
     try:
         tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, CONTROL_NICE)
+        os.setpriority(os.PRIO_PROCESS, tid, niceness)
         return os.getpriority(os.PRIO_PROCESS, tid)
     except (OSError, AttributeError):
         return None
