@@ -458,3 +458,52 @@ async def test_a_repeated_reading_is_converted_again_after_homing(name):
         assert latest["positions"][0] == pytest.approx(before[0] + 0.01, abs=1e-9)
     finally:
         await driver.close()
+
+
+class _HeldLink(SimLink):
+    """The simulated link, whose write of a packet `held` picks blocks the event loop for
+    `hold_s` after it was sent (real time passes and nothing of the loop runs), as a starved
+    machine holds a process between a request's write and its first read."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.held = lambda packet: False
+        self.hold_s = 0.0
+        self.holds = 0
+
+    async def write(self, data: bytes) -> None:
+        await super().write(data)
+        if self.held(bytes(data)):
+            self.holds += 1
+            time.sleep(self.hold_s)  # noqa: ASYNC251 - the point: the loop held up
+
+
+@pytest.mark.parametrize("name", ["angler", "rbe3001"])
+async def test_a_reply_there_when_the_driver_looks_counts_though_its_deadline_passed(name):
+    """A request whose process is held up past its reply timeout between the write and the
+    first read (the loop blocked for 2.5 timeouts; the simulated device answered at once):
+    the reply is there when the driver looks, and it answers the request. Before, the driver
+    judged the deadline before it read, and a loaded run's SET_PID failed "no reply to SET_PID
+    within 50 ms" with the reply long there. A reply that is not there still times out."""
+    profile = load_profile(name)
+    link = _HeldLink(make_sim_device(profile), address=f"sim:{name}", seed=1)
+    driver = await started(name, link)
+    try:
+        link.hold_s = 2.5 * driver.timeout
+        if name == "rbe3001":
+            link.held = lambda packet: int.from_bytes(packet[:4], "little") == rb.CommandId.SET_PID
+            request = lambda: driver.command_joints(driver.positions)  # noqa: E731
+        else:
+            led = mx28.TABLE["led"]
+            link.held = lambda packet: packet[7] == 0x02 and packet[8] == led.address  # READ
+            request = lambda: driver.read_register(1, led)  # noqa: E731
+        for _ in range(3):
+            await request()
+        assert link.holds == 3
+        assert driver.stats["poll_failures"] == 0
+        # and one the device never answers still times out (the late reads find nothing)
+        link.set_faults(FaultConfig(drop=1.0))
+        with pytest.raises(DeviceTimeout):
+            await request()
+    finally:
+        await driver.close()

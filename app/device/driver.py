@@ -57,6 +57,12 @@ Readings = tuple[np.ndarray, np.ndarray, np.ndarray | None]
 #: so one lost or corrupt reply in it should cost a retry, not a reconnect. With 5 % of replies
 #: lost, a 24-exchange chain without retries succeeds 30 % of the time; with 3 tries, 99.7 %.
 SETUP_ATTEMPTS = 3
+#: Reads an exchange makes once its deadline has passed, each without waiting, until one finds
+#: nothing: what arrived by the time the driver looks counts. A loop held up past the
+#: deadline between the write and its first read (a starved machine: 504 "no reply to SET_PID
+#: within 50 ms" in a loaded run, the reply long there) finds the reply; bounded, so a port
+#: that never stops talking cannot hold the exchange.
+LATE_READS = 4
 
 
 class Driver(OwnerTask, abc.ABC):

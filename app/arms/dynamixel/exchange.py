@@ -15,7 +15,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from app.device.driver import Driver
+from app.device.driver import LATE_READS, Driver
 from app.errors import CorruptReply, DeviceError, DeviceTimeout
 from protocol import dynamixel as dxl
 from protocol.mx28 import ControlItem
@@ -149,6 +149,7 @@ class DynamixelBusDriver(Driver):
         loop = asyncio.get_running_loop()
         deadline = loop.time() + (sent.deadline - time.monotonic())
         got: list[dxl.Packet] = []
+        late = 0  # reads since the deadline, each without waiting
         while True:
             while (ev := self._parser.next_event()) is not None:
                 if isinstance(ev, dxl.ParseError):
@@ -177,7 +178,10 @@ class DynamixelBusDriver(Driver):
                 if len(got) == len(req.expect):
                     return got
             left = deadline - loop.time()
-            if left <= 0:
+            if left <= 0 and late < LATE_READS:  # what arrived by the time it looks counts
+                late += 1
+                left = 0.0
+            elif left <= 0:
                 if req.broadcast_ping:
                     return sorted(got, key=lambda p: p.id)
                 missing = req.expect[len(got):]
@@ -187,6 +191,8 @@ class DynamixelBusDriver(Driver):
             data = await self.link.read(left)
             if data:
                 self._parser.feed(data)
+            elif late:
+                late = LATE_READS  # nothing there: the timeout stands
 
     async def _drain(self) -> None:
         """After a failed exchange, discard input until the bus has been quiet for one timeout
