@@ -65,6 +65,36 @@ SETUP_ATTEMPTS = 3
 LATE_READS = 4
 
 
+class ReplyWait:
+    """How long an exchange may still wait for its reply, from the deadline its link gave
+    (`Reply.deadline`, `time.monotonic()`) on the running loop's clock (uvloop's keeps whole
+    milliseconds). Once the deadline has passed, what arrived by the time the driver looks
+    counts: reads that do not wait (`left` 0), until one finds nothing or LATE_READS were made;
+    then `left` is None and the timeout stands."""
+
+    __slots__ = ("_deadline", "_late", "_loop")
+
+    def __init__(self, deadline: float) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._deadline = self._loop.time() + (deadline - time.monotonic())
+        self._late = 0  # reads since the deadline
+
+    def left(self) -> float | None:
+        """Seconds the next read may wait (0: a late one), or None: timed out."""
+        left = self._deadline - self._loop.time()
+        if left > 0:
+            return left
+        if self._late >= LATE_READS:
+            return None
+        self._late += 1
+        return 0.0
+
+    def found(self, anything: bool) -> None:
+        """What the last read found: a late read that found nothing ends the wait."""
+        if self._late and not anything:
+            self._late = LATE_READS
+
+
 class Driver(OwnerTask, abc.ABC):
     """Base of the per-model drivers. Subclasses implement the protocol exchange."""
 

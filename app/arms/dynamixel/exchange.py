@@ -10,12 +10,10 @@ Error bits 0-6 (instruction, CRC, data range, ...) fail the request.
 
 from __future__ import annotations
 
-import asyncio
-import time
 from dataclasses import dataclass
 from typing import Any
 
-from app.device.driver import LATE_READS, Driver
+from app.device.driver import Driver, ReplyWait
 from app.errors import CorruptReply, DeviceError, DeviceTimeout
 from protocol import dynamixel as dxl
 from protocol.mx28 import ControlItem
@@ -146,10 +144,8 @@ class DynamixelBusDriver(Driver):
             return []
         if sent.data:
             self._parser.feed(sent.data)
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + (sent.deadline - time.monotonic())
+        wait = ReplyWait(sent.deadline)
         got: list[dxl.Packet] = []
-        late = 0  # reads since the deadline, each without waiting
         while True:
             while (ev := self._parser.next_event()) is not None:
                 if isinstance(ev, dxl.ParseError):
@@ -177,11 +173,8 @@ class DynamixelBusDriver(Driver):
                 got.append(ev)
                 if len(got) == len(req.expect):
                     return got
-            left = deadline - loop.time()
-            if left <= 0 and late < LATE_READS:  # what arrived by the time it looks counts
-                late += 1
-                left = 0.0
-            elif left <= 0:
+            left = wait.left()
+            if left is None:
                 if req.broadcast_ping:
                     return sorted(got, key=lambda p: p.id)
                 missing = req.expect[len(got):]
@@ -191,8 +184,7 @@ class DynamixelBusDriver(Driver):
             data = await self.link.read(left)
             if data:
                 self._parser.feed(data)
-            elif late:
-                late = LATE_READS  # nothing there: the timeout stands
+            wait.found(bool(data))
 
     async def _drain(self) -> None:
         """After a failed exchange, discard input until the bus has been quiet for one timeout

@@ -45,7 +45,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from app.device.driver import LATE_READS, Driver
+from app.device.driver import Driver, ReplyWait
 from app.errors import CorruptReply, DeviceError, DeviceTimeout
 from protocol import rbe3001 as rb
 
@@ -204,16 +204,10 @@ class Rbe3001Driver(Driver):
         # write, or read ahead on the poll schedule); else the write, and the reads below
         sent = await self.link.transact(packet, rb.PACKET_SIZE, timeout)
         self._take(sent.data)
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + (sent.deadline - time.monotonic())
-        late = 0  # reads since the deadline, each without waiting
+        wait = ReplyWait(sent.deadline)
         while True:
-            left = deadline - loop.time()
-            if left <= 0 and not self._ready and late < LATE_READS:
-                # what arrived by the time the driver looks counts (LATE_READS)
-                late += 1
-                left = 0.0
-            elif left <= 0 and not self._ready:
+            left = 0.0 if self._ready else wait.left()
+            if left is None:
                 self._matcher.cancel()
                 self._dirty = True
                 if isinstance(message, rb.SetGain | rb.SetClaw):  # no return values: sent
@@ -223,8 +217,7 @@ class Rbe3001Driver(Driver):
                                     f"within {timeout * 1000:.0f} ms")
             frame = await self._next_frame(left)
             if frame is None:
-                if late:
-                    late = LATE_READS  # nothing there: the timeout stands
+                wait.found(False)
                 continue
             stale = self._matcher.stale
             try:
