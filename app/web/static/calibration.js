@@ -7,14 +7,13 @@
 // residual. The firmware note of the arm's detail (a board without STATUS) is shown first.
 // Calls go through app.js's `api` (window.armDashboard.api), so tokens and leases work as
 // everywhere.
-import { call, el } from "./panel.js";
-
-const panels = new Map();   // arm name -> Panel
+import { CardPanel, call, el, panelPerCard } from "./panel.js";
 
 const fmt = (v) => (Math.abs(v) < 1e-9 ? "0" : v.toFixed(3));
 
-class Panel {
+class Panel extends CardPanel {
   constructor(name, card, detail) {
+    super();
     this.name = name;
     this.detail = detail;
     this.calibrated = detail.calibrated || [];
@@ -122,29 +121,9 @@ class Panel {
     if (d) { this.cal = d; this.render(); }
   }
 
-  async run(method, path, body, done) {
-    this.el.error.replaceChildren();
-    try {
-      const d = await call(method, path, body);
-      this.el.note.textContent = `${new Date().toLocaleTimeString()} ${done}`;
-      return d;
-    } catch (e) { this.showError(e); return null; }
-  }
-
-  showError(e) {
-    this.el.error.dataset.code = e.code || "";
-    this.el.error.textContent = e.detail || e.message || String(e);
-  }
-
   state() {
-    return { calibration: this.cal, calibrated: this.calibrated, error: this.el.error.textContent,
-      errorCode: this.el.error.dataset.code || null, note: this.el.note.textContent };
+    return { calibration: this.cal, calibrated: this.calibrated, ...this.shown() };
   }
 }
 
-document.addEventListener("arm-card", (ev) => {
-  const { name, card, detail } = ev.detail;
-  if (!panels.has(name)) panels.set(name, new Panel(name, card, detail));
-});
-
-window.armCalibration = { state: (name) => panels.get(name)?.state() ?? null };
+panelPerCard(Panel, "armCalibration");

@@ -5,12 +5,11 @@
 // advice, which joints are homed, and offers reboot (per faulted servo) and home (the tare is
 // in app.js's Force panel). The
 // calls go through app.js's `api` (window.armDashboard.api), so tokens work as everywhere.
-import { call, el } from "./panel.js";
+import { CardPanel, el, panelPerCard } from "./panel.js";
 
-const panels = new Map();   // arm name -> Panel
-
-class Panel {
+class Panel extends CardPanel {
   constructor(name, card, detail) {
+    super();
     this.name = name;
     this.detail = detail;
     this.faults = detail.faults || [];
@@ -72,29 +71,9 @@ class Panel {
     if (d && Array.isArray(d.homed)) { this.homed = d.homed; this.faults = d.faults || this.faults; this.render(); }
   }
 
-  async run(method, path, body, done) {
-    this.el.error.replaceChildren();
-    try {
-      const d = await call(method, path, body);
-      this.el.note.textContent = `${new Date().toLocaleTimeString()} ${done}`;
-      return d;
-    } catch (e) { this.showError(e); return null; }
-  }
-
-  showError(e) {
-    this.el.error.dataset.code = e.code || "";
-    this.el.error.textContent = e.detail || e.message || String(e);
-  }
-
   state() {
-    return { faults: this.faults, homed: this.homed, error: this.el.error.textContent,
-      errorCode: this.el.error.dataset.code || null, note: this.el.note.textContent };
+    return { faults: this.faults, homed: this.homed, ...this.shown() };
   }
 }
 
-document.addEventListener("arm-card", (ev) => {
-  const { name, card, detail } = ev.detail;
-  if (!panels.has(name)) panels.set(name, new Panel(name, card, detail));
-});
-
-window.armFaults = { state: (name) => panels.get(name)?.state() ?? null };
+panelPerCard(Panel, "armFaults");
