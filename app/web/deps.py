@@ -37,6 +37,9 @@ _bearer = HTTPBearer(auto_error=False, description="viewer or operator token (on
                      "server is configured with tokens)")
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 ArmName = Annotated[str, Path(description="arm name, as in GET /api/v1/arms", max_length=64)]
+#: The `X-Arm-Lease` header of a request that moves or sets up an arm (None: no lease held).
+LeaseId = Annotated[str | None, Header(description="the lease id, while a lease is held on "
+                                       "the arm", max_length=128)]
 
 
 async def get_settings(request: Request) -> Settings:
@@ -127,8 +130,7 @@ async def control_arm(
     request: Request,
     cred: Credentials,
     arm: ArmName,
-    x_arm_lease: Annotated[str | None, Header(description="the lease id, while a lease is "
-                                              "held on the arm", max_length=128)] = None,
+    x_arm_lease: LeaseId = None,
 ) -> ArmService:
     """An operator's (or instructor's) arm, with its lease checked: the same checks, in the
     same order, as `OperatorArm` then `OperatorCaller` then the lease, in one dependency

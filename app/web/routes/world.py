@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Header, Request
+from fastapi import APIRouter, Depends, Request
 
 from app import schemas as s
 from app.errors import InvalidRequest, NotFound, NotSupported
@@ -21,7 +21,7 @@ from app.schemas.world import HandMoveRequest, HandState
 from app.service import ArmService
 from app.sim.hand import Hand
 from app.sim.world import Bin, Scene, SceneError, World, WorldObject
-from app.web.deps import ArmName, Credentials, ViewerArm, get_access, lookup_arm
+from app.web.deps import ArmName, Credentials, LeaseId, ViewerArm, get_access, lookup_arm
 from app.web.routes.common import READ, errors
 from app.web.security import Role
 
@@ -40,8 +40,7 @@ async def editor_arm(
     request: Request,
     cred: Credentials,
     arm: ArmName,
-    x_arm_lease: Annotated[str | None, Header(description="the lease id, while a lease is "
-                                              "held on the arm", max_length=128)] = None,
+    x_arm_lease: LeaseId = None,
 ) -> ArmService:
     """An instructor's arm, or an operator's holding its lease (a scene is a lab set-up: a
     teacher lays one out whoever holds the arm)."""
