@@ -1,11 +1,12 @@
 """What the benchmarks share: `armserver serve` in a subprocess on a free loopback port (so the
-server's CPU and memory figures are its own), and a percentile helper."""
+server's CPU and memory figures are its own), and percentile helpers."""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -99,3 +100,17 @@ def pct(values: list[float], q: float) -> float:
         return float("nan")
     v = sorted(values)
     return v[min(len(v) - 1, int(q * len(v)))]
+
+
+def pct_spread(values: list[float], q: float, resamples: int = 2000,
+               seed: int = 0) -> tuple[float, float]:
+    """How far `pct(values, q)` moves on its own: the 5th and 95th percentiles of it over
+    `resamples` resamplings of `values` with replacement (bootstrap; a fixed seed, so a run's
+    figure is reproducible from its values). The p99 of 300 presses is their third slowest: one
+    run's own figure moved by 1-2 ms this way (docs/performance.md "Session 22")."""
+    if not values:
+        return float("nan"), float("nan")
+    rnd = random.Random(seed)
+    n = len(values)
+    got = sorted(pct(rnd.choices(values, k=n), q) for _ in range(resamples))
+    return got[int(0.05 * resamples)], got[min(resamples - 1, int(0.95 * resamples))]

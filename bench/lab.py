@@ -23,7 +23,8 @@ while every arm runs at its poll rate prints:
     on each arm and the later ones apart, and the same straight to a worker's socket;
   - seen: until the first telemetry sample that shows the latch (`make bench-peers`' estop
     figure, and the one issue 27's "estop p99 under 5 ms" is read as), with one telemetry
-    client at rate=500 on the arm pressed, a socket opened for each press, as the harness;
+    client at rate=500 on the arm pressed, a socket opened for each press, as the harness
+    (with how far its p99 moves when its presses are resampled: `_server.pct_spread`);
     and again with SEEN_STREAMS sockets streaming at 500 Hz all along (the front relays, and
     this client reads, every sample of them).
 - the WebSocket relay's cost: `--relay-clients` telemetry clients (default SEEN_STREAMS) at
@@ -70,7 +71,7 @@ import websockets
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _machine  # noqa: E402
-from _server import ROOT, pct  # noqa: E402
+from _server import ROOT, pct, pct_spread  # noqa: E402
 
 API = "/api/v1"
 
@@ -344,6 +345,9 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int, relay
     print(f"estop seen        p50 {1e3 * pct(seen, 0.5):.2f} ms  p99 {1e3 * pct(seen, 0.99):.2f}"
           f" ms: the latch in the first telemetry sample, one stream at a time on the arm "
           f"pressed (as `make bench-peers`; {len(seen)} presses over {n} arms)")
+    lo, hi = pct_spread(seen, 0.99)
+    print(f"  its p99 resampled (bootstrap, 5-95 %): {1e3 * lo:.2f}-{1e3 * hi:.2f} ms: how far "
+          "the figure of this many presses moves on its own")
     print(f"  with {min(SEEN_STREAMS, n)} streams at 500 Hz all along: p50 "
           f"{1e3 * pct(seen_streams, 0.5):.2f} ms  p99 {1e3 * pct(seen_streams, 0.99):.2f} ms")
     per = (front_busy - front_idle) / relayed if relayed else float("nan")
