@@ -286,3 +286,54 @@ def test_a_run_published_in_one_step_reads_as_each_copy_published_in_turn():
     for pair in subs:
         for sub in pair:
             sub.close()
+
+
+def test_a_run_nobody_subscribes_to_is_kept_out_of_the_collectors_sight():
+    """While an arm's hub has no subscriber, `publish_run` keeps each copy but the last as its
+    (seq, time) pair beside the run's shared sample: a tuple of two numbers, which CPython's
+    collector stops tracking at its first collection, not an object of its own a sample (a lab
+    worker's 16 arms at rest: 32,000 of them, most of what each full collection walked, issue
+    27). What is read of them is what `publish` of each copy gives: the latest, and the log's
+    samples made whole where a reader's range reaches them."""
+    import gc
+
+    from app.arms import model_for
+    from app.telemetry.arm_hub import ArmHub
+
+    model = model_for(load_profile("rbe3001"))
+    q = np.array([0.2, -0.3, 0.5])
+    inputs = (q, np.zeros(3), np.array([0.01, 0.02, -0.03]))
+    base = {"seq": 0, "time": 0.0, "positions": q.tolist(), "velocities": [0.0] * 3,
+            "torques": inputs[2].tolist(), "tip": None, "tip_velocity": None,
+            "tip_force": None, "gripper": None, "motion": None, "estop": False, "link": "up",
+            "stale": False, "faults": [], "homed": [True] * 3, "calibrated": [True] * 3}
+    hubs = [ArmHub("rbe3001", lambda sample: None) for _ in range(2)]
+    for h in hubs:
+        h.derive_with(lambda: model)
+    runs = [[(k, 20.0 + 0.002 * k) for k in range(first, first + n)]
+            for first, n in ((1, 1), (2, 50), (52, 10), (62, 49))]
+    for run in runs:
+        hubs[0].publish_run(dict(base), run, inputs)
+        for seq, t in run:
+            hubs[1].publish(dict(base, seq=seq, time=t), inputs)
+    assert hubs[0].published == hubs[1].published == 110
+    gc.collect()
+    tracked = [e for e in hubs[0]._log if gc.is_tracked(e)]
+    assert len(tracked) == len(runs), len(tracked)  # each run's last copy, the latest of its time
+    assert sum(gc.is_tracked(e) for e in hubs[1]._log) == 110  # (one object a sample)
+    assert hubs[0].latest_bytes == hubs[1].latest_bytes
+    with hubs[0]._lock, hubs[1]._lock:  # every sample of the log, as a reader of them all
+        whole = [[json.loads(s) for s in h._slice_locked(0, 110)] for h in hubs]
+    assert whole[0] == whole[1]
+    assert [s["seq"] for s in whole[0]] == list(range(1, 111))
+    assert all(s["tip"] is not None for s in whole[0])
+    # a subscriber from here on reads each copy as it comes, as from `publish`
+    subs = [h.subscribe() for h in hubs]
+    run = [(111, 21.0), (112, 21.002)]
+    hubs[0].publish_run(dict(base), run, inputs)
+    for seq, t in run:
+        hubs[1].publish(dict(base, seq=seq, time=t), inputs)
+    taken = [[json.loads(s) for s in sub.take()[0]] for sub in subs]
+    assert taken[0] == taken[1] and [s["seq"] for s in taken[0]] == [111, 112]
+    for sub in subs:
+        sub.close()

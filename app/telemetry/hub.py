@@ -24,6 +24,15 @@ sample not yet read in one vectorised call, outside the lock. A sample nobody re
 subscriber, a log entry that ages out) costs no kinematics at all; one read costs the same
 bytes as before. While a listener (`add_listener`: an estop's wait for its sample) is there,
 each sample is derived as it is published, so a listener sees whole samples.
+
+Repeats nobody reads, kept as the collector cannot see them (issue 27). An arm at rest
+publishes the same reading again for each poll (`publish_run`); while the hub has no
+subscriber, the log keeps each such copy as its own (seq, time) pair, a tuple of two numbers
+that CPython's collector stops tracking at its first collection, beside one reference to the
+run's shared sample (`_bases`), instead of an object of its own a sample. A lab worker's 16
+arms at rest kept 32,000 of those objects alive, most of what each full collection walked
+(20-29 ms with every thread of the worker stopped, once a minute: docs/performance.md "Session
+22"). A copy that is read after all (the latest, a subscriber's range) is made whole then.
 """
 
 from __future__ import annotations
@@ -201,8 +210,13 @@ class TelemetryHub:
         self._listeners: list[Callable[[dict[str, Any]], None]] = []
         #: The shared log: encoded samples and their publish times (monotonic), oldest first;
         #: entry i of the deques is sample number `published - len(_log) + i`.
-        self._log: deque[str | _Lazy] = deque(maxlen=backlog)
+        self._log: deque[str | _Lazy | tuple[int, float]] = deque(maxlen=backlog)
         self._stamps: deque[float] = deque(maxlen=backlog)
+        #: For each entry of the log that is a run copy's (seq, time), the run's (sample,
+        #: inputs), shared by the run; None for the others (module doc).
+        self._bases: deque[tuple[dict[str, Any], Any] | None] = deque(maxlen=backlog)
+        #: One past the number of the last sample kept as a run copy's (seq, time).
+        self._pairs_end = 0
         self._cache: dict[tuple[int, int, int], str] = {}
         #: (sample dict, encoded str, encoded bytes) of the latest sample, replaced as a whole.
         self._latest: tuple[dict[str, Any], str, bytes] | _Lazy | None = None
@@ -329,6 +343,7 @@ class TelemetryHub:
             if backlog > (self._log.maxlen or 0):  # the shared log holds the longest backlog
                 self._log = deque(self._log, maxlen=backlog)
                 self._stamps = deque(self._stamps, maxlen=backlog)
+                self._bases = deque(self._bases, maxlen=backlog)
                 self._unread = deque(self._unread, maxlen=backlog)
             snap = self._latest  # the latest as of the cursor, taken with it
             sub = Subscription(self, backlog, self.published, None)
@@ -410,6 +425,7 @@ class TelemetryHub:
             with self._lock:
                 self._latest = lazy
                 self._log.append(lazy)
+                self._bases.append(None)
                 if self._subs:  # a new subscriber starts after it: with none, none reads it
                     self._unread.append(lazy)
                 self._stamps.append(time.monotonic())
@@ -423,6 +439,7 @@ class TelemetryHub:
         with self._lock:
             self._latest = (sample, encoded, data)
             self._log.append(encoded)
+            self._bases.append(None)
             self._stamps.append(time.monotonic())
             self.published += 1
             waiting = list(self._waiting) if self._waiting else None
@@ -434,22 +451,34 @@ class TelemetryHub:
         `publish` of each copy in turn gives (the log, `latest`, every subscriber's messages),
         in one step (a run of replies that repeat the last one: app/device/owner.py `_repeat`).
         Copies share the fields `sample` holds (never changed once published); with derived
-        fields to wait for, each copy's dict is made at its first read too (`_Lazy`)."""
+        fields to wait for, each copy's dict is made at its first read too (`_Lazy`), and
+        while nobody subscribes each copy but the last (the latest) is kept as its (seq,
+        time) pair from `stamps` (module doc)."""
         if inputs is None or self.deriver is None or self._listeners:
             for seq, t in stamps:  # whole samples, or a listener to call for each: one by one
                 again = dict(sample)
                 again["seq"], again["time"] = seq, t
                 self.publish(again, inputs)
             return
-        run = [_Lazy(None, inputs, sample, seq, t) for seq, t in stamps]  # dicts when read
+        n = len(stamps)
+        last = _Lazy(None, inputs, sample, *stamps[-1])  # dicts when read
         now = time.monotonic()
         with self._lock:
-            self._latest = run[-1]
-            self._log.extend(run)
-            if self._subs:
+            self._latest = last
+            if self._subs:  # read as they come
+                run = [_Lazy(None, inputs, sample, seq, t) for seq, t in stamps[:-1]]
+                run.append(last)
+                self._log.extend(run)
                 self._unread.extend(run)
-            self._stamps.extend([now] * len(run))
-            self.published += len(run)
+                self._bases.extend([None] * n)
+            else:
+                self._log.extend(stamps[:-1])
+                self._log.append(last)
+                self._bases.extend([(sample, inputs)] * (n - 1))
+                self._bases.append(None)
+                self._pairs_end = self.published + n - 1
+            self._stamps.extend([now] * n)
+            self.published += n
             waiting = list(self._waiting) if self._waiting else None
         if waiting:
             for sub in waiting:
@@ -514,10 +543,18 @@ class TelemetryHub:
         log = self._log
         start = first - (self.published - len(log))
         out = [log[i] for i in range(start, start + end - first)]
+        if first < self._pairs_end:
+            # a run copy published while nobody subscribed, made whole here (a subscriber's
+            # range begins after it came, so not for one: for a reader of older samples)
+            for k, e in enumerate(out):
+                if type(e) is tuple:
+                    base = self._bases[start + k]
+                    assert base is not None
+                    out[k] = log[start + k] = _Lazy(None, base[1], base[0], e[0], e[1])
         late = [e for e in out if isinstance(e, _Lazy) and e.encoded is None]
         if late:  # published after `_ready_unread` (rare): derived here, under the lock
             self._ready(late)
-        return [e if isinstance(e, str) else e.encoded for e in out]  # type: ignore[misc]
+        return [e if isinstance(e, str) else e.encoded for e in out]  # type: ignore[union-attr,misc]
 
     def _take_locked(self, sub: Subscription, until: float | None) -> tuple[list[str], int]:
         first, end, lost = self._range_locked(sub, self._end_locked(until))
