@@ -28,11 +28,13 @@ each sample is derived as it is published, so a listener sees whole samples.
 Repeats nobody reads, kept as the collector cannot see them (issue 27). An arm at rest
 publishes the same reading again for each poll (`publish_run`); while the hub has no
 subscriber, the log keeps each such copy as its own (seq, time) pair, a tuple of two numbers
-that CPython's collector stops tracking at its first collection, beside one reference to the
-run's shared sample (`_bases`), instead of an object of its own a sample. A lab worker's 16
-arms at rest kept 32,000 of those objects alive, most of what each full collection walked
-(20-29 ms with every thread of the worker stopped, once a minute: docs/performance.md "Session
-22"). A copy that is read after all (the latest, a subscriber's range) is made whole then.
+that CPython's collector stops tracking at its first collection, instead of an object of its
+own a sample. A lab worker's 16 arms at rest kept 32,000 of those objects alive, most of what
+each full collection walked (20-29 ms with every thread of the worker stopped, once a minute:
+docs/performance.md "Session 22"). Nobody reads such an entry: a subscriber's cursor starts at
+the number of samples published when it subscribes and only moves on, so its ranges hold only
+samples published while it was there (made as before); the entry keeps the log's numbering.
+The run's last copy stays whole: it is the latest.
 """
 
 from __future__ import annotations
@@ -212,11 +214,6 @@ class TelemetryHub:
         #: entry i of the deques is sample number `published - len(_log) + i`.
         self._log: deque[str | _Lazy | tuple[int, float]] = deque(maxlen=backlog)
         self._stamps: deque[float] = deque(maxlen=backlog)
-        #: For each entry of the log that is a run copy's (seq, time), the run's (sample,
-        #: inputs), shared by the run; None for the others (module doc).
-        self._bases: deque[tuple[dict[str, Any], Any] | None] = deque(maxlen=backlog)
-        #: One past the number of the last sample kept as a run copy's (seq, time).
-        self._pairs_end = 0
         self._cache: dict[tuple[int, int, int], str] = {}
         #: (sample dict, encoded str, encoded bytes) of the latest sample, replaced as a whole.
         self._latest: tuple[dict[str, Any], str, bytes] | _Lazy | None = None
@@ -343,7 +340,6 @@ class TelemetryHub:
             if backlog > (self._log.maxlen or 0):  # the shared log holds the longest backlog
                 self._log = deque(self._log, maxlen=backlog)
                 self._stamps = deque(self._stamps, maxlen=backlog)
-                self._bases = deque(self._bases, maxlen=backlog)
                 self._unread = deque(self._unread, maxlen=backlog)
             snap = self._latest  # the latest as of the cursor, taken with it
             sub = Subscription(self, backlog, self.published, None)
@@ -425,7 +421,6 @@ class TelemetryHub:
             with self._lock:
                 self._latest = lazy
                 self._log.append(lazy)
-                self._bases.append(None)
                 if self._subs:  # a new subscriber starts after it: with none, none reads it
                     self._unread.append(lazy)
                 self._stamps.append(time.monotonic())
@@ -439,7 +434,6 @@ class TelemetryHub:
         with self._lock:
             self._latest = (sample, encoded, data)
             self._log.append(encoded)
-            self._bases.append(None)
             self._stamps.append(time.monotonic())
             self.published += 1
             waiting = list(self._waiting) if self._waiting else None
@@ -470,13 +464,9 @@ class TelemetryHub:
                 run.append(last)
                 self._log.extend(run)
                 self._unread.extend(run)
-                self._bases.extend([None] * n)
-            else:
+            else:  # read by nobody: a subscriber's range begins after it came (module doc)
                 self._log.extend(stamps[:-1])
                 self._log.append(last)
-                self._bases.extend([(sample, inputs)] * (n - 1))
-                self._bases.append(None)
-                self._pairs_end = self.published + n - 1
             self._stamps.extend([now] * n)
             self.published += n
             waiting = list(self._waiting) if self._waiting else None
@@ -543,14 +533,6 @@ class TelemetryHub:
         log = self._log
         start = first - (self.published - len(log))
         out = [log[i] for i in range(start, start + end - first)]
-        if first < self._pairs_end:
-            # a run copy published while nobody subscribed, made whole here (a subscriber's
-            # range begins after it came, so not for one: for a reader of older samples)
-            for k, e in enumerate(out):
-                if type(e) is tuple:
-                    base = self._bases[start + k]
-                    assert base is not None
-                    out[k] = log[start + k] = _Lazy(None, base[1], base[0], e[0], e[1])
         late = [e for e in out if isinstance(e, _Lazy) and e.encoded is None]
         if late:  # published after `_ready_unread` (rare): derived here, under the lock
             self._ready(late)
