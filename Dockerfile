@@ -12,7 +12,13 @@ COPY pyproject.toml README.md* ./
 COPY protocol ./protocol
 COPY kinematics ./kinematics
 COPY app ./app
-RUN pip install --no-cache-dir . \
+# gcc for the poll thread's rounds in C (app/links/_restpoll.c; the image's Python has its
+# headers), removed again once the package is built.
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && pip install --no-cache-dir . \
+    && apt-get purge -y --auto-remove gcc libc6-dev \
+    && rm -rf /var/lib/apt/lists/* \
     && useradd --system --uid 10001 --groups dialout armserver
 
 USER armserver

@@ -19,12 +19,14 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
-$(VENV)/.installed: $(BIN)/python pyproject.toml
+# (app/links/_restpoll.c is built by the install where a C compiler and Python's headers are
+# found; else the poll thread's rounds run in Python alone. `make test` installs both first.)
+$(VENV)/.installed: $(BIN)/python pyproject.toml app/links/_restpoll.c
 	$(BIN)/python -m pip install --quiet -e .
 	touch $@
 
 # (the test extras in one install with the package: `make test` on a fresh clone builds it once)
-$(VENV)/.installed-test: $(BIN)/python pyproject.toml
+$(VENV)/.installed-test: $(BIN)/python pyproject.toml app/links/_restpoll.c
 	$(BIN)/python -m pip install --quiet -e '.[test]'
 	touch $(VENV)/.installed $@
 
@@ -35,7 +37,8 @@ install-test: $(VENV)/.installed-test
 # What the tests need from Debian, found the one way the tests find it (tests/_deps.py): each
 # target installs the missing packages with apt-get (as root, or through a password-less sudo)
 # and FAILS if a program is still missing afterwards; a test never skips for want of one.
-TEST_TOOLS := chromium mosquitto mosquitto_passwd node
+# (cc and Python.h before the package is installed: app/links/_restpoll.c is built then)
+TEST_TOOLS := chromium mosquitto mosquitto_passwd node cc Python.h
 # (the Debian packages named in the shell's $$missing, if any: apt-get installs them or it fails;
 # Debian's python3 makes venvs only with its python3-venv, which `$(BIN)/python` asks for so)
 define apt_missing
@@ -103,7 +106,7 @@ run: install
 TEST_WORKERS ?= 4
 SERIAL_LANES ?= 2
 SERIAL_ARGS  := $(if $(filter-out 1,$(SERIAL_LANES)),-n $(SERIAL_LANES) --dist loadgroup,)
-test: install-test test-deps
+test: test-deps install-test
 	$(MAKE) --no-print-directory test-run
 
 # (the serial part runs even if the parallel one failed: one run shows every failure)
@@ -121,7 +124,7 @@ test-run:
 # `make test` beside a CPU load: stress-ng keeps LOAD_CPUS cores busy for the whole run, as a
 # shared machine does (a test that fails only then is a flaky test, issue 22).
 LOAD_CPUS ?= 2
-test-loaded: install-test test-deps stress-ng
+test-loaded: test-deps install-test stress-ng
 	@stress-ng --cpu $(LOAD_CPUS) --timeout 0 --quiet & load=$$!; \
 	  trap 'kill $$load 2>/dev/null; wait $$load 2>/dev/null' EXIT INT TERM; \
 	  echo "stress-ng --cpu $(LOAD_CPUS) (pid $$load) beside the suite"; \

@@ -6,7 +6,8 @@ learn which Debian packages to install and to fail if anything is still missing 
     python3 tests/_deps.py check chromium node      # exit 1, naming what is missing
 
 A program is found on the PATH, then in the directories Debian installs it in (mosquitto is in
-/usr/sbin, outside a plain user's PATH). Standard library only.
+/usr/sbin, outside a plain user's PATH); a header (Python.h) in the include directory of the
+interpreter that runs this file (the one the venv is made from). Standard library only.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 import os
 import shutil
 import sys
+import sysconfig
 
 #: name -> (the Debian package that provides it, what needs it)
 TOOLS: dict[str, tuple[str, str]] = {
@@ -22,13 +24,19 @@ TOOLS: dict[str, tuple[str, str]] = {
     "mosquitto_passwd": ("mosquitto", "the MQTT tests with accounts (test_mqtt*.py)"),
     "node": ("nodejs", "the dashboard's JavaScript kinematics (test_arm_registry.py)"),
     "stress-ng": ("stress-ng", "`make test-loaded`, the suite beside a CPU load"),
+    "cc": ("gcc", "the poll thread's rounds in C (app/links/_restpoll.c), built at install"),
+    "Python.h": ("python3-dev", "the same, against this interpreter's headers"),
 }
 
 _EXTRA_DIRS = ("/usr/local/bin", "/usr/bin", "/usr/local/sbin", "/usr/sbin", "/sbin", "/bin")
 
 
 def find(name: str) -> str | None:
-    """The path of program `name`, or None."""
+    """The path of program `name` (a header, `*.h`: in this interpreter's include directory),
+    or None."""
+    if name.endswith(".h"):
+        header = os.path.join(sysconfig.get_paths()["include"], name)
+        return header if os.path.exists(header) else None
     path = os.environ.get("PATH", "")
     return shutil.which(name, path=os.pathsep.join([path, *_EXTRA_DIRS]))
 

@@ -124,6 +124,17 @@ async def running_client(settings: Settings | None = None,
     assert app.state.internal_errors == 0, "the last-resort error handler was hit"
 
 
+@pytest.fixture(params=["c", "python"])
+def poll_rest(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """The test runs twice: the poll thread's rounds of arms at rest in C (the default where
+    app/links/_restpoll.c was built) and in Python (ARMSERVER_POLL_REST=python's)."""
+    from app.links import poller
+
+    if request.param == "python":
+        monkeypatch.setattr(poller, "REST_IN_C", False)
+    return str(request.param)
+
+
 @pytest.fixture(autouse=True)
 def _data_dir(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
     """Each test's server keeps its store (safety settings) in a fresh directory, so that no

@@ -115,6 +115,7 @@ async def scripted_board() -> AsyncIterator[int]:
         yield port
 
 
+@pytest.mark.usefixtures("poll_rest")
 async def test_the_same_replies_give_the_same_samples_seq_by_seq():
     """Replies that repeat in runs, the same to both drivers: each sample (seq n answers the
     n-th poll) of the driver that repeats equals, value for value, the full path's."""
@@ -179,6 +180,7 @@ async def test_repeated_replies_give_the_samples_the_full_path_gives(name):
         assert fast.stats["corrupt"] == 0 and full.stats["corrupt"] == 0
 
 
+@pytest.mark.usefixtures("poll_rest")
 async def test_a_tare_and_a_new_zero_at_rest_show_in_the_next_samples():
     async with arm("rbe3001") as driver:
         before = await _rest_samples(driver, 30)
@@ -201,6 +203,7 @@ async def test_a_tare_and_a_new_zero_at_rest_show_in_the_next_samples():
         assert driver.stats["corrupt"] == 0
 
 
+@pytest.mark.usefixtures("poll_rest")
 async def test_a_move_takes_the_full_path_and_the_rest_after_it_the_short_one():
     async with arm("rbe3001") as driver:
         await _rest_samples(driver, 10)

@@ -34,10 +34,22 @@ from typing import Protocol
 from app.links.base import READ_CHUNK, Reply
 from app.runtime.control_thread import CONTROL_NICE, raise_priority
 
+try:  # the rounds of links at rest in C (app/links/_restpoll.c), where it was built
+    import app.links._restpoll as _restpoll
+except ImportError:  # (no C compiler at install: the same rounds in Python)
+    _restpoll = None  # type: ignore[assignment]
+
 log = logging.getLogger(__name__)
+
+#: Whether links at rest are polled in C (`PollThread._rest`): where the module was built,
+#: unless ARMSERVER_POLL_REST=python (the rounds in Python, for a before/after measure).
+REST_IN_C = _restpoll is not None and os.environ.get("ARMSERVER_POLL_REST", "c") != "python"
 
 #: Longest a full transmit buffer may hold back a poll request, s: then the link is lost.
 WRITE_WAIT_S = 1.0
+#: Periods a schedule may fall behind (a stalled machine) before it skips ahead, as the owner
+#: task's POLL_CATCH_UP.
+CATCH_UP = 10
 #: A poll may go this much before its slot (s): `poll` waits in whole milliseconds, and the
 #: owner task's own polls may run as early (app/device/owner.py POLL_EARLY_S); the schedule
 #: itself stays absolute.
@@ -54,6 +66,9 @@ NICENESS: int | None = CONTROL_NICE
 _Handover = dict[asyncio.AbstractEventLoop, list[Callable[[], None]]]
 
 
+_Told = tuple[asyncio.AbstractEventLoop, list[Callable[[], None]]] | None
+
+
 class Polled(Protocol):
     """What the poll thread asks of a link (app/links/threaded.py `ThreadLink`)."""
 
@@ -62,8 +77,15 @@ class Polled(Protocol):
 
     def poll_due(self, now: float) -> tuple[int, bytes, int, float] | float | None: ...
 
-    def poll_ended(self, packet: bytes, entry: Reply | BaseException
-                   ) -> tuple[asyncio.AbstractEventLoop, list[Callable[[], None]]] | None: ...
+    def poll_ended(self, packet: bytes, entry: Reply | BaseException) -> _Told: ...
+
+    @property
+    def at_rest(self) -> bool: ...
+
+    def rest_begin(self) -> tuple[int, bytes, bytes, float, float, float, float, int] | bool: ...
+
+    def rest_ended(self, packet: bytes, slot: float, ats: list[float],
+                   entry: Reply | BaseException | None) -> _Told: ...
 
 
 class PollLost(Exception):
@@ -108,7 +130,8 @@ class PollThread:
         self._sleeps_until: float | None = None
         self._nudged = False
         #: Wake-ups of the thread, and the batches it handed to event loops.
-        self.stats = {"wakes": 0, "handovers": 0, "polls": 0}
+        #: (`rest_runs`: calls of the rounds in C)
+        self.stats = {"wakes": 0, "handovers": 0, "polls": 0, "rest_runs": 0}
         #: The niceness the thread got (None: its starter's: NICENESS None, or not allowed).
         self.niceness: int | None = None
         started = threading.Event()
@@ -170,9 +193,11 @@ class PollThread:
         it whole), no lock but a due link's own."""
         handover: _Handover = {}
         wake_at = math.inf
-        now = time.monotonic()
         self._sleeps_until = None  # awake: an `add` from here on nudges (before the walk)
         self._nudged = False
+        if REST_IN_C and not flights and self._rest():
+            return
+        now = time.monotonic()
         flying = {f.link for f in flights.values()} if flights else ()
         for link in self._links:
             if link in flying:
@@ -246,6 +271,65 @@ class PollThread:
         if handover:
             self._hand_over(handover)
 
+    def _rest(self) -> bool:
+        """Every armed link at rest (its last replies repeated): their rounds in C until one
+        of them is not (app/links/_restpoll.c), then each link told what was read
+        (`rest_ended`), as `_round` tells it of each poll; False (nothing done) where an armed
+        link is not at rest or none is armed: the round runs in Python. An `add`, a pause, a
+        link closing or a new batch time wakes the rounds in C (`nudge`: `_sleeps_until`
+        stays None meanwhile), which end once the polls in flight have."""
+        links = self._links
+        if not any(link.at_rest for link in links) or any(
+                link.armed and not link.at_rest for link in links):
+            return False  # (a first look without the links' locks)
+        taken: list[tuple[Polled, tuple[int, bytes, bytes, float, float, float, float, int]]]
+        taken = []
+        for link in links:
+            plan = link.rest_begin()
+            if plan is True:
+                continue  # not armed: its owner's `arm` nudges
+            if plan is False:
+                break
+            taken.append((link, plan))
+        else:
+            if taken:
+                self._rest_rounds(taken)
+                return True
+        for link, plan in taken:  # (nothing read: only a pause that waited is told)
+            self._hand_over(_told({}, link.rest_ended(plan[1], plan[4], [], None)))
+        return False
+
+    def _rest_rounds(self, taken: list[tuple[Polled, tuple[int, bytes, bytes, float, float,
+                                                             float, float, int]]]) -> None:
+        assert _restpoll is not None
+        handover: _Handover = {}
+        try:
+            ended = _restpoll.run([plan for _, plan in taken], self._wake_r, EARLY_S,
+                                  float(CATCH_UP), WRITE_WAIT_S, READ_CHUNK)
+        except Exception:  # (a bug: every link's owner is told its poll failed)
+            log.exception("the link poll thread's rounds in C failed")
+            ended = [(plan[4], [], ("lost", "internal error in the poll thread"))
+                     for _, plan in taken]
+        self.stats["wakes"] += 1
+        for (link, plan), (slot, ats, end) in zip(taken, ended, strict=True):
+            self.stats["polls"] += len(ats) + (end is not None)
+            entry: Reply | BaseException | None = None
+            if end is not None:  # ("reply", data, deadline, at) or ("lost", reason)
+                entry = Reply(*end[1:]) if len(end) == 4 else PollLost(end[1])
+            _told(handover, link.rest_ended(plan[1], slot, ats, entry))
+        self.stats["rest_runs"] += 1  # (once no link is in them: tests/test_rest_rounds.py)
+        if handover:
+            self._hand_over(handover)
+
+    def nudge(self) -> None:
+        """Wake the thread now (a link's rounds in C must end: app/links/threaded.py
+        `_wake_rest`)."""
+        self._nudged = True
+        try:
+            os.write(self._wake_w, b"x")
+        except BlockingIOError:  # (the pipe is full of nudges already)
+            pass
+
     def _start(self, link: Polled, poll: tuple[int, bytes, int, float],
                flights: dict[int, _Flight], handover: _Handover) -> None:
         """Put `link`'s poll in flight: its request written (what the port takes now), its
@@ -307,10 +391,15 @@ class PollThread:
         self.stats["polls"] += 1
         entry: Reply | BaseException = (
             error if error is not None else Reply(f.data, f.deadline, time.time()))
-        told = f.link.poll_ended(f.packet, entry)
-        if told is not None:
-            loop, calls = told
-            handover.setdefault(loop, []).extend(calls)
+        _told(handover, f.link.poll_ended(f.packet, entry))
+
+
+def _told(handover: _Handover, told: _Told) -> _Handover:
+    """`handover` with what a link asked of its owner's loop (`poll_ended`) added."""
+    if told is not None:
+        loop, calls = told
+        handover.setdefault(loop, []).extend(calls)
+    return handover
 
 
 def _set_lowat(fd: int, n: int) -> bool:

@@ -63,7 +63,7 @@ from collections.abc import Callable
 from typing import Any
 
 from app.links.base import READ_CHUNK, Link, LinkError, LinkState, Reply
-from app.links.poller import EARLY_S, PollThread, aligned, shared
+from app.links.poller import CATCH_UP, EARLY_S, PollThread, aligned, shared
 from app.runtime.tasks import resolve
 
 log = logging.getLogger(__name__)
@@ -87,13 +87,21 @@ MOVING_BATCH_S = 0.005
 #: Replies the thread keeps for the owner task at most; then it stops polling on its own (a
 #: stalled control loop gets no backlog to catch up on, as POLL_CATCH_UP bounds it).
 MAX_PREFETCHED = 64
-#: Periods a schedule may fall behind (a stalled machine) before it skips ahead, as the owner
-#: task's POLL_CATCH_UP.
-CATCH_UP = 10
 #: Longest wait for a full transmit buffer to take a request, s: then the link is lost.
 WRITE_WAIT_S = 1.0
 
 _STOP = object()  # close the port and end the thread
+
+
+class Repeats:
+    """Replies the poll thread read in C (app/links/_restpoll.c) that all repeated the last
+    one: its bytes once and the time each was read (`time.time()`, in order), kept as one
+    entry of the replies read ahead instead of one `Reply` each."""
+
+    __slots__ = ("ats", "data")
+
+    def __init__(self, data: bytes, ats: list[float]) -> None:
+        self.data, self.ats = data, ats
 
 
 def _settle_once(fut: asyncio.Future[bool], ready: bool) -> None:
@@ -133,7 +141,12 @@ class ThreadLink(Link):
         self._period = 0.0
         self._notify: Callable[[], None] | None = None
         self._paused: asyncio.Future[None] | None = None
-        self._prefetched: deque[tuple[bytes, Reply | BaseException]] = deque()
+        self._prefetched: deque[tuple[bytes, Reply | BaseException | Repeats]] = deque()
+        #: The replies `_prefetched` holds (a `Repeats` entry holds several).
+        self._held = 0
+        #: The poll thread polls this link in C (`rest_begin` to `rest_ended`): a change the
+        #: thread must see at once (a pause, closing, another batch) wakes it (`_wake_rest`).
+        self._resting = False
         self._last_data = b""
         self._changing = False  # the last reply differed from the one before
         self._batch_since = 0.0
@@ -177,6 +190,7 @@ class ThreadLink(Link):
             self._armed = False
             self._in_flight = False
             self._prefetched.clear()
+            self._held = 0
             self._plan = None
         self._poll = None
         self._clean = False
@@ -228,11 +242,11 @@ class ThreadLink(Link):
             if self._use_prefetched:
                 self._use_prefetched = False
                 with self._lock:
-                    head = self._prefetched.popleft() if (
+                    head = self._take_one_locked() if (
                         self._prefetched and self._prefetched[0][0] == packet) else None
                 if head is not None:
                     self._poll_next = False
-                    entry = head[1]
+                    entry = head
                     if isinstance(entry, BaseException):
                         self._last_poll = None
                         raise self._lost(str(entry))
@@ -270,6 +284,8 @@ class ThreadLink(Link):
         with self._lock:
             self._armed = False
             self._prefetched.clear()
+            self._held = 0
+        self._wake_rest()
         await self._stop_thread()
 
     # ------------------------------------------------------------ the owner's schedule
@@ -298,17 +314,37 @@ class ThreadLink(Link):
             prefetched = self._prefetched
             while prefetched:
                 packet, entry = prefetched[0]
-                if (not isinstance(entry, Reply) or entry.data != reply or packet != request
-                        or entry.at is None):
+                if packet != request:
+                    break
+                if isinstance(entry, Repeats):
+                    if entry.data != reply:
+                        break
+                    ats += entry.ats
+                    self._held -= len(entry.ats)
+                elif isinstance(entry, Reply) and entry.data == reply and entry.at is not None:
+                    ats.append(entry.at)
+                    self._held -= 1
+                else:
                     break
                 prefetched.popleft()
-                ats.append(entry.at)
         return ats
+
+    def _take_one_locked(self) -> Reply | BaseException:
+        """The first reply read ahead, taken (a `Repeats` entry gives its first)."""
+        packet, entry = self._prefetched[0]
+        self._held -= 1
+        if not isinstance(entry, Repeats):
+            self._prefetched.popleft()
+            return entry
+        at = entry.ats.pop(0)
+        if not entry.ats:
+            self._prefetched.popleft()
+        return Reply(entry.data, time.monotonic(), at)
 
     @property
     def prefetched(self) -> int:
         """Replies the thread read ahead that the owner task has not taken yet."""
-        return len(self._prefetched)
+        return self._held
 
     @property
     def clean(self) -> bool:
@@ -359,7 +395,9 @@ class ThreadLink(Link):
         takes the samples as they come, IDLE_BATCH_S while nobody does): a reader that comes
         gets the batch being made within BATCH_S, as every reader did."""
         with self._lock:
-            self._repeat_batch_s = seconds
+            changed, self._repeat_batch_s = seconds != self._repeat_batch_s, seconds
+        if changed:  # (a batch being read in C ends at the old time: the thread is told)
+            self._wake_rest()
 
     @property
     def armed(self) -> bool:
@@ -394,36 +432,76 @@ class ThreadLink(Link):
         on; answers the owner's loop and what to run there, in the batch (the owner's wake-up
         where it should take the replies now, a `pause` that waited for this poll), or None
         (nothing to run: a repeat within its batch)."""
+        return self._polls_over(packet, entry, None, None)
+
+    @property
+    def at_rest(self) -> bool:
+        """Armed, and its last replies repeated (read without the lock: `rest_begin` looks
+        again under it): the poll thread may poll it in C."""
+        return self._armed and not self._changing and self._clean and not self._in_flight
+
+    def rest_begin(self) -> tuple[int, bytes, bytes, float, float, float, float, int] | bool:
+        """For the poll thread, before it polls its links in C (app/links/_restpoll.c): this
+        link's rounds there, (descriptor, request, the reply expected, timeout, next slot,
+        period, when its batch is due (`time.monotonic()`), the replies it may still hold),
+        the poll in flight from here until `rest_ended`; True if it is not armed (nothing to
+        poll: an `arm` wakes the thread); False if it is not at rest (its last reply was not a
+        repeat, a failure waits, its owner pauses it): the rounds run in Python."""
+        with self._lock:
+            plan = self._plan
+            if plan is None or not self._armed:
+                return True
+            if (self._in_flight or self._paused is not None or self._closing
+                    or self._changing or not self._clean or self._held >= MAX_PREFETCHED
+                    or len(self._last_data) != plan[2] or self._period <= 0):
+                return False
+            self._in_flight = self._resting = True
+            fd, packet, _, timeout = plan
+            return (fd, packet, self._last_data, timeout, self._slot, self._period,
+                    self._batch_since + self._repeat_batch_s, MAX_PREFETCHED - self._held)
+
+    def rest_ended(self, packet: bytes, slot: float, ats: list[float],
+                   entry: Reply | BaseException | None
+                   ) -> tuple[asyncio.AbstractEventLoop, list[Callable[[], None]]] | None:
+        """For the poll thread: its rounds in C since `rest_begin` ended, the schedule at
+        `slot`, with repeats read at `ats` and the last poll's `entry` if it was not one
+        (as `poll_ended` takes it). Answers as `poll_ended`."""
+        return self._polls_over(packet, entry, slot, ats)
+
+    def _wake_rest(self) -> None:
+        """Wake the poll thread out of its rounds in C for this link (they end after the polls
+        in flight): a pause waits for one poll at most, a new batch time holds at once."""
+        if self._resting and (polls := self._polls) is not None:
+            polls.nudge()
+
+    def _polls_over(self, packet: bytes, entry: Reply | BaseException | None,
+                    slot: float | None, ats: list[float] | None
+                    ) -> tuple[asyncio.AbstractEventLoop, list[Callable[[], None]]] | None:
+        """What `poll_ended` and `rest_ended` do: the replies kept (a poll's `entry`, the
+        repeats read in C at `ats`), the schedule moved on (to `slot`, from C), the owner
+        task told if it should take them now and a pause that waited let go."""
         now = time.monotonic()
         with self._lock:
-            self._in_flight = False
+            self._in_flight = self._resting = False
             if self._closing:
                 self._flight_ended.notify_all()
             paused = self._paused
             prefetched = self._prefetched
-            prefetched.append((packet, entry))
-            self.stats["scheduled"] += 1
-            period = self._period
-            self._slot += period
-            if self._slot < now - CATCH_UP * period:  # far behind: skip ahead, on the grid
-                self._slot = aligned(now + period, period)
-            data = entry.data if isinstance(entry, Reply) else b""
-            plan = self._plan
-            failed = len(data) != (plan[2] if plan is not None else 0) \
-                or not isinstance(entry, Reply)
-            if failed:
-                self._clean = False
-            if failed or len(prefetched) >= MAX_PREFETCHED:
-                self._armed = False  # the owner task takes it from here
-            changed = data != self._last_data
-            # a reading that changes after repeats (a move starts: the samples a goal's or a
-            # teleoperation's latency waits for) at once; while it goes on changing, every
-            # MOVING_BATCH_S; repeats every BATCH_S (IDLE_BATCH_S with no reader)
-            wake = (failed or not self._armed or (changed and not self._changing)
-                    or now - self._batch_since >= (MOVING_BATCH_S if changed
-                                                   else self._repeat_batch_s))
-            self._changing = changed
-            self._last_data = data
+            if ats:
+                prefetched.append((packet, Repeats(self._last_data, ats)))
+                self._held += len(ats)
+                self.stats["scheduled"] += len(ats)
+            if slot is not None:
+                self._slot = slot
+            if entry is None:  # repeats (or nothing) read in C: every batch, as below
+                if self._held >= MAX_PREFETCHED:
+                    self._armed = False
+                due = now - self._batch_since >= self._repeat_batch_s
+                wake = bool(self._held) and (due or bool(ats) and not self._armed)
+                if due and not wake:  # nothing to hand over: the next batch starts now
+                    self._batch_since = now
+            else:
+                wake = self._one_ended_locked(packet, entry, now)
             if wake:
                 self._batch_since = now
             notify = self._notify
@@ -440,6 +518,35 @@ class ThreadLink(Link):
         loop = self._loop
         return None if loop is None else (loop, calls)
 
+    def _one_ended_locked(self, packet: bytes, entry: Reply | BaseException, now: float) -> bool:
+        """One scheduled poll's `entry` kept and the schedule moved on (`poll_ended`); whether
+        the owner task should be woken now."""
+        self._prefetched.append((packet, entry))
+        self._held += 1
+        self.stats["scheduled"] += 1
+        period = self._period
+        self._slot += period
+        if self._slot < now - CATCH_UP * period:  # far behind: skip ahead, on the grid
+            self._slot = aligned(now + period, period)
+        data = entry.data if isinstance(entry, Reply) else b""
+        plan = self._plan
+        failed = len(data) != (plan[2] if plan is not None else 0) \
+            or not isinstance(entry, Reply)
+        if failed:
+            self._clean = False
+        if failed or self._held >= MAX_PREFETCHED:
+            self._armed = False  # the owner task takes it from here
+        changed = data != self._last_data
+        # a reading that changes after repeats (a move starts: the samples a goal's or a
+        # teleoperation's latency waits for) at once; while it goes on changing, every
+        # MOVING_BATCH_S; repeats every BATCH_S (IDLE_BATCH_S with no reader)
+        wake = (failed or not self._armed or (changed and not self._changing)
+                or now - self._batch_since >= (MOVING_BATCH_S if changed
+                                               else self._repeat_batch_s))
+        self._changing = changed
+        self._last_data = data
+        return wake
+
     async def pause(self) -> None:
         """Stop the schedule; return once no scheduled poll is in flight."""
         loop = asyncio.get_running_loop()
@@ -448,6 +555,7 @@ class ThreadLink(Link):
             if not self._in_flight:
                 return
             fut = self._paused = loop.create_future()
+        self._wake_rest()
         await fut
 
     def drop_prefetched(self) -> None:
@@ -455,8 +563,9 @@ class ThreadLink(Link):
         have discarded them as input it did not ask for)."""
         self._last_poll = None
         with self._lock:
-            self.stats["dropped"] += len(self._prefetched)
+            self.stats["dropped"] += self._held
             self._prefetched.clear()
+            self._held = 0
 
     # ------------------------------------------------------------ loop side
 
@@ -565,6 +674,7 @@ class ThreadLink(Link):
         """Mark the link DOWN and end its thread (which closes the port)."""
         with self._lock:
             self._armed = False
+        self._wake_rest()
         if self._thread is not None:
             self._jobs.put(_STOP)
         log.warning("serial link %s lost: %s", self.address, reason)
@@ -634,6 +744,7 @@ class ThreadLink(Link):
         with self._lock:  # the poll thread's poll in flight ends first (its own timeout)
             self._armed = False
             self._closing = True
+            self._wake_rest()  # (rounds in C: back after the polls in flight)
             self._flight_ended.wait_for(lambda: not self._in_flight, CLOSE_TIMEOUT_S)
             self._closing = False
             port, self._port, self._fd, self._poller = self._port, None, None, None

@@ -1,0 +1,281 @@
+"""The poll thread's rounds of arms at rest in C (issue 27: app/links/_restpoll.c, driven by
+app/links/poller.py `PollThread._rest`).
+
+`_restpoll.run` is tested on its own against a responder on the other end of a real socket
+pair (each request read, counted and answered as the test scripts it): what it counts as a
+repeat, when it returns, what it hands back; then the thread links over the arm types'
+simulators on loopback sockets: the rounds in C are the ones used, and a pause, a new batch
+time or closing reach a link whose batch would otherwise run for 30 s."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import pytest
+from _wait import wait_for
+
+from app.arms.loading import load_profile
+from app.arms.rbe3001.driver import Rbe3001Driver
+from app.device.factory import make_sim_device
+from app.links import poller
+from app.links.threaded import ThreadLink
+from app.sim.serve import serve_tcp
+from app.telemetry.hub import TelemetryHub
+
+REQ = bytes(range(64))
+REPLY = bytes(range(100, 164))
+OTHER = bytes(range(1, 65))
+PERIOD = 0.002
+
+
+def test_the_rounds_in_c_are_built_and_used():
+    """`make test` installs a C compiler and Python's headers first (tests/_deps.py): the
+    module is built, and the poll thread uses it (ARMSERVER_POLL_REST unset)."""
+    assert poller._restpoll is not None, "app/links/_restpoll.c was not built"
+    assert poller.REST_IN_C
+
+
+@contextlib.contextmanager
+def responder(answer: Callable[[int, bytes], bytes | None]) -> Iterator[tuple[int, list[bytes]]]:
+    """A socket pair: the link's end (non-blocking, as pyserial's `socket://` is) and on the
+    other a thread that reads each 64-byte request and writes `answer(n, request)` (None:
+    closes its end). Yields the link's descriptor and the requests read."""
+    ours, theirs = socket.socketpair()
+    ours.setblocking(False)
+    got: list[bytes] = []
+
+    def serve() -> None:
+        buf = b""
+        try:
+            while True:
+                data = theirs.recv(4096)
+                if not data:
+                    return
+                buf += data
+                while len(buf) >= len(REQ):
+                    req, buf = buf[:len(REQ)], buf[len(REQ):]
+                    got.append(req)
+                    out = answer(len(got), req)
+                    if out is None:
+                        theirs.shutdown(socket.SHUT_RDWR)
+                        return
+                    if out:
+                        theirs.sendall(out)
+        except OSError:
+            return
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    try:
+        yield ours.fileno(), got
+    finally:
+        ours.close()
+        theirs.close()
+        t.join(2.0)
+
+
+@pytest.fixture
+def wake_pipe() -> Iterator[tuple[int, int]]:
+    r, w = os.pipe()
+    os.set_blocking(r, False)
+    try:
+        yield r, w
+    finally:
+        os.close(r)
+        os.close(w)
+
+
+def run(links: list[tuple], wake_fd: int) -> list[tuple]:
+    assert poller._restpoll is not None
+    return poller._restpoll.run(links, wake_fd, poller.EARLY_S, float(poller.CATCH_UP), 1.0,
+                                4096)
+
+
+def test_repeats_are_read_until_the_batch_is_due(wake_pipe):
+    with responder(lambda n, req: REPLY) as (fd, got):
+        slot = time.monotonic()
+        until = slot + 0.1
+        [(next_slot, ats, end)] = run([(fd, REQ, REPLY, 0.05, slot, PERIOD, until, 1000)],
+                                      wake_pipe[0])
+        assert time.monotonic() >= until
+        assert end is None
+        assert 1 <= len(ats) <= 51  # (a slot every 2 ms from `slot`, up to `until`)
+        assert len(got) == len(ats) and all(r == REQ for r in got)
+        assert ats == sorted(ats) and abs(ats[-1] - time.time()) < 5.0
+        assert next_slot == pytest.approx(slot + len(ats) * PERIOD, abs=1e-9)
+
+
+def test_at_most_cap_repeats_are_read(wake_pipe):
+    with responder(lambda n, req: REPLY) as (fd, got):
+        now = time.monotonic()
+        [(_slot, ats, end)] = run([(fd, REQ, REPLY, 0.05, now, PERIOD, now + 30, 5)],
+                                  wake_pipe[0])
+        assert end is None and len(ats) == 5 and len(got) == 5
+
+
+def test_a_reply_that_differs_ends_the_rounds_and_is_handed_back_whole(wake_pipe):
+    with responder(lambda n, req: OTHER if n == 4 else REPLY) as (fd, got):
+        now = time.monotonic()
+        [(slot, ats, end)] = run([(fd, REQ, REPLY, 0.05, now, PERIOD, now + 30, 64)],
+                                 wake_pipe[0])
+        assert len(ats) == 3 and len(got) == 4
+        kind, data, deadline, at = end
+        assert (kind, data) == ("reply", OTHER)
+        assert at >= ats[-1] and deadline <= time.monotonic() + 0.05
+        # the slot moved on for the three repeats only: the reply's own poll is Python's
+        assert slot == pytest.approx(now + 3 * PERIOD, abs=1e-9)
+
+
+def test_a_longer_reply_is_no_repeat(wake_pipe):
+    with responder(lambda n, req: REPLY + b"!" if n == 2 else REPLY) as (fd, _got):
+        now = time.monotonic()
+        [(_slot, ats, end)] = run([(fd, REQ, REPLY, 0.05, now, PERIOD, now + 30, 64)],
+                                  wake_pipe[0])
+        assert len(ats) == 1 and end[:2] == ("reply", REPLY + b"!")
+
+
+def test_a_short_reply_is_handed_back_at_its_timeout(wake_pipe):
+    with responder(lambda n, req: REPLY[:20] if n == 3 else REPLY) as (fd, _got):
+        now = time.monotonic()
+        [(_slot, ats, end)] = run([(fd, REQ, REPLY, 0.05, now, PERIOD, now + 30, 64)],
+                                  wake_pipe[0])
+        assert len(ats) == 2
+        kind, data, deadline, _at = end
+        assert (kind, data) == ("reply", REPLY[:20])
+        assert time.monotonic() >= deadline
+
+
+def test_a_reply_in_parts_is_a_repeat(wake_pipe):
+    ours, theirs = socket.socketpair()
+    ours.setblocking(False)
+
+    def serve() -> None:
+        for _ in range(3):
+            theirs.recv(64)
+            theirs.sendall(REPLY[:10])
+            time.sleep(0.005)
+            theirs.sendall(REPLY[10:])
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    try:
+        now = time.monotonic()
+        [(_slot, ats, end)] = run([(ours.fileno(), REQ, REPLY, 0.05, now, PERIOD, now + 30, 3)],
+                                  wake_pipe[0])
+        assert end is None and len(ats) == 3
+    finally:
+        t.join(2.0)
+        ours.close()
+        theirs.close()
+
+
+def test_the_peer_closing_is_a_lost_link(wake_pipe):
+    with responder(lambda n, req: None if n == 3 else REPLY) as (fd, _got):
+        now = time.monotonic()
+        [(_slot, ats, end)] = run([(fd, REQ, REPLY, 0.05, now, PERIOD, now + 30, 64)],
+                                  wake_pipe[0])
+        assert len(ats) == 2 and end == ("lost", "closed by the peer (end of file)")
+
+
+def test_the_wake_pipe_ends_the_rounds_and_is_drained(wake_pipe):
+    r, w = wake_pipe
+    with responder(lambda n, req: REPLY) as (fd, got):
+        now = time.monotonic()
+        until = now + 30
+        threading.Timer(0.05, os.write, (w, b"xx")).start()
+        [(_slot, ats, end)] = run([(fd, REQ, REPLY, 0.05, now, PERIOD, until, 1000)], r)
+        assert time.monotonic() < until  # (without the pipe: 30 s)
+        assert end is None and len(ats) >= 1 and len(got) == len(ats)
+        with pytest.raises(BlockingIOError):
+            os.read(r, 16)
+
+
+def test_links_of_two_periods_each_keep_their_own_slots(wake_pipe):
+    with responder(lambda n, req: REPLY) as (fd1, got1), \
+            responder(lambda n, req: OTHER) as (fd2, got2):
+        now = time.monotonic()
+        (s1, ats1, e1), (s2, ats2, e2) = run(
+            [(fd1, REQ, REPLY, 0.05, now, 0.002, now + 0.1, 1000),
+             (fd2, REQ, OTHER, 0.05, now, 0.005, now + 0.1, 1000)], wake_pipe[0])
+        assert e1 is None and e2 is None
+        assert len(ats1) == len(got1) and len(ats2) == len(got2)
+        assert len(ats1) > len(ats2) >= 1
+        assert s1 == pytest.approx(now + len(ats1) * 0.002, abs=1e-9)
+        assert s2 == pytest.approx(now + len(ats2) * 0.005, abs=1e-9)
+
+
+def test_no_links_returns_at_once(wake_pipe):
+    assert run([], wake_pipe[0]) == []
+
+
+def test_a_bad_link_is_a_type_error_not_a_crash(wake_pipe):
+    with pytest.raises(TypeError):
+        run([("x",)], wake_pipe[0])
+    with pytest.raises(ValueError):
+        run([(0, b"", REPLY, 0.05, 0.0, PERIOD, 0.0, 1)], wake_pipe[0])
+
+
+# ---------------------------------------------------------------- on the poll thread
+
+
+@contextlib.asynccontextmanager
+async def rbe3001():
+    profile = load_profile("rbe3001")
+    server = await serve_tcp(make_sim_device(profile))
+    link = ThreadLink(f"socket://127.0.0.1:{server.port}")
+    driver = Rbe3001Driver(profile, link, TelemetryHub("rbe3001"))
+    await driver.start()
+    try:
+        assert await driver.wait_connected(10.0), link.last_error
+        yield driver, link
+    finally:
+        await driver.close()
+        await server.close()
+
+
+async def test_an_arm_at_rest_is_polled_in_c_and_every_sample_published():
+    async with rbe3001() as (driver, link):
+        sub = driver.hub.subscribe()
+        try:
+            thread = poller.shared()
+            runs0, repeats0 = thread.stats["rest_runs"], driver.stats["repeats"]
+            await wait_for(lambda: driver.stats["repeats"] > repeats0 + 200, what="repeats")
+            assert thread.stats["rest_runs"] > runs0
+            samples, _events, dropped = sub.take()
+        finally:
+            sub.close()
+        assert dropped == 0
+        import json
+
+        seqs = [json.loads(s)["seq"] for s in samples]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+        assert driver.stats["corrupt"] == 0
+
+
+async def test_a_request_reaches_an_arm_whose_batch_in_c_runs_for_30_s(monkeypatch):
+    """A pause (the owner task's request) and a new batch time wake the rounds in C: without
+    the thread's nudge the request would wait for the 30 s batch (the link may hold all its
+    replies meanwhile here, not MAX_PREFETCHED)."""
+    from app.links import threaded
+
+    monkeypatch.setattr(threaded, "MAX_PREFETCHED", 1_000_000)
+    async with rbe3001() as (driver, link):
+        thread = poller.shared()
+        repeats = driver.stats["repeats"]  # (settled: the simulator's arm is at rest)
+        await wait_for(lambda: driver.stats["repeats"] > repeats + 150, what="the arm at rest")
+        link.batch_repeats(30.0)
+        runs = thread.stats["rest_runs"]
+        await wait_for(lambda: thread.stats["rest_runs"] > runs and link._resting,
+                       what="rounds in C with the 30 s batch")
+        t0 = time.monotonic()
+        await driver.set_claw(0.5)
+        assert time.monotonic() - t0 < 10.0  # (a bound, not a speed: 30 s without the nudge)
+        repeats = driver.stats["repeats"]
+        link.batch_repeats(0.02)  # a reader came: its batch within 20 ms, not 30 s
+        await wait_for(lambda: driver.stats["repeats"] > repeats, timeout=10.0,
+                       what="the repeats of the new batch time")
