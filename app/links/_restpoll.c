@@ -17,7 +17,8 @@
  * `slot - early` at the earliest; each one that ends moves its slot one period on, and a slot
  * more than `catch_up` periods behind skips ahead onto the period's grid. The bytes read are
  * read as `PollThread._read` reads them (up to `chunk` at a time; nothing where `poll` said
- * there was something is the peer's end); a request the port takes in parts is written as
+ * there was something is the peer's end; a reply in parts over a socket wakes the thread for
+ * its first part and its rest: SO_RCVLOWAT); a request the port takes in parts is written as
  * `PollThread._write` writes it, within `write_wait` s.
  *
  *     run(links, wake_fd, early, catch_up, write_wait, chunk) -> list
@@ -35,6 +36,7 @@
 #include <poll.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/socket.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -52,6 +54,7 @@ typedef struct {
     int flying;
     Py_ssize_t woff, got, bufcap;
     double deadline, write_by;
+    int lowat; /* SO_RCVLOWAT set for the rest of a reply (-1: not a socket) */
     char *buf;
     /* what was read */
     double *ats;
@@ -67,7 +70,22 @@ static double clock_s(clockid_t id) {
     return (double)t.tv_sec + (double)t.tv_nsec * 1e-9;
 }
 
+/* Have `poll` wake for socket `fd` only once `n` bytes are there (SO_RCVLOWAT), as
+ * `PollThread._read` does for a reply that comes in parts (a Dynamixel bus's statuses): its
+ * first part and its rest wake the thread, not each status. 0 where `fd` is no socket. */
+static int set_lowat(int fd, int n) {
+    return setsockopt(fd, SOL_SOCKET, SO_RCVLOWAT, &n, sizeof n) == 0;
+}
+
+static void lowat_off(Rest *r) {
+    if (r->lowat == 1) {
+        set_lowat(r->fd, 1);
+        r->lowat = 0;
+    }
+}
+
 static void lose(Rest *r, const char *why) {
+    lowat_off(r);
     r->end = END_LOST;
     r->flying = 0;
     snprintf(r->reason, sizeof r->reason, "%s", why);
@@ -111,6 +129,7 @@ static void take(Rest *r, int ready, Py_ssize_t chunk) {
 static void done(Rest *r, double catch_up) {
     double at = clock_s(CLOCK_REALTIME), now = clock_s(CLOCK_MONOTONIC);
     r->flying = 0;
+    lowat_off(r);
     if (r->got == r->size && memcmp(r->buf, r->expect, (size_t)r->size) == 0) {
         r->ats[r->n++] = at;
         r->slot += r->period;
@@ -189,7 +208,10 @@ static void run_rounds(Rest *rs, Py_ssize_t n, int wake_fd, double early, double
                 if ((ev & POLLOUT) && r->woff < r->req_len) put(r);
                 if (r->end == END_NONE && (ev & (POLLIN | POLLERR | POLLHUP | POLLNVAL)))
                     take(r, 1, chunk);
-                if (r->end == END_NONE && r->got >= r->size) done(r, catch_up);
+                if (r->end == END_NONE && r->got >= r->size)
+                    done(r, catch_up);
+                else if (r->end == END_NONE && r->got > 0 && r->lowat != -1)
+                    r->lowat = set_lowat(r->fd, (int)(r->size - r->got)) ? 1 : -1;
             }
         }
         now = clock_s(CLOCK_MONOTONIC);
