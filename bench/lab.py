@@ -405,7 +405,10 @@ def main() -> int:
     args = p.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="armserver-bench-lab-"))
     ports = _free_ports(args.arms + 1)
-    env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
+    # (the server's own settings, not the caller's; ARMSERVER_POLL_REST=python passes: the
+    # poll thread's rounds of arms at rest in Python, for a before/after of the rounds in C)
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith("ARMSERVER_") or k == "ARMSERVER_POLL_REST"}
     env["ARMSERVER_DATA_DIR"] = str(folder / "data")
     cpus = sorted(os.sched_getaffinity(0))
     machine = _machine.describe()  # (before anything of the bench's runs)
