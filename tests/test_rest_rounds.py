@@ -18,14 +18,9 @@ from collections.abc import Callable, Iterator
 
 import pytest
 from _wait import wait_for
+from test_link_thread import arm
 
-from app.arms.loading import load_profile
-from app.arms.rbe3001.driver import Rbe3001Driver
-from app.device.factory import make_sim_device
 from app.links import poller
-from app.links.threaded import ThreadLink
-from app.sim.serve import serve_tcp
-from app.telemetry.hub import TelemetryHub
 
 REQ = bytes(range(64))
 REPLY = bytes(range(100, 164))
@@ -223,23 +218,8 @@ def test_a_bad_link_is_a_type_error_not_a_crash(wake_pipe):
 # ---------------------------------------------------------------- on the poll thread
 
 
-@contextlib.asynccontextmanager
-async def rbe3001():
-    profile = load_profile("rbe3001")
-    server = await serve_tcp(make_sim_device(profile))
-    link = ThreadLink(f"socket://127.0.0.1:{server.port}")
-    driver = Rbe3001Driver(profile, link, TelemetryHub("rbe3001"))
-    await driver.start()
-    try:
-        assert await driver.wait_connected(10.0), link.last_error
-        yield driver, link
-    finally:
-        await driver.close()
-        await server.close()
-
-
 async def test_an_arm_at_rest_is_polled_in_c_and_every_sample_published():
-    async with rbe3001() as (driver, link):
+    async with arm("rbe3001") as (driver, link, _server):
         sub = driver.hub.subscribe()
         try:
             thread = poller.shared()
@@ -264,7 +244,7 @@ async def test_a_request_reaches_an_arm_whose_batch_in_c_runs_for_30_s(monkeypat
     from app.links import threaded
 
     monkeypatch.setattr(threaded, "MAX_PREFETCHED", 1_000_000)
-    async with rbe3001() as (driver, link):
+    async with arm("rbe3001") as (driver, link, _server):
         thread = poller.shared()
         repeats = driver.stats["repeats"]  # (settled: the simulator's arm is at rest)
         await wait_for(lambda: driver.stats["repeats"] > repeats + 150, what="the arm at rest")

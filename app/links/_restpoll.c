@@ -232,8 +232,6 @@ static void run_rounds(Rest *rs, Py_ssize_t n, int wake_fd, double early, double
             take(r, 0, chunk);
             if (r->end == END_NONE) done(r, catch_up);
         }
-        for (Py_ssize_t i = 0; i < n; i++)
-            if (rs[i].end != END_NONE) stopping = 1;
     }
 }
 

@@ -66,7 +66,12 @@ NICENESS: int | None = CONTROL_NICE
 _Handover = dict[asyncio.AbstractEventLoop, list[Callable[[], None]]]
 
 
-_Told = tuple[asyncio.AbstractEventLoop, list[Callable[[], None]]] | None
+#: What a link asks of its owner's event loop as a poll ends (`poll_ended`, `rest_ended`): the
+#: loop and the calls to run there, or None (nothing).
+Told = tuple[asyncio.AbstractEventLoop, list[Callable[[], None]]] | None
+#: A link's rounds in C (`rest_begin`): descriptor, request, the reply expected, timeout, next
+#: slot, period, when its batch is due, the replies it may still hold.
+RestPlan = tuple[int, bytes, bytes, float, float, float, float, int]
 
 
 class Polled(Protocol):
@@ -77,15 +82,15 @@ class Polled(Protocol):
 
     def poll_due(self, now: float) -> tuple[int, bytes, int, float] | float | None: ...
 
-    def poll_ended(self, packet: bytes, entry: Reply | BaseException) -> _Told: ...
+    def poll_ended(self, packet: bytes, entry: Reply | BaseException) -> Told: ...
 
     @property
     def at_rest(self) -> bool: ...
 
-    def rest_begin(self) -> tuple[int, bytes, bytes, float, float, float, float, int] | bool: ...
+    def rest_begin(self) -> RestPlan | bool: ...
 
     def rest_ended(self, packet: bytes, slot: float, ats: list[float],
-                   entry: Reply | BaseException | None) -> _Told: ...
+                   entry: Reply | BaseException | None) -> Told: ...
 
 
 class PollLost(Exception):
@@ -153,11 +158,7 @@ class PollThread:
                 self._links = (*self._links, link)
         until = self._sleeps_until
         if not self._nudged and (until is None or until > slot):
-            self._nudged = True
-            try:
-                os.write(self._wake_w, b"x")
-            except BlockingIOError:  # (the pipe is full of nudges already)
-                pass
+            self.nudge()
 
     def _forget(self, link: Polled) -> None:
         """Stop serving `link` (closed) unless its owner armed it again meanwhile."""
@@ -282,8 +283,7 @@ class PollThread:
         if not any(link.at_rest for link in links) or any(
                 link.armed and not link.at_rest for link in links):
             return False  # (a first look without the links' locks)
-        taken: list[tuple[Polled, tuple[int, bytes, bytes, float, float, float, float, int]]]
-        taken = []
+        taken: list[tuple[Polled, RestPlan]] = []
         for link in links:
             plan = link.rest_begin()
             if plan is True:
@@ -295,12 +295,13 @@ class PollThread:
             if taken:
                 self._rest_rounds(taken)
                 return True
+        handover: _Handover = {}
         for link, plan in taken:  # (nothing read: only a pause that waited is told)
-            self._hand_over(_told({}, link.rest_ended(plan[1], plan[4], [], None)))
+            _told(handover, link.rest_ended(plan[1], plan[4], [], None))
+        self._hand_over(handover)
         return False
 
-    def _rest_rounds(self, taken: list[tuple[Polled, tuple[int, bytes, bytes, float, float,
-                                                             float, float, int]]]) -> None:
+    def _rest_rounds(self, taken: list[tuple[Polled, RestPlan]]) -> None:
         assert _restpoll is not None
         handover: _Handover = {}
         try:
@@ -322,8 +323,8 @@ class PollThread:
             self._hand_over(handover)
 
     def nudge(self) -> None:
-        """Wake the thread now (a link's rounds in C must end: app/links/threaded.py
-        `_wake_rest`)."""
+        """Wake the thread now (a link added, `add`; a link's rounds in C must end:
+        app/links/threaded.py `_wake_rest`)."""
         self._nudged = True
         try:
             os.write(self._wake_w, b"x")
@@ -394,12 +395,11 @@ class PollThread:
         _told(handover, f.link.poll_ended(f.packet, entry))
 
 
-def _told(handover: _Handover, told: _Told) -> _Handover:
-    """`handover` with what a link asked of its owner's loop (`poll_ended`) added."""
+def _told(handover: _Handover, told: Told) -> None:
+    """Add to `handover` what a link asked of its owner's loop (`poll_ended`)."""
     if told is not None:
         loop, calls = told
         handover.setdefault(loop, []).extend(calls)
-    return handover
 
 
 def _set_lowat(fd: int, n: int) -> bool:

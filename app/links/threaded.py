@@ -63,7 +63,7 @@ from collections.abc import Callable
 from typing import Any
 
 from app.links.base import READ_CHUNK, Link, LinkError, LinkState, Reply
-from app.links.poller import CATCH_UP, EARLY_S, PollThread, aligned, shared
+from app.links.poller import CATCH_UP, EARLY_S, PollThread, RestPlan, Told, aligned, shared
 from app.runtime.tasks import resolve
 
 log = logging.getLogger(__name__)
@@ -285,8 +285,7 @@ class ThreadLink(Link):
             self._armed = False
             self._prefetched.clear()
             self._held = 0
-        self._wake_rest()
-        await self._stop_thread()
+        await self._stop_thread()  # (`_close_port` wakes rounds in C: `_wake_rest`)
 
     # ------------------------------------------------------------ the owner's schedule
 
@@ -425,8 +424,7 @@ class ThreadLink(Link):
             self._in_flight = True
             return self._plan
 
-    def poll_ended(self, packet: bytes, entry: Reply | BaseException
-                   ) -> tuple[asyncio.AbstractEventLoop, list[Callable[[], None]]] | None:
+    def poll_ended(self, packet: bytes, entry: Reply | BaseException) -> Told:
         """For the poll thread: the scheduled poll of `packet` ended with `entry` (its reply,
         whole or short, or the failure). Keeps it for the owner task and moves the schedule
         on; answers the owner's loop and what to run there, in the batch (the owner's wake-up
@@ -440,7 +438,7 @@ class ThreadLink(Link):
         again under it): the poll thread may poll it in C."""
         return self._armed and not self._changing and self._clean and not self._in_flight
 
-    def rest_begin(self) -> tuple[int, bytes, bytes, float, float, float, float, int] | bool:
+    def rest_begin(self) -> RestPlan | bool:
         """For the poll thread, before it polls its links in C (app/links/_restpoll.c): this
         link's rounds there, (descriptor, request, the reply expected, timeout, next slot,
         period, when its batch is due (`time.monotonic()`), the replies it may still hold),
@@ -461,8 +459,7 @@ class ThreadLink(Link):
                     self._batch_since + self._repeat_batch_s, MAX_PREFETCHED - self._held)
 
     def rest_ended(self, packet: bytes, slot: float, ats: list[float],
-                   entry: Reply | BaseException | None
-                   ) -> tuple[asyncio.AbstractEventLoop, list[Callable[[], None]]] | None:
+                   entry: Reply | BaseException | None) -> Told:
         """For the poll thread: its rounds in C since `rest_begin` ended, the schedule at
         `slot`, with repeats read at `ats` and the last poll's `entry` if it was not one
         (as `poll_ended` takes it). Answers as `poll_ended`."""
@@ -475,8 +472,7 @@ class ThreadLink(Link):
             polls.nudge()
 
     def _polls_over(self, packet: bytes, entry: Reply | BaseException | None,
-                    slot: float | None, ats: list[float] | None
-                    ) -> tuple[asyncio.AbstractEventLoop, list[Callable[[], None]]] | None:
+                    slot: float | None, ats: list[float] | None) -> Told:
         """What `poll_ended` and `rest_ended` do: the replies kept (a poll's `entry`, the
         repeats read in C at `ats`), the schedule moved on (to `slot`, from C), the owner
         task told if it should take them now and a pause that waited let go."""
@@ -674,8 +670,7 @@ class ThreadLink(Link):
         """Mark the link DOWN and end its thread (which closes the port)."""
         with self._lock:
             self._armed = False
-        self._wake_rest()
-        if self._thread is not None:
+        if self._thread is not None:  # (its `_close_port` wakes rounds in C)
             self._jobs.put(_STOP)
         log.warning("serial link %s lost: %s", self.address, reason)
         return self._down(f"serial link {self.address} lost: {reason}")
