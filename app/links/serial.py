@@ -20,6 +20,7 @@ import os
 
 from app.doors import serial_asyncio as serial_door
 from app.links.base import READ_CHUNK, Link, LinkError, LinkState
+from app.runtime.control_thread import TerminalHold, terminal_hold
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +61,15 @@ class _Buffered(asyncio.Protocol):
 def _resolve(fut: asyncio.Future[None] | None) -> None:
     if fut is not None and not fut.done():
         fut.set_result(None)
+
+
+def port_fileno(port: object) -> int | None:
+    """The descriptor of a pyserial port, or None where it has none (`loop://`, rfc2217)."""
+    try:
+        fd = port.fileno()  # type: ignore[attr-defined]
+    except Exception:  # noqa: BLE001 - AttributeError, NotImplementedError, SerialException...
+        return None
+    return fd if isinstance(fd, int) else None
 
 
 def cannot_open(address: str, exc: BaseException) -> str:
@@ -113,6 +123,7 @@ class SerialLink(Link):
         self.baudrate = baudrate
         self._proto: _Buffered | None = None
         self._errors: tuple[type[BaseException], ...] = (OSError,)
+        self._terminal: TerminalHold | None = None  # the port is a terminal (a tty, a pty)
 
     async def open(self) -> None:
         """Open the port; LinkError naming the URL and the reason if it cannot be opened."""
@@ -136,6 +147,7 @@ class SerialLink(Link):
             self._proto = proto  # (connection_made comes later, from call_soon)
         except (*self._errors, ValueError) as exc:
             raise self._down(cannot_open(self.address, exc)) from exc
+        self._terminal = terminal_hold(port_fileno(port))  # (the raised threads at 0 meanwhile)
         self.state = LinkState.UP
         self.last_error = None
         log.info("serial link %s open at %d baud", self.address, self.baudrate)
@@ -179,6 +191,9 @@ class SerialLink(Link):
     async def close(self) -> None:
         proto, self._proto = self._proto, None
         self.state = LinkState.DOWN
+        terminal, self._terminal = self._terminal, None
+        if terminal is not None:
+            terminal.release()
         if proto is None or proto.transport is None:
             return
         proto.transport.close()

@@ -64,6 +64,7 @@ from typing import Any
 
 from app.links.base import READ_CHUNK, Link, LinkError, LinkState, Reply
 from app.links.poller import CATCH_UP, EARLY_S, PollThread, RestPlan, Told, aligned, shared
+from app.runtime.control_thread import TerminalHold, terminal_hold
 from app.runtime.tasks import resolve
 
 log = logging.getLogger(__name__)
@@ -130,6 +131,7 @@ class ThreadLink(Link):
         self._port: Any = None
         self._fd: int | None = None
         self._socket = False  # the descriptor is a socket (`socket://`): b"" is its end
+        self._terminal: TerminalHold | None = None  # the port is a terminal (a tty, a pty)
         self._poller: Any = None
         #: Bytes a call read for a caller that gave up (cancelled): read first, never lost.
         self._stash = bytearray()
@@ -731,6 +733,7 @@ class ThreadLink(Link):
             fd = None
         self._port, self._fd = port, fd
         self._socket = fd is not None and stat.S_ISSOCK(os.fstat(fd).st_mode)
+        self._terminal = terminal_hold(fd)  # (the raised threads at 0 meanwhile)
         if fd is not None:
             self._poller = select.poll()
             self._poller.register(fd, select.POLLIN)
@@ -744,11 +747,14 @@ class ThreadLink(Link):
             self._closing = False
             port, self._port, self._fd, self._poller = self._port, None, None, None
             self._plan = None
+            terminal, self._terminal = self._terminal, None
         if port is not None:
             try:
                 port.close()
             except Exception as exc:  # noqa: BLE001 - a lost port: nothing left to do
                 log.debug("serial link %s closed with %r", self.address, exc)
+        if terminal is not None:
+            terminal.release()
 
     def _transact(self, packet: bytes, size: int, timeout: float, stamp: bool) -> Reply:
         deadline = time.monotonic() + timeout

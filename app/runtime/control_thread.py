@@ -79,7 +79,10 @@ class ControlThread:
                 ready.set()
                 await self._stopped.wait()
 
-            asyncio.run(main())
+            try:
+                asyncio.run(main())
+            finally:
+                lower_priority()
 
         self._old_switch = sys.getswitchinterval()
         sys.setswitchinterval(min(self._old_switch, SWITCH_INTERVAL_S))
@@ -115,14 +118,83 @@ class ControlThread:
             self._old_switch = None
 
 
+# A raised thread starves the kernel's own workers on a busy machine. Linux hands a terminal's
+# received bytes (a USB serial adapter's, a pty's) to their reader in a work item run by an
+# unbound kworker at niceness 0. Traced beside `stress-ng --cpu 4` with two servo set-ups at
+# once (`make test-loaded`'s failure, docs/performance.md "Session 24"), that kworker waited
+# 0.45-4.1 s runnable for a CPU while the control thread at -10 woke every 2 ms; with it at 0
+# the longest wait was 0.11-0.51 s and no set-up failed. A thread waiting for a terminal's
+# bytes above the worker that delivers them waits longer, not less. So while any terminal is
+# in use in the process (`TerminalHold`: a serial arm's port, a servo set-up's), every raised
+# thread runs at the default niceness; they get theirs back when the last is closed. Links
+# over sockets and HID, which the kernel delivers without that worker, keep the raise.
+
+#: Threads running above the default niceness: native id -> the niceness they asked for.
+_raised: dict[int, int] = {}
+#: Terminals in use (TerminalHold); while there is one, the raised threads run at 0.
+_terminals = 0
+_raised_lock = threading.Lock()
+
+
+def _set_niceness(tid: int, niceness: int) -> None:
+    with contextlib.suppress(OSError):
+        os.setpriority(os.PRIO_PROCESS, tid, niceness)
+
+
 def raise_priority(niceness: int = CONTROL_NICE) -> int | None:
     """Give the calling thread `niceness` if permitted (the control thread's, and the link
-    poll thread's, app/links/poller.py); the niceness it got, or None."""
+    poll thread's, app/links/poller.py); the niceness it got, or None. While a terminal is in
+    use it runs at the default meanwhile (above); `lower_priority` before the thread ends."""
     try:
         tid = threading.get_native_id()
         os.setpriority(os.PRIO_PROCESS, tid, niceness)
-        return os.getpriority(os.PRIO_PROCESS, tid)
+        got = os.getpriority(os.PRIO_PROCESS, tid)
     except (OSError, AttributeError):
+        return None
+    with _raised_lock:
+        _raised[tid] = got
+        if _terminals:
+            _set_niceness(tid, 0)
+    return got
+
+
+def lower_priority() -> None:
+    """The calling thread ends: forget it (a thread id the kernel gives again is another
+    thread's, perhaps another process's)."""
+    with _raised_lock:
+        _raised.pop(threading.get_native_id(), None)
+
+
+class TerminalHold:
+    """A terminal in use by this process, from its open to `release` (idempotent): the raised
+    threads run at the default niceness meanwhile (see above)."""
+
+    def __init__(self) -> None:
+        global _terminals
+        with _raised_lock:
+            _terminals += 1
+            if _terminals == 1:
+                for tid in _raised:
+                    _set_niceness(tid, 0)
+        self._held = True
+
+    def release(self) -> None:
+        global _terminals
+        with _raised_lock:
+            if not self._held:
+                return
+            self._held = False
+            _terminals -= 1
+            if _terminals == 0:
+                for tid, niceness in _raised.items():
+                    _set_niceness(tid, niceness)
+
+
+def terminal_hold(fd: int | None) -> TerminalHold | None:
+    """A TerminalHold where `fd` is a terminal's, else None."""
+    try:
+        return TerminalHold() if fd is not None and os.isatty(fd) else None
+    except OSError:
         return None
 
 

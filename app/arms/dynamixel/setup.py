@@ -36,6 +36,8 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from app.links.serial import port_fileno
+from app.runtime.control_thread import terminal_hold
 from protocol import dynamixel as dxl
 from protocol import mx28
 from protocol.mx28 import ControlItem
@@ -136,9 +138,15 @@ class Bus:
         self.garbage = 0
         self.port = opener(url, baudrate=baudrate, timeout=0.005, exclusive=True) \
             if carries_baud(url) else opener(url, baudrate=baudrate, timeout=0.005)
+        # (a terminal: the server's raised threads at 0 meanwhile, app/runtime/control_thread.py)
+        self._terminal = terminal_hold(port_fileno(self.port))
 
     def close(self) -> None:
-        self.port.close()
+        try:
+            self.port.close()
+        finally:
+            if self._terminal is not None:
+                self._terminal.release()
 
     def set_rate(self, baudrate: int) -> None:
         self.port.baudrate = baudrate

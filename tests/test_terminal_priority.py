@@ -1,0 +1,139 @@
+"""A raised thread runs at the default niceness while the process has a terminal in use.
+
+Linux delivers a terminal's received bytes (a USB serial adapter's, a pty's) in a work item of
+an unbound kworker at niceness 0; beside a CPU load, the control thread at -10 kept that
+worker from a CPU for seconds (traced: docs/performance.md, "Session 24"), and the servo
+set-up read its servos as silent. So while a serial link or a set-up bus has a terminal open,
+every thread that raised its priority (`raise_priority`: the control thread, the link poll
+thread) runs at 0, and gets its niceness back when the last terminal is closed. Links over a
+socket keep the raise. These read each thread's niceness from /proc; they need the right to
+raise it (root or CAP_SYS_NICE), as the raise itself does.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import tty
+from collections.abc import Iterator
+
+import pytest
+from conftest import may_raise_priority, thread_niceness
+
+from app.arms.dynamixel.setup import Bus
+from app.links.serial import SerialLink
+from app.links.threaded import ThreadLink
+from app.runtime import control_thread
+from app.runtime.control_thread import CONTROL_NICE, ControlThread, TerminalHold
+
+pytestmark = pytest.mark.skipif(not may_raise_priority(CONTROL_NICE),
+                                reason="raising a thread's priority is not allowed here")
+
+
+@pytest.fixture
+def control() -> Iterator[int]:
+    """A running control thread (raised to CONTROL_NICE): its native id."""
+    assert control_thread._terminals == 0  # (no terminal left open by another test)
+    thread = ControlThread("test-control")
+    thread.start()
+    try:
+        assert thread._thread is not None and thread._thread.native_id is not None
+        tid = thread._thread.native_id
+        assert thread_niceness(os.getpid(), tid) == CONTROL_NICE
+        yield tid
+    finally:
+        thread.stop()
+
+
+@pytest.fixture
+def pty_path() -> Iterator[str]:
+    """A raw pseudo-terminal's slave path (its master held open, nothing answering)."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        yield os.ttyname(slave)
+    finally:
+        os.close(slave)
+        os.close(master)
+
+
+def niceness(tid: int) -> int:
+    return thread_niceness(os.getpid(), tid)
+
+
+def test_a_set_up_bus_on_a_terminal_holds_the_raised_threads_at_the_default(
+        control: int, pty_path: str) -> None:
+    bus = Bus(pty_path)
+    try:
+        assert niceness(control) == 0
+    finally:
+        bus.close()
+    assert niceness(control) == CONTROL_NICE
+    bus.close()  # a second close releases nothing twice
+    assert control_thread._terminals == 0
+
+
+async def test_serial_links_on_terminals_hold_until_the_last_is_closed(
+        control: int, pty_path: str) -> None:
+    """An asyncio serial link and a threaded one, each on a terminal: the raise comes back
+    when both are closed, not at the first close."""
+    master2, slave2 = os.openpty()
+    tty.setraw(slave2)
+    first, second = SerialLink(pty_path), ThreadLink(os.ttyname(slave2))
+    try:
+        await first.open()
+        assert niceness(control) == 0
+        await second.open()
+        await first.close()
+        assert niceness(control) == 0
+        await second.close()
+        assert niceness(control) == CONTROL_NICE
+    finally:
+        await first.close()
+        await second.close()
+        os.close(slave2)
+        os.close(master2)
+    assert control_thread._terminals == 0
+
+
+async def test_a_link_over_a_socket_keeps_the_raise(control: int) -> None:
+    listener = socket.create_server(("127.0.0.1", 0))
+    link = ThreadLink(f"socket://127.0.0.1:{listener.getsockname()[1]}")
+    try:
+        await link.open()
+        assert niceness(control) == CONTROL_NICE
+        assert control_thread._terminals == 0
+    finally:
+        await link.close()
+        listener.close()
+
+
+def test_a_thread_raised_while_a_terminal_is_in_use_starts_at_the_default() -> None:
+    """... and gets its niceness when the terminal is closed; a thread that ended is
+    forgotten (its id may be another thread's later)."""
+    hold = TerminalHold()
+    got: dict[str, int | None] = {}
+    go_on, ended = threading.Event(), threading.Event()
+
+    def run() -> None:
+        got["asked"] = control_thread.raise_priority()
+        got["tid"] = threading.get_native_id()
+        got["now"] = os.getpriority(os.PRIO_PROCESS, 0)
+        go_on.wait(10)
+        got["after"] = os.getpriority(os.PRIO_PROCESS, 0)
+        control_thread.lower_priority()
+        ended.set()
+
+    thread = threading.Thread(target=run)
+    try:
+        thread.start()
+        while "now" not in got and thread.is_alive():
+            thread.join(0.01)
+        assert got["asked"] == CONTROL_NICE and got["now"] == 0
+    finally:
+        hold.release()
+        go_on.set()
+        thread.join(10)
+    assert ended.is_set() and got["after"] == CONTROL_NICE
+    assert got["tid"] not in control_thread._raised
