@@ -26,7 +26,7 @@ from typing import Any
 import httpx
 import pytest
 from _wait import wait_for, wait_until
-from conftest import OPERATOR, VIEWER
+from conftest import OPERATOR, VIEWER, may_raise_priority, thread_niceness
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
@@ -202,6 +202,19 @@ def test_each_arm_answers_from_its_own_worker(lab: Lab) -> None:
                    what="the right arm's worker's records in the audit log")
         press = routes()[("POST", "/api/v1/arms/right/estop")]
         assert press["address"] == "127.0.0.1" and press["status"] == 200
+
+
+def test_with_no_arm_on_a_terminal_each_worker_raises_its_control_threads(lab: Lab) -> None:
+    """Where the system allows it (root, CAP_SYS_NICE), each worker's control thread and poll
+    thread run at CONTROL_NICE; a lab with an arm on a terminal runs them at the default
+    (tests/test_terminal_priority.py)."""
+    from app.runtime.control_thread import CONTROL_NICE
+
+    allowed = may_raise_priority(CONTROL_NICE)
+    for k, pid in lab.workers().items():
+        nice = [thread_niceness(pid, int(t)) for t in os.listdir(f"/proc/{pid}/task")]
+        assert min(nice) == (CONTROL_NICE if allowed else os.getpriority(os.PRIO_PROCESS, 0)), \
+            (k, nice)
 
 
 def test_tokens_and_leases_as_today(lab: Lab) -> None:

@@ -13,12 +13,18 @@ raise it (root or CAP_SYS_NICE), as the raise itself does.
 from __future__ import annotations
 
 import os
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import tty
 from collections.abc import Iterator
+from pathlib import Path
 
+import httpx
 import pytest
+from _wait import wait_until
 from conftest import may_raise_priority, thread_niceness
 
 from app.arms.dynamixel.setup import Bus
@@ -137,3 +143,67 @@ def test_a_thread_raised_while_a_terminal_is_in_use_starts_at_the_default() -> N
         thread.join(10)
     assert ended.is_set() and got["after"] == CONTROL_NICE
     assert got["tid"] not in control_thread._raised
+
+
+def _threads_niceness(pid: int) -> list[int]:
+    return [thread_niceness(pid, int(tid)) for tid in os.listdir(f"/proc/{pid}/task")]
+
+
+def _workers(front: int) -> dict[int, int]:
+    out = {}
+    for child in Path(f"/proc/{front}/task/{front}/children").read_text().split():
+        argv = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
+        if b"app.lab.worker" in argv:
+            out[int(argv[argv.index(b"--index") + 1])] = int(child)
+    return out
+
+
+def test_an_arm_on_a_terminal_lowers_every_workers_raised_threads(tmp_path: Path) -> None:
+    """`armserver serve --workers 2`, the angler on a pty (the simulated servos behind it, a
+    process of their own) on worker 0 and a simulated rbe3001 on worker 1: worker 1 has no
+    terminal itself, but the kernel worker that delivers worker 0's bytes would wait for its
+    raised threads, so no thread of either runs above the default. (Without a terminal in the
+    lab each worker has its threads at CONTROL_NICE: tests/test_lab_workers.py.)"""
+    tty_path = tmp_path / "ttyANGLER"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
+    env["ARMSERVER_DATA_DIR"] = str(tmp_path / "data")
+    sim = subprocess.Popen([sys.executable, "-m", "app.cli", "sim", "angler", "--pty",
+                            str(tty_path)], env=env, stdout=subprocess.DEVNULL)
+    front = None
+    try:
+        wait_until(tty_path.exists, timeout=60, what="the simulated angler's pty")
+        (tmp_path / "lab.toml").write_text(
+            f'[[arms]]\nprofile = "angler"\nname = "rails"\nworker = 0\n[arms.link]\n'
+            f'kind = "serial"\naddress = "{tty_path}"\n\n'
+            '[[arms]]\nprofile = "rbe3001"\nname = "left"\nworker = 1\n')
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        front = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--workers", "2",
+                                  "--config", str(tmp_path / "lab.toml"), "--port", str(port),
+                                  "--log-level", "warning"], env=env)
+
+        def healthy() -> bool:
+            assert front is not None and front.poll() is None, "the front exited"
+            try:
+                return httpx.get(f"http://127.0.0.1:{port}/api/v1/health").json()[
+                    "status"] == "ok"
+            except httpx.HTTPError:
+                return False
+
+        wait_until(healthy, timeout=120, what="both workers' arms up")
+        workers = _workers(front.pid)
+        assert sorted(workers) == [0, 1]
+        for k, pid in workers.items():
+            nice = _threads_niceness(pid)
+            assert 0 in nice and CONTROL_NICE not in nice, (k, nice)
+    finally:
+        if front is not None:
+            front.send_signal(signal.SIGTERM)
+            try:
+                front.wait(30)
+            except subprocess.TimeoutExpired:
+                front.kill()
+                front.wait()
+        sim.terminate()
+        sim.wait(10)

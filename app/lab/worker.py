@@ -28,6 +28,8 @@ import uvicorn
 from app.config import Settings
 from app.lab.headers import CLIENT_HEADER
 from app.lab.placement import plan_lab, worker_socket
+from app.links.serial import on_terminal
+from app.runtime.control_thread import TerminalHold
 from app.teleop.config import load_teleop
 from app.teleop.remote import Peer
 from app.web.factory import create_app
@@ -99,6 +101,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                                "%(message)s")
     plan = plan_lab(settings, args.workers)
     profiles = list(plan.workers[args.index])
+    # An arm on a terminal anywhere in the lab: this worker's raised threads run at the
+    # default too, for the life of the process (app/runtime/control_thread.py: the bytes of
+    # a terminal in another worker come from a kernel worker these would keep from a CPU).
+    terminals = any(on_terminal(p.link.kind, p.link.address) for arms in plan.workers
+                    for p in arms)
+    hold = TerminalHold() if terminals else None
     watch_parent(args.parent)
     app = create_app(settings, profiles, plan.cameras_of(args.index))
     # the other workers' arms: a teleoperation leader may be one (app/teleop/remote.py), and
@@ -111,6 +119,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                                            for p in arms])
     Path(args.uds).unlink(missing_ok=True)
     ArmServer(uvicorn_config(FrontClient(app), settings, uds=args.uds), app).run()
+    if hold is not None:
+        hold.release()
     return 0
 
 

@@ -63,6 +63,12 @@ def _resolve(fut: asyncio.Future[None] | None) -> None:
         fut.set_result(None)
 
 
+def on_terminal(kind: str, address: str) -> bool:
+    """Whether a link of `kind` at `address` is a terminal's (a device path such as
+    /dev/ttyUSB0, not a pyserial URL such as socket://)."""
+    return kind == "serial" and "://" not in address
+
+
 def port_fileno(port: object) -> int | None:
     """The descriptor of a pyserial port, or None where it has none (`loop://`, rfc2217)."""
     try:
