@@ -26,6 +26,7 @@ import httpx
 import pytest
 from _wait import wait_until
 from conftest import may_raise_priority, thread_niceness
+from test_lab_workers import Lab
 
 from app.arms.dynamixel.setup import Bus
 from app.links.serial import SerialLink
@@ -149,15 +150,6 @@ def _threads_niceness(pid: int) -> list[int]:
     return [thread_niceness(pid, int(tid)) for tid in os.listdir(f"/proc/{pid}/task")]
 
 
-def _workers(front: int) -> dict[int, int]:
-    out = {}
-    for child in Path(f"/proc/{front}/task/{front}/children").read_text().split():
-        argv = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
-        if b"app.lab.worker" in argv:
-            out[int(argv[argv.index(b"--index") + 1])] = int(child)
-    return out
-
-
 def test_an_arm_on_a_terminal_lowers_every_workers_raised_threads(tmp_path: Path) -> None:
     """`armserver serve --workers 2`, the angler on a pty (the simulated servos behind it, a
     process of their own) on worker 0 and a simulated rbe3001 on worker 1: worker 1 has no
@@ -192,18 +184,14 @@ def test_an_arm_on_a_terminal_lowers_every_workers_raised_threads(tmp_path: Path
                 return False
 
         wait_until(healthy, timeout=120, what="both workers' arms up")
-        workers = _workers(front.pid)
+        workers = Lab(front, "", "").workers()
         assert sorted(workers) == [0, 1]
         for k, pid in workers.items():
             nice = _threads_niceness(pid)
             assert 0 in nice and CONTROL_NICE not in nice, (k, nice)
     finally:
-        if front is not None:
+        if front is not None:  # (SIGTERM: the front stops its workers' arms, then them)
             front.send_signal(signal.SIGTERM)
-            try:
-                front.wait(30)
-            except subprocess.TimeoutExpired:
-                front.kill()
-                front.wait()
+            front.wait(30)
         sim.terminate()
         sim.wait(10)
