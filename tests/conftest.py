@@ -88,6 +88,11 @@ def thread_niceness(pid: int, tid: int) -> int:
     return int(stat[stat.rindex(")") + 2:].split()[16])
 
 
+def threads_niceness(pid: int) -> list[int]:
+    """The niceness of every thread of process `pid`."""
+    return [thread_niceness(pid, int(tid)) for tid in os.listdir(f"/proc/{pid}/task")]
+
+
 def may_raise_priority(niceness: int) -> bool:
     """Whether a process here may set itself to `niceness` (root, CAP_SYS_NICE), asked of a
     child so that this one keeps its own."""

@@ -26,7 +26,7 @@ from typing import Any
 import httpx
 import pytest
 from _wait import wait_for, wait_until
-from conftest import OPERATOR, VIEWER, may_raise_priority, thread_niceness
+from conftest import OPERATOR, VIEWER, may_raise_priority, threads_niceness
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
@@ -212,7 +212,7 @@ def test_with_no_arm_on_a_terminal_each_worker_raises_its_control_threads(lab: L
 
     allowed = may_raise_priority(CONTROL_NICE)
     for k, pid in lab.workers().items():
-        nice = [thread_niceness(pid, int(t)) for t in os.listdir(f"/proc/{pid}/task")]
+        nice = threads_niceness(pid)
         assert min(nice) == (CONTROL_NICE if allowed else os.getpriority(os.PRIO_PROCESS, 0)), \
             (k, nice)
 

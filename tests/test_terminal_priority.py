@@ -25,7 +25,7 @@ from pathlib import Path
 import httpx
 import pytest
 from _wait import wait_until
-from conftest import may_raise_priority, thread_niceness
+from conftest import may_raise_priority, thread_niceness, threads_niceness
 from test_lab_workers import Lab
 
 from app.arms.dynamixel.setup import Bus
@@ -121,12 +121,13 @@ def test_a_thread_raised_while_a_terminal_is_in_use_starts_at_the_default() -> N
     forgotten (its id may be another thread's later)."""
     hold = TerminalHold()
     got: dict[str, int | None] = {}
-    go_on, ended = threading.Event(), threading.Event()
+    raised, go_on, ended = threading.Event(), threading.Event(), threading.Event()
 
     def run() -> None:
         got["asked"] = control_thread.raise_priority()
         got["tid"] = threading.get_native_id()
         got["now"] = os.getpriority(os.PRIO_PROCESS, 0)
+        raised.set()
         go_on.wait(10)
         got["after"] = os.getpriority(os.PRIO_PROCESS, 0)
         control_thread.lower_priority()
@@ -135,8 +136,7 @@ def test_a_thread_raised_while_a_terminal_is_in_use_starts_at_the_default() -> N
     thread = threading.Thread(target=run)
     try:
         thread.start()
-        while "now" not in got and thread.is_alive():
-            thread.join(0.01)
+        assert raised.wait(10), "the thread did not raise itself"
         assert got["asked"] == CONTROL_NICE and got["now"] == 0
     finally:
         hold.release()
@@ -144,10 +144,6 @@ def test_a_thread_raised_while_a_terminal_is_in_use_starts_at_the_default() -> N
         thread.join(10)
     assert ended.is_set() and got["after"] == CONTROL_NICE
     assert got["tid"] not in control_thread._raised
-
-
-def _threads_niceness(pid: int) -> list[int]:
-    return [thread_niceness(pid, int(tid)) for tid in os.listdir(f"/proc/{pid}/task")]
 
 
 def test_an_arm_on_a_terminal_lowers_every_workers_raised_threads(tmp_path: Path) -> None:
@@ -187,7 +183,7 @@ def test_an_arm_on_a_terminal_lowers_every_workers_raised_threads(tmp_path: Path
         workers = Lab(front, "", "").workers()
         assert sorted(workers) == [0, 1]
         for k, pid in workers.items():
-            nice = _threads_niceness(pid)
+            nice = threads_niceness(pid)
             assert 0 in nice and CONTROL_NICE not in nice, (k, nice)
     finally:
         if front is not None:  # (SIGTERM: the front stops its workers' arms, then them)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+from typing import Any
 
 from app.doors import serial_asyncio as serial_door
 from app.links.base import READ_CHUNK, Link, LinkError, LinkState
@@ -69,13 +70,17 @@ def on_terminal(kind: str, address: str) -> bool:
     return kind == "serial" and "://" not in address
 
 
-def port_fileno(port: object) -> int | None:
-    """The descriptor of a pyserial port, or None where it has none (`loop://`, rfc2217)."""
+def port_fileno(port: Any) -> int | None:
+    """The descriptor of an open pyserial port, or None where it has none (`loop://`,
+    rfc2217)."""
+    import serial
+
     try:
-        fd = port.fileno()  # type: ignore[attr-defined]
-    except Exception:  # noqa: BLE001 - AttributeError, NotImplementedError, SerialException...
+        fd: int = port.fileno()
+    except (AttributeError, NotImplementedError, OSError, ValueError,
+            serial.SerialException):
         return None
-    return fd if isinstance(fd, int) else None
+    return fd
 
 
 def cannot_open(address: str, exc: BaseException) -> str:

@@ -64,6 +64,7 @@ from typing import Any
 
 from app.links.base import READ_CHUNK, Link, LinkError, LinkState, Reply
 from app.links.poller import CATCH_UP, EARLY_S, PollThread, RestPlan, Told, aligned, shared
+from app.links.serial import port_fileno
 from app.runtime.control_thread import TerminalHold, terminal_hold
 from app.runtime.tasks import resolve
 
@@ -726,11 +727,7 @@ class ThreadLink(Link):
             port = serial.serial_for_url(self.address, baudrate=self.baudrate, exclusive=True)
         except serial.SerialException as exc:
             raise _Lost(str(exc)) from exc
-        try:
-            fd = port.fileno()
-        except (AttributeError, NotImplementedError, OSError, ValueError,
-                serial.SerialException):
-            fd = None
+        fd = port_fileno(port)
         self._port, self._fd = port, fd
         self._socket = fd is not None and stat.S_ISSOCK(os.fstat(fd).st_mode)
         self._terminal = terminal_hold(fd)  # (the raised threads at 0 meanwhile)
