@@ -1,6 +1,7 @@
 """Types of the rounds in C (app/links/_restpoll.c: its module doc says what they do)."""
 
-_Plan = tuple[int, bytes, bytes, float, float, float, float, int]
+from app.links.poller import RestPlan as _Plan
+
 _End = tuple[str, bytes, float, float] | tuple[str, str] | None
 
 def run(links: list[_Plan], wake_fd: int, early: float, catch_up: float, write_wait: float,
