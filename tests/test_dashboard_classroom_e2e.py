@@ -20,8 +20,9 @@ pytestmark = pytest.mark.browser
 
 ALICE, TEACH = "dash-alice", "dash-teach"
 #: The lease's time to live, s; the page renews every third of it. 1.5 s lapsed once beside
-#: `stress-ng --cpu 2` (`make test-loaded`): the page's timers ran more than 1.5 s late.
-LEASE_TTL_S = 3.0
+#: `stress-ng --cpu 2` (`make test-loaded`): the page's timers ran more than 1.5 s late; 3 s
+#: lapsed once there too (a renewal more than 2 s late). At 6 s a renewal may be 4 s late.
+LEASE_TTL_S = 6.0
 
 
 def classroom(pg: Any, arm: str) -> dict[str, Any]:
@@ -59,7 +60,7 @@ def test_join_take_turn_renew_and_instructor_revoke(browser: Any) -> None:  # no
             wait_until(lambda: pg.is_visible("#angler-queue-claim"), what="the offer shown")
             pg.click("#angler-queue-claim")
             wait_until(lambda: classroom(pg, "angler").get("lease"), what="the lease claimed")
-            time.sleep(2.3 * LEASE_TTL_S)  # under test: over two ttls, only renewals keep it
+            time.sleep(1.3 * LEASE_TTL_S)  # under test: past its ttl, only renewals keep it
             q = queue()
             assert q["holder"] == "alice" and q["entries"][0]["status"] == "holding"
             wait_until(lambda: "held by alice" in pg.inner_text("#angler-holder"), what="holder")
