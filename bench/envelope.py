@@ -23,7 +23,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app import schemas as s  # noqa: E402
-from app.config import KeepOutBox, SafetySettings, load_profile  # noqa: E402
+from app.arms.loading import load_profile  # noqa: E402
+from app.config import KeepOutBox, SafetySettings  # noqa: E402
 from app.service import ArmService  # noqa: E402
 from kinematics.trajectory import time_grid  # noqa: E402
 

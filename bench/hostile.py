@@ -45,7 +45,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from _server import ServerProcess  # noqa: E402
 
-from app.config import KeepOutBox, SafetySettings, load_profile  # noqa: E402
+from app.arms.loading import load_profile  # noqa: E402
+from app.config import KeepOutBox, SafetySettings  # noqa: E402
 from app.service import ArmService  # noqa: E402
 
 ARM = "/api/v1/arms/rbe3001"
