@@ -41,10 +41,10 @@ log = logging.getLogger(__name__)
 #: thread busy parsing a large header would hold the control loop for that long each turn).
 #: A poll takes the GIL several times (timer, write, reply, publish), each wait up to this
 #: long: at 0.5 ms the rbe3001's 500 Hz fell to 429 Hz under bench/hostile.py's 700 hostile
-#: clients on one core; at 0.2 ms it kept 499.8 Hz (23 Nov). On 28 Nov the same bench's 500
-#: stalled subscribers alone took it to 446-480 Hz at 0.2 ms, at this commit's code and at the
-#: README table's (8f612a2) alike (the host); at 0.1 ms, 497-500 Hz (docs/performance.md,
-#: "Session 25").
+#: clients on one core; at 0.2 ms it kept 499.8 Hz (23 Nov). On 28 Nov the same bench's attack
+#: took it to 446-480 Hz at 0.2 ms, at this commit's code and at the README table's (8f612a2)
+#: alike (the host; its 500 stalled subscribers alone: 446 Hz); at 0.1 ms, 480-500 Hz
+#: (docs/performance.md, "Session 25").
 SWITCH_INTERVAL_S = 0.0001
 #: Niceness the control thread asks for (Linux: per thread), where permitted (root or
 #: CAP_SYS_NICE): on a busy machine the scheduler then runs the link owners and the executor
