@@ -3,11 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import socket
-import subprocess
-import sys
-import time
 import urllib.request
 from pathlib import Path
 
@@ -15,6 +10,7 @@ import pytest
 import yaml
 
 from app import cli
+from tests._serve import served, start
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -70,27 +66,18 @@ def test_client_commands_are_registered() -> None:
 
 
 def test_armserver_serve_runs_and_says_it_is_open(tmp_path: Path) -> None:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
-    proc = subprocess.Popen([sys.executable, "-c", "from app.cli import run; run()", "serve",
-                             "--port", str(port), "--log-level", "info"],
-                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
-    try:
-        deadline = time.monotonic() + 20
-        body = None
-        while time.monotonic() < deadline:
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/v1/health",
-                                            timeout=1) as r:
-                    body = json.loads(r.read())
-                    break
-            except OSError:
-                time.sleep(0.1)
-        assert body is not None and set(body["arms"]) == {"rbe3001", "angler"}
-    finally:
-        proc.terminate()
-        out, _ = proc.communicate(timeout=15)
+    # (the console script's entry point, `run()`, as `armserver serve` calls it)
+    with served(tmp_path / "server.log", "serve", "--log-level", "info",
+                command=("-c", "from app.cli import run; run()")) as srv:
+        with urllib.request.urlopen(f"{srv.url}/api/v1/health", timeout=10) as r:
+            body = json.loads(r.read())
+        assert set(body["arms"]) == {"rbe3001", "angler"}
+    out = srv.output()
     assert "the server is OPEN to anyone who can reach it" in out
+
+
+def test_a_server_that_does_not_start_fails_the_test_with_its_own_words(tmp_path: Path) -> None:
+    # (tests/_serve.py, which the tests of a real process use: the output is a file's, not an
+    # unread pipe's, and a failure quotes it)
+    with pytest.raises(AssertionError, match=r"(?s)exited \(2\).*invalid choice: 'loud'"):
+        start(tmp_path / "server.log", "--log-level", "loud")

@@ -8,10 +8,7 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
-import socket
 import sqlite3
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -20,6 +17,7 @@ from typing import Any
 import httpx
 
 from app.store import DB_NAME, INTERRUPTED, Store
+from tests._serve import clean_env, start
 from tests.conftest import make_settings, running_client
 
 MOVE = {"positions": [1.2, 1.4, -0.6], "speed": 0.2, "wait": True}
@@ -69,32 +67,11 @@ async def test_the_start_is_on_disk_while_the_move_runs_and_completed_after(
         assert done[0]["time"] == row["time"] < done[0]["ended"]
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def test_kill_9_during_a_waiting_move_keeps_the_attempt(tmp_path: Path) -> None:
-    port = _port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
-    env["ARMSERVER_DATA_DIR"] = str(tmp_path)
-    proc = subprocess.Popen([sys.executable, "-c", "from app.cli import run; run()", "serve",
-                             "--port", str(port), "--log-level", "warning"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    url = f"http://127.0.0.1:{port}"
+    srv = start(tmp_path / "server.log", "--log-level", "warning",
+                env=clean_env(ARMSERVER_DATA_DIR=str(tmp_path)))
+    proc, url = srv.proc, srv.url
     try:
-        deadline = time.monotonic() + 30
-        while True:
-            assert time.monotonic() < deadline, "armserver serve did not start"
-            assert proc.poll() is None, proc.communicate()[0]
-            try:
-                r = httpx.get(f"{url}/api/v1/arms/rbe3001/state", timeout=2)
-                if r.status_code == 200 and not r.json()["stale"]:
-                    break
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
         box: dict[str, Any] = {}
 
         def move() -> None:
@@ -116,13 +93,11 @@ def test_kill_9_during_a_waiting_move_keeps_the_attempt(tmp_path: Path) -> None:
         while not moves_on_disk(tmp_path) and time.monotonic() < deadline:
             time.sleep(0.02)
         os.kill(proc.pid, signal.SIGKILL)
-        proc.communicate(timeout=10)
+        proc.wait(timeout=10)
         thread.join(10)
         assert "r" not in box, box  # it never answered: killed mid-move
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        srv.stop()
     (row,) = moves_on_disk(tmp_path)
     assert row["status"] is None and row["code"] is None and row["method"] == "POST"
     assert row["arm"] == "rbe3001" and '"speed":0.2' in row["summary"]

@@ -6,45 +6,22 @@ and the process ends within a bounded time; a second signal holds and ends at on
 from __future__ import annotations
 
 import contextlib
-import os
 import signal
-import socket
-import subprocess
-import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import httpx
 
+from tests._serve import Served, clean_env, start
+
 API = "/api/v1"
 
 
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _start() -> tuple[subprocess.Popen[str], str]:
-    port = _port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
-    env["ARMSERVER_SHUTDOWN_TIMEOUT_S"] = "3"
-    proc = subprocess.Popen([sys.executable, "-c", "from app.cli import run; run()", "serve",
-                             "--port", str(port), "--log-level", "info"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        try:
-            r = httpx.get(f"{url}{API}/arms/rbe3001/state", timeout=2)
-            if r.status_code == 200 and not r.json()["stale"]:
-                return proc, url
-        except httpx.TransportError:
-            pass
-        time.sleep(0.1)
-    proc.kill()
-    raise RuntimeError("armserver serve did not start: " + (proc.communicate()[0] or ""))
+def _start(log: Path) -> Served:
+    return start(log, "--log-level", "info",
+                 env=clean_env(ARMSERVER_SHUTDOWN_TIMEOUT_S="3"))
 
 
 def _move_in_background(url: str) -> dict[str, Any]:
@@ -73,51 +50,48 @@ def _wait_running(url: str) -> None:
     raise AssertionError("the move did not start")
 
 
-def test_sigterm_during_a_waiting_move_stops_the_arm_and_ends_in_bounded_time() -> None:
-    proc, url = _start()
+def test_sigterm_during_a_waiting_move_stops_the_arm_and_ends_in_bounded_time(
+        tmp_path: Path) -> None:
+    srv = _start(tmp_path / "server.log")
     try:
-        box = _move_in_background(url)
-        _wait_running(url)
+        box = _move_in_background(srv.url)
+        _wait_running(srv.url)
         t0 = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
+        srv.proc.send_signal(signal.SIGTERM)
         box["thread"].join(15)
         r = box.get("r")
-        assert r is not None, box
+        assert r is not None, (box, srv.tail())
         assert r.status_code == 200, r.text
         body = r.json()
         assert body["status"] == "stopped" and body["reason"] == "server shutting down", body
         assert 0.05 < body["progress"] < 1.0
-        out, _ = proc.communicate(timeout=15)
+        out = srv.ended(15)
         elapsed = time.monotonic() - t0
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        srv.stop()
     assert elapsed < 3 + 5, elapsed  # shutdown_timeout_s plus the braking and closing
     assert "never retrieved" not in out and "Traceback" not in out, out
     assert "stopping every arm" in out
 
 
-def test_a_second_signal_holds_and_exits_at_once() -> None:
-    proc, url = _start()
+def test_a_second_signal_holds_and_exits_at_once(tmp_path: Path) -> None:
+    srv = _start(tmp_path / "server.log")
     try:
-        box = _move_in_background(url)
-        _wait_running(url)
+        box = _move_in_background(srv.url)
+        _wait_running(srv.url)
         t0 = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
+        srv.proc.send_signal(signal.SIGTERM)
         # The second signal must come while the first is being handled (braking the arms takes
         # longer than this gap) but not so soon that the OS coalesces it with the first.
-        while proc.poll() is None and time.monotonic() - t0 < 10:
+        while srv.proc.poll() is None and time.monotonic() - t0 < 10:
             time.sleep(0.03)
             with contextlib.suppress(ProcessLookupError):
-                proc.send_signal(signal.SIGTERM)
-        out, _ = proc.communicate(timeout=10)
+                srv.proc.send_signal(signal.SIGTERM)
+        out = srv.ended(10)
         elapsed = time.monotonic() - t0
         box["thread"].join(15)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        srv.stop()
     assert elapsed < 3, elapsed
     assert "holding every arm" in out, out
     assert "never retrieved" not in out, out

@@ -51,20 +51,22 @@ class Lines:
         return "\n".join(self.lines)
 
 
-def test_teleop_from_the_shell_until_ctrl_c(pair: LiveServer) -> None:
+def test_teleop_from_the_shell_until_ctrl_c(pair: LiveServer, tmp_path: Path) -> None:
     leader = pair.app.state.services["leader"]
     follower = pair.app.state.services["follower"]
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
-    proc = subprocess.Popen(
-        [sys.executable, "-c", "from app.cli import run; run()", "teleop", "--leader", "leader",
-         "--follower", "follower", "--rate", "50", "--every", "0.2", "--url", pair.url],
-        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    err = tmp_path / "teleop.err"  # (a file: an unread pipe fills and blocks the CLI)
+    with err.open("wb") as errors:
+        proc = subprocess.Popen(
+            [sys.executable, "-c", "from app.cli import run; run()", "teleop", "--leader",
+             "leader", "--follower", "follower", "--rate", "50", "--every", "0.2", "--url",
+             pair.url], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=errors, text=True)
     out = Lines(proc.stdout)
     try:
         wait_until(lambda: any(ln.startswith("teleop t") for ln in out.lines) or
                    proc.poll() is not None, 60.0,  # a process's start on a busy machine
                    what="the session started")
-        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+        assert proc.poll() is None, err.read_text(errors="replace")
         assert "leader -> follower at 50 Hz (joints)" in out.text()
         with httpx.Client(base_url=pair.url, timeout=30) as c:
             # the follower's lease is the CLI's: a move of it from here is refused
@@ -79,7 +81,7 @@ def test_teleop_from_the_shell_until_ctrl_c(pair: LiveServer) -> None:
                                    and "commands" in ln for ln in out.lines),
                        what="a line of figures")
             proc.send_signal(signal.SIGINT)
-            assert proc.wait(timeout=30) == 0, proc.stderr.read() if proc.stderr else ""
+            assert proc.wait(timeout=30) == 0, err.read_text(errors="replace")
             wait_until(lambda: any(ln.startswith("stopped: stopped by") for ln in out.lines),
                        what="the stop said")
             sessions = c.get("/api/v1/teleop").json()
