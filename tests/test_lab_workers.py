@@ -295,7 +295,7 @@ async def _outage(lab: Lab, harm: Any) -> float:
         await wait_for(lambda: len(samples) > 500, what="the left arm's samples (a baseline)")
         first = len(samples)
         harm(before[1])
-        harmed = time.monotonic()
+        harmed, harmed_wall = time.monotonic(), time.time()
         async with httpx.AsyncClient(base_url=lab.url, headers=AUTH) as c:
             async def right_state() -> int:
                 return (await c.get("/api/v1/arms/right/state", timeout=30)).status_code
@@ -311,6 +311,7 @@ async def _outage(lab: Lab, harm: Any) -> float:
             await wait_for(_is(right_state, 200), timeout=BACK_WITHIN_S,
                            what="the right arm back")
             back_after = time.monotonic() - harmed
+            back_wall = time.time()
             health = (await c.get("/api/v1/health")).json()
             assert health["status"] == "ok"
             assert lab.workers()[0] == before[0]
@@ -333,11 +334,26 @@ async def _outage(lab: Lab, harm: Any) -> float:
         return (len(part) - 1) / (part[-1]["time"] - part[0]["time"])
 
     before_harm = rate(samples[:first])
-    assert rate(window) > 0.75 * before_harm, (rate(window), before_harm)
+    # (where the left arm's sampling paused, on the samples' wall clock from the harm: a dip's
+    # cause is in when it came)
+    paused = ", ".join(f"{(a['time'] - harmed_wall) * 1e3:+.0f} ms: {gap * 1e3:.0f}"
+                       for gap, (a, _) in zip(gaps, itertools.pairwise(window), strict=True)
+                       if gap > 0.02)
+    print(f"the left arm: {before_harm:.1f} samples/s before the harm, {rate(window):.1f} "
+          f"over it and the restart ({(window[-1]['time'] - window[0]['time']):.2f} s, the "
+          f"right arm back at +{(back_wall - harmed_wall) * 1e3:.0f} ms); its pauses over "
+          f"20 ms: {paused or 'none'}")
+    assert rate(window) > 0.75 * before_harm, (rate(window), before_harm, paused)
     return back_after
 
 
-@pytest.mark.serial  # reads a sample rate while a process dies: alone, not beside other tests
+# Reads a sample rate while a process dies: in the serial part's `browser` lane
+# (tests/conftest.py), so never beside a browser test, whose Chromium, run as root, raises its
+# own processes to niceness -8: beside two of them the left arm kept 240-400 samples/s before
+# any harm (session 26), its control thread's -10 notwithstanding. Beside the timing lane's
+# tests (the safety machine's arms at -10 too) on a slow hour it kept 436-500 in twelve runs,
+# and once, in a whole suite, 375 (a pause of half a second): the pauses it prints say where.
+@pytest.mark.serial
 async def test_a_killed_worker_comes_back_and_the_other_never_notices(lab: Lab) -> None:
     """... and a telemetry socket on the killed worker's arm is closed 1012 (service restart:
     reconnect) by the front."""
