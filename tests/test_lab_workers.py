@@ -349,10 +349,11 @@ async def _outage(lab: Lab, harm: Any) -> float:
 
 # Reads a sample rate while a process dies: in the serial part's `browser` lane
 # (tests/conftest.py), so never beside a browser test, whose Chromium, run as root, raises its
-# own processes to niceness -8: beside two of them the left arm kept 240-400 samples/s before
-# any harm (session 26), its control thread's -10 notwithstanding. Beside the timing lane's
-# tests (the safety machine's arms at -10 too) on a slow hour it kept 436-500 in twelve runs,
-# and once, in a whole suite, 375 (a pause of half a second): the pauses it prints say where.
+# own processes to niceness -8: beside two of them the left arm kept 240-385 samples/s over
+# the restart (session 26), its control thread's -10 notwithstanding. Beside the timing lane's
+# safety machine (its arms at -10 too) and `stress-ng --cpu 2` on a slow hour it kept 436-500
+# in twelve runs, and once, in a whole suite, 375 (a pause of half a second): the pauses it
+# prints say when.
 @pytest.mark.serial
 async def test_a_killed_worker_comes_back_and_the_other_never_notices(lab: Lab) -> None:
     """... and a telemetry socket on the killed worker's arm is closed 1012 (service restart:
