@@ -18,8 +18,6 @@ import os
 import selectors
 import signal
 import socket
-import subprocess
-import sys
 import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
@@ -29,7 +27,8 @@ import httpx
 import pytest
 import websockets
 from _deps import missing_message
-from _mosquitto import MOSQUITTO, Broker, free_port, running_broker
+from _mosquitto import MOSQUITTO, Broker, running_broker
+from _serve import clean_env, start
 from conftest import make_settings, running_client, serve_live
 
 aiomqtt = pytest.importorskip("aiomqtt")
@@ -245,14 +244,9 @@ async def test_without_url_there_is_no_bridge(app_client: httpx.AsyncClient) -> 
 
 def test_last_will_when_the_server_is_killed(tmp_path: Path) -> None:
     with running_broker(tmp_path) as broker:
-        port = free_port()
-        env = {**os.environ, "ARMSERVER_MQTT_URL": broker.url, "ARMSERVER_MQTT_PREFIX": "lab/b1",
-               "ARMSERVER_CONFIG": "", "ARMSERVER_OPERATOR_TOKENS": "",
-               "ARMSERVER_VIEWER_TOKENS": ""}
-        env.pop("ARMSERVER_CONFIG")
-        proc = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--port", str(port)],
-                                cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL)
+        srv = start(tmp_path / "server.log",
+                    env=clean_env(ARMSERVER_MQTT_URL=broker.url, ARMSERVER_MQTT_PREFIX="lab/b1"))
+        proc = srv.proc
         try:
             async def scenario() -> list[bool]:
                 async with subscriber(broker, ("lab/b1/server/online", 1)) as sub:
@@ -275,12 +269,10 @@ def test_last_will_when_the_server_is_killed(tmp_path: Path) -> None:
                 return flags
 
             flags = asyncio.run(scenario())
-            assert flags[-3:] == [True, False, False]
+            assert flags[-3:] == [True, False, False], (flags, srv.tail())
             assert proc.returncode == -signal.SIGKILL
         finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(5)
+            srv.stop()
 
 
 def test_broker_killed_and_restarted_mid_stream(tmp_path: Path) -> None:
