@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -25,6 +24,8 @@ from pathlib import Path
 
 import httpx
 
+from tests._mosquitto import free_port
+
 ROOT = Path(__file__).resolve().parent.parent
 API = "/api/v1"
 #: Longest a server may take to start and have every arm's state fresh, s (a process start
@@ -32,12 +33,6 @@ API = "/api/v1"
 START_S = 30.0
 #: Longest a server may take to end after SIGTERM before the test kills it, s.
 STOP_S = 20.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def clean_env(**extra: str) -> dict[str, str]:

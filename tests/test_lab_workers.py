@@ -311,7 +311,6 @@ async def _outage(lab: Lab, harm: Any) -> float:
             await wait_for(_is(right_state, 200), timeout=BACK_WITHIN_S,
                            what="the right arm back")
             back_after = time.monotonic() - harmed
-            back_wall = time.time()
             health = (await c.get("/api/v1/health")).json()
             assert health["status"] == "ok"
             assert lab.workers()[0] == before[0]
@@ -341,7 +340,7 @@ async def _outage(lab: Lab, harm: Any) -> float:
                        if gap > 0.02)
     print(f"the left arm: {before_harm:.1f} samples/s before the harm, {rate(window):.1f} "
           f"over it and the restart ({(window[-1]['time'] - window[0]['time']):.2f} s, the "
-          f"right arm back at +{(back_wall - harmed_wall) * 1e3:.0f} ms); its pauses over "
+          f"right arm back at +{back_after * 1e3:.0f} ms); its pauses over "
           f"20 ms: {paused or 'none'}")
     assert rate(window) > 0.75 * before_harm, (rate(window), before_harm, paused)
     return back_after

@@ -7,7 +7,6 @@ stderr."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -21,6 +20,7 @@ import pytest
 from _wait import wait_until
 
 from app.cli import main
+from tests._serve import clean_env
 from tests.conftest import LiveServer, make_settings, serve_live
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,7 +54,7 @@ class Lines:
 def test_teleop_from_the_shell_until_ctrl_c(pair: LiveServer, tmp_path: Path) -> None:
     leader = pair.app.state.services["leader"]
     follower = pair.app.state.services["follower"]
-    env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
+    env = clean_env()
     err = tmp_path / "teleop.err"  # (a file: an unread pipe fills and blocks the CLI)
     with err.open("wb") as errors:
         proc = subprocess.Popen(
