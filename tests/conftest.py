@@ -262,12 +262,14 @@ SERIAL_FILES = frozenset({
 #: measure a speed or a hold (a joint's peak speed, a held-up executor, an estop's hold, moves
 #: between link cuts) go one after another in the `timing` lane; the browser tests and the
 #: rest in the `browser` lane. One test of each at a time, never two timing tests together.
+#: A replayed path judged against wall-clock servos (test_replay*.py, 2 mm) is in the browser
+#: lane: after a browser test, never beside one. Beside two browser test files its arm's
+#: samples came 10-20 ms apart instead of 5 and the path missed 2 mm in 10 of 23 runs (2.1-3.8
+#: mm; CI's stop 45: 3.31 mm); beside the timing lane's tests 0.7-1.4 mm in 24 (session 27).
 TIMING_LANE_FILES = frozenset({
     "test_safety_machine.py", "test_passthrough_safety.py", "test_passthrough_check_poll.py",
     "test_tracking.py", "test_motion.py", "test_envelope_props.py", "test_control.py",
     "test_replan.py", "test_soak.py",
-    # a replayed path judged against wall-clock servos (and the lanes then take about as long)
-    "test_replay.py", "test_replay_gripper.py", "test_replay_recording.py",
 })
 
 

@@ -55,8 +55,9 @@ def path_distance(points: np.ndarray, path: np.ndarray) -> np.ndarray:
     return np.asarray(out)
 
 
-#: The path is judged against wall-clock servos: in the serial part (tests/conftest.py),
-#: where no other test loads the machine (missed 2 mm at load average 9-13 in parallel).
+#: The path is judged against wall-clock servos: in the serial part's browser lane
+#: (tests/conftest.py), never beside a browser test nor the parallel part (it missed 2 mm at
+#: load average 9-13 beside the parallel part, and beside browser tests: 2.1-3.8 mm).
 @pytest.mark.serial
 async def test_replay_follows_the_frames_tip_path(
         omx: tuple[FastAPI, httpx.AsyncClient]) -> None:

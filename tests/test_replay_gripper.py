@@ -83,8 +83,9 @@ def episode(app: FastAPI) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
     return ep.states[:, cols], ep.actions[:, cols], ep.states[:, g], ep.actions[:, g]
 
 
-#: The path is judged against wall-clock servos: in the serial part (tests/conftest.py),
-#: where no other test loads the machine (missed 2 mm at load average 9-13 in parallel).
+#: The path is judged against wall-clock servos: in the serial part's browser lane
+#: (tests/conftest.py), never beside a browser test nor the parallel part (it missed 2 mm at
+#: load average 9-13 beside the parallel part, and beside browser tests: 2.1-3.8 mm).
 @pytest.mark.serial
 async def test_the_gripper_replays_with_the_joints(
         recorded: tuple[FastAPI, httpx.AsyncClient]) -> None:

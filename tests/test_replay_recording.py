@@ -53,8 +53,9 @@ def recorded_states(app: FastAPI, arm: str = "leader") -> tuple[np.ndarray, np.n
     return ep.states[:, cols], ep.actions[:, cols]
 
 
-#: The path is judged against wall-clock servos: in the serial part (tests/conftest.py),
-#: where no other test loads the machine (missed 2 mm at load average 9-13 in parallel).
+#: The path is judged against wall-clock servos: in the serial part's browser lane
+#: (tests/conftest.py), never beside a browser test nor the parallel part (it missed 2 mm at
+#: load average 9-13 beside the parallel part, and beside browser tests: 2.1-3.8 mm).
 @pytest.mark.serial
 @pytest.mark.parametrize("arm", ["leader", "follower"])
 async def test_an_episode_replays_on_its_path(
