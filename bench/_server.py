@@ -32,13 +32,18 @@ def pin_apart(server_pid: int) -> bool:
     return True
 
 
+def free_port() -> int:
+    """A loopback port free now (the kernel's pick)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
 class ServerProcess:
     """`armserver serve` on a free loopback port: simulated arms, no tokens."""
 
     def __init__(self, pin: bool = False) -> None:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            self.port = s.getsockname()[1]
+        self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.ws_url = f"ws://127.0.0.1:{self.port}"
         env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import _machine
+from _server import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 PY = str(ROOT / ".venv" / "bin" / "python")
@@ -80,7 +81,7 @@ def remote_idle(seconds: float = 5.0) -> dict[str, float]:
         with tempfile.TemporaryDirectory() as tmp:
             cfg = Path(tmp) / "arms.toml"
             cfg.write_text(CONFIG.format(rbe=rbe, angler=angler))
-            port = _free_port()
+            port = free_port()
             server = subprocess.Popen(
                 ["taskset", "-c", "0", str(ROOT / ".venv" / "bin" / "armserver"), "serve",
                  "--config", str(cfg), "--port", str(port)], cwd=ROOT,
@@ -125,14 +126,6 @@ def _seq(port: int) -> int:
     return int(r.json()["seq"])
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _num(text: str, after: str) -> float | None:
     if after not in text:
         return None
@@ -167,7 +160,7 @@ def run_armserver(out: Path, harness: Path, venv: Path, ws_steps: str, rest: boo
     it does not go to 1,000 clients."""
     if not (ws_steps or rest or rtt or idle):
         return
-    port = _free_port()
+    port = free_port()
     server = subprocess.Popen(["taskset", "-c", "0", str(ROOT / ".venv" / "bin" / "armserver"),
                                "serve", "--port", str(port)], cwd=ROOT,
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -209,7 +202,7 @@ def run_armserver(out: Path, harness: Path, venv: Path, ws_steps: str, rest: boo
 def run_pypot(out: Path, harness: Path, venv: Path, only: str) -> None:
     """pypot's side of run.sh for the parts (`only`: rest, rtt) it did not reach: run.sh stops
     at pypot's first failed WebSocket step."""
-    hp, wp = _free_port(), _free_port()
+    hp, wp = free_port(), free_port()
     with open(out / "pypot-extra.log", "w") as log:
         server = subprocess.Popen(["taskset", "-c", "0", str(venv / "bin" / "python"),
                                    "pypot_server.py", str(hp), str(wp)], cwd=harness,

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -16,6 +15,7 @@ from typing import Any
 import httpx
 import pytest
 import uvicorn
+from _serve import free_port
 from _wait import wait_for, wait_until
 
 from app import client as cl
@@ -26,12 +26,6 @@ from app.config import Settings
 from app.web.factory import create_app
 
 OPERATOR = "client-test-operator"
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 class Server:

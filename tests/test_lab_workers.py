@@ -14,7 +14,6 @@ import itertools
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -25,6 +24,7 @@ from typing import Any
 
 import httpx
 import pytest
+from _serve import free_port
 from _wait import wait_for, wait_until
 from conftest import OPERATOR, VIEWER, may_raise_priority, threads_niceness
 from websockets.asyncio.client import connect
@@ -93,17 +93,11 @@ class Lab:
         return out
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
     folder = tmp_path_factory.mktemp("lab")
     (folder / "lab.toml").write_text(CONFIG)
-    port = _free_port()
+    port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
     env.update(ARMSERVER_DATA_DIR=str(folder / "data"), ARMSERVER_VIEWER_TOKENS=VIEWER,
                ARMSERVER_OPERATOR_TOKENS=OPERATOR,

@@ -11,7 +11,6 @@ import os
 import re
 import shlex
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -20,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _serve import free_port
 from _wait import wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,12 +34,6 @@ def readme_block() -> list[str]:
     body = after.split("```sh\n", 1)[1].split("```", 1)[0]
     joined = re.sub(r"\\\n\s*", "", body)
     return [re.sub(r"\s+#\s.*$", "", ln).strip() for ln in joined.splitlines() if ln.strip()]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def local(cmd: str, port: int) -> str:
