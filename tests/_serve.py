@@ -82,10 +82,12 @@ class Served:
 
 def start(log: Path, *args: str, env: dict[str, str] | None = None,
           command: tuple[str, ...] = ("-m", "app.cli", "serve"),
-          start_s: float = START_S) -> Served:
-    """`armserver serve ARGS --port P`, output appended to `log`, once every arm it hosts
-    answers a state that is not stale (an AssertionError with its output after `start_s`, or
-    as soon as it exits)."""
+          start_s: float = START_S, headers: dict[str, str] | None = None) -> Served:
+    """`armserver serve ARGS --port P`, output appended to `log`, once its health is "ok"
+    (every worker of a lab up, every link connected) and every arm it hosts answers a state
+    that is not stale (an AssertionError with its output and what it last answered after
+    `start_s`, or as soon as it exits). `headers`: what those requests carry (a viewer's
+    token, on a server with tokens)."""
     port = free_port()
     log.parent.mkdir(parents=True, exist_ok=True)
     with log.open("ab") as out:
@@ -94,16 +96,23 @@ def start(log: Path, *args: str, env: dict[str, str] | None = None,
                                 stdout=out, stderr=subprocess.STDOUT)
     srv = Served(proc, f"http://127.0.0.1:{port}", log)
     deadline = time.monotonic() + start_s
+    last = "no answer"
     try:
         while True:
             assert proc.poll() is None, f"the server exited ({proc.returncode}); {srv.tail()}"
             assert time.monotonic() < deadline, \
-                f"the server was not ready within {start_s} s; {srv.tail()}"
-            with contextlib.suppress(httpx.TransportError, ValueError, KeyError):
-                arms = httpx.get(f"{srv.url}{API}/arms", timeout=2).json()
-                if arms and all(not httpx.get(f"{srv.url}{API}/arms/{a['name']}/state",
-                                              timeout=2).json()["stale"] for a in arms):
+                f"the server was not ready within {start_s} s ({last}); {srv.tail()}"
+            try:
+                with httpx.Client(base_url=srv.url, headers=headers, timeout=2) as c:
+                    health = c.get(f"{API}/health").json()["status"]
+                    arms = c.get(f"{API}/arms").raise_for_status().json()
+                    stale = [a["name"] for a in arms
+                             if c.get(f"{API}/arms/{a['name']}/state").json()["stale"]]
+                if health == "ok" and arms and not stale:
                     return srv
+                last = f"health {health}, stale: {stale}" if arms else f"health {health}"
+            except (httpx.HTTPError, ValueError, KeyError) as exc:
+                last = f"{type(exc).__name__}: {exc}"
             time.sleep(0.1)
     except BaseException:
         srv.stop()

@@ -24,7 +24,7 @@ from typing import Any
 
 import httpx
 import pytest
-from _serve import free_port
+from _serve import clean_env, start
 from _wait import wait_for, wait_until
 from conftest import OPERATOR, VIEWER, may_raise_priority, threads_niceness
 from websockets.asyncio.client import connect
@@ -97,35 +97,23 @@ class Lab:
 def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
     folder = tmp_path_factory.mktemp("lab")
     (folder / "lab.toml").write_text(CONFIG)
-    port = free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
-    env.update(ARMSERVER_DATA_DIR=str(folder / "data"), ARMSERVER_VIEWER_TOKENS=VIEWER,
-               ARMSERVER_OPERATOR_TOKENS=OPERATOR,
-               ARMSERVER_INSTRUCTOR_TOKENS=INSTRUCTOR, ARMSERVER_LEASE_TTL_S="5")
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--workers", "2",
-                             "--config", str(folder / "lab.toml"), "--port", str(port),
-                             "--log-level", "warning"], env=env)
-    lab = Lab(proc, f"http://127.0.0.1:{port}", f"ws://127.0.0.1:{port}")
+    env = clean_env(ARMSERVER_DATA_DIR=str(folder / "data"), ARMSERVER_VIEWER_TOKENS=VIEWER,
+                    ARMSERVER_OPERATOR_TOKENS=OPERATOR,
+                    ARMSERVER_INSTRUCTOR_TOKENS=INSTRUCTOR, ARMSERVER_LEASE_TTL_S="5")
+    # the front's imports, then worker 0, then worker 1 (after worker 0 made the store):
+    # about 14 s at load average 7 on two cores; a generous bound for a loaded machine
+    srv = start(folder / "lab.log", "--workers", "2", "--config", str(folder / "lab.toml"),
+                "--log-level", "warning", env=env, start_s=START_WITHIN_S, headers=AUTH)
+    proc = srv.proc
+    lab = Lab(proc, srv.url, srv.url.replace("http://", "ws://"))
     try:
-        def healthy() -> bool:
-            assert proc.poll() is None, "the front exited"
-            return httpx.get(lab.url + "/api/v1/health").json()["status"] == "ok"
-
-        # the front's imports, then worker 0, then worker 1 (after worker 0 made the store):
-        # about 14 s at load average 7 on two cores; a generous bound for a loaded machine
-        wait_until(healthy, timeout=START_WITHIN_S, what="every worker's arms up")
         yield lab
     finally:
         workers = list(lab.workers().values()) if proc.poll() is None else []
         folders = {Path(Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[
             Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0").index(b"--uds") + 1]
             .decode()).parent for pid in workers}
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        srv.stop()
         for pid in workers:  # they stop with the front; a stuck one is this test's failure
             wait_until(lambda pid=pid: not Path(f"/proc/{pid}").exists()  # type: ignore[misc]
                        or b"zombie" in Path(f"/proc/{pid}/status").read_bytes().lower(),

@@ -13,7 +13,6 @@ raise it (root or CAP_SYS_NICE), as the raise itself does.
 from __future__ import annotations
 
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -22,8 +21,8 @@ import tty
 from collections.abc import Iterator
 from pathlib import Path
 
-import httpx
 import pytest
+from _serve import Served, clean_env, start
 from _wait import wait_until
 from conftest import may_raise_priority, thread_niceness, threads_niceness
 from test_lab_workers import Lab
@@ -153,41 +152,26 @@ def test_an_arm_on_a_terminal_lowers_every_workers_raised_threads(tmp_path: Path
     raised threads, so no thread of either runs above the default. (Without a terminal in the
     lab each worker has its threads at CONTROL_NICE: tests/test_lab_workers.py.)"""
     tty_path = tmp_path / "ttyANGLER"
-    env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
-    env["ARMSERVER_DATA_DIR"] = str(tmp_path / "data")
+    env = clean_env(ARMSERVER_DATA_DIR=str(tmp_path / "data"))
     sim = subprocess.Popen([sys.executable, "-m", "app.cli", "sim", "angler", "--pty",
                             str(tty_path)], env=env, stdout=subprocess.DEVNULL)
-    front = None
+    front: Served | None = None
     try:
         wait_until(tty_path.exists, timeout=60, what="the simulated angler's pty")
         (tmp_path / "lab.toml").write_text(
             f'[[arms]]\nprofile = "angler"\nname = "rails"\nworker = 0\n[arms.link]\n'
             f'kind = "serial"\naddress = "{tty_path}"\n\n'
             '[[arms]]\nprofile = "rbe3001"\nname = "left"\nworker = 1\n')
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        front = subprocess.Popen([sys.executable, "-m", "app.cli", "serve", "--workers", "2",
-                                  "--config", str(tmp_path / "lab.toml"), "--port", str(port),
-                                  "--log-level", "warning"], env=env)
-
-        def healthy() -> bool:
-            assert front is not None and front.poll() is None, "the front exited"
-            try:
-                return httpx.get(f"http://127.0.0.1:{port}/api/v1/health").json()[
-                    "status"] == "ok"
-            except httpx.HTTPError:
-                return False
-
-        wait_until(healthy, timeout=120, what="both workers' arms up")
-        workers = Lab(front, "", "").workers()
+        front = start(tmp_path / "lab.log", "--workers", "2", "--config",
+                      str(tmp_path / "lab.toml"), "--log-level", "warning", env=env,
+                      start_s=120)
+        workers = Lab(front.proc, "", "").workers()
         assert sorted(workers) == [0, 1]
         for k, pid in workers.items():
             nice = threads_niceness(pid)
             assert 0 in nice and CONTROL_NICE not in nice, (k, nice)
     finally:
         if front is not None:  # (SIGTERM: the front stops its workers' arms, then them)
-            front.send_signal(signal.SIGTERM)
-            front.wait(30)
+            front.stop()
         sim.terminate()
         sim.wait(10)
