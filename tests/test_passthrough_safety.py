@@ -588,10 +588,17 @@ async def test_a_zone_put_while_the_arm_moves_after_a_goal_is_busy() -> None:
         svc = svc_of(app, "angler")
         rec = Recorder(svc)
         try:
+            # theta3 from near one end to near the other: 2.8 rad, 1.4 s at 2 rad/s, the window
+            # the PUT below must land in (with 1.2 rad, 0.6 s, a slow host's PUT once came
+            # after the arm had stopped, and a zone at rest is rightly accepted)
+            start = measured(app, "angler")
+            start[2] = -1.4
+            await move(client, "angler", start)
+            await at_rest(rec)
             q0 = measured(app, "angler")
             m3 = motor_of(svc, 2)
             qb = q0.copy()
-            qb[2] = q0[2] + 1.2  # 0.6 s at 2 rad/s
+            qb[2] = 1.4
             r = await client.put(f"{AN}/dynamixel/{m3}/registers/goal_position",
                                  json={"raw": goal_raw(svc, 2, qb)})
             assert r.status_code == 200, r.text
