@@ -85,12 +85,22 @@ class Lab:
         out = {}
         for child in children:
             try:
-                argv = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
+                argv = argv_of(int(child))
             except FileNotFoundError:
                 continue
             if b"app.lab.worker" in argv:
-                out[int(argv[argv.index(b"--index") + 1])] = int(child)
+                out[int(arg_after(argv, b"--index"))] = int(child)
         return out
+
+
+def argv_of(pid: int) -> list[bytes]:
+    """A process's command line, as its arguments."""
+    return Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+
+
+def arg_after(argv: list[bytes], flag: bytes) -> str:
+    """The value that follows `flag` in `argv`."""
+    return argv[argv.index(flag) + 1].decode()
 
 
 @pytest.fixture(scope="module")
@@ -110,9 +120,7 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
         yield lab
     finally:
         workers = list(lab.workers().values()) if proc.poll() is None else []
-        folders = {Path(Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[
-            Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0").index(b"--uds") + 1]
-            .decode()).parent for pid in workers}
+        folders = {Path(arg_after(argv_of(pid), b"--uds")).parent for pid in workers}
         srv.stop()
         for pid in workers:  # they stop with the front; a stuck one is this test's failure
             wait_until(lambda pid=pid: not Path(f"/proc/{pid}").exists()  # type: ignore[misc]

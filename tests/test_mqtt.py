@@ -37,7 +37,6 @@ if MOSQUITTO is None:
     pytest.skip(missing_message("mosquitto") + "; the MQTT tests need a real broker",
                 allow_module_level=True)
 
-ROOT = Path(__file__).resolve().parents[1]
 TIMEOUT = 15.0
 
 
