@@ -86,13 +86,17 @@ run-lab: install mosquitto
 run: install
 	$(BIN)/armserver serve --host $(HOST) --port $(PORT)
 
-# Two parts: the tests that may share the machine on four workers (a file per worker at a time;
+# Two parts: the tests that may share the machine on four workers (a file per worker at a time,
+# the heaviest files first: tests/_scheduling.py, from tests/file_seconds.json, which
+# `python tools/test_seconds.py` writes from the JUnit reports a run leaves in test-output/;
 # most of a test's time is the simulated arms moving in real time, not CPU: four workers kept
 # the two cores 65 % busy), then the browser tests and those that time the server itself
 # (`serial`, tests/conftest.py) in two lanes side by side (SERIAL_LANES=2, the default since
 # session 15): the tests that measure a speed or a hold one after another in one, the browser
 # tests and the rest in the other (157-180 s against 230-311 s one at a time; SERIAL_LANES=1
-# runs them one at a time). The page's drawn tip is judged against the very sample it drew,
+# runs them one at a time). The lanes are tests/_scheduling.py's: since pytest 9.2, xdist's own
+# `xdist_group` no longer groups anything, and the serial part ran any two of its tests side by
+# side (two pages, two timing tests) until session 28. The page's drawn tip is judged against the very sample it drew,
 # its lag apart (1 s): a page sharing the cores was the lanes' one failure in session 14 (a
 # drawn tip 60 mm behind on a slow hour). TEST_WORKERS=6 runs the first part on six (211 s
 # against 252 s on a quiet host), not the default: on a slow host hour it failed tests whose
@@ -116,9 +120,11 @@ test: test-deps install-test
 # in Hypothesis's second look at it made Hypothesis report FlakyStrategyDefinition, not a result.
 test-run:
 	rc=0; \
-	  $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not serial" --durations=15 || rc=$$?; \
+	  $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not serial" --durations=15 \
+	    --junitxml=test-output/junit-parallel.xml || rc=$$?; \
 	  ARMSERVER_SAFETY_EXAMPLES=$${ARMSERVER_SAFETY_EXAMPLES:-8} \
-	    $(BIN)/python -m pytest -q $(SERIAL_ARGS) -m serial --durations=5 || rc=$$?; \
+	    $(BIN)/python -m pytest -q $(SERIAL_ARGS) -m serial --durations=5 \
+	    --junitxml=test-output/junit-serial.xml || rc=$$?; \
 	  exit $$rc
 
 # `make test` beside a CPU load: stress-ng keeps LOAD_CPUS cores busy for the whole run, as a

@@ -31,6 +31,7 @@ from fastapi import FastAPI
 from app.cli import http_limits
 from app.config import ArmProfile, Settings
 from app.web.factory import create_app
+from tests._scheduling import HeaviestFileFirst, Lanes, order_heaviest_first
 
 #: How long the simulated arms may take to answer their first poll, s.
 READY_TIMEOUT_S = 10.0
@@ -257,30 +258,27 @@ SERIAL_FILES = frozenset({
 
 
 #: `make test` runs the serial part in two lanes side by side (SERIAL_LANES=2, the default:
-#: `-n 2 --dist loadgroup`; SERIAL_LANES=1, one test at a time): each lane keeps the
-#: machine about 40 % of one core busy, waiting on arms moving in real time. The tests that
-#: measure a speed or a hold (a joint's peak speed, a held-up executor, an estop's hold, moves
-#: between link cuts) go one after another in the `timing` lane; the browser tests and the
-#: rest in the `browser` lane. One test of each at a time, never two timing tests together.
-#: A replayed path judged against wall-clock servos (test_replay*.py, 2 mm) is in the browser
-#: lane: after a browser test, never beside one. Beside two browser test files its arm's
-#: samples came 10-20 ms apart instead of 5 and the path missed 2 mm in 10 of 23 runs (2.1-3.8
-#: mm; CI's stop 45: 3.31 mm); beside the timing lane's tests 0.7-1.4 mm in 24 (session 27).
-TIMING_LANE_FILES = frozenset({
-    "test_safety_machine.py", "test_passthrough_safety.py", "test_passthrough_check_poll.py",
-    "test_tracking.py", "test_motion.py", "test_envelope_props.py", "test_control.py",
-    "test_replan.py", "test_soak.py",
-})
-
-
-@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own, which reads the xdist_group marks
+#: `-n 2 --dist loadgroup`; SERIAL_LANES=1, one test at a time): each lane keeps the machine
+#: about 40 % of one core busy, waiting on arms moving in real time. One test of each lane at a
+#: time, never two timing tests or two browser tests together: tests/_scheduling.py (`lane_of`,
+#: and why xdist's own `xdist_group` marks no longer do it).
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config: Any, items: list[Any]) -> None:
+    if hasattr(config, "workerinput"):  # an xdist worker: its collection is the order handed out
+        order_heaviest_first(items)
     for item in items:
         if item.path.name in SERIAL_FILES or item.get_closest_marker("browser") is not None:
             item.add_marker(pytest.mark.serial)
-        if item.get_closest_marker("serial") is not None:
-            lane = "timing" if item.path.name in TIMING_LANE_FILES else "browser"
-            item.add_marker(pytest.mark.xdist_group(lane))
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's own (DSession), which would make its own
+def pytest_xdist_make_scheduler(config: Any, log: Any) -> Any:
+    dist = config.getvalue("dist")
+    if dist == "loadfile":
+        return HeaviestFileFirst(config, log)
+    if dist == "loadgroup":
+        return Lanes(config, log)
+    return None
 
 
 # ---------------------------------------------------------------- strict skips
