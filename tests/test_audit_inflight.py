@@ -17,6 +17,7 @@ from typing import Any
 import httpx
 
 from app.store import DB_NAME, INTERRUPTED, Store
+from tests._http import HTTP
 from tests._serve import clean_env, start
 from tests.conftest import make_settings, running_client
 
@@ -76,7 +77,7 @@ def test_kill_9_during_a_waiting_move_keeps_the_attempt(tmp_path: Path) -> None:
 
         def move() -> None:
             try:
-                box["r"] = httpx.post(f"{url}{ROUTE}", json=MOVE, timeout=60)
+                box["r"] = HTTP.post(f"{url}{ROUTE}", json=MOVE, timeout=60)
             except httpx.HTTPError as exc:
                 box["error"] = exc
 
@@ -85,7 +86,7 @@ def test_kill_9_during_a_waiting_move_keeps_the_attempt(tmp_path: Path) -> None:
         deadline = time.monotonic() + 10
         while True:  # the arm moves
             assert time.monotonic() < deadline, "the move did not start"
-            m = httpx.get(f"{url}/api/v1/arms/rbe3001/state", timeout=2).json()["motion"]
+            m = HTTP.get(f"{url}/api/v1/arms/rbe3001/state", timeout=2).json()["motion"]
             if m is not None and m["status"] == "running" and m["progress"] > 0.05:
                 break
             time.sleep(0.05)

@@ -8,12 +8,12 @@ import json
 from pathlib import Path
 
 import _browser
-import httpx
 import pytest
 from _wait import wait_until
 from conftest import serve_live
 
 from app.arms.loading import load_arms
+from tests._http import HTTP
 
 pytestmark = pytest.mark.browser
 
@@ -40,7 +40,7 @@ def test_the_panel_leads_through_declaring_the_jig_pose() -> None:
         # the note comes with the POST's answer; the joints' flags may come first, with a sample
         wait_until(lambda: "calibrated" in page.locator("#rbe3001-cal-note").inner_text(),
                    what="the panel's note that the pose was declared")
-        cal = httpx.get(f"{live.url}/api/v1/arms/rbe3001/calibration", timeout=5).json()
+        cal = HTTP.get(f"{live.url}/api/v1/arms/rbe3001/calibration", timeout=5).json()
         assert [j["source"] for j in cal["joints"]] == ["declared"] * 3 and cal["stored"]
         state = page.evaluate("() => window.armCalibration.state('rbe3001')")
         assert json.dumps(state["calibrated"]) == "[true, true, true]"

@@ -9,13 +9,13 @@ from __future__ import annotations
 from typing import Any
 
 import _browser
-import httpx
 import numpy as np
 import pytest
 from _wait import wait_until
 from conftest import serve_live
 
 from app.sim.camera import SimView
+from tests._http import HTTP
 
 pytestmark = pytest.mark.browser
 
@@ -52,8 +52,8 @@ def test_camera_panel_calibrate_by_clicks_then_click_to_reach() -> None:
 
         page.click(f"#camera-{ARM}-calibrate")
         for k, (x, y) in enumerate(MARKS):
-            r = httpx.post(f"{live.url}/api/v1/arms/{ARM}/move/pose",
-                           json={"x": x, "y": y, "z": MARK_Z, "wait": True}, timeout=60)
+            r = HTTP.post(f"{live.url}/api/v1/arms/{ARM}/move/pose",
+                          json={"x": x, "y": y, "z": MARK_Z, "wait": True}, timeout=60)
             assert r.status_code == 200 and r.json()["status"] == "done", r.text
 
             def there(x: float = x, y: float = y) -> Any:
@@ -74,7 +74,7 @@ def test_camera_panel_calibrate_by_clicks_then_click_to_reach() -> None:
             wait_until(lambda k=k: state()["points"] == k + 1)
         page.click(f"#camera-{ARM}-fit")
         wait_until(lambda: state()["calibrated"], what="the panel's fit")
-        cal = httpx.get(f"{live.url}/api/v1/cameras/{ARM}/calibration").json()
+        cal = HTTP.get(f"{live.url}/api/v1/cameras/{ARM}/calibration").json()
         assert cal["points"] == 4 and abs(cal["z"] - MARK_Z) < 0.003
         # the fitted plane's map agrees with the simulated camera's own, to a few pixels
         fitted = np.array(cal["homography"])

@@ -24,6 +24,7 @@ from app.client import ArmClient, AsyncArmClient
 from app.client.cli import main as cli_main
 from app.config import Settings
 from app.web.factory import create_app
+from tests._http import HTTP
 
 OPERATOR = "client-test-operator"
 
@@ -46,8 +47,8 @@ class Server:
         headers = {"Authorization": f"Bearer {OPERATOR}"}
         while time.monotonic() < deadline:
             try:
-                ok = all(httpx.get(f"{self.url}/api/v1/arms/{arm}/state", headers=headers,
-                                   timeout=1.0).status_code == 200
+                ok = all(HTTP.get(f"{self.url}/api/v1/arms/{arm}/state", headers=headers,
+                                  timeout=1.0).status_code == 200
                          for arm in ("rbe3001", "angler"))
                 if ok:
                     return self

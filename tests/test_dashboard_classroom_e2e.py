@@ -10,11 +10,12 @@ from __future__ import annotations
 import time
 from typing import Any
 
-import httpx
 import pytest
 from _wait import wait_until
 from conftest import OPERATOR, make_settings
 from test_dashboard_e2e import OUT, VIEWPORT, browser, serving, shot  # noqa: F401
+
+from tests._http import HTTP
 
 pytestmark = pytest.mark.browser
 
@@ -46,8 +47,8 @@ def test_join_take_turn_renew_and_instructor_revoke(browser: Any) -> None:  # no
     OUT.mkdir(exist_ok=True)
     with serving(settings) as srv:
         def queue() -> dict[str, Any]:
-            r = httpx.get(f"{srv.url}/api/v1/arms/angler/queue",
-                          headers={"Authorization": f"Bearer {TEACH}"}, timeout=5)
+            r = HTTP.get(f"{srv.url}/api/v1/arms/angler/queue",
+                         headers={"Authorization": f"Bearer {TEACH}"}, timeout=5)
             return r.json()  # type: ignore[no-any-return]
 
         pg = open_as(browser, srv.url, ALICE, errors)

@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 import _browser
-import httpx
 import pytest
 import uvicorn
 from _wait import wait_until
@@ -35,6 +34,7 @@ from conftest import OPERATOR, make_settings
 
 from app.web.factory import create_app
 from app.web.serving import ArmServer
+from tests._http import HTTP
 
 pytestmark = pytest.mark.browser
 
@@ -89,8 +89,8 @@ class Server:
         self._thread.start()
         wait_until(lambda: server.started, what="uvicorn to start")
         headers = {"Authorization": f"Bearer {OPERATOR}"} if self.settings.auth_enabled else {}
-        wait_until(lambda: httpx.get(f"{self.url}/api/v1/arms/rbe3001/state", headers=headers,
-                                     timeout=2).status_code == 200,
+        wait_until(lambda: HTTP.get(f"{self.url}/api/v1/arms/rbe3001/state", headers=headers,
+                                    timeout=2).status_code == 200,
                    what="a sample from the arm")
 
     def stop(self) -> None:
@@ -151,7 +151,7 @@ def dash(pg: Any, arm: str) -> dict[str, Any] | None:
 
 
 def api(server: Server, method: str, path: str, **kw: Any) -> Any:
-    r = httpx.request(method, f"{server.url}/api/v1{path}", timeout=10, **kw)
+    r = HTTP.request(method, f"{server.url}/api/v1{path}", timeout=10, **kw)
     r.raise_for_status()
     return r.json()
 

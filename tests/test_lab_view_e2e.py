@@ -11,13 +11,14 @@ import math
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 from _deps import missing_message
 from _mosquitto import MOSQUITTO, Broker
 from _wait import wait_until
 from conftest import make_settings, serve_live
 from test_dashboard_e2e import CHROMIUM, CHROMIUM_ARGS, OUT, sync_api
+
+from tests._http import HTTP
 
 pytestmark = pytest.mark.browser
 
@@ -66,14 +67,14 @@ def test_lab_view_shows_every_arm_of_every_server(tmp_path: Path) -> None:
         assert set(tiles(pg)) == want, "a tile that is no arm"
 
         # the joints shown are the server's (the arm is at rest)
-        state = httpx.get(f"{b.url}/api/v1/arms/lab-2/state", timeout=5).json()
+        state = HTTP.get(f"{b.url}/api/v1/arms/lab-2/state", timeout=5).json()
         shown = tiles(pg)["armserver/bench2/lab-2"]["sample"]
         assert all(math.isclose(p, q, abs_tol=1e-6)
                    for p, q in zip(shown["positions"], state["positions"], strict=True))
         assert pg.locator('[data-key="armserver/bench2/lab-2"] .tip').inner_text().endswith("mm")
 
         # the emergency stop of one arm shows on its tile, and only there
-        httpx.post(f"{a.url}/api/v1/arms/angler/estop", timeout=5).raise_for_status()
+        HTTP.post(f"{a.url}/api/v1/arms/angler/estop", timeout=5).raise_for_status()
         wait_until(lambda: pg.locator('[data-key="armserver/angler"] .estop').count() == 1,
                    what="ESTOP on the angler tile")
         assert pg.locator('[data-key="armserver/rbe3001"] .estop').count() == 0
@@ -83,7 +84,7 @@ def test_lab_view_shows_every_arm_of_every_server(tmp_path: Path) -> None:
                    == "estop", what="the estop event on the angler tile")
         OUT.mkdir(exist_ok=True)
         pg.screenshot(path=str(OUT / "lab-view.png"))
-        httpx.delete(f"{a.url}/api/v1/arms/angler/estop", timeout=5).raise_for_status()
+        HTTP.delete(f"{a.url}/api/v1/arms/angler/estop", timeout=5).raise_for_status()
 
         # server B goes away: its arms go offline, server A's stay online
         stop_b()

@@ -11,12 +11,13 @@ import contextlib
 import json
 import socket
 
-import httpx
 import pytest
 from _wait import wait_until
 from conftest import make_settings, serve_live
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
+
+from tests._http import HTTP
 
 WS = "/api/v1/arms/{arm}/telemetry"
 
@@ -76,7 +77,7 @@ def test_connections_over_the_limit_get_503() -> None:
         try:
             wait_until(lambda: len(live.server.server_state.connections) >= 8,
                        what="the server holding the 8 idle connections")
-            r = httpx.get(live.url + "/api/v1/health", timeout=10)
+            r = HTTP.get(live.url + "/api/v1/health", timeout=10)
             assert r.status_code == 503
             # the API's error body, not uvicorn's plain text, and when to come back
             assert r.headers["content-type"] == "application/json"
@@ -87,9 +88,9 @@ def test_connections_over_the_limit_get_503() -> None:
             for s in idle:
                 s.close()
         # the server notices the closed sockets
-        wait_until(lambda: httpx.get(live.url + "/api/v1/health", timeout=10).status_code == 200,
+        wait_until(lambda: HTTP.get(live.url + "/api/v1/health", timeout=10).status_code == 200,
                    what="the server taking requests again", every=0.05)
-        assert httpx.get(live.url + "/api/v1/health", timeout=10).status_code == 200
+        assert HTTP.get(live.url + "/api/v1/health", timeout=10).status_code == 200
 
 
 async def _refused(url: str) -> tuple[int, dict[str, str]]:

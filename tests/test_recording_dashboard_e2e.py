@@ -7,10 +7,11 @@ from __future__ import annotations
 import re
 
 import _browser
-import httpx
 import pytest
 from _wait import wait_until
 from conftest import serve_live
+
+from tests._http import HTTP
 
 pytestmark = pytest.mark.browser
 
@@ -19,8 +20,8 @@ sync_api = _browser.sync_api_or_skip()
 
 def test_record_and_stop_from_the_bar() -> None:
     with serve_live() as live, sync_api.sync_playwright() as pw:
-        r = httpx.post(f"{live.url}/api/v1/recordings",
-                       json={"name": "bar", "arms": ["rbe3001"], "fps": 10})
+        r = HTTP.post(f"{live.url}/api/v1/recordings",
+                      json={"name": "bar", "arms": ["rbe3001"], "fps": 10})
         assert r.status_code == 201, r.text
         page, errors = _browser.open_page(pw, live.url + "/")
 
@@ -34,5 +35,5 @@ def test_record_and_stop_from_the_bar() -> None:
         assert page.locator("#recording-record").text_content() == "■ Stop"
         page.click("#recording-record")
         wait_until(lambda: status() == "1 episode", what="the episode written")
-        assert httpx.get(f"{live.url}/api/v1/recordings/bar").json()["episodes"] == 1
+        assert HTTP.get(f"{live.url}/api/v1/recordings/bar").json()["episodes"] == 1
         assert errors == []

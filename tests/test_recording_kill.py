@@ -9,9 +9,9 @@ import signal
 import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 
+from tests._http import HTTP
 from tests._lerobot import check_dataset
 from tests._serve import Served, clean_env, start
 
@@ -24,14 +24,14 @@ def _serve(data: Path, log: Path) -> Served:
 
 def _record(srv: Served, frames: int, stop: bool = True) -> dict:
     url = srv.url
-    r = httpx.post(f"{url}{API}/recordings/k/episodes", timeout=10)
+    r = HTTP.post(f"{url}{API}/recordings/k/episodes", timeout=10)
     assert r.status_code == 201, r.text
     deadline = time.monotonic() + 30
     cur = None
     while True:
         assert time.monotonic() < deadline, \
             f"the episode did not record {frames} frames: {cur}; {srv.tail()}"
-        rec = httpx.get(f"{url}{API}/recordings/k", timeout=5).json()
+        rec = HTTP.get(f"{url}{API}/recordings/k", timeout=5).json()
         cur = rec["current"]
         # (an episode that ended on its own is not waited for)
         assert cur is not None, f"the episode ended: {rec['last_error']}; {srv.tail()}"
@@ -40,7 +40,7 @@ def _record(srv: Served, frames: int, stop: bool = True) -> dict:
         time.sleep(0.05)
     if not stop:
         return cur
-    r = httpx.post(f"{url}{API}/recordings/k/episodes/stop", timeout=60)
+    r = HTTP.post(f"{url}{API}/recordings/k/episodes/stop", timeout=60)
     assert r.status_code == 200, r.text
     return r.json()
 
@@ -51,9 +51,9 @@ def test_kill_9_mid_episode_keeps_the_earlier_episodes_and_a_restart_appends(
     srv = _serve(tmp_path, log)
     try:
         url = srv.url
-        arms = [a["name"] for a in httpx.get(f"{url}{API}/arms", timeout=5).json()]
-        cams = [c["name"] for c in httpx.get(f"{url}{API}/cameras", timeout=5).json()][:1]
-        r = httpx.post(f"{url}{API}/recordings", json={"name": "k", "arms": arms,
+        arms = [a["name"] for a in HTTP.get(f"{url}{API}/arms", timeout=5).json()]
+        cams = [c["name"] for c in HTTP.get(f"{url}{API}/cameras", timeout=5).json()][:1]
+        r = HTTP.post(f"{url}{API}/recordings", json={"name": "k", "arms": arms,
                                                         "cameras": cams, "fps": 10}, timeout=10)
         assert r.status_code == 201, r.text
         _record(srv, 6)
@@ -71,7 +71,7 @@ def test_kill_9_mid_episode_keeps_the_earlier_episodes_and_a_restart_appends(
 
     srv = _serve(tmp_path, log)
     try:
-        listed = httpx.get(f"{srv.url}{API}/recordings", timeout=5).json()
+        listed = HTTP.get(f"{srv.url}{API}/recordings", timeout=5).json()
         assert [(x["id"], x["episodes"]) for x in listed] == [("k", 2)]
         after = _record(srv, 5)
         assert after["episodes"] == 3

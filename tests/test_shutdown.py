@@ -14,6 +14,7 @@ from typing import Any
 
 import httpx
 
+from tests._http import HTTP
 from tests._serve import Served, clean_env, start
 
 API = "/api/v1"
@@ -29,8 +30,8 @@ def _move_in_background(url: str) -> dict[str, Any]:
 
     def run() -> None:
         try:
-            box["r"] = httpx.post(f"{url}{API}/arms/rbe3001/move/joints", timeout=30,
-                                  json={"positions": [1.2, 1.4, -0.6], "speed": 0.2,
+            box["r"] = HTTP.post(f"{url}{API}/arms/rbe3001/move/joints", timeout=30,
+                                 json={"positions": [1.2, 1.4, -0.6], "speed": 0.2,
                                         "wait": True})
         except httpx.HTTPError as exc:
             box["error"] = exc
@@ -43,7 +44,7 @@ def _move_in_background(url: str) -> dict[str, Any]:
 def _wait_running(url: str) -> None:
     deadline = time.monotonic() + 10
     while time.monotonic() < deadline:
-        m = httpx.get(f"{url}{API}/arms/rbe3001/state", timeout=2).json()["motion"]
+        m = HTTP.get(f"{url}{API}/arms/rbe3001/state", timeout=2).json()["motion"]
         if m is not None and m["status"] == "running" and m["progress"] > 0.05:
             return
         time.sleep(0.05)

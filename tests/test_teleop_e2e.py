@@ -9,7 +9,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import _browser
-import httpx
 import numpy as np
 import pytest
 from _wait import wait_until
@@ -17,6 +16,7 @@ from conftest import make_settings, serve_live
 
 from app.config import FaultConfig
 from app.runtime.control_thread import on_home
+from tests._http import HTTP
 
 pytestmark = pytest.mark.browser
 
@@ -45,12 +45,12 @@ def test_start_and_stop_teleop_from_the_bar() -> None:
         page.click("#teleop-start")
         wait_until(lambda: status().startswith("running · ") and "latency p50 " in status()
                    and "ms · p99 " in status(), what="running with its latency shown")
-        sessions = httpx.get(f"{live.url}/api/v1/teleop").json()
+        sessions = HTTP.get(f"{live.url}/api/v1/teleop").json()
         assert [(t["leader"], t["follower"], t["rate_hz"], t["status"]) for t in sessions] == [
             ("leader", "follower", 60.0, "running")]
         assert page.locator("#teleop-start").is_disabled()
-        r = httpx.post(f"{live.url}/api/v1/arms/leader/move/joints",
-                       json={"positions": GOAL, "wait": True}, timeout=30)
+        r = HTTP.post(f"{live.url}/api/v1/arms/leader/move/joints",
+                      json={"positions": GOAL, "wait": True}, timeout=30)
         assert r.status_code == 200, r.text
         wait_until(lambda: np.allclose(follower.positions, GOAL, atol=TOL),
                    what="the follower at the leader's goal")
@@ -66,6 +66,6 @@ def test_start_and_stop_teleop_from_the_bar() -> None:
         wait_until(lambda: status().startswith("running · "), what="running again")
         page.click("#teleop-stop")
         wait_until(lambda: status().startswith("stopped: stopped by"), what="stopped, and by whom")
-        assert [t["status"] for t in httpx.get(f"{live.url}/api/v1/teleop").json()] == ["ended"]
+        assert [t["status"] for t in HTTP.get(f"{live.url}/api/v1/teleop").json()] == ["ended"]
         assert not page.locator("#teleop-start").is_disabled()
         assert errors == []
