@@ -96,9 +96,9 @@ run: install
 # tests and the rest in the other (157-180 s against 230-311 s one at a time; SERIAL_LANES=1
 # runs them one at a time). The lanes are tests/_scheduling.py's: since pytest 9.2, xdist's own
 # `xdist_group` no longer groups anything, and the serial part ran any two of its tests side by
-# side (two pages, two timing tests) until session 28. The page's drawn tip is judged against the very sample it drew,
-# its lag apart (1 s): a page sharing the cores was the lanes' one failure in session 14 (a
-# drawn tip 60 mm behind on a slow hour). TEST_WORKERS=6 runs the first part on six (211 s
+# side (two pages, two timing tests) until session 28. The page's drawn tip is judged against
+# the very sample it drew, its lag apart (1 s): a page sharing the cores was the lanes' one
+# failure in session 14 (a drawn tip 60 mm behind on a slow hour). TEST_WORKERS=6 runs the first part on six (211 s
 # against 252 s on a quiet host), not the default: on a slow host hour it failed tests whose
 # simulated buses answer from the test's own process.
 # Side by side with the first part, at a lower priority, the serial part broke a test or two a

@@ -21,7 +21,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from xdist.scheduler import LoadScopeScheduling
+from xdist.scheduler import LoadFileScheduling, LoadScopeScheduling
 
 #: Each test file's seconds in a `make test` run (tools/test_seconds.py writes it).
 FILE_SECONDS = Path(__file__).with_name("file_seconds.json")
@@ -32,10 +32,10 @@ FILE_SECONDS = Path(__file__).with_name("file_seconds.json")
 #: balance, 200 s each in a run of session 28, where the browser lane's 227 s was the part's
 #: length). Every other serial test (the browser tests, and the rest) is in the `browser` lane.
 #: The lab's killed worker (test_lab_workers.py) is not moved: beside two pages its other arm
-#: kept 240-385 samples/s over the restart (session 26). A replayed
-#: path judged against wall-clock servos (test_replay*.py, 2 mm) is in the browser lane: after
-#: a browser test, never beside one (beside two browser test files its arm's samples came 10-20
-#: ms apart instead of 5 and the path missed 2 mm in 10 of 23 runs, session 27).
+#: kept 240-385 samples/s over the restart (session 26). A replayed path judged against
+#: wall-clock servos (test_replay*.py, 2 mm) is in the browser lane: after a browser test, never
+#: beside one (beside two browser test files its arm's samples came 10-20 ms apart instead of 5
+#: and the path missed 2 mm in 10 of 23 runs, session 27).
 TIMING_LANE_FILES = frozenset({
     "test_safety_machine.py", "test_passthrough_safety.py", "test_passthrough_check_poll.py",
     "test_tracking.py", "test_motion.py", "test_envelope_props.py", "test_control.py",
@@ -46,10 +46,6 @@ TIMING_LANE_FILES = frozenset({
 def lane_of(file_name: str) -> str:
     """The serial lane of the tests in the file named `file_name` (its base name)."""
     return "timing" if file_name in TIMING_LANE_FILES else "browser"
-
-
-def _file_of(nodeid: str) -> str:
-    return nodeid.split("::", 1)[0]
 
 
 def file_seconds() -> dict[str, float]:
@@ -70,7 +66,7 @@ def order_heaviest_first(items: list[Any]) -> None:
     items.sort(key=lambda item: -seconds.get(item.path.name, 0.0))
 
 
-class HeaviestFileFirst(LoadScopeScheduling):
+class HeaviestFileFirst(LoadFileScheduling):
     """`--dist loadfile`, the files handed out in the order the workers collected them
     (`order_heaviest_first`), not xdist's by number of tests."""
 
@@ -78,12 +74,9 @@ class HeaviestFileFirst(LoadScopeScheduling):
         super().__init__(config, log)
         config.option.loadscopereorder = False
 
-    def _split_scope(self, nodeid: str) -> str:
-        return _file_of(nodeid)
-
 
 class Lanes(LoadScopeScheduling):
     """`--dist loadgroup` as the serial part means it: a lane (`lane_of`) to a worker."""
 
     def _split_scope(self, nodeid: str) -> str:
-        return lane_of(Path(_file_of(nodeid)).name)
+        return lane_of(Path(nodeid.split("::", 1)[0]).name)

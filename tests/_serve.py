@@ -24,6 +24,7 @@ from pathlib import Path
 
 import httpx
 
+from tests._http import HTTP
 from tests._mosquitto import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -98,25 +99,26 @@ def start(log: Path, *args: str, env: dict[str, str] | None = None,
     deadline = time.monotonic() + start_s
     last = "no answer"
     try:
-        # one client for the wait: a client is an SSL context (some 20 ms of CPU), and a new
-        # one every 0.1 s was 2 % of the parallel part's CPU (py-spy, session 28)
-        with httpx.Client(base_url=srv.url, headers=headers, timeout=2) as c:
-            while True:
-                assert proc.poll() is None, \
-                    f"the server exited ({proc.returncode}); {srv.tail()}"
-                assert time.monotonic() < deadline, \
-                    f"the server was not ready within {start_s} s ({last}); {srv.tail()}"
-                try:
-                    health = c.get(f"{API}/health").json()["status"]
-                    arms = c.get(f"{API}/arms").raise_for_status().json()
-                    stale = [a["name"] for a in arms
-                             if c.get(f"{API}/arms/{a['name']}/state").json()["stale"]]
-                    if health == "ok" and arms and not stale:
-                        return srv
-                    last = f"health {health}, stale: {stale}" if arms else f"health {health}"
-                except (httpx.HTTPError, ValueError, KeyError) as exc:
-                    last = f"{type(exc).__name__}: {exc}"
-                time.sleep(0.1)
+        # the tests' one client (tests/_http.py): a client per try, every 0.1 s, was 2 % of
+        # the parallel part's CPU (py-spy, session 28)
+        def get(path: str) -> httpx.Response:
+            return HTTP.get(f"{srv.url}{API}{path}", headers=headers, timeout=2)
+
+        while True:
+            assert proc.poll() is None, f"the server exited ({proc.returncode}); {srv.tail()}"
+            assert time.monotonic() < deadline, \
+                f"the server was not ready within {start_s} s ({last}); {srv.tail()}"
+            try:
+                health = get("/health").json()["status"]
+                arms = get("/arms").raise_for_status().json()
+                stale = [a["name"] for a in arms
+                         if get(f"/arms/{a['name']}/state").json()["stale"]]
+                if health == "ok" and arms and not stale:
+                    return srv
+                last = f"health {health}, stale: {stale}" if arms else f"health {health}"
+            except (httpx.HTTPError, ValueError, KeyError) as exc:
+                last = f"{type(exc).__name__}: {exc}"
+            time.sleep(0.1)
     except BaseException:
         srv.stop()
         raise
