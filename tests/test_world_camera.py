@@ -91,6 +91,21 @@ def test_render_is_deterministic_for_a_seed_and_light_scales_it() -> None:
     assert render(world, view, 320, 240).shape == (240, 320, 3)
 
 
+def test_a_plain_picture_skips_the_light_pass_with_the_same_bytes() -> None:
+    """Without light or noise render() returns the picture as drawn (app/sim/camera.py): the
+    same bytes the light pass gives at a light of 1 (forced here by a light a hair above it),
+    and a picture of its own, not the cached empty table."""
+    profile = load_profile("angler")
+    world = World(profile)
+    random_objects(world, 3, 6)
+    view = SimView.default_for(profile)
+    plain = render(world, view, W, H)
+    passed = render(world, view, W, H, light=1.0 + 1e-12)
+    assert plain.dtype == np.uint8 and plain.tobytes() == passed.tobytes()
+    plain[:] = 0  # the caller's to keep or change
+    assert render(world, view, W, H).tobytes() == passed.tobytes()
+
+
 def test_a_held_object_is_drawn_where_the_tip_carries_it() -> None:
     profile = load_profile("rbe3001")
     world = World(profile)
