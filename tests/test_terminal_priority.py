@@ -5,9 +5,10 @@ an unbound kworker at niceness 0; beside a CPU load, the control thread at -10 k
 worker from a CPU for seconds (traced: docs/performance.md, "Session 24"), and the servo
 set-up read its servos as silent. So while a serial link or a set-up bus has a terminal open,
 every thread that raised its priority (`raise_priority`: the control thread, the link poll
-thread) runs at 0, and gets its niceness back when the last terminal is closed. Links over a
-socket keep the raise. These read each thread's niceness from /proc; they need the right to
-raise it (root or CAP_SYS_NICE), as the raise itself does.
+thread, a serial link's own thread) runs at 0, and the process's main thread (the HTTP side)
+at HOLD_MAIN_NICE below them; all get their niceness back when the last terminal is closed.
+Links over a socket keep the raise. These read each thread's niceness from /proc; they need
+the right to raise it (root or CAP_SYS_NICE), as the raise itself does.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from app.arms.dynamixel.setup import Bus
 from app.links.serial import SerialLink
 from app.links.threaded import ThreadLink
 from app.runtime import control_thread
-from app.runtime.control_thread import CONTROL_NICE, ControlThread, TerminalHold
+from app.runtime.control_thread import CONTROL_NICE, HOLD_MAIN_NICE, ControlThread, TerminalHold
 
 pytestmark = pytest.mark.skipif(not may_raise_priority(CONTROL_NICE),
                                 reason="raising a thread's priority is not allowed here")
@@ -68,6 +69,12 @@ def niceness(tid: int) -> int:
     return thread_niceness(os.getpid(), tid)
 
 
+def main_tid() -> int:
+    tid = threading.main_thread().native_id
+    assert tid is not None
+    return tid
+
+
 def test_a_set_up_bus_on_a_terminal_holds_the_raised_threads_at_the_default(
         control: int, pty_path: str) -> None:
     bus = Bus(pty_path)
@@ -87,14 +94,19 @@ async def test_serial_links_on_terminals_hold_until_the_last_is_closed(
     master2, slave2 = os.openpty()
     tty.setraw(slave2)
     first, second = SerialLink(pty_path), ThreadLink(os.ttyname(slave2))
+    main, before = main_tid(), niceness(main_tid())
     try:
         await first.open()
         assert niceness(control) == 0
+        assert niceness(main) == max(before, HOLD_MAIN_NICE)
         await second.open()
+        assert second._thread is not None and second._thread.native_id is not None
+        assert niceness(second._thread.native_id) == 0  # (it raised itself: held with the rest)
         await first.close()
         assert niceness(control) == 0
         await second.close()
         assert niceness(control) == CONTROL_NICE
+        assert niceness(main) == before
     finally:
         await first.close()
         await second.close()
@@ -106,13 +118,68 @@ async def test_serial_links_on_terminals_hold_until_the_last_is_closed(
 async def test_a_link_over_a_socket_keeps_the_raise(control: int) -> None:
     listener = socket.create_server(("127.0.0.1", 0))
     link = ThreadLink(f"socket://127.0.0.1:{listener.getsockname()[1]}")
+    before = niceness(main_tid())
     try:
         await link.open()
         assert niceness(control) == CONTROL_NICE
+        assert link._thread is not None and link._thread.native_id is not None
+        assert niceness(link._thread.native_id) == CONTROL_NICE  # (the owner's requests)
+        assert niceness(main_tid()) == before
         assert control_thread._terminals == 0
     finally:
         await link.close()
         listener.close()
+
+
+def test_a_link_opened_by_the_control_thread_on_a_terminal_does_not_keep_its_raise(
+        pty_path: str) -> None:
+    """A thread inherits its creator's niceness: the link's thread, started from the control
+    thread at -10, was left at -10 by the hold (it had not raised itself, so the hold did not
+    know it), the one thread above the kworker that delivers its own port's bytes."""
+    assert control_thread._terminals == 0
+    thread = ControlThread("test-control-opens")
+    thread.start()
+    link = ThreadLink(pty_path)
+    try:
+        thread.submit(link.open()).result(30)
+        assert link._thread is not None and link._thread.native_id is not None
+        assert thread._thread is not None and thread._thread.native_id is not None
+        assert niceness(link._thread.native_id) == 0
+        assert niceness(thread._thread.native_id) == 0
+    finally:
+        thread.submit(link.close()).result(30)
+        thread.stop()
+    assert control_thread._terminals == 0
+
+
+def test_a_hold_puts_the_main_thread_below_the_raised_ones(control: int) -> None:
+    """... and gives it back its niceness at the last release."""
+    main, before = main_tid(), niceness(main_tid())
+    first, second = TerminalHold(), TerminalHold()
+    try:
+        assert niceness(control) == 0
+        assert niceness(main) == max(before, HOLD_MAIN_NICE)
+        first.release()
+        assert niceness(main) == max(before, HOLD_MAIN_NICE)
+    finally:
+        first.release()
+        second.release()
+    assert niceness(main) == before
+    assert niceness(control) == CONTROL_NICE
+
+
+def test_a_hold_with_no_raised_thread_leaves_the_main_thread() -> None:
+    """A process with nothing raised (a lab's front, a client tool with a set-up bus) keeps its
+    main thread where it is: a fresh interpreter, so that no thread of this one is raised."""
+    probe = ("import os\n"
+             "from app.runtime.control_thread import TerminalHold\n"
+             "hold = TerminalHold()\n"
+             "print(os.getpriority(os.PRIO_PROCESS, 0))\n"
+             "hold.release()\n")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         timeout=60, env=clean_env())
+    assert out.returncode == 0, out.stderr
+    assert int(out.stdout) == os.getpriority(os.PRIO_PROCESS, 0)  # (inherited from this one)
 
 
 def test_a_thread_raised_while_a_terminal_is_in_use_starts_at_the_default() -> None:
@@ -170,6 +237,7 @@ def test_an_arm_on_a_terminal_lowers_every_workers_raised_threads(tmp_path: Path
         for k, pid in workers.items():
             nice = threads_niceness(pid)
             assert 0 in nice and CONTROL_NICE not in nice, (k, nice)
+            assert thread_niceness(pid, pid) == HOLD_MAIN_NICE, (k, nice)  # (the main thread)
     finally:
         if front is not None:  # (SIGTERM: the front stops its workers' arms, then them)
             front.stop()

@@ -65,7 +65,13 @@ from typing import Any
 from app.links.base import READ_CHUNK, Link, LinkError, LinkState, Reply
 from app.links.poller import CATCH_UP, EARLY_S, PollThread, RestPlan, Told, aligned, shared
 from app.links.serial import port_fileno
-from app.runtime.control_thread import TerminalHold, terminal_hold
+from app.runtime.control_thread import (
+    CONTROL_NICE,
+    TerminalHold,
+    lower_priority,
+    raise_priority,
+    terminal_hold,
+)
 from app.runtime.tasks import resolve
 
 log = logging.getLogger(__name__)
@@ -695,6 +701,12 @@ class ThreadLink(Link):
     # ------------------------------------------------------------ the thread
 
     def _main(self, loop: asyncio.AbstractEventLoop, ended: asyncio.Future[None]) -> None:
+        # The owner's requests (the estop's hold among them) go out on this thread: it ranks
+        # with the control thread, and says so, so that a terminal's hold brings it to the
+        # default with the others. (Started from the control thread, it would otherwise keep
+        # the -10 it inherits, unseen by the hold, above the kworker that delivers this very
+        # port's bytes: docs/performance.md, "Session 29".)
+        raise_priority(CONTROL_NICE)
         jobs = self._jobs
         try:
             while True:
@@ -713,6 +725,7 @@ class ThreadLink(Link):
             pass
         finally:
             self._close_port()
+            lower_priority()
             try:
                 loop.call_soon_threadsafe(resolve, ended)
             except RuntimeError:

@@ -131,17 +131,47 @@ class ControlThread:
 # in use in the process (`TerminalHold`: a serial arm's port, a servo set-up's), every raised
 # thread runs at the default niceness; they get theirs back when the last is closed. Links
 # over sockets and HID, which the kernel delivers without that worker, keep the raise.
+# Brought down to 0, the control thread would share its priority with the HTTP side (parsing,
+# fan-out: the process's main thread). Under bench/hostile.py's attack (`--serial-arm`) a server
+# with a terminal open kept 311-342 device samples/s of 500 (its estop storm 350-367) with the
+# main thread at 0 (and a serial link's own thread left at -10: app/links/threaded.py); with
+# the main thread at +5 meanwhile and that thread held too, 380-406 (storm 438-497; +10 did no
+# better), three runs each alternated (docs/performance.md, "Session 29"). So while the raised
+# threads are held at 0, the main thread runs at HOLD_MAIN_NICE, below them and below the
+# kworker, and gets its niceness back with theirs. A thread it starts meanwhile inherits the
+# +5 and keeps it (an executor's: the HTTP side's; raised threads set theirs themselves).
+# Only where a thread was raised: the right to raise is the right to come back from +5.
 
 #: Threads running above the default niceness: native id -> the niceness they asked for.
 _raised: dict[int, int] = {}
 #: Terminals in use (TerminalHold); while there is one, the raised threads run at 0.
 _terminals = 0
+#: The main thread's niceness before a hold lowered it to HOLD_MAIN_NICE; None: not lowered.
+_main_before: int | None = None
 _raised_lock = threading.Lock()
+#: The main thread's niceness while the raised threads are held at 0 (see above).
+HOLD_MAIN_NICE = 5
 
 
 def _set_niceness(tid: int, niceness: int) -> None:
     with contextlib.suppress(OSError):
         os.setpriority(os.PRIO_PROCESS, tid, niceness)
+
+
+def _settle_main() -> None:
+    """The main thread at HOLD_MAIN_NICE while a terminal holds raised threads at 0, else at
+    its own niceness again (under `_raised_lock`)."""
+    global _main_before
+    main = threading.main_thread().native_id
+    lower = bool(_terminals) and bool(_raised) and main is not None and main not in _raised
+    if lower and _main_before is None and main is not None:
+        with contextlib.suppress(OSError):
+            before = os.getpriority(os.PRIO_PROCESS, main)
+            os.setpriority(os.PRIO_PROCESS, main, max(before, HOLD_MAIN_NICE))
+            _main_before = before
+    elif not lower and _main_before is not None and main is not None:
+        _set_niceness(main, _main_before)
+        _main_before = None
 
 
 def raise_priority(niceness: int = CONTROL_NICE) -> int | None:
@@ -158,6 +188,7 @@ def raise_priority(niceness: int = CONTROL_NICE) -> int | None:
         _raised[tid] = got
         if _terminals:
             _set_niceness(tid, 0)
+        _settle_main()
     return got
 
 
@@ -166,11 +197,13 @@ def lower_priority() -> None:
     thread's, perhaps another process's)."""
     with _raised_lock:
         _raised.pop(threading.get_native_id(), None)
+        _settle_main()
 
 
 class TerminalHold:
     """A terminal in use by this process, from its open to `release` (idempotent): the raised
-    threads run at the default niceness meanwhile (see above)."""
+    threads run at the default niceness meanwhile, the main thread at HOLD_MAIN_NICE (see
+    above)."""
 
     def __init__(self) -> None:
         global _terminals
@@ -179,6 +212,7 @@ class TerminalHold:
             if _terminals == 1:
                 for tid in _raised:
                     _set_niceness(tid, 0)
+            _settle_main()
         self._held = True
 
     def release(self) -> None:
@@ -191,6 +225,7 @@ class TerminalHold:
             if _terminals == 0:
                 for tid, niceness in _raised.items():
                     _set_niceness(tid, niceness)
+            _settle_main()
 
 
 def terminal_hold(fd: int | None) -> TerminalHold | None:
