@@ -40,16 +40,17 @@ def free_port() -> int:
 
 
 class ServerProcess:
-    """`armserver serve` on a free loopback port: simulated arms, no tokens."""
+    """`armserver serve` on a free loopback port: simulated arms (or `config`'s), no tokens."""
 
-    def __init__(self, pin: bool = False) -> None:
+    def __init__(self, pin: bool = False, config: Path | None = None) -> None:
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.ws_url = f"ws://127.0.0.1:{self.port}"
         env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
         self.proc = subprocess.Popen(
             [sys.executable, "-c", "from app.cli import run; run()", "serve", "--port",
-             str(self.port), "--log-level", "warning"],
+             str(self.port), "--log-level", "warning",
+             *(["--config", str(config)] if config is not None else [])],
             cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.pinned = pin_apart(self.proc.pid) if pin else False
         self._wait_ready()

@@ -18,6 +18,12 @@ model: joint origins and tip, zones grown by their margins), and how far each ar
 moved from where the arm was at each latch (rbe3001: the joints 0.4 s after the latch, which
 settle on the hold; angler: the servos' Goal Position registers read back).
 
+`--serial-arm`: phases 1 and 2 with a third arm on a terminal (the angler's simulated servos
+on a pty, a process of their own, as a serial arm's USB adapter): while a terminal is open the
+server holds its raised threads at the default niceness and its main thread below them
+(`TerminalHold`, app/runtime/control_thread.py), the README's "a server with a serial arm
+open" row.
+
 One well-behaved subscriber reads the rbe3001's telemetry all along; from its samples (stamped
 on the control thread when the device answered) it prints the device sample rate against the
 profile's poll rate, the worst gap between consecutive samples, the peak measured joint speed
@@ -31,7 +37,9 @@ import argparse
 import asyncio
 import contextlib
 import json
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -43,7 +51,7 @@ from websockets.asyncio.client import connect
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from _server import ServerProcess  # noqa: E402
+from _server import ROOT, ServerProcess  # noqa: E402
 
 from app.arms.loading import load_profile  # noqa: E402
 from app.config import KeepOutBox, SafetySettings  # noqa: E402
@@ -161,6 +169,8 @@ async def main() -> None:
                     help="estop rounds of phase 3 per arm (its storms scale with it); 0: none")
     ap.add_argument("--only-passthrough", action="store_true", help="phase 3 alone")
     ap.add_argument("--seed", type=int, default=22)
+    ap.add_argument("--serial-arm", action="store_true",
+                    help="phases 1 and 2 with a third arm on a pty (the server's terminal hold)")
     args = ap.parse_args()
     if args.only_passthrough:
         server = ServerProcess(pin=True)
@@ -173,8 +183,61 @@ async def main() -> None:
     profile = load_profile("rbe3001")
     nominal = profile.link.poll_hz
     vmax = max(j.max_velocity for j in profile.joints)
-    server = ServerProcess(pin=True)
+    with contextlib.ExitStack() as stack:
+        config = stack.enter_context(serial_arm_config()) if args.serial_arm else None
+        await attack(args, nominal, vmax, config)
+    if args.passthrough_rounds > 0:
+        server = ServerProcess(pin=True)  # a fresh server: phase 3 starts from a known state
+        try:
+            await passthrough_phase(server, args.passthrough_rounds, args.seed)
+        finally:
+            server.close()
+
+
+def threads_by_niceness(pid: int) -> dict[int, int]:
+    """How many of `pid`'s threads run at each niceness (/proc: the stat's 19th field)."""
+    out: dict[int, int] = {}
+    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+        with contextlib.suppress(OSError):
+            nice = int(stat.read_text().rsplit(")", 1)[1].split()[16])
+            out[nice] = out.get(nice, 0) + 1
+    return dict(sorted(out.items()))
+
+
+@contextlib.contextmanager
+def serial_arm_config() -> Any:
+    """A config file: the built-in simulated arms, and the angler again as `angler-tty` on a
+    pty served by `armserver sim angler` (stopped at the end)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        tty_path = Path(tmp) / "ttyANGLER"
+        sim = subprocess.Popen([sys.executable, "-m", "app.cli", "sim", "angler", "--pty",
+                                str(tty_path)], cwd=ROOT, stdout=subprocess.DEVNULL)
+        try:
+            deadline = time.monotonic() + 60
+            while not tty_path.exists():
+                if time.monotonic() > deadline or sim.poll() is not None:
+                    raise RuntimeError("the simulated angler's pty did not appear")
+                time.sleep(0.05)
+            config = Path(tmp) / "hostile.toml"
+            config.write_text(
+                '[[arms]]\nprofile = "rbe3001"\n[arms.link]\nkind = "sim"\n'
+                'homed_at_start = true\n\n'
+                '[[arms]]\nprofile = "angler"\n[arms.link]\nkind = "sim"\n'
+                'homed_at_start = true\n\n'
+                '[[arms]]\nprofile = "angler"\nname = "angler-tty"\n[arms.link]\n'
+                f'kind = "serial"\naddress = "{tty_path}"\n')
+            yield config
+        finally:
+            sim.terminate()
+            sim.wait(10)
+
+
+async def attack(args: argparse.Namespace, nominal: float, vmax: float,
+                 config: Path | None) -> None:
+    """Phases 1 and 2 on one server (`config`'s arms, or the built-in simulated ones)."""
+    server = ServerProcess(pin=True, config=config)
     try:
+        print(f"the server's threads by niceness: {threads_by_niceness(server.proc.pid)}")
         watcher = Watcher(server.ws_url)
         watcher.task = asyncio.create_task(watcher.run())
         async with httpx.AsyncClient(base_url=server.url, timeout=60) as client:
@@ -254,12 +317,6 @@ async def main() -> None:
     print(f"estop storm ({args.presses} presses): move {describe(storm_move, B)}; joints moved "
           f"{drift * 1e3:.1f} mrad from the first press to 0.5 s after the last")
     print(f"watcher dropped {watcher.dropped} samples")
-    if args.passthrough_rounds > 0:
-        server = ServerProcess(pin=True)  # a fresh server: phase 3 starts from a known state
-        try:
-            await passthrough_phase(server, args.passthrough_rounds, args.seed)
-        finally:
-            server.close()
 
 
 # ---------------------------------------------------------------- phase 3: pass-through (issue 22)
