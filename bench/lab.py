@@ -39,7 +39,12 @@ while every arm runs at its poll rate prints:
 The simulators run at niceness `--sims-nice` (default 19): they stand in for devices that
 compute on processors of their own, so they take what CPU the server leaves and never hold a
 core the server's threads want (what issue 27's first table got by pinning them to the other
-core; `--pin` below). `--sims-nice 0` runs them as the server's equals: on two cores they then
+core; `--pin` below). Where the kernel groups the CPU by session (autogroup), each simulator
+process is a session of its own with its group at that niceness (in the bench's session their
+niceness did not count against the workers' sessions; 32 arms, estop seen p99 6.87-12.26 ms,
+median 8.2, in ten runs against 8.89-11.26, median 10.3, in five, mostly alternated, 28 Nov
+2026: docs/performance.md "Session 29").
+`--sims-nice 0` runs them as the server's equals: on two cores they then
 delay the server's wake-ups by their own (at 32 arms, estop seen p99 14.6 / 15.9 ms against
 10.2 / 7.1 ms niced, runs alternated on one busy hour, 27 Nov 2026).
 
@@ -84,6 +89,22 @@ def _free_ports(n: int) -> list[int]:
     for s in socks:
         s.close()
     return ports
+
+
+def _autogroup_nice(pid: int, niceness: int) -> bool:
+    """Give `pid`'s autogroup `niceness`, where the kernel groups by session (most desktop
+    distributions' kernels do: /proc/sys/kernel/sched_autogroup_enabled). There the scheduler
+    first shares the CPU between sessions, each worker (a session of its own) equal to the
+    session that runs the simulators, and a thread's niceness counts only within its own:
+    at niceness 19 in the bench's session the simulators still held a core the workers
+    wanted. So each simulator process is a session of its own, its group at `niceness`."""
+    try:
+        if Path("/proc/sys/kernel/sched_autogroup_enabled").read_text().strip() != "1":
+            return False
+        Path(f"/proc/{pid}/autogroup").write_text(str(niceness))
+    except OSError:
+        return False
+    return True
 
 
 def _tree(pid: int) -> list[int]:
@@ -415,13 +436,15 @@ def main() -> int:
     sims = []
     config = []
     per = max(1, args.per_sim)
+    grouped = False
     for k in range(0, args.arms, per):  # one simulator process serves `per` arms
         listen = [a for port in ports[1 + k:1 + k + per]
                   for a in ("--listen", f"tcp://127.0.0.1:{port}")]
         sims.append(subprocess.Popen(  # (nice: every thread of the simulator inherits it)
             ["nice", "-n", str(args.sims_nice), sys.executable, "-m", "app.cli", "sim",
-             args.model, *listen], cwd=ROOT, env=env,
+             args.model, *listen], cwd=ROOT, env=env, start_new_session=True,
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        grouped = _autogroup_nice(sims[-1].pid, args.sims_nice)
     for i, port in enumerate(ports[1:]):
         config.append(f'[[arms]]\nprofile = "{args.model}"\nname = "arm-{i + 1}"\n'
                       f'[arms.link]\nkind = "serial"\naddress = "socket://127.0.0.1:{port}"\n'
@@ -446,7 +469,8 @@ def main() -> int:
                 os.sched_setaffinity(pid, {cpus[0]})
         time.sleep(1.0)  # past start-up's bursts
         print(f"{args.arms} {args.model} arms, {args.workers} worker(s), {args.seconds:.0f} s"
-              f"{', pinned' if args.pin else ''}, simulators at nice {args.sims_nice}; before "
+              f"{', pinned' if args.pin else ''}, simulators at nice {args.sims_nice}"
+              f"{' (their sessions too)' if grouped else ''}; before "
               f"the arms ran: {machine}")
         uds = _worker_socket(pids) if args.workers > 1 else None
         asyncio.run(measure(url, [f"arm-{i + 1}" for i in range(args.arms)], args.seconds,
