@@ -48,7 +48,9 @@ log = logging.getLogger(__name__)
 SWITCH_INTERVAL_S = 0.0001
 #: Niceness the control thread asks for (Linux: per thread), where permitted (root or
 #: CAP_SYS_NICE): on a busy machine the scheduler then runs the link owners and the executor
-#: before the HTTP thread and other processes. Without the permission it runs at the default.
+#: before the HTTP thread and other processes of its session. (Where the kernel shares the CPU
+#: between sessions first, autogroup, not before another session's: docs/performance.md,
+#: "Session 29".) Without the permission it runs at the default.
 CONTROL_NICE = -10
 #: How long starting the thread may take, s.
 START_TIMEOUT_S = 10.0
@@ -175,9 +177,10 @@ def _settle_main() -> None:
 
 
 def raise_priority(niceness: int = CONTROL_NICE) -> int | None:
-    """Give the calling thread `niceness` if permitted (the control thread's, and the link
-    poll thread's, app/links/poller.py); the niceness it got, or None. While a terminal is in
-    use it runs at the default meanwhile (above); `lower_priority` before the thread ends."""
+    """Give the calling thread `niceness` if permitted (the control thread's, the link poll
+    thread's, app/links/poller.py, and a serial link's own, app/links/threaded.py); the
+    niceness it got, or None. While a terminal is in use it runs at the default meanwhile
+    (above); `lower_priority` before the thread ends."""
     try:
         tid = threading.get_native_id()
         os.setpriority(os.PRIO_PROCESS, tid, niceness)
