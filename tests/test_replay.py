@@ -69,6 +69,32 @@ def farthest(off: np.ndarray, samples: list[dict[str, Any]]) -> str:
             f"them: median {np.median(np.diff(t)) * 1e3:.1f} ms)")
 
 
+#: After a sample that comes more than PAUSE_PERIODS sample periods after the one before it
+#: (the control loop lost its pace: the host, a busy 2-core machine), the streamed setpoints
+#: have jumped ahead and the servos cut the chord to them: the samples up to AFTER_PAUSE_S
+#: after such a gap are held to LOOSE times the bound, the rest to the bound. (CI's stop 45
+#: and a clean clone in session 29: 3.31 and 2.71 mm, each just after a 20 ms gap.)
+PAUSE_PERIODS = 3.0
+AFTER_PAUSE_S = 0.1
+LOOSE = 2.5
+
+
+def assert_on_path(off: np.ndarray, samples: list[dict[str, Any]], bound: float,
+                   what: str) -> None:
+    """Each sample's distance from its path (`off`, m) under `bound`; under LOOSE x `bound`
+    just after a pause of the control loop (above). At least 30 samples judged strictly."""
+    t = np.array([float(smp["time"]) for smp in samples])
+    dt = np.diff(t)
+    ends = t[1:][dt > PAUSE_PERIODS * float(np.median(dt))]
+    after = np.zeros(len(t), dtype=bool)
+    for end in ends:
+        after |= (t >= end) & (t <= end + AFTER_PAUSE_S)
+    assert int(np.count_nonzero(~after)) > 30, f"{what}: too few samples away from pauses"
+    assert float(np.max(off[~after])) < bound, f"{what}: {farthest(off * ~after, samples)}"
+    assert float(np.max(off)) < LOOSE * bound, \
+        f"{what}, just after a pause: {farthest(off * after, samples)}"
+
+
 #: The path is judged against wall-clock servos: in the serial part's browser lane
 #: (tests/conftest.py), never beside a browser test nor the parallel part (it missed 2 mm at
 #: load average 9-13 beside the parallel part, and beside browser tests: 2.1-3.8 mm).
@@ -103,8 +129,7 @@ async def test_replay_follows_the_frames_tip_path(
     reached = int(np.argmax(np.linalg.norm(tips - start, axis=1) < 0.0005))
     d = path_distance(tips[reached:], path)
     assert len(d) > 30
-    assert float(np.max(d)) < 0.002, \
-        f"tip off the frames' path: {farthest(d, moving[reached:])}"
+    assert_on_path(d, moving[reached:], 0.002, "tip off the frames' path")
     final = (await c.get(f"{API}/arms/leader/state")).json()["positions"]
     np.testing.assert_allclose(final, targets[-1], atol=8 * 2 * np.pi / 4096)
 
@@ -196,3 +221,22 @@ async def test_a_step_over_the_speed_limit_is_played_at_the_limit(
     await rec.wait()
     assert rec.status == "done", (rec.reason, rec.code)
     np.testing.assert_allclose(rec.final_positions, targets[-1], atol=8 * 2 * np.pi / 4096)
+
+
+def test_the_path_judgement_is_loose_only_just_after_a_pause() -> None:
+    """`assert_on_path` on made-up samples 5 ms apart with one 20 ms gap at 0.5 s: 3 mm off
+    just after the gap passes a 2 mm bound, the same 3 mm away from it fails, and 6 mm just
+    after it fails."""
+    t = np.concatenate([np.arange(0.0, 0.5, 0.005), np.arange(0.52, 1.0, 0.005)])
+    samples = [{"time": x} for x in t]
+    after_gap = int(np.argmax(t >= 0.52)) + 2
+    off = np.full(len(t), 0.0005)
+    off[after_gap] = 0.003
+    assert_on_path(off, samples, 0.002, "just after the gap")
+    away = off.copy()
+    away[after_gap], away[10] = 0.0005, 0.003
+    with pytest.raises(AssertionError, match="3.00 mm at 0.05 s"):
+        assert_on_path(away, samples, 0.002, "away from it")
+    off[after_gap] = 0.006
+    with pytest.raises(AssertionError, match="just after a pause: 6.00 mm"):
+        assert_on_path(off, samples, 0.002, "too far")

@@ -20,7 +20,7 @@ from fastapi import FastAPI
 from app.errors import ArmError
 from app.service import ArmService
 from tests.conftest import make_settings, running_client
-from tests.test_replay import dense, farthest, path_distance, wave
+from tests.test_replay import assert_on_path, dense, path_distance, wave
 
 API = "/api/v1"
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "teleop_omx.toml"
@@ -144,7 +144,7 @@ async def test_the_gripper_replays_with_the_joints(
     first = np.asarray(leader.model.fk(actions[0]), dtype=float)
     reached = int(np.argmax(np.linalg.norm(tips - first, axis=1) < 0.0005))
     off_mm = path_distance(tips[reached:], path)
-    assert float(np.max(off_mm)) < 0.002, f"replay off: {farthest(off_mm, mine[reached:])}"
+    assert_on_path(off_mm, mine[reached:], 0.002, "replay off")
 
 
 async def test_a_stopped_replay_sends_no_more_gripper_actions(

@@ -16,7 +16,7 @@ from fastapi import FastAPI
 
 from app.service import ArmService
 from tests.conftest import make_settings, running_client
-from tests.test_replay import dense, farthest, path_distance
+from tests.test_replay import assert_on_path, dense, path_distance
 
 API = "/api/v1"
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "teleop_omx.toml"
@@ -96,8 +96,7 @@ async def test_an_episode_replays_on_its_path(
     # the bound is for the arm the episode was recorded on; another arm of the type
     # has servos of its own (each lags its goal on its own): 3 mm there
     bound = 0.002 if arm == "leader" else 0.003
-    assert float(np.max(off)) < bound, \
-        f"replay off the recording: {farthest(off, mine[reached:])}"
+    assert_on_path(off, mine[reached:], bound, "replay off the recording")
     back = path_distance(np.asarray(model.fk(states), dtype=float), played)  # all of it
     assert float(np.max(back)) < bound, f"recording {np.max(back) * 1e3:.2f} mm off the replay"
 
