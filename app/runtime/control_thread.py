@@ -165,13 +165,15 @@ def _settle_main() -> None:
     its own niceness again (under `_raised_lock`)."""
     global _main_before
     main = threading.main_thread().native_id
-    lower = bool(_terminals) and bool(_raised) and main is not None and main not in _raised
-    if lower and _main_before is None and main is not None:
+    if main is None:
+        return
+    lower = bool(_terminals) and bool(_raised) and main not in _raised
+    if lower and _main_before is None:
         with contextlib.suppress(OSError):
             before = os.getpriority(os.PRIO_PROCESS, main)
             os.setpriority(os.PRIO_PROCESS, main, max(before, HOLD_MAIN_NICE))
             _main_before = before
-    elif not lower and _main_before is not None and main is not None:
+    elif not lower and _main_before is not None:
         _set_niceness(main, _main_before)
         _main_before = None
 
