@@ -41,6 +41,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -183,8 +184,7 @@ async def main() -> None:
     profile = load_profile("rbe3001")
     nominal = profile.link.poll_hz
     vmax = max(j.max_velocity for j in profile.joints)
-    with contextlib.ExitStack() as stack:
-        config = stack.enter_context(serial_arm_config()) if args.serial_arm else None
+    with serial_arm_config() if args.serial_arm else contextlib.nullcontext() as config:
         await attack(args, nominal, vmax, config)
     if args.passthrough_rounds > 0:
         server = ServerProcess(pin=True)  # a fresh server: phase 3 starts from a known state
@@ -205,7 +205,7 @@ def threads_by_niceness(pid: int) -> dict[int, int]:
 
 
 @contextlib.contextmanager
-def serial_arm_config() -> Any:
+def serial_arm_config() -> Iterator[Path]:
     """A config file: the built-in simulated arms, and the angler again as `angler-tty` on a
     pty served by `armserver sim angler` (stopped at the end)."""
     with tempfile.TemporaryDirectory() as tmp:

@@ -436,7 +436,6 @@ def main() -> int:
     sims = []
     config = []
     per = max(1, args.per_sim)
-    grouped = False
     for k in range(0, args.arms, per):  # one simulator process serves `per` arms
         listen = [a for port in ports[1 + k:1 + k + per]
                   for a in ("--listen", f"tcp://127.0.0.1:{port}")]
@@ -444,7 +443,7 @@ def main() -> int:
             ["nice", "-n", str(args.sims_nice), sys.executable, "-m", "app.cli", "sim",
              args.model, *listen], cwd=ROOT, env=env, start_new_session=True,
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-        grouped = _autogroup_nice(sims[-1].pid, args.sims_nice)
+    grouped = all([_autogroup_nice(s.pid, args.sims_nice) for s in sims])
     for i, port in enumerate(ports[1:]):
         config.append(f'[[arms]]\nprofile = "{args.model}"\nname = "arm-{i + 1}"\n'
                       f'[arms.link]\nkind = "serial"\naddress = "socket://127.0.0.1:{port}"\n'
