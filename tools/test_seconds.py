@@ -3,10 +3,10 @@ XML reports pytest writes there (`make test-run` writes test-output/junit-parall
 test-output/junit-serial.xml).
 
 The parallel part of `make test` hands the files to its four workers heaviest first
-(tests/conftest.py `order_by_seconds`): pytest-xdist's own order (the files with the most tests
-first) left the few-test, long files (schemathesis, the fifty-student class, the sorting
-example) to the end, and one worker ran on 50 s after the others had finished. The figures only
-order the files; a file missing from them (a new one) goes after the measured ones.
+(`order_heaviest_first` in tests/_scheduling.py): pytest-xdist's own order (the files with the
+most tests first) left the few-test, long files (schemathesis, the fifty-student class, the
+sorting example) to the end, and one worker ran on 50 s after the others had finished. The
+figures only order the files; a file missing from them (a new one) goes after the measured ones.
 
 Usage: python tools/test_seconds.py [REPORT.xml ...]   (from the repository root; default: the
 two reports in test-output/)
@@ -14,6 +14,7 @@ two reports in test-output/)
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import xml.etree.ElementTree as ET
@@ -38,9 +39,16 @@ def file_seconds(reports: list[Path]) -> dict[str, float]:
 
 
 def main(argv: list[str]) -> int:
-    reports = [Path(a) for a in argv] or [p for p in DEFAULT if p.exists()]
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("reports", nargs="*", type=Path, help="JUnit XML reports (default: the "
+                    "two in test-output/)")
+    reports = ap.parse_args(argv).reports or [p for p in DEFAULT if p.exists()]
     if not reports:
         print("no JUnit reports: run `make test-run` first, or name them", file=sys.stderr)
+        return 2
+    missing = [str(p) for p in reports if not p.is_file()]
+    if missing:
+        print(f"no such report: {', '.join(missing)}", file=sys.stderr)
         return 2
     seconds = file_seconds(reports)
     OUT.write_text(json.dumps(seconds, indent=0, sort_keys=True) + "\n")
