@@ -98,9 +98,9 @@ run: install
 # `xdist_group` no longer groups anything, and the serial part ran any two of its tests side by
 # side (two pages, two timing tests) until session 28. The page's drawn tip is judged against
 # the very sample it drew, its lag apart (1 s): a page sharing the cores was the lanes' one
-# failure in session 14 (a drawn tip 60 mm behind on a slow hour). TEST_WORKERS=6 runs the first part on six (211 s
-# against 252 s on a quiet host), not the default: on a slow host hour it failed tests whose
-# simulated buses answer from the test's own process.
+# failure in session 14 (a drawn tip 60 mm behind on a slow hour). TEST_WORKERS=6 runs the
+# first part on six (211 s against 252 s on a quiet host), not the default: on a slow host hour
+# it failed tests whose simulated buses answer from the test's own process.
 # Side by side with the first part, at a lower priority, the serial part broke a test or two a
 # run: under `chrt -i 0` or `nice -n 19` the first part's simulators that answer from a test's
 # own process missed their 50 ms reply timeouts while the browser tests ran; under `nice -n 10`
