@@ -7,6 +7,7 @@ test that would have.)"""
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -78,3 +79,23 @@ def test_the_parallel_part_hands_out_whole_files_heaviest_first(tmp_path: Path) 
         assert weights == sorted(weights, reverse=True), by_worker
     heaviest = max(names, key=lambda n: seconds[n])
     assert any(files[0].endswith(heaviest) for files in by_worker.values()), by_worker
+
+
+def test_the_file_seconds_tool_sums_a_files_tests_over_the_reports(tmp_path: Path) -> None:
+    """tools/test_seconds.py: each test file's seconds summed over its test cases and over the
+    reports (parallel and serial part); a report that is not there is named, rc 2."""
+    for name, cases in (("parallel.xml", [("tests.test_a", 1.3), ("tests.test_a", 2.0),
+                                          ("tests.test_b.TestThing", 0.5)]),
+                        ("serial.xml", [("tests.test_a", 3.0)])):
+        body = "".join(f'<testcase classname="{c}" name="t{k}" time="{t}"/>'
+                       for k, (c, t) in enumerate(cases))
+        (tmp_path / name).write_text(f'<testsuites><testsuite>{body}</testsuite></testsuites>')
+    out = tmp_path / "seconds.json"
+    tool = [sys.executable, str(ROOT / "tools" / "test_seconds.py"), "--out", str(out)]
+    done = subprocess.run([*tool, str(tmp_path / "parallel.xml"), str(tmp_path / "serial.xml")],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(out.read_text()) == {"test_a.py": 6.3, "test_b.py": 0.5}
+    missing = subprocess.run([*tool, str(tmp_path / "nope.xml")], capture_output=True,
+                             text=True, timeout=60)
+    assert missing.returncode == 2 and "no such report" in missing.stderr

@@ -42,7 +42,9 @@ def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("reports", nargs="*", type=Path, help="JUnit XML reports (default: the "
                     "two in test-output/)")
-    reports = ap.parse_args(argv).reports or [p for p in DEFAULT if p.exists()]
+    ap.add_argument("--out", type=Path, default=OUT, help=f"where to write (default: {OUT})")
+    args = ap.parse_args(argv)
+    reports = args.reports or [p for p in DEFAULT if p.exists()]
     if not reports:
         print("no JUnit reports: run `make test-run` first, or name them", file=sys.stderr)
         return 2
@@ -51,8 +53,8 @@ def main(argv: list[str]) -> int:
         print(f"no such report: {', '.join(missing)}", file=sys.stderr)
         return 2
     seconds = file_seconds(reports)
-    OUT.write_text(json.dumps(seconds, indent=0, sort_keys=True) + "\n")
-    print(f"{OUT.relative_to(ROOT)}: {len(seconds)} files, {sum(seconds.values()):.0f} s")
+    args.out.write_text(json.dumps(seconds, indent=0, sort_keys=True) + "\n")
+    print(f"{args.out}: {len(seconds)} files, {sum(seconds.values()):.0f} s")
     return 0
 
 
