@@ -232,6 +232,29 @@ def test_tokens_and_leases_as_today(lab: Lab) -> None:
         assert big.status_code == 413 and big.json()["code"] == "too_large"
 
 
+def test_an_answer_through_the_front_has_one_date_and_one_server(lab: Lab) -> None:
+    """uvicorn writes Date and Server on every answer of the front; a worker's answer has its
+    own, which the front does not pass on beside them (Date is a singleton field, RFC 9110
+    5.3 and 6.6.1: every answer a worker gave through the front had two of each). Each way an
+    answer leaves the front: a JSON answer relayed whole, a worker's 404 renamed, a refusal,
+    the answers merged from every worker, the front's own, and a stream relayed as it comes."""
+    with httpx.Client(base_url=lab.url, headers=AUTH) as c:
+        answers = {
+            "relayed": c.get("/api/v1/arms/left/state"),
+            "renamed 404": c.get("/api/v1/arms/nobody/state"),
+            "refused": c.post("/api/v1/arms/left/move/joints", content=b"{", headers=OP),
+            "merged": c.get("/api/v1/arms"),
+            "health": c.get("/api/v1/health"),
+            "me": c.get("/api/v1/me"),
+        }
+        with c.stream("GET", "/api/v1/cameras/table-right/stream") as stream:
+            answers["stream"] = stream
+        assert [r.status_code for r in answers.values()] == [200, 404, 422, 200, 200, 200, 200]
+        for what, r in answers.items():
+            for name in ("date", "server"):
+                assert len(r.headers.get_list(name)) == 1, (what, r.headers.raw)
+
+
 async def test_telemetry_websocket_through_the_front(lab: Lab) -> None:
     async with connect(f"{lab.ws}/api/v1/arms/rails/telemetry?rate=50",
                        additional_headers=AUTH) as ws:

@@ -51,11 +51,18 @@ log = logging.getLogger("armserver.lab")
 ARMS = API_PREFIX + "/arms"
 CAMERAS = API_PREFIX + "/cameras"
 HEALTH = API_PREFIX + "/health"
+#: A worker's response headers the front writes itself: uvicorn puts Date and Server on every
+#: answer it sends, so a worker's are dropped (passed on, each answer had two of each; Date is
+#: one field line, RFC 9110 6.6.1).
+FRONT_OWN = frozenset({b"date", b"server"})
 #: Response headers a relayed answer keeps but these (its bytes pass as they came, framing too).
-HOP_STREAM = frozenset({b"connection", b"keep-alive", b"transfer-encoding", b"te", b"trailer",
-                        b"upgrade"})
-#: Response headers the front does not pass back (it frames the body itself).
-HOP_BACK = HOP | {b"content-encoding"}
+HOP_STREAM = FRONT_OWN | {b"connection", b"keep-alive", b"transfer-encoding", b"te", b"trailer",
+                          b"upgrade"}
+#: Response headers of an answer read whole that the front does not pass back (it sets the
+#: length).
+HOP_WHOLE = HOP | FRONT_OWN
+#: ... and of one it reads decoded (it frames the body itself).
+HOP_BACK = HOP_WHOLE | {b"content-encoding"}
 
 
 #: An HTTP answer: status, headers, body.
@@ -270,7 +277,7 @@ class LabFront:
                 return r.status_code, [(k, v) for k, v in r.headers if k not in HOP_BACK], data
             if r.length is not None and r.length <= WHOLE_BODY:  # a JSON answer: its bytes
                 # as they came, read whole (no relay task and disconnect watch a request)
-                return r.status_code, [(k, v) for k, v in r.headers if k not in HOP], \
+                return r.status_code, [(k, v) for k, v in r.headers if k not in HOP_WHOLE], \
                     await r.read()
             await send({"type": "http.response.start", "status": r.status_code,
                         "headers": [(k, v) for k, v in r.headers if k not in HOP_STREAM]})
