@@ -168,6 +168,41 @@ def test_a_hold_puts_the_main_thread_below_the_raised_ones(control: int) -> None
     assert niceness(control) == CONTROL_NICE
 
 
+def test_a_thread_the_main_thread_starts_during_a_hold_gets_its_niceness_back(
+        control: int) -> None:
+    """A thread inherits its creator's niceness: one the main thread starts while it is at
+    HOLD_MAIN_NICE (an executor's, a camera's) runs there with it, and comes back with it at
+    the last release; one started before the hold is left where it was."""
+    main, before = main_tid(), niceness(main_tid())
+    stop = threading.Event()
+    tids: list[int] = []
+
+    def start_one() -> None:
+        started = threading.Event()
+
+        def run() -> None:
+            tids.append(threading.get_native_id())
+            started.set()
+            stop.wait(30)
+
+        threading.Thread(target=run, daemon=True).start()
+        assert started.wait(10)
+
+    try:
+        start_one()  # before the hold
+        hold = TerminalHold()
+        try:
+            start_one()
+            assert niceness(main) == max(before, HOLD_MAIN_NICE)
+            assert [niceness(t) for t in tids] == [before, max(before, HOLD_MAIN_NICE)]
+        finally:
+            hold.release()
+        assert [niceness(t) for t in (main, *tids)] == [before, before, before]
+        assert niceness(control) == CONTROL_NICE
+    finally:
+        stop.set()
+
+
 def test_a_hold_with_no_raised_thread_leaves_the_main_thread() -> None:
     """A process with nothing raised (a lab's front, a client tool with a set-up bus) keeps its
     main thread where it is: a fresh interpreter, so that no thread of this one is raised."""

@@ -140,8 +140,9 @@ class ControlThread:
 # the main thread at +5 meanwhile and that thread held too, 380-406 (storm 438-497; +10 did no
 # better), three runs each alternated (docs/performance.md, "Session 29"). So while the raised
 # threads are held at 0, the main thread runs at HOLD_MAIN_NICE, below them and below the
-# kworker, and gets its niceness back with theirs. A thread it starts meanwhile inherits the
-# +5 and keeps it (an executor's: the HTTP side's; raised threads set theirs themselves).
+# kworker, and gets its niceness back with theirs. A thread it starts meanwhile (an
+# executor's, a camera's: the HTTP side's) inherits the +5 and gets its niceness back with it;
+# raised threads set theirs themselves.
 # Only where a thread was raised: the right to raise is the right to come back from +5.
 
 #: Threads running above the default niceness: native id -> the niceness they asked for.
@@ -174,8 +175,28 @@ def _settle_main() -> None:
             os.setpriority(os.PRIO_PROCESS, main, max(before, HOLD_MAIN_NICE))
             _main_before = before
     elif not lower and _main_before is not None:
-        _set_niceness(main, _main_before)
+        # the main thread and every thread it started meanwhile (they inherited its niceness)
+        held = max(_main_before, HOLD_MAIN_NICE)
+        for tid in _thread_ids():
+            if tid not in _raised and _niceness(tid) == held:
+                _set_niceness(tid, _main_before)
         _main_before = None
+
+
+def _thread_ids() -> list[int]:
+    """The native ids of this process's threads."""
+    try:
+        return [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:  # (no /proc: the main thread alone)
+        main = threading.main_thread().native_id
+        return [] if main is None else [main]
+
+
+def _niceness(tid: int) -> int | None:
+    try:
+        return os.getpriority(os.PRIO_PROCESS, tid)
+    except OSError:  # (it has ended)
+        return None
 
 
 def raise_priority(niceness: int = CONTROL_NICE) -> int | None:
