@@ -184,6 +184,36 @@ def test_over_a_socket_the_rate_is_read_from_the_servo(capsys: pytest.CaptureFix
         served.close()
 
 
+def test_a_scan_that_heard_nothing_tries_once_more() -> None:
+    """A servo whose first PING went unanswered (as a reply the machine delivered after the
+    window reads) is found by the second pass; an empty bus is tried twice and a bus that
+    answered, once."""
+    from app.arms.dynamixel.setup import scan_port
+
+    served = Served(DynamixelBus.factory(1, baudrate=None), None)
+    try:
+        assert scan_port(served.url, timeout=IN_PROCESS_REPLY_S).passes == 1
+        answer = served.bus.receive
+        heard: list[bytes] = []
+
+        def deaf_to_the_first(data: bytes, now: float) -> list[tuple[float, bytes]]:
+            heard.append(data)
+            return [] if len(heard) == 1 else answer(data, now)
+
+        served.call(lambda: setattr(served.bus, "receive", deaf_to_the_first))
+        got = scan_port(served.url, timeout=IN_PROCESS_REPLY_S)
+        assert got.passes == 2 and [(f.id, f.baudrate) for f in got.found] == [(1, 57_600)]
+        assert heard[0] == heard[1]  # the same broadcast PING, again
+    finally:
+        served.close()
+    empty = Served(DynamixelBus.factory(0, baudrate=None), None)
+    try:
+        got = scan_port(empty.url, timeout=IN_PROCESS_REPLY_S)
+        assert got.passes == 2 and not got.found
+    finally:
+        empty.close()
+
+
 def test_pty_baud_mismatch_is_silence(tmp_path: Path) -> None:
     """A servo at 1 Mbps does not answer a host at 57,600 on the pty (and does at 1 Mbps)."""
     import serial

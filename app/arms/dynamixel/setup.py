@@ -112,6 +112,8 @@ class Scan:
     #: Rates where only bytes that were no packet came: a UART at another rate than a
     #: servo's reads its replies so (app/sim/uart.py); told, not refused.
     garbled: list[str] = field(default_factory=list)
+    #: Times the standard rates were tried: 2 when the first pass heard nothing at all (`scan`).
+    passes: int = 1
 
 
 def carries_baud(url: str) -> bool:
@@ -237,10 +239,23 @@ class Bus:
 
 def scan(bus: Bus, rates: Iterable[int] = SCAN_ORDER) -> Scan:
     """Broadcast PING at each rate (once over a socket); each servo heard is read (Baud Rate,
-    Torque Enable, Operating Mode). Collisions are noted, not raised."""
+    Torque Enable, Operating Mode). Collisions are noted, not raised. Where a pass heard
+    nothing at all, a second one: a busy PC's kernel can hand a serial adapter's (or a pty's)
+    bytes over later than the window (its worker held off the CPU: docs/performance.md
+    "Session 24"), and a servo that is there should not read as absent for it; an empty bus
+    costs twice the time."""
+    tried: list[int | None] = list(rates) if carries_baud(bus.url) else [None]
     out = Scan()
+    _scan_pass(bus, tried, out)
+    if not (out.found or out.collisions or out.garbled):
+        out.passes = 2
+        _scan_pass(bus, tried, out)
+    return out
+
+
+def _scan_pass(bus: Bus, rates: list[int | None], out: Scan) -> None:
     seen: set[tuple[int, int]] = set()
-    for rate in (rates if carries_baud(bus.url) else (None,)):
+    for rate in rates:
         if rate is not None:
             bus.set_rate(rate)
         where = f"{rate:,} bps" if rate is not None else "the socket"
@@ -270,7 +285,6 @@ def scan(bus: Bus, rates: Iterable[int] = SCAN_ORDER) -> Scan:
             seen.add((p.id, heard))
             out.found.append(Found(p.id, heard, dxl.from_bytes(p.params[0:2], False),
                                    p.params[2], bool(torque), mode))
-    return out
 
 
 def _joint(profile: ArmProfile, name: str) -> tuple[int, JointConfig]:
