@@ -255,6 +255,25 @@ def test_an_answer_through_the_front_has_one_date_and_one_server(lab: Lab) -> No
                 assert len(r.headers.get_list(name)) == 1, (what, r.headers.raw)
 
 
+def test_head_through_the_front_is_get_without_the_body(lab: Lab) -> None:
+    """HEAD as GET without the body (tests/test_http_head.py) through the front: the merged
+    list's length is the merged GET's, an arm's answer comes from its worker, and a stream's
+    HEAD ends at its head (the connection then answers the next request)."""
+    with httpx.Client(base_url=lab.url, headers=AUTH) as c:
+        for path in ("/api/v1/arms", "/api/v1/arms/nobody/state"):
+            got, head = c.get(path), c.head(path)
+            assert head.status_code == got.status_code and head.content == b"", path
+            assert int(head.headers["content-length"]) == len(got.content), path
+            assert len(head.headers.get_list("date")) == 1
+        state = c.head("/api/v1/arms/rails/state")
+        assert state.status_code == 200 and state.content == b""
+        assert int(state.headers["content-length"]) > 0
+        stream = c.head("/api/v1/cameras/table-right/stream")  # (it would never end as a GET)
+        assert stream.status_code == 200 and stream.content == b""
+        assert stream.headers["content-type"].startswith("multipart/x-mixed-replace")
+        assert c.get("/api/v1/health").status_code == 200  # the same client, on it goes
+
+
 async def test_telemetry_websocket_through_the_front(lab: Lab) -> None:
     async with connect(f"{lab.ws}/api/v1/arms/rails/telemetry?rate=50",
                        additional_headers=AUTH) as ws:

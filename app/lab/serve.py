@@ -24,6 +24,7 @@ from app.lab.placement import plan_lab, worker_socket
 from app.lab.supervisor import Supervisor, Worker
 from app.lab.upstream import Upstream
 from app.lab.worker import uvicorn_config
+from app.web.middleware import HeadAsGet
 
 log = logging.getLogger("armserver.lab")
 
@@ -77,7 +78,8 @@ def serve_lab(settings: Settings, count: int, access_log: bool = False) -> int:
                         "the arms (set ARMSERVER_OPERATOR_TOKENS)", settings.host)
         for w in front.workers:
             log.info("worker %d will host %s", w.index, ", ".join(w.arms))
-        config = uvicorn_config(front, settings, access_log, host=settings.host,
+        # (HEAD as GET without the body, as each worker's app: app/web/middleware.py)
+        config = uvicorn_config(HeadAsGet(front), settings, access_log, host=settings.host,
                                 port=settings.port, lifespan="on")
         LabServer(config, front.supervisor).run()
     finally:

@@ -41,7 +41,7 @@ from app.telemetry.mqtt import start_mqtt_bridge
 from app.teleop.config import load_teleop
 from app.web.error_responses import install_error_handlers
 from app.web.hostguard import HostOriginGuard, HostPolicy
-from app.web.middleware import API_PREFIX, BodyLimit, InternalErrors, TokenGate
+from app.web.middleware import API_PREFIX, BodyLimit, HeadAsGet, InternalErrors, TokenGate
 from app.web.routes import (
     arms,
     audit,
@@ -205,8 +205,10 @@ def create_app(settings: Settings | None = None,
     # Outside it: every changing request's outcome, refusals and bugs included
     # (app/classroom/audit.py).
     app.add_middleware(AuditLog, app_ref=app, access=app.state.access)
-    # Outermost: GET state from the bytes encoded at publish time (app/web/routes/arms.py).
+    # GET state from the bytes encoded at publish time (app/web/routes/arms.py), outside the rest.
     arms.install_fast_paths(app, API_PREFIX, hosts)
+    # Outermost: HEAD as GET without the body (a GET state's fast path included).
+    app.add_middleware(HeadAsGet)
 
     if (STATIC_DIR / "index.html").is_file():
         app.router.routes.append(_Dashboard("/", StaticFiles(directory=STATIC_DIR, html=True),

@@ -1,7 +1,8 @@
 """The raw ASGI middlewares of the app (app/web/factory.py installs them): the last resort for bugs
 (502 `internal_error`, never a 500), the request body limit (413 `too_large`) and the token
 gate (401 `unauthorized` before a body is read). Each answers with `send_error`, the one JSON
-error writer (app/web/error_responses.py).
+error writer (app/web/error_responses.py). And `HeadAsGet`, outermost, here and around a lab's
+front (app/lab/serve.py): HEAD answered as GET is, without the body.
 """
 
 from __future__ import annotations
@@ -131,3 +132,38 @@ class TokenGate:
         exc = Unauthorized("missing bearer token" if not token else "invalid bearer token")
         await send_error(send, exc.status_code, exc.detail, exc.code,
                          {"WWW-Authenticate": "Bearer"})
+
+
+class HeadAsGet:
+    """HEAD answered as GET would be, without the body: "The HEAD method is identical to GET
+    except that the server MUST NOT send content in the response", and a general-purpose
+    server supports both (RFC 9110 9.1, 9.3.2); FastAPI's GET routes answered HEAD with 405.
+    The request goes on as a GET (every gate and limit as for one; the audit log records GET,
+    uvicorn's access log HEAD). Its answer ends at its head: the status and headers (the length
+    a GET's body would have) are sent with an empty, last body; what the app sends after is
+    dropped, and it is told the client has gone, so that a stream (MJPEG) ends there rather
+    than feeding a connection no body may be sent on."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] != "HEAD":
+            return await self.app(scope, receive, send)
+        ended = False
+
+        async def head_only(message: Message) -> None:
+            nonlocal ended
+            if ended:
+                return
+            if message["type"] == "http.response.start":
+                await send(message)
+                await send({"type": "http.response.body", "body": b"", "more_body": False})
+                ended = True
+
+        async def gone_once_ended() -> Message:
+            if ended:
+                return {"type": "http.disconnect"}
+            return await receive()
+
+        await self.app({**scope, "method": "GET"}, gone_once_ended, head_only)

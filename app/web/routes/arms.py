@@ -190,5 +190,6 @@ _FULL_STACK_HEADERS = frozenset({b"origin", b"sec-fetch-site", b"content-length"
 
 def install_fast_paths(app: FastAPI, prefix: str, hosts: HostPolicy) -> None:
     """Put the hot read outside every other layer (see StateFastPath): call it after the last
-    `add_middleware`, so that it is the outermost."""
+    `add_middleware` but HeadAsGet's (app/web/middleware.py), so that only that one is
+    outside it."""
     app.add_middleware(StateFastPath, app_ref=app, prefix=prefix, hosts=hosts)
