@@ -221,6 +221,13 @@ class RawClient:
             await self._io[1].wait_closed()
 
 
+async def _status(c: httpx.AsyncClient | RawClient, method: str, path: str) -> int:
+    """The status of a body-less `method path`, by either client."""
+    if isinstance(c, RawClient):
+        return await c.request(method, path)
+    return (await c.request(method, path)).status_code
+
+
 async def _press_seen(c: httpx.AsyncClient | RawClient, arm: str,
                       queue: asyncio.Queue[tuple[float, bool]]) -> float:
     """One press as the harness makes it: a pause, `POST /estop`, the time to the first sample
@@ -230,19 +237,13 @@ async def _press_seen(c: httpx.AsyncClient | RawClient, arm: str,
         queue.get_nowait()
     path = f"{API}/arms/{arm}/estop"
     start = time.perf_counter()
-    if isinstance(c, RawClient):
-        status = await c.request("POST", path)
-    else:
-        status = (await c.post(path)).status_code
+    status = await _status(c, "POST", path)
     assert status == 200, status
     while True:
         at, latched = await asyncio.wait_for(queue.get(), 5)
         if latched:
             break
-    if isinstance(c, RawClient):
-        status = await c.request("DELETE", path)
-    else:
-        status = (await c.delete(path)).status_code
+    status = await _status(c, "DELETE", path)
     assert status == 200, status
     await asyncio.sleep(PAUSE_AFTER_S)
     return at - start

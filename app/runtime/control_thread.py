@@ -177,14 +177,14 @@ def _settle_main() -> None:
     elif not lower and _main_before is not None:
         # the main thread and every thread it started meanwhile (they inherited its niceness)
         held = max(_main_before, HOLD_MAIN_NICE)
-        for tid in _thread_ids():
+        for tid in thread_ids():
             if tid not in _raised and _niceness(tid) == held:
                 _set_niceness(tid, _main_before)
         _main_before = None
 
 
-def _thread_ids() -> list[int]:
-    """The native ids of this process's threads."""
+def thread_ids() -> list[int]:
+    """The native ids of this process's threads (app/arms/dynamixel/practice.py's too)."""
     try:
         return [int(t) for t in os.listdir("/proc/self/task")]
     except OSError:  # (no /proc: the main thread alone)

@@ -51,6 +51,7 @@ from typing import Any, TypeVar
 
 from app.arms.dynamixel.sim_bus import FACTORY_BAUDRATE, DynamixelBus
 from app.arms.dynamixel.sim_mx28 import BAUD_CODES
+from app.runtime.control_thread import thread_ids
 from app.sim.servers import PtyServer, serve_pty
 
 T = TypeVar("T")
@@ -219,11 +220,7 @@ def _raise_priority() -> None:
     """This process's threads at NICENESS, where the system allows it (else as they are).
     Niceness is a thread's own on Linux: each thread there now (the imports' own, numpy's
     BLAS workers) is set; the bus's thread, started after, inherits it."""
-    try:
-        threads = [int(t) for t in os.listdir("/proc/self/task")]
-    except OSError:  # (no /proc: this thread)
-        threads = [0]
-    for tid in threads:
+    for tid in thread_ids():
         raise_priority(tid)
 
 
