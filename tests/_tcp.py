@@ -48,4 +48,5 @@ class LoopThread:
     def stop(self) -> None:
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.thread.join(timeout=5)
+        assert not self.thread.is_alive(), "the device loop's thread outlived the test"
         self.loop.close()

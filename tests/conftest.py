@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import atexit
 import contextlib
+import logging
 import os
 import shutil
 import socket
@@ -19,6 +20,7 @@ import sys
 import tempfile
 import threading
 import time
+import traceback
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -227,6 +229,9 @@ def serve_live(settings: Settings | None = None, sndbuf: int | None = None,
         server.should_exit = True
         thread.join(10)
         sock.close()
+    # a server thread that outlives its test runs on beside the next ones (session 31: a
+    # spinning one logged into every later test of its process)
+    assert not thread.is_alive(), "the live server's thread outlived the test"
     assert app.state.internal_errors == 0, "the last-resort error handler was hit"
 
 
@@ -322,3 +327,24 @@ def pytest_make_collect_report(collector: Any) -> Iterator[None]:
     report = outcome.get_result()  # type: ignore[attr-defined]
     if report.skipped and strict_skips():  # a module-level pytest.skip / importorskip
         _fail_skip(report)
+
+
+
+class _NameTheWriter(logging.Filter):
+    """asyncio's "socket.send() raised exception." (a write on a transport whose connection
+    is gone) with the thread and the code that wrote: the warning alone names neither, and a
+    writer that spins logs it into every later test of its process (session 31: a test
+    server's loop of sends, found only with this)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.msg == "socket.send() raised exception.":
+            frames = [f for f in traceback.extract_stack()
+                      if "/asyncio/" not in f.filename and "/logging/" not in f.filename]
+            where = "; ".join(f"{f.filename.rsplit('/', 2)[-1]}:{f.lineno} {f.name}"
+                              for f in frames[-7:-1])
+            record.msg = (f"{record.msg} (thread {threading.current_thread().name}, "
+                          f"written by {where})")
+        return True
+
+
+logging.getLogger("asyncio").addFilter(_NameTheWriter())

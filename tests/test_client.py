@@ -60,6 +60,7 @@ class Server:
     def __exit__(self, *exc: object) -> None:
         self.server.should_exit = True
         self.thread.join(timeout=10.0)
+        assert not self.thread.is_alive(), "the server's thread outlived the test"
 
 
 def settings(**over: Any) -> Settings:

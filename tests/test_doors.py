@@ -172,6 +172,7 @@ def uvicorn_on_loopback() -> Iterator[str]:
         server.should_exit = True
         thread.join(10)
         sock.close()
+        assert not thread.is_alive(), "the server's thread outlived the test"
 
 
 @pytest.mark.parametrize("compression", [None, "deflate"])
