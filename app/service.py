@@ -14,6 +14,7 @@ import logging
 import threading
 import time
 from collections.abc import Awaitable, Callable
+from datetime import UTC, datetime
 from typing import Any, TypeVar
 
 import numpy as np
@@ -47,7 +48,7 @@ from app.safety.guard import SafetyGuard
 from app.sim.hand import Hand
 from app.sim.world import World
 from app.sim.world_tap import hand_of, world_of
-from app.store import Store
+from app.store import Store, StoreError
 from app.telemetry.arm_hub import ArmHub
 from app.telemetry.hub import Subscription, TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
@@ -56,6 +57,9 @@ log = logging.getLogger(__name__)
 
 #: Longest the estop fast path holds the HTTP thread for the latch, s (see press_estop).
 PRESS_WAIT_S = 0.005
+#: The store's record of an arm's estop latch (scope "arm:<name>", as its safety envelope's):
+#: `{"latched": bool, "at": ISO 8601 UTC}`, written at each latch and release.
+ESTOP_SCOPE, ESTOP_KEY = "arm:{}", "estop"
 
 T = TypeVar("T")
 D = TypeVar("D", bound=Driver)
@@ -93,6 +97,8 @@ class ArmService:
         self._gripper_told: float | None = None
         #: Replays' gripper followers (app/motion/replay.py `follow_gripper`), control loop.
         self._grippers: set[asyncio.Task[None]] = set()
+        #: Where the estop latch is kept across restarts (`keep_latch_in`); None: nowhere.
+        self._latch_store: Store | None = None
 
     async def start(self) -> None:
         await self.driver.start()
@@ -413,6 +419,34 @@ class ArmService:
         """At start-up, before the arm runs: the store its calibration is kept in."""
         self.calibration.store = store
 
+    def keep_latch_in(self, store: Store) -> None:
+        """At start-up, before the arm runs: the estop latch is kept in `store` from now on,
+        and a latch it holds from before is set again. A server, or a lab's worker, that
+        stopped, crashed or was killed while the estop was latched comes back latched: only a
+        release (DELETE .../estop) releases it, never a restart. A record the store cannot
+        read is said in the log and latches nothing (as a stored envelope that cannot be read
+        leaves the profile's)."""
+        self._latch_store = store
+        try:
+            record = store.get_setting_sync(ESTOP_SCOPE.format(self.name), ESTOP_KEY)
+        except (StoreError, ValueError) as exc:
+            log.error("%s: the stored estop latch could not be read: %s",  # noqa: TRY400
+                      self.name, exc)
+            return
+        if isinstance(record, dict) and record.get("latched") is True:
+            self.guard.latch()
+            log.warning("%s: emergency stop latched since %s, before this start: still latched "
+                        "(DELETE /api/v1/arms/%s/estop releases it)", self.name,
+                        record.get("at", "an unknown time"), self.name)
+
+    def _keep_latch(self, latched: bool) -> None:
+        """Record the latch in the store without waiting for the disk (it lands in order
+        with the other settings; one the disk refuses is kept and retried)."""
+        if self._latch_store is not None:
+            self._latch_store.put_setting_nowait(
+                ESTOP_SCOPE.format(self.name), ESTOP_KEY,
+                {"latched": latched, "at": datetime.now(UTC).isoformat(timespec="milliseconds")})
+
     def calibration_view(self) -> s.ArmCalibration:
         return self.calibration.view(self._gravity_run)
 
@@ -640,6 +674,7 @@ class ArmService:
                 hold.result()  # its error, if it failed
         finally:
             if fresh:
+                self._keep_latch(True)
                 log.warning("%s: emergency stop latched", self.name)
                 self.hub.event("estop", latched=True)
         return s.EstopState(estop=True)
@@ -654,6 +689,7 @@ class ArmService:
             # client that reads the state after the DELETE sees it (an arm at rest publishes
             # its repeats in batches; its latest sample could still say latched).
             self.driver.publish_state()
+            self._keep_latch(False)
             log.info("%s: emergency stop released", self.name)
             self.hub.event("estop_released", latched=False)
         return s.EstopState(estop=False)

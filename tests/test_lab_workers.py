@@ -14,6 +14,7 @@ import itertools
 import json
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -29,6 +30,8 @@ from _wait import wait_for, wait_until
 from conftest import OPERATOR, VIEWER, may_raise_priority, threads_niceness
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
+
+from app.store import DB_NAME
 
 CONFIG = """
 [[arms]]
@@ -77,6 +80,8 @@ class Lab:
     proc: subprocess.Popen[bytes]
     url: str
     ws: str
+    #: The lab's data folder (its store, shared by the workers).
+    data: Path | None = None
 
     def workers(self) -> dict[int, int]:
         """The worker processes' pids by worker index."""
@@ -115,7 +120,7 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
     srv = start(folder / "lab.log", "--workers", "2", "--config", str(folder / "lab.toml"),
                 "--log-level", "warning", env=env, start_s=START_WITHIN_S, headers=AUTH)
     proc = srv.proc
-    lab = Lab(proc, srv.url, srv.url.replace("http://", "ws://"))
+    lab = Lab(proc, srv.url, srv.url.replace("http://", "ws://"), folder / "data")
     try:
         yield lab
     finally:
@@ -410,6 +415,43 @@ async def test_a_hung_worker_is_killed_and_restarted(lab: Lab) -> None:
         arms = (await c.get("/api/v1/arms")).json()
         assert [a["name"] for a in arms] == ARMS
         assert all(a["link"]["connected"] for a in arms)
+
+
+@pytest.mark.serial  # beside this module's other kills, on the serial part's lab
+async def test_a_latched_estop_holds_across_its_workers_kill(lab: Lab) -> None:
+    """The right arm latched, its worker killed with SIGKILL: the worker started in its place
+    starts the arm latched (the latch is in the lab's store), and a move is refused 409
+    `estop_latched` until someone releases it."""
+    right = "/api/v1/arms/right"
+    assert lab.data is not None
+    db = lab.data / DB_NAME
+
+    def on_disk() -> bool:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as c:
+            row = c.execute("SELECT value FROM settings WHERE scope = 'arm:right' "
+                            "AND key = 'estop'").fetchone()
+        return row is not None and json.loads(row[0])["latched"] is True
+
+    async with httpx.AsyncClient(base_url=lab.url, headers=OP, timeout=30) as c:
+        assert (await c.post(f"{right}/estop")).json() == {"estop": True}
+        try:
+            await wait_for(on_disk, what="the right arm's latch in the store")
+            before = lab.workers()[1]
+            os.kill(before, signal.SIGKILL)
+
+            async def right_state() -> int:
+                return (await c.get(f"{right}/state")).status_code
+
+            await wait_for(lambda: lab.workers().get(1) not in (None, before),
+                           timeout=BACK_WITHIN_S, what="worker 1 on a new process")
+            await wait_for(_is(right_state, 200), timeout=BACK_WITHIN_S,
+                           what="the right arm back")
+            assert (await c.get(f"{right}/state")).json()["estop"] is True
+            r = await c.post(f"{right}/move/joints", json={"positions": [0.1, 0.1, 0.1]})
+            assert r.status_code == 409 and r.json()["code"] == "estop_latched", r.text
+        finally:
+            released = await c.delete(f"{right}/estop")
+        assert released.status_code == 200 and released.json() == {"estop": False}
 
 
 def _is(fn: Any, value: Any) -> Any:

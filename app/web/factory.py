@@ -108,6 +108,7 @@ def create_app(settings: Settings | None = None,
             for p in profiles:
                 svc = ArmService(p)
                 safety.load_stored(svc, store)
+                svc.keep_latch_in(store)  # a latch from before this start holds
                 calibration.use_store(svc, store)  # found at connect, by hardware identity
                 services[p.name] = svc
                 svc.bind_fanout()

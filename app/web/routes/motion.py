@@ -133,7 +133,8 @@ async def stop(svc: OperatorArm, who: CallerDep) -> s.StopResult:
     summary="Latch the emergency stop",
     description="Motion stops now and the queue is cleared; every move is refused with 409 "
     "`estop_latched` until released. Open to every authenticated client, viewer tokens "
-    "included, lease or not.",
+    "included, lease or not. The latch is kept in the data folder's store: a server (or a "
+    "lab's worker) restarted, crashed or killed while it is latched starts the arm latched.",
     responses=errors(*READ),
 )
 async def estop(svc: ViewerArm) -> s.EstopState:
@@ -144,7 +145,8 @@ async def estop(svc: ViewerArm) -> s.EstopState:
     "/arms/{arm}/estop",
     response_model=s.EstopState,
     summary="Release the emergency stop",
-    description="Release the latch (the arm does not move until commanded). Operator token, "
+    description="Release the latch (the arm does not move until commanded); the only way it "
+    "is released, a restart included. Operator token, "
     "and the lease id while a lease is held: releasing re-enables motion, so it needs the same "
     "right as moving.",
     responses=errors(*READ, 403, 409),

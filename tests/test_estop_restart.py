@@ -1,0 +1,117 @@
+"""A latched estop survives a restart of the server that latched it: only a release releases
+it (app/service.py `keep_latch_in`; the store's record `arm:<name>` / `estop`). The app in
+process over the default simulated arms, stopped and started again on the same data folder,
+as `armserver serve` is by a crash, a kill or an operator; a lab's killed worker is
+tests/test_lab_workers.py's.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _safety_support import goal_raw, motor_of, set_pid_body
+from _wait import wait_for
+from conftest import make_settings, running_client
+
+from app.store import DB_NAME
+
+API = "/api/v1/arms"
+
+
+def _stored(data: Path, arm: str) -> dict[str, object] | None:
+    """The store's record of `arm`'s latch, read from the database file as another process
+    would (None: none written)."""
+    with sqlite3.connect(f"file:{data / DB_NAME}?mode=ro", uri=True) as db:
+        row = db.execute("SELECT value FROM settings WHERE scope = ? AND key = 'estop'",
+                         (f"arm:{arm}",)).fetchone()
+    return None if row is None else json.loads(row[0])
+
+
+async def _on_disk(data: Path, arm: str, latched: bool) -> None:
+    await wait_for(lambda: (_stored(data, arm) or {}).get("latched") is latched,
+                   what=f"{arm}'s latch {latched} in the database file")
+
+
+async def test_a_latch_holds_across_a_restart_until_released(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    settings = make_settings(data_dir=str(tmp_path))
+    async with running_client(settings) as (_app, c):
+        assert (await c.post(f"{API}/rbe3001/estop")).json() == {"estop": True}
+        await _on_disk(tmp_path, "rbe3001", True)
+        assert _stored(tmp_path, "angler") is None  # the other arm: nothing latched
+    caplog.set_level(logging.WARNING, logger="app.service")
+    async with running_client(settings) as (app, c):
+        rb, an = app.state.services["rbe3001"], app.state.services["angler"]
+        # latched from the start, before any request: the arm came up and samples flow
+        assert rb.estop and not an.estop
+        assert (await c.get(f"{API}/rbe3001/state")).json()["estop"] is True
+        assert rb.hub.latest is not None and rb.hub.latest["estop"] is True
+        assert any("latched since" in r.getMessage() and "DELETE /api/v1/arms/rbe3001/estop"
+                   in r.getMessage() for r in caplog.records), caplog.text
+        # nothing moves it: a planned move, a pass-through SET_PID
+        q = np.asarray(rb.driver.positions, dtype=float)
+        r = await c.post(f"{API}/rbe3001/move/joints", json={"positions": (q + 0.1).tolist()})
+        assert r.status_code == 409 and r.json()["code"] == "estop_latched", r.text
+        r = await c.post(f"{API}/rbe3001/rbe3001/set-pid", json=set_pid_body(rb, q + 0.1))
+        assert r.status_code == 409 and r.json()["code"] == "estop_latched", r.text
+        assert np.allclose(rb.driver.positions, q, atol=0.02)
+        # the other arm moves as ever
+        r = await c.put(f"{API}/angler/dynamixel/{motor_of(an, 2)}/registers/goal_position",
+                        json={"raw": goal_raw(an, 2, np.asarray(an.driver.positions) + [0, 0,
+                                                                                         0.1, 0])})
+        assert r.status_code == 200, r.text
+        # released: that is kept too
+        assert (await c.delete(f"{API}/rbe3001/estop")).json() == {"estop": False}
+        await _on_disk(tmp_path, "rbe3001", False)
+        r = await c.post(f"{API}/rbe3001/move/joints", json={"positions": (q + 0.05).tolist()})
+        assert r.status_code == 202, r.text
+    async with running_client(settings) as (app, c):
+        assert not app.state.services["rbe3001"].estop
+        assert (await c.get(f"{API}/rbe3001/state")).json()["estop"] is False
+
+
+async def test_a_press_on_a_latch_from_before_the_start_is_a_press_on_a_latched_estop(
+        tmp_path: Path) -> None:
+    """A press after such a start changes nothing (and writes nothing); a release then a
+    press latches and records again."""
+    settings = make_settings(data_dir=str(tmp_path))
+    async with running_client(settings) as (_app, c):
+        await c.post(f"{API}/angler/estop")
+        await _on_disk(tmp_path, "angler", True)
+    async with running_client(settings) as (app, c):
+        at = _stored(tmp_path, "angler")
+        assert app.state.services["angler"].estop
+        assert (await c.post(f"{API}/angler/estop")).json() == {"estop": True}
+        # a setting written after the press is on disk: so would the press's be (the store
+        # writes in order, one thread)
+        r = await c.put(f"{API}/angler/safety", json={"speed_override": 0.9})
+        assert r.status_code == 200 and r.json()["persisted"] is True, r.text
+        assert _stored(tmp_path, "angler") == at
+        await c.delete(f"{API}/angler/estop")
+        await _on_disk(tmp_path, "angler", False)
+        await c.post(f"{API}/angler/estop")
+        await _on_disk(tmp_path, "angler", True)
+        assert _stored(tmp_path, "angler") != at  # its own time
+
+
+@pytest.mark.parametrize("value", ['"latched"', '{"latched": "yes"}', "[true]", "not json"])
+async def test_a_record_that_is_not_a_latch_latches_nothing(
+        tmp_path: Path, value: str, caplog: pytest.LogCaptureFixture) -> None:
+    """Only `{"latched": true}` latches; anything else the store holds there is not a latch
+    (unreadable JSON is said in the log)."""
+    settings = make_settings(data_dir=str(tmp_path))
+    async with running_client(settings):
+        pass  # the database made
+    with sqlite3.connect(tmp_path / DB_NAME) as db:
+        db.execute("INSERT INTO settings (scope, key, value, updated) "
+                   "VALUES ('arm:rbe3001', 'estop', ?, 0)", (value,))
+    async with running_client(settings) as (app, c):
+        assert not app.state.services["rbe3001"].estop
+        assert (await c.get(f"{API}/rbe3001/state")).json()["estop"] is False
+    if value == "not json":
+        assert "stored estop latch could not be read" in caplog.text
