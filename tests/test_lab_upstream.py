@@ -129,3 +129,29 @@ async def test_a_press_goes_again_on_a_new_connection_when_its_own_breaks(
 def test_only_an_estop_press_is_one_the_front_may_send_twice(method: str, path: str,
                                                               again: bool) -> None:
     assert _press({"type": "http", "method": method, "path": path}) is again
+
+
+def test_a_kept_press_is_one_per_arm_and_token_bounded_and_forgotten_after_a_while(
+        tmp_path: Path) -> None:
+    """`Worker.keep_press` (app/lab/supervisor.py): the same press twice is kept once; another
+    arm's or another token's is kept beside it; MAX_KEPT_PRESSES at most; one older than
+    KEEP_PRESS_S is dropped."""
+    from app.lab import supervisor
+
+    w = supervisor.Worker(1, ("a", "b"), tmp_path / "w.sock",
+                          Upstream(tmp_path / "w.sock", 1))
+    a, b = "/api/v1/arms/a/estop", "/api/v1/arms/b/estop"
+    tok = [(b"host", b"lab"), (b"authorization", b"Bearer t1")]
+    other = [(b"host", b"lab"), (b"authorization", b"Bearer t2")]
+    assert w.keep_press(a, tok) and w.keep_press(a, tok)
+    assert [p.target for p in w.kept] == [a]
+    assert w.keep_press(b, tok) and w.keep_press(a, other) and w.keep_press(a, [])
+    assert [(p.target, dict(p.headers).get(b"authorization")) for p in w.kept] == [
+        (a, b"Bearer t1"), (b, b"Bearer t1"), (a, b"Bearer t2"), (a, None)]
+    for k in range(supervisor.MAX_KEPT_PRESSES - 4):
+        assert w.keep_press(a, [(b"authorization", f"Bearer x{k}".encode())])
+    assert not w.keep_press(b, other)  # full
+    assert len(w.kept) == supervisor.MAX_KEPT_PRESSES
+    later = w.kept[-1].at + supervisor.KEEP_PRESS_S + 1
+    assert w.keep_press(b, other, now=later)  # the old ones forgotten
+    assert [(p.target, p.headers) for p in w.kept] == [(b, other)]

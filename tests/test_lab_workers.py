@@ -80,8 +80,9 @@ class Lab:
     proc: subprocess.Popen[bytes]
     url: str
     ws: str
-    #: The lab's data folder (its store, shared by the workers).
+    #: The lab's data folder (its store, shared by the workers), and its log.
     data: Path | None = None
+    log: Path | None = None
 
     def workers(self) -> dict[int, int]:
         """The worker processes' pids by worker index."""
@@ -120,7 +121,8 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
     srv = start(folder / "lab.log", "--workers", "2", "--config", str(folder / "lab.toml"),
                 "--log-level", "warning", env=env, start_s=START_WITHIN_S, headers=AUTH)
     proc = srv.proc
-    lab = Lab(proc, srv.url, srv.url.replace("http://", "ws://"), folder / "data")
+    lab = Lab(proc, srv.url, srv.url.replace("http://", "ws://"), folder / "data",
+              folder / "lab.log")
     try:
         yield lab
     finally:
@@ -452,6 +454,43 @@ async def test_a_latched_estop_holds_across_its_workers_kill(lab: Lab) -> None:
         finally:
             released = await c.delete(f"{right}/estop")
         assert released.status_code == 200 and released.json() == {"estop": False}
+
+
+@pytest.mark.serial  # as above
+async def test_a_press_while_its_worker_restarts_latches_the_arm_as_it_comes_back(
+        lab: Lab) -> None:
+    """Worker 1 killed; while it restarts a press on its arm is answered 503 `link_down` and
+    kept by the front, which sends it to the new worker before any other request: the arm's
+    first answer from the new worker already says latched."""
+    right = "/api/v1/arms/right"
+    async with httpx.AsyncClient(base_url=lab.url, headers=OP, timeout=30) as c:
+        async def right_down() -> bool:
+            r = await c.get("/api/v1/health")
+            return r.json()["arms"]["right"]["connected"] is False
+
+        before = lab.workers()[1]
+        os.kill(before, signal.SIGKILL)
+        try:
+            await wait_for(right_down, timeout=BACK_WITHIN_S, what="the right arm down",
+                           every=0.005)
+            pressed = [await c.post(f"{right}/estop") for _ in range(2)]  # (one is kept)
+            for r in pressed:
+                assert r.status_code == 503 and r.json()["code"] == "link_down", r.text
+                assert "this estop press is kept" in r.json()["detail"], r.text
+
+            async def right_state() -> int:
+                return (await c.get(f"{right}/state")).status_code
+
+            await wait_for(_is(right_state, 200), timeout=BACK_WITHIN_S,
+                           what="the right arm back")
+            assert (await c.get(f"{right}/state")).json()["estop"] is True
+            assert lab.workers()[1] != before
+        finally:
+            released = await c.delete(f"{right}/estop")
+        assert released.status_code == 200 and released.json() == {"estop": False}
+    # one press sent, once: the worker's log (the lab's) says so once
+    assert lab.log is not None
+    assert lab.log.read_text().count("an estop press kept while it was down") == 1
 
 
 def _is(fn: Any, value: Any) -> Any:

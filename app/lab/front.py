@@ -18,7 +18,10 @@ process owning its arm (app/lab/supervisor.py) and answers the lab-wide endpoint
   ARMSERVER_DATA_DIR, the dashboard, `/openapi.json`, an unknown arm's 404) goes to the first
   ready worker: each serves the same routes and tokens.
 - A request for an arm whose worker is down is 503 `link_down` ("the server cannot talk to
-  the arm now"), as is a request when no worker is ready.
+  the arm now"), as is a request when no worker is ready. An estop press so refused is kept
+  and sent to the worker as it comes back, before any other request (app/lab/supervisor.py
+  `Worker.keep_press`): the arm comes back latched, as an arm whose link is down on a single
+  server is latched by a press.
 
 Why a front in the project and not nginx or Caddy: the two lab-wide lists are merges of the
 workers' answers, which a reverse proxy cannot make without a program of its own beside it;
@@ -262,13 +265,17 @@ class LabFront:
         body = await self._read_body(receive) if body is None else body
         if body is None:
             return self._too_large()
+        press = _press(scope)
         if worker is None or not worker.ready:
-            return self._down(worker)
+            return self._down(worker, press and self._keep(scope, worker, body))
         try:
             r = await worker.client.request(scope["method"], _target(scope),
                                             forwarded_headers(scope), body, REQUEST_TIMEOUT_S,
-                                            retry=True if _press(scope) else None)
-        except (UpstreamError, TimeoutError) as exc:
+                                            retry=True if press else None)
+        except UpstreamError as exc:  # its socket refused or broke twice: the worker is gone
+            log.warning("worker %d: %r", worker.index, exc)
+            return self._down(worker, press and self._keep(scope, worker, body))
+        except TimeoutError as exc:
             log.warning("worker %d: %r", worker.index, exc)
             return self._down(worker)
         try:
@@ -307,9 +314,22 @@ class LabFront:
         return json.dumps({"detail": f"{detail}; this server hosts "
                            f"{', '.join(self.plan.names)}", "code": "unknown_arm"}).encode()
 
-    def _down(self, worker: Worker | None) -> Answer:
+    @staticmethod
+    def _keep(scope: Scope, worker: Worker | None, body: bytes) -> bool:
+        """Keep an estop press for `worker`, down now (True if kept)."""
+        if worker is None or body:
+            return False  # (a press with a body: the route takes none)
+        kept = worker.keep_press(_target(scope), forwarded_headers(scope))
+        if not kept:
+            log.warning("worker %d: too many estop presses kept; this one is not", worker.index)
+        return kept
+
+    def _down(self, worker: Worker | None, kept: bool = False) -> Answer:
         what = (f"worker {worker.index} (arms {', '.join(worker.arms)}) is restarting"
                 if worker is not None else "no worker process is ready")
+        if kept:
+            what += (": this estop press is kept and goes to it as it comes back, before any "
+                     "other request (the arm comes back latched)")
         return _json_response(503, {"detail": f"{what}: retry shortly", "code": "link_down"},
                               [(b"retry-after", b"1")])
 

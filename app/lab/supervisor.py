@@ -32,6 +32,11 @@ has neither run nor waited to run for START_FROZEN_S, or after START_S without a
 
 `ready` is the front's one question: has the worker answered its health since it last started
 (and not been taken for hung since).
+
+An estop press the front could not hand to a down worker is kept on it (`Worker.keep_press`)
+and sent to the worker once it answers its health again, before it is `ready`: before any
+other request reaches its arms. A press that found the arm's worker restarting latches the arm
+as it comes back, as a press on a single server latches an arm whose link is down.
 """
 
 from __future__ import annotations
@@ -43,7 +48,7 @@ import os
 import signal
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from app.lab.upstream import Upstream, UpstreamError
@@ -77,6 +82,13 @@ KILL_GRACE_S = 0.5
 #: How long a stopping worker gets after its SIGTERM (beyond the server's own graceful
 #: shutdown) before it is killed, s.
 STOP_GRACE_S = 5.0
+#: An estop press kept for a down worker is sent when it is back within this, s (a restart
+#: takes seconds; a press from long before is not what anyone at the arm now expects).
+KEEP_PRESS_S = 60.0
+#: Presses kept per worker at most (one per arm and token is all a latch needs).
+MAX_KEPT_PRESSES = 32
+#: How long a kept press may take to answer once the worker is back, s.
+KEPT_PRESS_ASK_S = 10.0
 
 
 def _stat(pid: int) -> list[bytes] | None:
@@ -139,6 +151,15 @@ def is_hung(misses: int, frozen: bool, silent_s: float, stopped: bool = False) -
 
 
 @dataclass
+class KeptPress:
+    """An estop press (`POST target`, the client's headers) that found its worker down."""
+
+    target: str
+    headers: list[tuple[bytes, bytes]]
+    at: float  # time.monotonic()
+
+
+@dataclass
 class Worker:
     """One worker process and the front's connection pool to it."""
 
@@ -153,10 +174,31 @@ class Worker:
     #: Times it was killed for not answering its health (a hung worker), and how it hung.
     hangs: int = 0
     hung: str = ""
+    #: Estop presses for its arms that came while it was down, oldest first (`keep_press`).
+    kept: list[KeptPress] = field(default_factory=list)
+
+    def keep_press(self, target: str, headers: list[tuple[bytes, bytes]],
+                   now: float | None = None) -> bool:
+        """Keep an estop press for when the worker is back (the supervisor sends it before
+        the worker is ready). One per target and credentials: a second is the same press.
+        False when MAX_KEPT_PRESSES are kept already (it is not). `now`: time.monotonic()'s."""
+        now = time.monotonic() if now is None else now
+        self.kept = [p for p in self.kept if now - p.at <= KEEP_PRESS_S]
+        auth = _credentials(headers)
+        if any(p.target == target and _credentials(p.headers) == auth for p in self.kept):
+            return True
+        if len(self.kept) >= MAX_KEPT_PRESSES:
+            return False
+        self.kept.append(KeptPress(target, headers, now))
+        return True
 
     @property
     def pid(self) -> int | None:
         return self.proc.pid if self.proc is not None else None
+
+
+def _credentials(headers: list[tuple[bytes, bytes]]) -> bytes | None:
+    return next((v for k, v in headers if k == b"authorization"), None)
 
 
 class Supervisor:
@@ -293,6 +335,27 @@ class Supervisor:
         with contextlib.suppress(ProcessLookupError):
             proc.kill()
 
+    async def _send_kept(self, w: Worker) -> bool:
+        """The estop presses kept while `w` was down, sent to it in order (each answered
+        before the next; the worker checks each as it would have: token, Host, arm). False
+        if its socket failed meanwhile: the rest stay kept for its next start."""
+        now = time.monotonic()
+        w.kept = [p for p in w.kept if now - p.at <= KEEP_PRESS_S]
+        while w.kept:
+            p = w.kept[0]
+            try:
+                r = await w.client.request("POST", p.target, p.headers, b"",
+                                           timeout=KEPT_PRESS_ASK_S, retry=True)
+                await r.read()
+            except (UpstreamError, TimeoutError) as exc:
+                log.warning("worker %d: a kept estop press not sent: %r", w.index, exc)
+                return False
+            del w.kept[0]
+            log.warning("worker %d: an estop press kept while it was down (%.1f s ago) sent: "
+                        "POST %s answered %d", w.index, time.monotonic() - p.at, p.target,
+                        r.status_code)
+        return True
+
     async def _until_ready(self, w: Worker, proc: asyncio.subprocess.Process) -> bool:
         """Ask a starting worker's health until it answers (True), or until it has had no
         activity for START_FROZEN_S or not answered for START_S (False: it hangs in its start)."""
@@ -303,7 +366,7 @@ class Supervisor:
                 r = await w.client.request("GET", "/api/v1/health",
                                            [(b"host", b"localhost")], timeout=READY_ASK_S)
                 await r.read()
-                if r.status_code == 200:
+                if r.status_code == 200 and await self._send_kept(w):
                     w.ready, w.last_error = True, None
                     self._first_ready.set()
                     log.info("worker %d ready", w.index)
