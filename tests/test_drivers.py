@@ -507,3 +507,39 @@ async def test_a_reply_there_when_the_driver_looks_counts_though_its_deadline_pa
             await request()
     finally:
         await driver.close()
+
+
+async def test_a_process_held_up_between_a_reading_and_its_read_is_no_jump():
+    """rbe3001: joint 0 runs a SET_PID step at its motor's speed while the loop is blocked for
+    0.15 s after three of the STATUS requests were written (the device answered at once, then
+    the joint moved on while nothing of the driver ran): the next reading has the joint tenths
+    of a radian on, a few milliseconds after the read before it. That is the arm's motion over
+    the hold, counted from when the held reading was asked for: every reading is taken, none
+    refused as corrupt (a clean clone's loaded run refused one so, session 31). A changed byte
+    that moves a joint that far with no hold is still refused (`test_drivers` above)."""
+    profile = load_profile("rbe3001")
+    link = _HeldLink(make_sim_device(profile), address="sim:rbe3001", seed=1)
+    driver = await started("rbe3001", link)
+    try:
+        tr = driver.model.transmission
+        start = np.asarray(driver.positions, dtype=float)
+        goal = start + [1.2, 0.0, 0.0]
+        link.hold_s = 0.15
+        link.held = lambda packet: (int.from_bytes(packet[:4], "little") == rb.CommandId.STATUS
+                                    and link.holds < 3)
+        seen: list[float] = []
+        await driver.set_pid([(float(t), 0.0, 0.0) for t in tr.to_ticks(goal)])
+
+        def arrived() -> bool:
+            seen.append(float(driver.positions[0]))
+            return abs(driver.positions[0] - goal[0]) < 0.05
+
+        await wait_for(arrived, every=0.01, what="joint 0 at its goal")
+        assert link.holds == 3
+        assert driver.stats["corrupt"] == 0, driver.stats
+        # the readings over a hold moved further than the check allows in a few ms (bound
+        # JUMP_SPEEDS x the velocity limit x the time since, plus the slack)
+        steps = np.abs(np.diff(seen))
+        assert steps.max() > 0.2, seen
+    finally:
+        await driver.close()

@@ -74,6 +74,8 @@ class Rbe3001Driver(Driver):
         #: A request timed out: its reply may still come, so wait for quiet before the next.
         self._dirty = False
         self._last_q: np.ndarray | None = None
+        #: The earliest the last accepted reading can have been taken (`time.monotonic()`):
+        #: the jump check's clock (`_check_jump`).
         self._last_q_t = 0.0
         self._last_units = self.units_version  # the units `_last_q` was read in
         f = self.profile.force
@@ -178,17 +180,22 @@ class Rbe3001Driver(Driver):
         self._dirty = False
 
     async def _poll(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        asked = time.monotonic()
         reply: rb.StatusReply = await self._exchange(_STATUS, self.timeout)
         read_at = self.read_at()
+        # The reading was taken between the ask and the read (one read ahead: before its read,
+        # so no later than that): a process held up between the two has the arm's motion
+        # over the hold in the next reading, and the jump check counts the hold in its time.
+        taken = min(asked, read_at)
         known = self.converted(reply)
         if known is not None:
             # The matcher's reply for the same bytes (an arm at rest): the same readings,
             # converted already (read-only arrays); the jump check's clock moves on.
-            self._last_q_t = read_at
+            self._last_q_t = taken
             return known
         tr = self.model.transmission
         q = tr.from_ticks(np.array(reply.position_ticks, dtype=float))
-        self._check_jump(q, read_at)
+        self._check_jump(q, read_at, taken)
         qd = tr.velocity_from_ticks(np.array(reply.velocity_ticks_s, dtype=float))
         tau = None
         if self.profile.force is not None:
@@ -258,17 +265,25 @@ class Rbe3001Driver(Driver):
         else:
             self._ready.extend(self._frames.feed(data))
 
-    def _check_jump(self, q: np.ndarray, now: float | None = None) -> None:
+    def _check_jump(self, q: np.ndarray, now: float | None = None,
+                    taken: float | None = None) -> None:
         """With no checksum, one changed byte in a reading can stay plausible (a soak caught
         834 ticks read as 1052). A joint cannot move more than JUMP_SPEEDS times its velocity
         limit (plus JUMP_SLACK_RAD) since the last reading accepted: such a reading is refused
         as corrupt. The bound grows with the time since, so a real fast move is accepted late,
-        never refused for ever. `now`: when the reading was taken (`time.monotonic()`; for
-        replies read ahead on the poll thread, their read time: a batch of them is checked
-        back to back, and the time between them is the time between their readings); None:
-        now."""
+        never refused for ever. `now`: the latest the reading can have been taken
+        (`time.monotonic()`; for replies read ahead on the poll thread, their read time: a
+        batch of them is checked back to back, and the time between them is the time between
+        their readings); None: now. `taken`: the earliest (when it was asked for; default
+        `now`), kept as the next check's start: the time since is from the earliest the last
+        reading can have been taken to the latest this one can, so a process held up between
+        a reading and its read (a loaded machine: the arm moved on meanwhile) does not read
+        the arm's motion over the hold as a jump (a clean clone's run refused one so,
+        session 31)."""
         if now is None:
             now = time.monotonic()
+        if taken is None:
+            taken = now
         if self._last_units != self.units_version:  # a calibration moved the zero: a new start
             self._last_q, self._last_units = None, self.units_version
         if self._last_q is not None and q.tolist() != self._last_q.tolist():  # (at rest: equal)
@@ -281,7 +296,7 @@ class Rbe3001Driver(Driver):
                 raise CorruptReply(f"{self.name}: {self.model.names[k]} reading jumped "
                                    f"{jump[k]:.3f} rad since the last one, more than the arm "
                                    f"can move ({bound[k]:.3f} rad): a corrupted reply")
-        self._last_q, self._last_q_t = q, now
+        self._last_q, self._last_q_t = q, taken
 
     def _check_plausible(self, reply: Any) -> None:
         pos = getattr(reply, "position_ticks", None)
