@@ -1,7 +1,8 @@
-"""A latched estop survives a restart of the server that latched it: only a release releases
-it (app/service.py `keep_latch_in`; the store's record `arm:<name>` / `estop`). The app in
-process over the default simulated arms, stopped and started again on the same data folder,
-as `armserver serve` is by a crash, a kill or an operator; a lab's killed worker is
+"""A latched estop survives a restart of the server that latched it, and an outage of the
+arm's link: only a release releases it (app/service.py `keep_latch_in`; the store's record
+`arm:<name>` / `estop`). The app in process over the default simulated arms, stopped and
+started again on the same data folder, as `armserver serve` is by a crash, a kill or an
+operator; a lab's killed worker, and a press while it restarts, are
 tests/test_lab_workers.py's.
 """
 
@@ -18,6 +19,7 @@ from _safety_support import goal_raw, motor_of, set_pid_body
 from _wait import wait_for
 from conftest import make_settings, running_client
 
+from app.config import FaultConfig
 from app.store import DB_NAME
 
 API = "/api/v1/arms"
@@ -115,3 +117,32 @@ async def test_a_record_that_is_not_a_latch_latches_nothing(
         assert (await c.get(f"{API}/rbe3001/state")).json()["estop"] is False
     if value == "not json":
         assert "stored estop latch could not be read" in caplog.text
+
+
+@pytest.mark.parametrize("arm", ["rbe3001", "angler"])
+async def test_a_press_while_the_link_is_down_latches_the_arm_it_comes_back_to(
+        arm: str, caplog: pytest.LogCaptureFixture) -> None:
+    """The cable out: the press latches (200, the hold it could not command is said in the
+    log), and the arm comes back latched; a move is refused until the release. A lab's front
+    keeps a press for a restarting worker to the same end."""
+    async with running_client() as (app, c):
+        svc = app.state.services[arm]
+        link = svc.driver.link
+        link.set_faults(FaultConfig(reconnect_after_s=1.0))
+        svc.home_loop.call_soon_threadsafe(link.disconnect)  # (the link's loop)
+
+        async def down() -> bool:
+            return (await c.get("/api/v1/health")).json()["arms"][arm]["state"] != "up"
+
+        await wait_for(down, every=0.005, what=f"{arm}'s link down")
+        r = await c.post(f"{API}/{arm}/estop")
+        assert r.status_code == 200 and r.json() == {"estop": True}, r.text
+        assert "could not command a hold" in caplog.text
+        assert await svc.driver.wait_connected(10.0)
+        await wait_for(lambda: svc.hub.latest is not None and not svc.driver.stale,
+                       what=f"{arm}'s samples again")
+        assert (await c.get(f"{API}/{arm}/state")).json()["estop"] is True
+        q = np.asarray(svc.driver.positions, dtype=float)
+        r = await c.post(f"{API}/{arm}/move/joints", json={"positions": q.tolist()})
+        assert r.status_code == 409 and r.json()["code"] == "estop_latched", r.text
+        assert (await c.delete(f"{API}/{arm}/estop")).json() == {"estop": False}
