@@ -25,6 +25,7 @@ from app.links.sim import SimLink
 from app.links.threaded import ThreadLink
 from app.sim.serve import serve_pty, serve_tcp
 from app.telemetry.hub import TelemetryHub
+from protocol import dynamixel as dxl
 from protocol import mx28
 from protocol import rbe3001 as rb
 
@@ -541,5 +542,47 @@ async def test_a_process_held_up_between_a_reading_and_its_read_is_no_jump():
         # JUMP_SPEEDS x the velocity limit x the time since, plus the slack)
         steps = np.abs(np.diff(seen))
         assert steps.max() > 0.2, seen
+    finally:
+        await driver.close()
+
+
+class _LateStatus:
+    """The simulated bus, with a status of an earlier exchange (servo 3's answer to the poll's
+    14-byte SYNC_READ) delivered just before its answer to the next READ `armed` asks for: a
+    reply the driver had given up on and drained for, handed over late by a busy machine."""
+
+    def __init__(self, bus: object, dxl_id: int) -> None:
+        self._bus = bus
+        self.stale = dxl.encode_status(dxl_id, 0, b"\x00\x11" + bytes(12))
+        self.armed = 0
+
+    def receive(self, data: bytes, now: float) -> list[tuple[float, bytes]]:
+        out = self._bus.receive(data, now)  # type: ignore[attr-defined]
+        if self.armed and len(data) > 7 and data[7] == dxl.Instruction.READ:
+            self.armed -= 1
+            return [(0.0, self.stale), *out]
+        return out
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._bus, name)
+
+
+async def test_a_late_status_of_another_length_is_no_answer_to_a_read():
+    """A READ of servo 3's ID (1 byte) finds a 14-byte status from servo 3 first, then its
+    own: the first is an earlier exchange's (a status packet names no request; its length
+    does, e-manual Protocol 2.0) and is passed over as stale, and the READ gets its answer.
+    Before, it failed `corrupt_reply` "servo 3 answered 14 bytes, expected 1" (a loaded run
+    of test_angler_over_a_real_pty, session 31). A status of the right length from the wrong
+    servo is passed over as before; one carrying an error fails the request as before."""
+    bus = _LateStatus(make_sim_device(load_profile("angler")), 3)
+    driver = await started("angler", SimLink(bus, address="sim:angler", seed=1))
+    try:
+        stale0 = driver.stats["stale_replies"]
+        bus.armed = 2
+        assert await driver.read_register(3, mx28.TABLE["id"]) == 3
+        assert await driver.read_register(3, mx28.TABLE["return_delay_time"]) == \
+            await driver.read_register(3, mx28.TABLE["return_delay_time"])
+        assert driver.stats["stale_replies"] == stale0 + 2
+        assert driver.stats["corrupt"] == 0
     finally:
         await driver.close()

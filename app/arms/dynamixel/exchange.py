@@ -2,10 +2,14 @@
 (PING, READ, WRITE, SYNC_READ, SYNC_WRITE by control-table item).
 
 Before a request that follows a failed one the input is drained, and replies are accepted
-only from the ids asked, in order, as status packets; a CRC failure fails the request as
-corrupt. A status whose error byte has only the Alert bit (0x80) set is a valid reply, its
-data good; the servo is noted in `_alerts` (the chain driver reads its Hardware Error Status).
-Error bits 0-6 (instruction, CRC, data range, ...) fail the request.
+only from the ids asked, in order, as status packets of the length the request asks for (a
+READ's or SYNC_READ's the length read, a PING's 3, a write's none; e-manual, Protocol 2.0):
+a status of another length is an earlier exchange's, late (the drain cannot tell a bus that
+is quiet from one whose bytes a busy machine hands over late), and is passed over as stale;
+a CRC failure fails the request as corrupt. A status whose error byte has only the Alert bit
+(0x80) set is a valid reply, its data good; the servo is noted in `_alerts` (the chain driver
+reads its Hardware Error Status). Error bits 0-6 (instruction, CRC, data range, ...) fail the
+request, whatever the status's length.
 """
 
 from __future__ import annotations
@@ -146,6 +150,7 @@ class DynamixelBusDriver(Driver):
             self._parser.feed(sent.data)
         wait = ReplyWait(sent.deadline)
         got: list[dxl.Packet] = []
+        size = _param_bytes(req)
         while True:
             while (ev := self._parser.next_event()) is not None:
                 if isinstance(ev, dxl.ParseError):
@@ -159,10 +164,11 @@ class DynamixelBusDriver(Driver):
                 if req.broadcast_ping:
                     got.append(ev)
                     continue
-                if len(got) >= len(req.expect) or ev.id != req.expect[len(got)]:
+                error = ev.error or 0
+                if (len(got) >= len(req.expect) or ev.id != req.expect[len(got)]
+                        or (len(ev.params) != size and not error & ~dxl.ALERT_BIT)):
                     self.stats["stale_replies"] += 1
                     continue
-                error = ev.error or 0
                 if error & dxl.ALERT_BIT:  # a valid reply; the servo has a hardware error
                     self._alerts.add(ev.id)
                 else:
@@ -197,21 +203,25 @@ class DynamixelBusDriver(Driver):
         self._dirty = False
 
 
-def _status_bytes(req: DxlRequest) -> int:
-    """The bytes of the statuses `req` expects, unstuffed (a status packet is 11 bytes and its
-    parameters: PING 3, READ and SYNC_READ the length asked, a write none; e-manual, Protocol
-    2.0); 0 for no status or a broadcast PING. A hint: more bytes (stuffing) are read on."""
-    if not req.expect or req.broadcast_ping:
-        return 0
+def _param_bytes(req: DxlRequest) -> int:
+    """The parameter bytes of each status `req` asks for (PING 3, READ and SYNC_READ the
+    length asked, a write none; e-manual, Protocol 2.0, the status packet)."""
     p = req.packet
     instruction = p[7] if len(p) >= 10 else None
     if instruction == dxl.Instruction.PING:
-        n = 3
-    elif instruction in (dxl.Instruction.READ, dxl.Instruction.SYNC_READ):
-        n = int.from_bytes(p[10:12], "little")
-    else:
-        n = 0
-    return len(req.expect) * (11 + n)
+        return 3
+    if instruction in (dxl.Instruction.READ, dxl.Instruction.SYNC_READ):
+        return int.from_bytes(p[10:12], "little")
+    return 0
+
+
+def _status_bytes(req: DxlRequest) -> int:
+    """The bytes of the statuses `req` expects, unstuffed (a status packet is 11 bytes and its
+    parameters, `_param_bytes`); 0 for no status or a broadcast PING. A hint: more bytes
+    (stuffing) are read on."""
+    if not req.expect or req.broadcast_ping:
+        return 0
+    return len(req.expect) * (11 + _param_bytes(req))
 
 
 def check_len(p: dxl.Packet, size: int) -> None:
