@@ -477,6 +477,9 @@ async def test_a_press_while_its_worker_restarts_latches_the_arm_as_it_comes_bac
             for r in pressed:
                 assert r.status_code == 503 and r.json()["code"] == "link_down", r.text
                 assert "this estop press is kept" in r.json()["detail"], r.text
+            # a token that grants nothing here: not kept (nor able to fill the kept presses)
+            r = await c.post(f"{right}/estop", headers={"Authorization": "Bearer not-a-token"})
+            assert r.status_code == 503 and "kept" not in r.json()["detail"], r.text
 
             async def right_state() -> int:
                 return (await c.get(f"{right}/state")).status_code

@@ -48,6 +48,7 @@ from app.lab.supervisor import Supervisor, Worker
 from app.lab.upstream import UpstreamError, UpstreamResponse
 from app.lab.ws_relay import relay_websocket
 from app.web.middleware import API_PREFIX
+from app.web.security import Access, bearer_token
 
 log = logging.getLogger("armserver.lab")
 
@@ -136,6 +137,8 @@ class LabFront:
         self.supervisor = supervisor
         self.workers = supervisor.workers
         self.max_body = settings.max_body_bytes
+        #: The lab's tokens (the workers' own): whose estop press may be kept (`_keep`).
+        self._access = Access(settings)
         self.auth = settings.auth_enabled
         self.grace = settings.shutdown_timeout_s
         self._by_index = {w.index: w for w in self.workers}
@@ -314,12 +317,17 @@ class LabFront:
         return json.dumps({"detail": f"{detail}; this server hosts "
                            f"{', '.join(self.plan.names)}", "code": "unknown_arm"}).encode()
 
-    @staticmethod
-    def _keep(scope: Scope, worker: Worker | None, body: bytes) -> bool:
-        """Keep an estop press for `worker`, down now (True if kept)."""
+    def _keep(self, scope: Scope, worker: Worker | None, body: bytes) -> bool:
+        """Keep an estop press for `worker`, down now (True if kept): one whose token grants a
+        role here (anyone authenticated may press; the worker checks it again, and the Host
+        and Origin), so a caller without one cannot fill the worker's kept presses."""
         if worker is None or body:
             return False  # (a press with a body: the route takes none)
-        kept = worker.keep_press(_target(scope), forwarded_headers(scope))
+        headers = forwarded_headers(scope)
+        auth = next((v for k, v in headers if k == b"authorization"), b"")
+        if self._access.identify(bearer_token(auth.decode("latin-1"))) is None:
+            return False
+        kept = worker.keep_press(_target(scope), headers)
         if not kept:
             log.warning("worker %d: too many estop presses kept; this one is not", worker.index)
         return kept
