@@ -128,7 +128,8 @@ async def test_a_press_while_the_link_is_down_latches_the_arm_it_comes_back_to(
     async with running_client() as (app, c):
         svc = app.state.services[arm]
         link = svc.driver.link
-        link.set_faults(FaultConfig(reconnect_after_s=1.0))
+        # out for 2 s: the press comes while it is out, a loaded machine's delays included
+        link.set_faults(FaultConfig(reconnect_after_s=2.0))
         svc.home_loop.call_soon_threadsafe(link.disconnect)  # (the link's loop)
 
         async def down() -> bool:
