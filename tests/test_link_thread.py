@@ -93,7 +93,7 @@ def test_a_profile_serial_link_runs_on_its_own_thread_unless_told_otherwise():
 
 @pytest.mark.parametrize("name", ["rbe3001", "angler"])
 async def test_the_thread_polls_on_the_schedule_and_every_sample_is_published(name):
-    async with arm(name) as (driver, link, _server):
+    async with arm(name, in_process=True) as (driver, link, _server):
         sub = driver.hub.subscribe()
         try:
             scheduled0, polls0 = link.stats["scheduled"], driver.stats["polls"]
@@ -114,7 +114,7 @@ async def test_the_thread_polls_on_the_schedule_and_every_sample_is_published(na
 
 
 async def test_a_moving_arm_is_published_as_it_moves_and_requests_go_between_polls():
-    async with arm("rbe3001") as (driver, link, _server):
+    async with arm("rbe3001", in_process=True) as (driver, link, _server):
         for k in range(20):  # requests while the thread polls: each answered, in turn
             assert isinstance(await driver.status(), rb.StatusReply)
             await driver.set_pid([(10.0 * k, 0, 0), (0.0, 0, 0), (0.0, 0, 0)])
@@ -437,7 +437,7 @@ async def test_a_reply_in_parts_wakes_the_poll_thread_for_its_first_part_and_its
     low mark is back at 1 before the owner task may read it)."""
     from app.links import poller
 
-    async with arm("openmanipulator_x") as (driver, link, _server):
+    async with arm("openmanipulator_x", in_process=True) as (driver, link, _server):
         thread = poller.shared()
         await wait_for(lambda: link.stats["scheduled"] > 20, what="scheduled polls")
         stats0, scheduled0 = dict(thread.stats), link.stats["scheduled"]
