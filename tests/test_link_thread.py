@@ -437,7 +437,7 @@ async def test_a_reply_in_parts_wakes_the_poll_thread_for_its_first_part_and_its
     low mark is back at 1 before the owner task may read it)."""
     from app.links import poller
 
-    async with arm("openmanipulator_x", in_process=True) as (driver, link, _server):
+    async with arm("openmanipulator_x") as (driver, link, _server):
         thread = poller.shared()
         await wait_for(lambda: link.stats["scheduled"] > 20, what="scheduled polls")
         stats0, scheduled0 = dict(thread.stats), link.stats["scheduled"]
