@@ -329,7 +329,6 @@ def pytest_make_collect_report(collector: Any) -> Iterator[None]:
         _fail_skip(report)
 
 
-
 class _NameTheWriter(logging.Filter):
     """asyncio's "socket.send() raised exception." (a write on a transport whose connection
     is gone) with the thread and the code that wrote: the warning alone names neither, and a

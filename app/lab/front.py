@@ -42,13 +42,13 @@ from starlette.types import Receive, Scope, Send
 from app.config import Settings
 from app.errors import DifferentWorkers
 from app.lab.across import RECORDINGS, TELEOP, Across, handles
-from app.lab.headers import HOP, forwarded_headers
+from app.lab.headers import HOP, credentials, forwarded_headers
 from app.lab.placement import LabPlan
 from app.lab.supervisor import Supervisor, Worker
 from app.lab.upstream import UpstreamError, UpstreamResponse
 from app.lab.ws_relay import relay_websocket
 from app.web.middleware import API_PREFIX
-from app.web.security import Access, bearer_token
+from app.web.security import Access, bearer_token_of
 
 log = logging.getLogger("armserver.lab")
 
@@ -324,8 +324,8 @@ class LabFront:
         if worker is None or body:
             return False  # (a press with a body: the route takes none)
         headers = forwarded_headers(scope)
-        auth = next((v for k, v in headers if k == b"authorization"), b"")
-        if self._access.identify(bearer_token(auth.decode("latin-1"))) is None:
+        auth = credentials(headers)
+        if self._access.identify(bearer_token_of(auth)) is None:
             return False
         kept = worker.keep_press(_target(scope), headers)
         if not kept:

@@ -24,3 +24,8 @@ def forwarded_headers(scope: Scope) -> list[tuple[bytes, bytes]]:
     if client:
         headers.append((CLIENT_HEADER, f"{client[0]}:{client[1]}".encode("latin-1")))
     return headers
+
+
+def credentials(headers: list[tuple[bytes, bytes]]) -> bytes | None:
+    """The `Authorization` value among forwarded `headers` (None: none)."""
+    return next((v for k, v in headers if k == b"authorization"), None)

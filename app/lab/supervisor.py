@@ -51,6 +51,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from app.lab.headers import credentials
 from app.lab.upstream import Upstream, UpstreamError
 
 log = logging.getLogger("armserver.lab")
@@ -183,22 +184,22 @@ class Worker:
         the worker is ready). One per target and credentials: a second is the same press.
         False when MAX_KEPT_PRESSES are kept already (it is not). `now`: time.monotonic()'s."""
         now = time.monotonic() if now is None else now
-        self.kept = [p for p in self.kept if now - p.at <= KEEP_PRESS_S]
-        auth = _credentials(headers)
-        if any(p.target == target and _credentials(p.headers) == auth for p in self.kept):
+        self.forget_old_presses(now)
+        auth = credentials(headers)
+        if any(p.target == target and credentials(p.headers) == auth for p in self.kept):
             return True
         if len(self.kept) >= MAX_KEPT_PRESSES:
             return False
         self.kept.append(KeptPress(target, headers, now))
         return True
 
+    def forget_old_presses(self, now: float) -> None:
+        """Drop the kept presses older than KEEP_PRESS_S at `now` (time.monotonic()'s)."""
+        self.kept = [p for p in self.kept if now - p.at <= KEEP_PRESS_S]
+
     @property
     def pid(self) -> int | None:
         return self.proc.pid if self.proc is not None else None
-
-
-def _credentials(headers: list[tuple[bytes, bytes]]) -> bytes | None:
-    return next((v for k, v in headers if k == b"authorization"), None)
 
 
 class Supervisor:
@@ -339,8 +340,7 @@ class Supervisor:
         """The estop presses kept while `w` was down, sent to it in order (each answered
         before the next; the worker checks each as it would have: token, Host, arm). False
         if its socket failed meanwhile: the rest stay kept for its next start."""
-        now = time.monotonic()
-        w.kept = [p for p in w.kept if now - p.at <= KEEP_PRESS_S]
+        w.forget_old_presses(time.monotonic())
         while w.kept:
             p = w.kept[0]
             try:
