@@ -48,7 +48,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app import schemas as s
 from app.store import AuditEntry, Store
-from app.web.security import Access, Identity, bearer_token
+from app.web.security import Access, Identity, bearer_token_of
 
 log = logging.getLogger(__name__)
 
@@ -247,7 +247,7 @@ class AuditLog:
 
     def _who(self, scope: Scope) -> Identity | None:
         header = dict(scope.get("headers", ())).get(b"authorization")
-        return self.access.identify(bearer_token(header.decode("latin-1") if header else None))
+        return self.access.identify(bearer_token_of(header))
 
     def _entry(self, scope: Scope, path: str, started: float, body: bytes) -> AuditEntry:
         who = self._who(scope)

@@ -15,7 +15,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from app import schemas as s
 from app.errors import Unauthorized
 from app.web.error_responses import send_error
-from app.web.security import Access, bearer_token
+from app.web.security import Access, bearer_token_of
 
 log = logging.getLogger("armserver")
 
@@ -123,7 +123,7 @@ class TokenGate:
             await self.app(scope, receive, send)
             return
         header = dict(scope.get("headers", ())).get(b"authorization")
-        token = bearer_token(header.decode("latin-1") if header is not None else None)
+        token = bearer_token_of(header)
         if self.access.role_of(token) is not None:
             await self.app(scope, receive, send)
             return

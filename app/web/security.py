@@ -173,6 +173,13 @@ def bearer_token(authorization: str | None) -> str | None:
     return token.strip() or None
 
 
+def bearer_token_of(header: bytes | None) -> str | None:
+    """`bearer_token` of a raw `authorization` header value (an ASGI scope's, latin-1), or
+    None: what a layer that reads the scope's headers itself gets (the token gate, the
+    estop's and the state's fast path, the audit log, a lab's front)."""
+    return bearer_token(header.decode("latin-1") if header is not None else None)
+
+
 #: Query parameters that carry a token. A name is compared after percent-decoding, as the
 #: server decodes it: `?tok%65n=...` is `?token=...` to Starlette, so it is to the log filter.
 TOKEN_PARAMS = frozenset({"token", "access_token"})

@@ -12,7 +12,7 @@ from app import schemas as s
 from app.web.deps import ServicesDep, SettingsDep, ViewerArm, ViewerRole
 from app.web.hostguard import HostPolicy
 from app.web.routes.common import READ, errors
-from app.web.security import bearer_token
+from app.web.security import bearer_token_of
 
 log = logging.getLogger(__name__)
 
@@ -176,7 +176,7 @@ class StateFastPath:
             return None
         access = self.state.access
         if access.enabled and access.role_of(
-                bearer_token(auth.decode("latin-1") if auth is not None else None)) is None:
+                bearer_token_of(auth)) is None:
             return None
         name = path[len(self.head):-len(tail)]
         return self.state.services.get(name) if 0 < len(name) <= 64 else None
