@@ -48,7 +48,7 @@ from app.safety.guard import SafetyGuard
 from app.sim.hand import Hand
 from app.sim.world import World
 from app.sim.world_tap import hand_of, world_of
-from app.store import Store, StoreError
+from app.store import ARM_SCOPE, Store, StoreError
 from app.telemetry.arm_hub import ArmHub
 from app.telemetry.hub import Subscription, TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
@@ -57,9 +57,9 @@ log = logging.getLogger(__name__)
 
 #: Longest the estop fast path holds the HTTP thread for the latch, s (see press_estop).
 PRESS_WAIT_S = 0.005
-#: The store's record of an arm's estop latch (scope "arm:<name>", as its safety envelope's):
+#: The store's record of an arm's estop latch (in the arm's scope, `ARM_SCOPE`):
 #: `{"latched": bool, "at": ISO 8601 UTC}`, written at each latch and release.
-ESTOP_SCOPE, ESTOP_KEY = "arm:{}", "estop"
+ESTOP_KEY = "estop"
 
 T = TypeVar("T")
 D = TypeVar("D", bound=Driver)
@@ -428,7 +428,7 @@ class ArmService:
         leaves the profile's)."""
         self._latch_store = store
         try:
-            record = store.get_setting_sync(ESTOP_SCOPE.format(self.name), ESTOP_KEY)
+            record = store.get_setting_sync(ARM_SCOPE.format(self.name), ESTOP_KEY)
         except (StoreError, ValueError) as exc:
             log.error("%s: the stored estop latch could not be read: %s",  # noqa: TRY400
                       self.name, exc)
@@ -444,7 +444,7 @@ class ArmService:
         with the other settings; one the disk refuses is kept and retried)."""
         if self._latch_store is not None:
             self._latch_store.put_setting_nowait(
-                ESTOP_SCOPE.format(self.name), ESTOP_KEY,
+                ARM_SCOPE.format(self.name), ESTOP_KEY,
                 {"latched": latched, "at": datetime.now(UTC).isoformat(timespec="milliseconds")})
 
     def calibration_view(self) -> s.ArmCalibration:

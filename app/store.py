@@ -45,6 +45,9 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
+#: The scope of an arm's own settings (`ARM_SCOPE.format(name)`): its safety envelope
+#: (app/web/routes/safety.py), its estop latch (app/service.py).
+ARM_SCOPE = "arm:{}"
 DB_NAME = "armserver.sqlite3"
 #: The files SQLite keeps beside the database (all made 0600 like it).
 DB_FILES = (DB_NAME, f"{DB_NAME}-wal", f"{DB_NAME}-shm", f"{DB_NAME}-journal")

@@ -17,7 +17,7 @@ from app import schemas as s
 from app.config import SafetySettings
 from app.errors import InvalidRequest
 from app.service import ArmService
-from app.store import Store, StoreError
+from app.store import ARM_SCOPE, Store, StoreError
 from app.web.deps import InstructorArm, ViewerArm, ViewerRole
 from app.web.routes.common import READ, errors
 from app.web.security import Role
@@ -26,7 +26,6 @@ log = logging.getLogger(__name__)
 
 router = APIRouter(prefix="/arms/{arm}/safety", tags=["safety"])
 
-SCOPE = "arm:{}"
 KEY = "safety"
 
 
@@ -46,7 +45,7 @@ def describe(svc: ArmService, store: Store | None, editable: bool) -> s.Safety:
 def load_stored(svc: ArmService, store: Store) -> None:
     """At start-up: the instructor's last settings replace the profile's (PUT replaces)."""
     try:
-        stored = store.get_setting_sync(SCOPE.format(svc.name), KEY)
+        stored = store.get_setting_sync(ARM_SCOPE.format(svc.name), KEY)
         if stored is not None:
             svc.restore_safety(SafetySettings.model_validate(stored))
             cfg = svc.safety_settings
@@ -101,7 +100,7 @@ async def put_safety(svc: InstructorArm, req: s.SafetyUpdate, request: Request) 
     await svc.apply_safety(new)
     store = _store(request)
     if store is not None:
-        await store.put_setting(SCOPE.format(svc.name), KEY, new.model_dump(mode="json"))
+        await store.put_setting(ARM_SCOPE.format(svc.name), KEY, new.model_dump(mode="json"))
     svc.event("safety", zones=len(new.zones), floor_z=new.floor_z,
               speed_override=new.speed_override)
     log.info("%s: safety envelope changed: %d zone(s), floor %s, speed %g", svc.name,
