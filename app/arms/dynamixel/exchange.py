@@ -14,7 +14,7 @@ request, whatever the status's length.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from app.device.driver import Driver, ReplyWait
@@ -35,6 +35,12 @@ class DxlRequest:
     #: ... but no sooner than this after the write, s: when the effect can first show (a
     #: goal's first encoder tick, `_effect_delay`), else the poll reads the sample before.
     poll_delay_s: float = 0.0
+    #: The parameter bytes of each status it asks for (`_param_bytes`): read off the packet
+    #: once, not at every exchange (the poll's request is built once and sent 200 times a s).
+    status_params: int = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "status_params", _param_bytes(self.packet))
 
 
 class DynamixelBusDriver(Driver):
@@ -150,7 +156,7 @@ class DynamixelBusDriver(Driver):
             self._parser.feed(sent.data)
         wait = ReplyWait(sent.deadline)
         got: list[dxl.Packet] = []
-        size = _param_bytes(req)
+        size = req.status_params
         while True:
             while (ev := self._parser.next_event()) is not None:
                 if isinstance(ev, dxl.ParseError):
@@ -203,10 +209,9 @@ class DynamixelBusDriver(Driver):
         self._dirty = False
 
 
-def _param_bytes(req: DxlRequest) -> int:
-    """The parameter bytes of each status `req` asks for (PING 3, READ and SYNC_READ the
-    length asked, a write none; e-manual, Protocol 2.0, the status packet)."""
-    p = req.packet
+def _param_bytes(p: bytes) -> int:
+    """The parameter bytes of each status instruction packet `p` asks for (PING 3, READ and
+    SYNC_READ the length asked, a write none; e-manual, Protocol 2.0, the status packet)."""
     instruction = p[7] if len(p) >= 10 else None
     if instruction == dxl.Instruction.PING:
         return 3
@@ -217,11 +222,11 @@ def _param_bytes(req: DxlRequest) -> int:
 
 def _status_bytes(req: DxlRequest) -> int:
     """The bytes of the statuses `req` expects, unstuffed (a status packet is 11 bytes and its
-    parameters, `_param_bytes`); 0 for no status or a broadcast PING. A hint: more bytes
+    parameters, `status_params`); 0 for no status or a broadcast PING. A hint: more bytes
     (stuffing) are read on."""
     if not req.expect or req.broadcast_ping:
         return 0
-    return len(req.expect) * (11 + _param_bytes(req))
+    return len(req.expect) * (11 + req.status_params)
 
 
 def check_len(p: dxl.Packet, size: int) -> None:
