@@ -19,7 +19,7 @@ from app.arms.loading import load_profile
 from app.arms.rbe3001.driver import Rbe3001Driver
 from app.config import FaultConfig
 from app.device.factory import make_sim_device
-from app.errors import ArmError, CorruptReply, DeviceTimeout, LinkDown
+from app.errors import ArmError, CorruptReply, DeviceError, DeviceTimeout, LinkDown
 from app.links.serial import SerialLink
 from app.links.sim import SimLink
 from app.links.threaded import ThreadLink
@@ -573,7 +573,8 @@ async def test_a_late_status_of_another_length_is_no_answer_to_a_read():
     does, e-manual Protocol 2.0) and is passed over as stale, and the READ gets its answer.
     Before, it failed `corrupt_reply` "servo 3 answered 14 bytes, expected 1" (a loaded run
     of test_angler_over_a_real_pty, session 31). A status of the right length from the wrong
-    servo is passed over as before; one carrying an error fails the request as before."""
+    servo is passed over as before; one from the servo asked that carries an error bit fails
+    the request with the servo's error, whatever its length."""
     bus = _LateStatus(make_sim_device(load_profile("angler")), 3)
     driver = await started("angler", SimLink(bus, address="sim:angler", seed=1))
     try:
@@ -584,5 +585,12 @@ async def test_a_late_status_of_another_length_is_no_answer_to_a_read():
             await driver.read_register(3, mx28.TABLE["return_delay_time"])
         assert driver.stats["stale_replies"] == stale0 + 2
         assert driver.stats["corrupt"] == 0
+        # from the servo asked, of another length, with an error bit (Data Range, 0x04,
+        # no parameters): the servo's error, not a stale reply; it fails the request
+        bus.stale, bus.armed = dxl.encode_status(3, 0x04, b""), 1
+        with pytest.raises(DeviceError, match="servo 3"):
+            await driver.read_register(3, mx28.TABLE["id"])
+        assert driver.stats["stale_replies"] == stale0 + 2
+        assert await driver.read_register(3, mx28.TABLE["id"]) == 3  # (drained, then served)
     finally:
         await driver.close()
