@@ -219,6 +219,21 @@ def write(id: int, address: int, data: bytes) -> bytes:
     return encode_instruction(id, Instruction.WRITE, _u16(address, "address") + data)
 
 
+def status_params(packet: bytes) -> int:
+    """The parameter bytes of the status that answers instruction `packet` (each servo's, for
+    a SYNC_READ): a PING's 3 (Model Number LSB, MSB, Version of Firmware), a READ's or
+    SYNC_READ's the length asked, a WRITE's and the others' none (e-manual, Protocol 2.0:
+    "Ping", "Read" and "Sync Read"'s status parameters, "Write"'s status, Length 4). A status
+    names no instruction ("Instruction of the Status Packet is designated to 0x55"): its size
+    is what tells a late answer to an earlier instruction from this one's."""
+    instruction = packet[PREFIX_LEN] if len(packet) >= 10 else None
+    if instruction == Instruction.PING:
+        return 3
+    if instruction in (Instruction.READ, Instruction.SYNC_READ):
+        return int.from_bytes(packet[10:12], "little")
+    return 0
+
+
 def reg_write(id: int, address: int, data: bytes) -> bytes:
     return encode_instruction(id, Instruction.REG_WRITE, _u16(address, "address") + data)
 

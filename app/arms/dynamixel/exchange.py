@@ -3,7 +3,7 @@
 
 Before a request that follows a failed one the input is drained, and replies are accepted
 only from the ids asked, in order, as status packets of the length the request asks for (a
-READ's or SYNC_READ's the length read, a PING's 3, a write's none; e-manual, Protocol 2.0):
+READ's or SYNC_READ's the length read, a PING's 3, a write's none: `dxl.status_params`):
 a status of another length is an earlier exchange's, late (the drain cannot tell a bus that
 is quiet from one whose bytes a busy machine hands over late), and is passed over as stale;
 a CRC failure fails the request as corrupt. A status whose error byte has only the Alert bit
@@ -35,12 +35,13 @@ class DxlRequest:
     #: ... but no sooner than this after the write, s: when the effect can first show (a
     #: goal's first encoder tick, `_effect_delay`), else the poll reads the sample before.
     poll_delay_s: float = 0.0
-    #: The parameter bytes of each status it asks for (`_param_bytes`): read off the packet
-    #: once, not at every exchange (the poll's request is built once and sent 200 times a s).
+    #: The parameter bytes of each status it asks for (`dxl.status_params`): read off the
+    #: packet once, not at every exchange (the poll's request is built once and sent 200
+    #: times a second).
     status_params: int = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "status_params", _param_bytes(self.packet))
+        object.__setattr__(self, "status_params", dxl.status_params(self.packet))
 
 
 class DynamixelBusDriver(Driver):
@@ -207,17 +208,6 @@ class DynamixelBusDriver(Driver):
             pass
         self._parser = dxl.Parser()
         self._dirty = False
-
-
-def _param_bytes(p: bytes) -> int:
-    """The parameter bytes of each status instruction packet `p` asks for (PING 3, READ and
-    SYNC_READ the length asked, a write none; e-manual, Protocol 2.0, the status packet)."""
-    instruction = p[7] if len(p) >= 10 else None
-    if instruction == dxl.Instruction.PING:
-        return 3
-    if instruction in (dxl.Instruction.READ, dxl.Instruction.SYNC_READ):
-        return int.from_bytes(p[10:12], "little")
-    return 0
 
 
 def _status_bytes(req: DxlRequest) -> int:

@@ -193,12 +193,12 @@ class Bus:
                 got.append(ev)
         return got, errors
 
-    def one(self, packet: bytes, dxl_id: int, what: str, size: int | None = None
-            ) -> dxl.Packet:
+    def one(self, packet: bytes, dxl_id: int, what: str) -> dxl.Packet:
         """The status of servo `dxl_id` to `packet`; SetupError if none, garbled or an error.
-        `size`: the parameters its status carries (a READ's item, 0 for a WRITE, 3 for a
-        PING); a status of another size is a late answer to an earlier request (Protocol 2.0's
-        status names no instruction), skipped, not taken for this one's."""
+        A status of another size than `packet`'s (`dxl.status_params`: a READ's item, 0 for a
+        WRITE, 3 for a PING) without an error is a late answer to an earlier request
+        (Protocol 2.0's status names no instruction), skipped, not taken for this one's."""
+        size = dxl.status_params(packet)
         deadline = time.monotonic() + self.reply_timeout
         got: list[dxl.Packet] = []
         errors: list[dxl.ParseError] = []
@@ -209,7 +209,7 @@ class Bus:
             if isinstance(ev, dxl.ParseError):
                 errors.append(ev)
             elif (ev.instruction == dxl.Instruction.STATUS and ev.id == dxl_id
-                  and (size is None or len(ev.params) == size or ev.error)):
+                  and (len(ev.params) == size or ev.error)):
                 got.append(ev)
                 break
         if not got:
@@ -225,8 +225,7 @@ class Bus:
         return p
 
     def read(self, dxl_id: int, item: ControlItem) -> int:
-        p = self.one(dxl.read(dxl_id, item.address, item.size), dxl_id, f"READ {item.name}",
-                     item.size)
+        p = self.one(dxl.read(dxl_id, item.address, item.size), dxl_id, f"READ {item.name}")
         if len(p.params) != item.size:
             raise SetupError(f"READ {item.name}: servo {dxl_id} answered {len(p.params)} "
                              f"bytes, expected {item.size}", EXIT_VERIFY)
@@ -234,7 +233,7 @@ class Bus:
 
     def write(self, dxl_id: int, item: ControlItem, value: int) -> None:
         self.one(dxl.write(dxl_id, item.address, dxl.to_bytes(value, item.size)), dxl_id,
-                 f"WRITE {item.name} = {value}", 0)
+                 f"WRITE {item.name} = {value}")
 
 
 def scan(bus: Bus, rates: Iterable[int] = SCAN_ORDER) -> Scan:
@@ -389,7 +388,7 @@ def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 
         if dxl_id != want["id"]:
             bus.exchange(dxl.write(dxl_id, _T["id"].address, bytes((want["id"],))))
             dxl_id = want["id"]
-            bus.one(dxl.ping(dxl_id), dxl_id, f"PING at the new ID {dxl_id}", 3)
+            bus.one(dxl.ping(dxl_id), dxl_id, f"PING at the new ID {dxl_id}")
         rate = BAUD_RATES[want["baud_rate"]]
         if servo.baudrate != rate:
             # The port moves to the new rate only once the servo has read this WRITE: its
@@ -400,7 +399,7 @@ def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 
             code = want["baud_rate"]
             try:
                 bus.one(dxl.write(dxl_id, _T["baud_rate"].address, bytes((code,))), dxl_id,
-                        f"WRITE baud_rate = {code}", 0)
+                        f"WRITE baud_rate = {code}")
             except SetupError as exc:
                 if exc.kind != "no_reply":  # (silence: verified at the new rate below)
                     raise
