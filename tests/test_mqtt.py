@@ -193,6 +193,37 @@ async def test_broker_refusing_our_credentials_is_reported(tmp_path: Path) -> No
             await wait_health(client, "up")
 
 
+async def test_a_refusal_that_swallows_the_cancel_still_lets_the_server_stop(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Python 3.11's asyncio.wait_for, under aiomqtt's connect, returns its future's result when
+    the future completed as the cancel came (CPython gh-86296): a CONNACK refusal arriving with
+    the server's stop raised MqttCodeError instead of CancelledError, the bridge took it for
+    one more refusal and retried for ever, and the lifespan's exit never returned (a clean
+    clone's refused-credentials test hung 300 s). The connect here is that race, every time:
+    it answers the cancel with the refusal."""
+    entered = asyncio.Event()
+    attempts = 0
+
+    async def refused_as_the_cancel_comes(self: Any) -> Any:
+        nonlocal attempts
+        attempts += 1
+        entered.set()
+        try:
+            await asyncio.get_running_loop().create_future()  # the CONNACK, never before the cancel
+        except asyncio.CancelledError:
+            raise aiomqtt.MqttCodeError(5, "Not authorized") from None
+        raise AssertionError("unreachable")
+
+    monkeypatch.setattr(aiomqtt.Client, "__aenter__", refused_as_the_cancel_comes)
+    settings = make_settings(mqtt_url="mqtt://armserver:pass@127.0.0.1:1")
+    async with asyncio.timeout(TIMEOUT):  # the stop's bound: before the fix, it never came
+        async with running_client(settings) as (app, client):
+            async with asyncio.timeout(TIMEOUT):
+                await entered.wait()
+            assert (await client.get("/api/v1/arms/rbe3001/state")).status_code == 200
+    assert attempts == 1, "the bridge stopped at the swallowed cancel, not another connect"
+
+
 async def test_a_broker_that_never_answers_costs_the_server_nothing() -> None:
     """A TCP peer that accepts and never answers CONNACK: the bridge times out and says so;
     the arms, REST and the WebSocket hub run as if there were no bridge."""

@@ -16,6 +16,7 @@ from collections.abc import AsyncIterator, Callable
 from concurrent.futures import Executor
 
 from app.cameras.camera import Camera, Frame
+from app.runtime.tasks import cancel_and_wait
 
 __all__ = ["BOUNDARY", "MjpegFeed"]
 
@@ -99,9 +100,7 @@ class MjpegFeed:
             self._unlisten = None
         task, self._task = self._task, None
         if task is not None and task is not asyncio.current_task():
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+            await cancel_and_wait(task)
 
     async def _run(self) -> None:
         last = self._last[0] if self._last is not None else -1

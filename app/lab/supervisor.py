@@ -53,6 +53,7 @@ from pathlib import Path
 
 from app.lab.headers import credentials
 from app.lab.upstream import Upstream, UpstreamError
+from app.runtime.tasks import cancel_and_wait
 
 log = logging.getLogger("armserver.lab")
 
@@ -245,9 +246,7 @@ class Supervisor:
             hangs = w.hangs
             prober = asyncio.create_task(self._probe(w, w.proc))
             code = await w.proc.wait()
-            prober.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await prober
+            await cancel_and_wait(prober)
             w.ready = False
             w.client.reset()  # its kept-alive connections lead nowhere now
             if self._stopping:

@@ -31,6 +31,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from app.config import FaultConfig
+from app.runtime.tasks import cancel_and_wait
 from app.sim.base import SimDevice
 from app.sim.faults import ReplyFaults
 
@@ -202,9 +203,7 @@ class PtyServer:
         self._closed = True
         self._loop.remove_reader(self.master)
         if self._tick is not None:
-            self._tick.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._tick
+            await cancel_and_wait(self._tick)
         self._pump.close()
         for fd in (self.master, self.slave):
             with contextlib.suppress(OSError):
@@ -289,9 +288,7 @@ class TcpServer:
         for conn in list(self._conns):
             conn.drop()
         if self._tick is not None:
-            self._tick.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._tick
+            await cancel_and_wait(self._tick)
         self._tick = None
         if self.server is not None:
             await self.server.wait_closed()

@@ -48,6 +48,7 @@ from aiomqtt.exceptions import MqttConnectError
 
 from app.config.settings import parse_broker_url
 from app.doors import aiomqtt as aiomqtt_door
+from app.runtime.tasks import cancel_and_wait
 
 if TYPE_CHECKING:
     from app.config import Settings
@@ -134,9 +135,10 @@ class MqttBridge:
                         client.publish(f"{a.topic}/online", b"false", qos=1, retain=True)
                         for a in self._arms))
                     await client.publish(self._server_topic, b"false", qos=1, retain=True)
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+        # again until it ends: a refusal arriving with the cancel ate it under aiomqtt's
+        # asyncio.wait_for (CPython gh-86296), and one `await task` waited for ever (a clean
+        # clone's test hung 300 s)
+        await cancel_and_wait(task)
         for a in self._arms:
             a.sub.close()
 

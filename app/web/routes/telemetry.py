@@ -18,7 +18,6 @@ protocol's 123 bytes.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import math
@@ -26,6 +25,7 @@ import sys
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
+from app.runtime.tasks import cancel_and_wait
 from app.service import ArmService
 from app.telemetry.hub import Subscription
 from app.web.security import bearer_token
@@ -246,8 +246,7 @@ class _Stream:
             for t in pending:
                 t.cancel()
             for t in pending:
-                with contextlib.suppress(asyncio.CancelledError):
-                    await t
+                await cancel_and_wait(t)
             for t in done:
                 if t.exception() is not None:
                     raise t.exception()  # type: ignore[misc]  # checked not None above
