@@ -10,6 +10,7 @@ sample with the estop latch and the motion in progress (app/telemetry/arm_hub.py
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import logging
 import threading
 import time
@@ -57,6 +58,8 @@ log = logging.getLogger(__name__)
 
 #: Longest the estop fast path holds the HTTP thread for the latch, s (see press_estop).
 PRESS_WAIT_S = 0.005
+#: Longest an estop press's answer waits for the latch's record to be on disk, s (`_latch`).
+LATCH_SAVE_WAIT_S = 0.5
 #: The store's record of an arm's estop latch (in the arm's scope, `ARM_SCOPE`):
 #: `{"latched": bool, "at": ISO 8601 UTC}`, written at each latch and release.
 ESTOP_KEY = "estop"
@@ -99,6 +102,8 @@ class ArmService:
         self._grippers: set[asyncio.Task[None]] = set()
         #: Where the estop latch is kept across restarts (`keep_latch_in`); None: nowhere.
         self._latch_store: Store | None = None
+        #: The store write of the last latch (`_keep_latch`): a press answers once it is done.
+        self._latch_saved: concurrent.futures.Future[bool] | None = None
 
     async def start(self) -> None:
         await self.driver.start()
@@ -439,13 +444,15 @@ class ArmService:
                         "(DELETE /api/v1/arms/%s/estop releases it)", self.name,
                         record.get("at", "an unknown time"), self.name)
 
-    def _keep_latch(self, latched: bool) -> None:
+    def _keep_latch(self, latched: bool) -> concurrent.futures.Future[bool] | None:
         """Record the latch in the store without waiting for the disk (it lands in order
-        with the other settings; one the disk refuses is kept and retried)."""
-        if self._latch_store is not None:
-            self._latch_store.put_setting_nowait(
-                ARM_SCOPE.format(self.name), ESTOP_KEY,
-                {"latched": latched, "at": datetime.now(UTC).isoformat(timespec="milliseconds")})
+        with the other settings; one the disk refuses is kept and retried): the write's
+        future (True: on disk), None without a store."""
+        if self._latch_store is None:
+            return None
+        return self._latch_store.put_setting_nowait(
+            ARM_SCOPE.format(self.name), ESTOP_KEY,
+            {"latched": latched, "at": datetime.now(UTC).isoformat(timespec="milliseconds")})
 
     def calibration_view(self) -> s.ArmCalibration:
         return self.calibration.view(self._gravity_run)
@@ -664,6 +671,9 @@ class ArmService:
             started = asyncio.ensure_future(self.motion.emergency_stop())
             started.add_done_callback(retrieve)  # (the presses that waited were told)
             self._hold, self._hold_told = started, False
+            # The record goes to the store's writer now, not after the hold (a crash during
+            # the hold's device round trip lost it); the writer's thread does the disk.
+            self._latch_saved = self._keep_latch(True)
         hold = self._hold
         try:
             if hold is not None and not hold.done():
@@ -672,9 +682,14 @@ class ArmService:
             elif hold is not None and not self._hold_told:  # it ended before this press came
                 self._hold_told = True
                 hold.result()  # its error, if it failed
+            # An answered press is on disk: a crash after the answer starts the arm latched.
+            # A disk that refuses it (kept in memory, retried; health says) or holds it longer
+            # than LATCH_SAVE_WAIT_S does not hold the answer back.
+            saved = self._latch_saved
+            if saved is not None and not saved.done():
+                await asyncio.wait({asyncio.wrap_future(saved)}, timeout=LATCH_SAVE_WAIT_S)
         finally:
             if fresh:
-                self._keep_latch(True)
                 log.warning("%s: emergency stop latched", self.name)
                 self.hub.event("estop", latched=True)
         return s.EstopState(estop=True)

@@ -265,11 +265,15 @@ class Store:
         text = json.dumps(value, allow_nan=False, separators=(",", ":"))
         return await asyncio.wrap_future(self._call(lambda: self._put(scope, key, text)))
 
-    def put_setting_nowait(self, scope: str, key: str, value: Any) -> None:
+    def put_setting_nowait(self, scope: str, key: str, value: Any
+                           ) -> concurrent.futures.Future[bool]:
         """As `put_setting`, without waiting for the write (it lands in order with the others;
-        a failed one is kept and retried)."""
+        a failed one is kept and retried). The write's future, for a caller that wants to know
+        later (its outcome needs no reading)."""
         text = json.dumps(value, allow_nan=False, separators=(",", ":"))
-        self._call(lambda: self._put(scope, key, text)).add_done_callback(_ignore)
+        fut = self._call(lambda: self._put(scope, key, text))
+        fut.add_done_callback(_ignore)
+        return fut
 
     # ------------------------------------------------------------ audit log (event loop side)
 

@@ -8,9 +8,11 @@ tests/test_lab_workers.py's.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import sqlite3
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -75,6 +77,32 @@ async def test_a_latch_holds_across_a_restart_until_released(
     async with running_client(settings) as (app, c):
         assert not app.state.services["rbe3001"].estop
         assert (await c.get(f"{API}/rbe3001/state")).json()["estop"] is False
+
+
+async def test_a_press_is_answered_once_its_latch_is_on_disk(tmp_path: Path) -> None:
+    """An answered press survives a crash: the 200 comes once the latch's record is in the
+    database file, not only queued for the store's writer thread. The writer is held here by
+    a job of the test's in front of the record (a disk that is slow for a moment)."""
+    settings = make_settings(data_dir=str(tmp_path))
+    async with running_client(settings) as (app, c):
+        svc, store = app.state.services["rbe3001"], app.state.store
+        gate = threading.Event()
+        store._call(lambda: gate.wait(30.0))  # the writer thread waits for the gate
+        press = asyncio.create_task(c.post(f"{API}/rbe3001/estop"))
+        try:
+            # latched, the hold commanded: all the answer waited for before this change
+            await wait_for(lambda: svc._hold is not None and svc._hold.done(),
+                           what="the latch's hold commanded")
+            await asyncio.sleep(0.2)  # (not a wait for something: the early answer's chance)
+            assert not press.done(), "answered before the latch was on disk"
+            assert _stored(tmp_path, "rbe3001") is None
+        finally:
+            gate.set()
+        async with asyncio.timeout(10.0):
+            r = await press
+        assert r.status_code == 200 and r.json() == {"estop": True}
+        record = _stored(tmp_path, "rbe3001")  # at the answer, not after a wait
+        assert record is not None and record["latched"] is True, record
 
 
 async def test_a_press_on_a_latch_from_before_the_start_is_a_press_on_a_latched_estop(

@@ -134,7 +134,10 @@ async def stop(svc: OperatorArm, who: CallerDep) -> s.StopResult:
     description="Motion stops now and the queue is cleared; every move is refused with 409 "
     "`estop_latched` until released. Open to every authenticated client, viewer tokens "
     "included, lease or not. The latch is kept in the data folder's store: a server (or a "
-    "lab's worker) restarted, crashed or killed while it is latched starts the arm latched.",
+    "lab's worker) restarted, crashed or killed while it is latched starts the arm latched. "
+    "Answered once the hold is commanded and the latch's record is on disk (a disk that "
+    "refuses it, or holds it over 0.5 s, does not hold the answer back: the store retries, "
+    "and health says).",
     responses=errors(*READ),
 )
 async def estop(svc: ViewerArm) -> s.EstopState:
