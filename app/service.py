@@ -15,7 +15,6 @@ import logging
 import threading
 import time
 from collections.abc import Awaitable, Callable
-from datetime import UTC, datetime
 from typing import Any, TypeVar
 
 import numpy as np
@@ -49,7 +48,15 @@ from app.safety.guard import SafetyGuard
 from app.sim.hand import Hand
 from app.sim.world import World
 from app.sim.world_tap import hand_of, world_of
-from app.store import ARM_SCOPE, Store, StoreError
+from app.store import (
+    ARM_SCOPE,
+    ESTOP_KEY,
+    LATCH_SAVE_WAIT_S,
+    Store,
+    StoreError,
+    latch_record,
+    saved_within,
+)
 from app.telemetry.arm_hub import ArmHub
 from app.telemetry.hub import Subscription, TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
@@ -58,11 +65,6 @@ log = logging.getLogger(__name__)
 
 #: Longest the estop fast path holds the HTTP thread for the latch, s (see press_estop).
 PRESS_WAIT_S = 0.005
-#: Longest an estop press's answer waits for the latch's record to be on disk, s (`_latch`).
-LATCH_SAVE_WAIT_S = 0.5
-#: The store's record of an arm's estop latch (in the arm's scope, `ARM_SCOPE`):
-#: `{"latched": bool, "at": ISO 8601 UTC}`, written at each latch and release.
-ESTOP_KEY = "estop"
 
 T = TypeVar("T")
 D = TypeVar("D", bound=Driver)
@@ -450,9 +452,8 @@ class ArmService:
         future (True: on disk), None without a store."""
         if self._latch_store is None:
             return None
-        return self._latch_store.put_setting_nowait(
-            ARM_SCOPE.format(self.name), ESTOP_KEY,
-            {"latched": latched, "at": datetime.now(UTC).isoformat(timespec="milliseconds")})
+        return self._latch_store.put_setting_nowait(ARM_SCOPE.format(self.name), ESTOP_KEY,
+                                                    latch_record(latched))
 
     def calibration_view(self) -> s.ArmCalibration:
         return self.calibration.view(self._gravity_run)
@@ -685,9 +686,7 @@ class ArmService:
             # An answered press is on disk: a crash after the answer starts the arm latched.
             # A disk that refuses it (kept in memory, retried; health says) or holds it longer
             # than LATCH_SAVE_WAIT_S does not hold the answer back.
-            saved = self._latch_saved
-            if saved is not None and not saved.done():
-                await asyncio.wait({asyncio.wrap_future(saved)}, timeout=LATCH_SAVE_WAIT_S)
+            await saved_within(self._latch_saved, LATCH_SAVE_WAIT_S)
         finally:
             if fresh:
                 log.warning("%s: emergency stop latched", self.name)

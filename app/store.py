@@ -38,6 +38,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -48,6 +49,13 @@ T = TypeVar("T")
 #: The scope of an arm's own settings (`ARM_SCOPE.format(name)`): its safety envelope
 #: (app/web/routes/safety.py), its estop latch (app/service.py).
 ARM_SCOPE = "arm:{}"
+#: The key of an arm's estop latch record under ARM_SCOPE (`latch_record`): written by the
+#: arm's service at each latch and release, and by a lab's front for a press it keeps while
+#: the arm's worker is down (app/lab/front.py); read at the arm's start.
+ESTOP_KEY = "estop"
+#: Longest an estop press's answer waits for its latch record to be on disk, s: a disk that
+#: holds it longer does not hold the answer back (the store retries; health says).
+LATCH_SAVE_WAIT_S = 0.5
 DB_NAME = "armserver.sqlite3"
 #: The files SQLite keeps beside the database (all made 0600 like it).
 DB_FILES = (DB_NAME, f"{DB_NAME}-wal", f"{DB_NAME}-shm", f"{DB_NAME}-journal")
@@ -622,6 +630,18 @@ class Store:
         if self._error is not None:
             log.info("store: writes land again (%s)", self.path)
         self._error = None
+
+
+def latch_record(latched: bool) -> dict[str, Any]:
+    """An estop latch record (ESTOP_KEY): whether latched, and since when (UTC)."""
+    return {"latched": latched, "at": datetime.now(UTC).isoformat(timespec="milliseconds")}
+
+
+async def saved_within(fut: concurrent.futures.Future[bool] | None, seconds: float) -> None:
+    """Until a `put_setting_nowait` write is done, `seconds` at most (its outcome is the
+    store's: a failed write is retried and said in `health()`)."""
+    if fut is not None and not fut.done():
+        await asyncio.wait({asyncio.wrap_future(fut)}, timeout=seconds)
 
 
 def _nothing() -> None:

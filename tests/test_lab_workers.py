@@ -425,19 +425,10 @@ async def test_a_latched_estop_holds_across_its_workers_kill(lab: Lab) -> None:
     starts the arm latched (the latch is in the lab's store), and a move is refused 409
     `estop_latched` until someone releases it."""
     right = "/api/v1/arms/right"
-    assert lab.data is not None
-    db = lab.data / DB_NAME
-
-    def on_disk() -> bool:
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as c:
-            row = c.execute("SELECT value FROM settings WHERE scope = 'arm:right' "
-                            "AND key = 'estop'").fetchone()
-        return row is not None and json.loads(row[0])["latched"] is True
-
     async with httpx.AsyncClient(base_url=lab.url, headers=OP, timeout=30) as c:
         assert (await c.post(f"{right}/estop")).json() == {"estop": True}
         try:
-            await wait_for(on_disk, what="the right arm's latch in the store")
+            assert _right_latched_on_disk(lab)  # at the answer
             before = lab.workers()[1]
             os.kill(before, signal.SIGKILL)
 
@@ -477,6 +468,9 @@ async def test_a_press_while_its_worker_restarts_latches_the_arm_as_it_comes_bac
             for r in pressed:
                 assert r.status_code == 503 and r.json()["code"] == "link_down", r.text
                 assert "this estop press is kept" in r.json()["detail"], r.text
+            # and latched in the lab's store by the front, at the answer: the worker reads it
+            # as it starts, however long it takes
+            assert _right_latched_on_disk(lab)
             # a token that grants nothing here: not kept (nor able to fill the kept presses)
             r = await c.post(f"{right}/estop", headers={"Authorization": "Bearer not-a-token"})
             assert r.status_code == 503 and "kept" not in r.json()["detail"], r.text
@@ -494,6 +488,15 @@ async def test_a_press_while_its_worker_restarts_latches_the_arm_as_it_comes_bac
     # one press sent, once: the worker's log (the lab's) says so once
     assert lab.log is not None
     assert lab.log.read_text().count("an estop press kept while it was down") == 1
+
+
+def _right_latched_on_disk(lab: Lab) -> bool:
+    """Whether the lab's store says the right arm is latched (read as another process)."""
+    assert lab.data is not None
+    with sqlite3.connect(f"file:{lab.data / DB_NAME}?mode=ro", uri=True) as c:
+        row = c.execute("SELECT value FROM settings WHERE scope = 'arm:right' "
+                        "AND key = 'estop'").fetchone()
+    return row is not None and json.loads(row[0])["latched"] is True
 
 
 def _is(fn: Any, value: Any) -> Any:

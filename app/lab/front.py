@@ -20,8 +20,10 @@ process owning its arm (app/lab/supervisor.py) and answers the lab-wide endpoint
 - A request for an arm whose worker is down is 503 `link_down` ("the server cannot talk to
   the arm now"), as is a request when no worker is ready. An estop press so refused is kept
   and sent to the worker as it comes back, before any other request (app/lab/supervisor.py
-  `Worker.keep_press`): the arm comes back latched, as an arm whose link is down on a single
-  server is latched by a press.
+  `Worker.keep_press`) and written to the lab's store as the arm's latch, which the worker
+  reads as it starts: the arm comes back latched however long its worker takes and whether or
+  not the front restarts meanwhile, as an arm whose link is down on a single server is
+  latched by a press.
 
 Why a front in the project and not nginx or Caddy: the two lab-wide lists are merges of the
 workers' answers, which a reverse proxy cannot make without a program of its own beside it;
@@ -47,6 +49,8 @@ from app.lab.placement import LabPlan
 from app.lab.supervisor import Supervisor, Worker
 from app.lab.upstream import UpstreamError, UpstreamResponse
 from app.lab.ws_relay import relay_websocket
+from app.store import ARM_SCOPE, ESTOP_KEY, LATCH_SAVE_WAIT_S, Store, latch_record, saved_within
+from app.web.hostguard import HostPolicy
 from app.web.middleware import API_PREFIX
 from app.web.security import Access, bearer_token_of
 
@@ -137,8 +141,12 @@ class LabFront:
         self.supervisor = supervisor
         self.workers = supervisor.workers
         self.max_body = settings.max_body_bytes
-        #: The lab's tokens (the workers' own): whose estop press may be kept (`_keep`).
+        #: The lab's tokens (the workers' own) and an open lab's Host and Origin rules: whose
+        #: estop press may be kept, and written to the store (`_keep`).
         self._access = Access(settings)
+        self._hosts = HostPolicy(settings)
+        #: The lab's store (the workers' own): a press kept for a down worker latches there.
+        self.store = Store(settings.data_dir)
         self.auth = settings.auth_enabled
         self.grace = settings.shutdown_timeout_s
         self._by_index = {w.index: w for w in self.workers}
@@ -181,10 +189,14 @@ class LabFront:
         while True:
             message = await receive()
             if message["type"] == "lifespan.startup":
+                # before the workers: the first process to open a fresh store makes it
+                # (Supervisor._first_ready), and they start on what the front has kept there
+                self.store.open()
                 self.supervisor.start()
                 await send({"type": "lifespan.startup.complete"})
             elif message["type"] == "lifespan.shutdown":
                 await self.supervisor.stop(self.grace)
+                await asyncio.to_thread(self.store.close)
                 await send({"type": "lifespan.shutdown.complete"})
                 return
 
@@ -270,14 +282,14 @@ class LabFront:
             return self._too_large()
         press = _press(scope)
         if worker is None or not worker.ready:
-            return self._down(worker, press and self._keep(scope, worker, body))
+            return self._down(worker, press and await self._keep(scope, worker, body))
         try:
             r = await worker.client.request(scope["method"], _target(scope),
                                             forwarded_headers(scope), body, REQUEST_TIMEOUT_S,
                                             retry=True if press else None)
         except UpstreamError as exc:  # its socket refused or broke twice: the worker is gone
             log.warning("worker %d: %r", worker.index, exc)
-            return self._down(worker, press and self._keep(scope, worker, body))
+            return self._down(worker, press and await self._keep(scope, worker, body))
         except TimeoutError as exc:
             log.warning("worker %d: %r", worker.index, exc)
             return self._down(worker)
@@ -317,20 +329,33 @@ class LabFront:
         return json.dumps({"detail": f"{detail}; this server hosts "
                            f"{', '.join(self.plan.names)}", "code": "unknown_arm"}).encode()
 
-    def _keep(self, scope: Scope, worker: Worker | None, body: bytes) -> bool:
+    async def _keep(self, scope: Scope, worker: Worker | None, body: bytes) -> bool:
         """Keep an estop press for `worker`, down now (True if kept): one whose token grants a
         role here (anyone authenticated may press; the worker checks it again, and the Host
-        and Origin), so a caller without one cannot fill the worker's kept presses."""
+        and Origin), so a caller without one cannot fill the worker's kept presses.
+
+        A press the worker would take (the Host and Origin pass here too) is also written to
+        the lab's store as the arm's latch, which the worker reads as it starts: the arm
+        comes back latched however long its worker takes, the front restarted or not.
+        Answered once that is on disk (as a press the worker answers)."""
         if worker is None or body:
             return False  # (a press with a body: the route takes none)
         headers = forwarded_headers(scope)
         auth = credentials(headers)
         if self._access.identify(bearer_token_of(auth)) is None:
             return False
+        arm = scope["path"][len(ARMS) + 1:].split("/", 1)[0]
+        saved = None
+        if arm in worker.arms and self._hosts.refusal(scope) is None:
+            saved = self.store.put_setting_nowait(ARM_SCOPE.format(arm), ESTOP_KEY,
+                                                  latch_record(True))
+            log.warning("%s: an estop press while worker %d is down: latched in the store",
+                        arm, worker.index)
         kept = worker.keep_press(_target(scope), headers)
         if not kept:
             log.warning("worker %d: too many estop presses kept; this one is not", worker.index)
-        return kept
+        await saved_within(saved, LATCH_SAVE_WAIT_S)
+        return kept or saved is not None
 
     def _down(self, worker: Worker | None, kept: bool = False) -> Answer:
         what = (f"worker {worker.index} (arms {', '.join(worker.arms)}) is restarting"

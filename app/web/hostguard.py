@@ -92,6 +92,31 @@ class HostPolicy:
         host = split_host(host_header)
         return host in self.hosts or (self.wildcard and _is_ip(host))
 
+    def refusal(self, scope: Scope) -> str | None:
+        """The error code an open server refuses the request (or upgrade) `scope` with
+        (`bad_host`, `cross_origin`; logged), None if it passes or the policy is off."""
+        if not self.enabled:
+            return None
+        headers = dict(scope.get("headers", ()))
+        host = headers.get(b"host")
+        if not self.host_ok(host.decode("latin-1") if host is not None else None):
+            log.warning("refused %s %s: Host %r is not a name this server is bound to",
+                        scope.get("method", "WS"), scope.get("path"),
+                        (host or b"").decode("latin-1")[:80])
+            return "bad_host"
+        origin = headers.get(b"origin")
+        site = headers.get(b"sec-fetch-site")
+        unsafe = scope["type"] == "websocket" or scope.get("method") not in SAFE_METHODS
+        if unsafe and not self.origin_ok(
+                scope, origin.decode("latin-1") if origin is not None else None,
+                site.decode("latin-1") if site is not None else None):
+            log.warning("refused %s %s from Origin %r (Sec-Fetch-Site %r): cross-origin",
+                        scope.get("method", "WS"), scope.get("path"),
+                        (origin or b"-").decode("latin-1")[:80],
+                        (site or b"-").decode("latin-1")[:20])
+            return "cross_origin"
+        return None
+
     def origin_ok(self, scope: Scope, origin: str | None, fetch_site: str | None) -> bool:
         """Whether a browser request (or upgrade) comes from the server's own page or an
         allowed origin. No Origin and no Sec-Fetch-Site: not a browser, allowed."""
@@ -120,26 +145,13 @@ class HostOriginGuard:
         if scope["type"] not in ("http", "websocket") or not self.policy.enabled:
             await self.app(scope, receive, send)
             return
-        headers = dict(scope.get("headers", ()))
-        host = headers.get(b"host")
-        if not self.policy.host_ok(host.decode("latin-1") if host is not None else None):
-            log.warning("refused %s %s: Host %r is not a name this server is bound to",
-                        scope.get("method", "WS"), scope.get("path"),
-                        (host or b"").decode("latin-1")[:80])
+        refused = self.policy.refusal(scope)
+        if refused == "bad_host":
             await self._refuse(scope, receive, send, 400, "bad_host",
                                "this server does not answer to that Host name; allow it with "
                                "ARMSERVER_ALLOWED_HOSTS (or configure tokens)")
             return
-        origin = headers.get(b"origin")
-        site = headers.get(b"sec-fetch-site")
-        unsafe = scope["type"] == "websocket" or scope.get("method") not in SAFE_METHODS
-        if unsafe and not self.policy.origin_ok(
-                scope, origin.decode("latin-1") if origin is not None else None,
-                site.decode("latin-1") if site is not None else None):
-            log.warning("refused %s %s from Origin %r (Sec-Fetch-Site %r): cross-origin",
-                        scope.get("method", "WS"), scope.get("path"),
-                        (origin or b"-").decode("latin-1")[:80],
-                        (site or b"-").decode("latin-1")[:20])
+        if refused == "cross_origin":
             await self._refuse(scope, receive, send, 403, "cross_origin",
                                "a page from another origin may not change anything on this "
                                "server; allow that origin with ARMSERVER_CORS_ORIGINS")

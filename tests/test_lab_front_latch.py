@@ -1,0 +1,78 @@
+"""A lab's front writes an estop press it keeps for a down worker to the lab's store as the
+arm's latch (app/lab/front.py `_keep`): the arm's next start, however late, and after the
+front's own restart, is latched. The front here in process, its workers never started (down
+throughout); the arm's start is a server's over the same data folder, as a worker's is.
+The whole lab, a worker killed and a press while it restarts: tests/test_lab_workers.py."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from pathlib import Path
+
+import httpx
+from conftest import make_settings, running_client
+
+from app.lab.serve import build_front
+from app.store import DB_NAME
+
+ESTOP = "/api/v1/arms/{}/estop"
+
+
+def _stored(data: Path, arm: str) -> dict[str, object] | None:
+    """The latch record of `arm` in the database file, as another process reads it."""
+    with sqlite3.connect(f"file:{data / DB_NAME}?mode=ro", uri=True) as db:
+        row = db.execute("SELECT value FROM settings WHERE scope = ? AND key = 'estop'",
+                         (f"arm:{arm}",)).fetchone()
+    return None if row is None else json.loads(row[0])
+
+
+async def _press(front: object, arm: str, **headers: str) -> httpx.Response:
+    async with httpx.AsyncClient(transport=httpx.ASGITransport(app=front),  # type: ignore[arg-type]
+                                 base_url="http://armserver.test") as c:
+        return await c.post(ESTOP.format(arm), headers=headers)
+
+
+async def test_a_press_on_an_open_lab_with_its_worker_down_latches_the_arm_in_the_store(
+        tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    settings = make_settings(data_dir=str(data))
+    front = build_front(settings, 2, tmp_path)
+    assert {a for w in front.workers for a in w.arms} == {"rbe3001", "angler"}
+    front.store.open()
+    try:
+        r = await _press(front, "rbe3001")
+        assert r.status_code == 503 and r.json()["code"] == "link_down", r.text
+        assert "this estop press is kept" in r.json()["detail"], r.text
+        record = _stored(data, "rbe3001")  # at the answer: no wait
+        assert record is not None and record["latched"] is True, record
+        # what the worker would refuse latches nothing: a page from another origin, a Host
+        # the lab does not answer to (an open lab's rules, app/web/hostguard.py)
+        r = await _press(front, "angler", origin="http://elsewhere.example")
+        assert r.status_code == 503 and _stored(data, "angler") is None, r.text
+        r = await _press(front, "angler", host="rebound.example")
+        assert r.status_code == 503 and _stored(data, "angler") is None, r.text
+    finally:
+        front.store.close()
+    # the arm's next start on that store (a worker's, or a single server's): latched, only it
+    async with running_client(make_settings(data_dir=str(data))) as (app, c):
+        assert app.state.services["rbe3001"].estop
+        assert not app.state.services["angler"].estop
+        assert (await c.get("/api/v1/arms/rbe3001/state")).json()["estop"] is True
+
+
+async def test_a_press_without_a_token_the_lab_knows_latches_nothing(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    front = build_front(make_settings(data_dir=str(data), viewer_tokens="viewer-secret"), 2,
+                        tmp_path)
+    front.store.open()
+    try:
+        r = await _press(front, "angler", authorization="Bearer not-a-token")
+        assert r.status_code == 503 and "kept" not in r.json()["detail"], r.text
+        assert _stored(data, "angler") is None
+        r = await _press(front, "angler", authorization="Bearer viewer-secret")  # may press
+        assert r.status_code == 503 and "this estop press is kept" in r.json()["detail"]
+        record = _stored(data, "angler")
+        assert record is not None and record["latched"] is True, record
+    finally:
+        front.store.close()
