@@ -346,7 +346,7 @@ class LabFront:
             return False
         arm = scope["path"][len(ARMS) + 1:].split("/", 1)[0]
         saved = None
-        if arm in worker.arms and self._hosts.refusal(scope) is None:
+        if arm in worker.arms and self._hosts.refusal(scope, say=False) is None:
             saved = self.store.put_setting_nowait(ARM_SCOPE.format(arm), ESTOP_KEY,
                                                   latch_record(True))
             log.warning("%s: an estop press while worker %d is down: latched in the store",

@@ -92,17 +92,19 @@ class HostPolicy:
         host = split_host(host_header)
         return host in self.hosts or (self.wildcard and _is_ip(host))
 
-    def refusal(self, scope: Scope) -> str | None:
+    def refusal(self, scope: Scope, say: bool = True) -> str | None:
         """The error code an open server refuses the request (or upgrade) `scope` with
-        (`bad_host`, `cross_origin`; logged), None if it passes or the policy is off."""
+        (`bad_host`, `cross_origin`; logged if `say`), None if it passes or the policy is
+        off."""
         if not self.enabled:
             return None
         headers = dict(scope.get("headers", ()))
         host = headers.get(b"host")
         if not self.host_ok(host.decode("latin-1") if host is not None else None):
-            log.warning("refused %s %s: Host %r is not a name this server is bound to",
-                        scope.get("method", "WS"), scope.get("path"),
-                        (host or b"").decode("latin-1")[:80])
+            if say:
+                log.warning("refused %s %s: Host %r is not a name this server is bound to",
+                            scope.get("method", "WS"), scope.get("path"),
+                            (host or b"").decode("latin-1")[:80])
             return "bad_host"
         origin = headers.get(b"origin")
         site = headers.get(b"sec-fetch-site")
@@ -110,10 +112,11 @@ class HostPolicy:
         if unsafe and not self.origin_ok(
                 scope, origin.decode("latin-1") if origin is not None else None,
                 site.decode("latin-1") if site is not None else None):
-            log.warning("refused %s %s from Origin %r (Sec-Fetch-Site %r): cross-origin",
-                        scope.get("method", "WS"), scope.get("path"),
-                        (origin or b"-").decode("latin-1")[:80],
-                        (site or b"-").decode("latin-1")[:20])
+            if say:
+                log.warning("refused %s %s from Origin %r (Sec-Fetch-Site %r): cross-origin",
+                            scope.get("method", "WS"), scope.get("path"),
+                            (origin or b"-").decode("latin-1")[:80],
+                            (site or b"-").decode("latin-1")[:20])
             return "cross_origin"
         return None
 
