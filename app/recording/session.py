@@ -41,6 +41,7 @@ from app.recording.dataset import ArmLayout, EpisodeFrames
 from app.recording.encoder import Encoder, RecordingError
 from app.recording.inputs import ArmTrack, CameraFeed, CameraTrack
 from app.recording.video import EpisodeVideo
+from app.runtime.tasks import cancel_and_wait
 from app.service import ArmService
 
 log = logging.getLogger(__name__)
@@ -178,11 +179,7 @@ class EpisodeRecorder:
         so that the last frame may get a camera frame taken after it, as every other does."""
         task, self._task = self._task, None
         if task is not None and not task.done():
-            task.cancel()
-            try:
-                await task
-            except asyncio.CancelledError:
-                pass
+            await cancel_and_wait(task)
         if settle and self.cameras and self.ticks:
             delay = self.t0 + (self.ticks - 0.5) / self.fps - time.time()
             if delay > 0:
