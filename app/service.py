@@ -20,7 +20,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from app import schemas as s
-from app.arms import arm_type
+from app.arms import arm_type, describe
 from app.calibration import gravity_run
 from app.calibration.book import CalibrationBook
 from app.calibration.gravity import GravityFit, default_poses
@@ -148,14 +148,7 @@ class ArmService:
                             last_error=link.last_error or self.driver.last_error)
 
     def capabilities(self) -> s.Capabilities:
-        return s.Capabilities(gripper=self.profile.gripper.actuated,
-                              force_sensing=self._force_sensing(), protocol=self.protocol,
-                              pitch=self.model.has_pitch)
-
-    def _force_sensing(self) -> bool:
-        if self.profile.force is not None:
-            return True
-        return any(j.stall_torque_nm for j in self.profile.joints)
+        return describe.capabilities(self.profile, self.model)
 
     def summary(self) -> s.ArmSummary:
         return s.ArmSummary(name=self.name, model=self.profile.model,
@@ -184,7 +177,7 @@ class ArmService:
 
     def force_info(self) -> s.ForceInfo | None:
         """How far the torques and tip force can be trusted, and why tip_force is null."""
-        if not self._force_sensing():
+        if not describe.force_sensing(self.profile):
             return None
         f = self.profile.force
         if f is not None:
@@ -239,7 +232,7 @@ class ArmService:
         return s.ForceTare(joints=list(self.model.names), offsets=None)
 
     def _require_force(self) -> None:
-        if not self._force_sensing():
+        if not describe.force_sensing(self.profile):
             raise NoForceSensing(f"{self.name} senses no joint torques: nothing to tare")
 
     def state(self) -> dict[str, Any]:

@@ -6,15 +6,23 @@ The whole lab, a worker killed and a press while it restarts: tests/test_lab_wor
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 import sqlite3
+import threading
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
+import uvicorn
 from conftest import make_settings, running_client
 
+from app.arms.loading import load_profile
 from app.lab.serve import build_front
 from app.store import DB_NAME
+from app.web.factory import create_app
 
 ESTOP = "/api/v1/arms/{}/estop"
 
@@ -76,3 +84,57 @@ async def test_a_press_without_a_token_the_lab_knows_latches_nothing(tmp_path: P
         assert record is not None and record["latched"] is True, record
     finally:
         front.store.close()
+
+
+
+@contextlib.contextmanager
+def _worker_on(uds: Path, data: Path) -> Iterator[None]:
+    """The real worker app (a server over the rbe3001 alone, as worker 0 of the default
+    arms' plan) on the worker's Unix socket, in a thread, lifespan and all."""
+    app = create_app(make_settings(data_dir=str(data)), profiles=[load_profile("rbe3001")])
+    server = uvicorn.Server(uvicorn.Config(app, uds=str(uds), lifespan="on",
+                                           log_level="warning"))
+    thread = threading.Thread(target=lambda: asyncio.run(server.serve()), name="worker-0",
+                              daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        assert thread.is_alive() and time.monotonic() < deadline, "the worker did not start"
+        time.sleep(0.01)
+    try:
+        yield
+    finally:
+        server.should_exit = True
+        thread.join(30)
+        assert not thread.is_alive(), "the worker's thread outlived the test"
+
+
+async def test_the_arm_list_names_an_arm_whose_worker_never_answered(tmp_path: Path) -> None:
+    """`GET /api/v1/arms` lists every arm of the lab's plan: one whose worker is down and has
+    not answered since the front started (no summary of its own yet) from its profile, link
+    down; a client that presses every arm it lists misses none. (With no worker ready at all
+    the list is 503: the workers check the token. `armserver estop` names the arms from
+    health, which answers for every arm regardless.)"""
+    front = build_front(make_settings(data_dir=str(tmp_path / "data")), 2, tmp_path)
+    up, down = front.workers
+    assert (up.arms, down.arms) == (("rbe3001",), ("angler",))
+    with _worker_on(up.uds, tmp_path / "data"):
+        up.ready = True  # (the supervisor, not started here, sets it once it answers)
+        try:
+            async with httpx.AsyncClient(transport=httpx.ASGITransport(app=front),  # type: ignore[arg-type]
+                                         base_url="http://armserver.test") as c:
+                r = await c.get("/api/v1/arms")
+        finally:
+            await up.client.aclose()
+    assert r.status_code == 200, r.text
+    listed = {a["name"]: a for a in r.json()}
+    assert list(listed) == ["rbe3001", "angler"]
+    assert listed["rbe3001"]["link"]["connected"] is True
+    angler = listed["angler"]
+    assert angler["link"]["state"] == "down" and angler["link"]["connected"] is False
+    assert angler["model"] == "angler"
+    # as the angler's own server describes it
+    async with running_client(make_settings(data_dir=str(tmp_path / "one"))) as (_, c):
+        own = {a["name"]: a for a in (await c.get("/api/v1/arms")).json()}["angler"]
+    assert angler["capabilities"] == own["capabilities"], (angler, own)
+    assert angler["description"] == own["description"]

@@ -41,6 +41,7 @@ from typing import Any
 
 from starlette.types import Receive, Scope, Send
 
+from app.arms import describe
 from app.config import Settings
 from app.errors import DifferentWorkers
 from app.lab.across import RECORDINGS, TELEOP, Across, handles
@@ -403,11 +404,20 @@ class LabFront:
             k = self.plan.worker_of[name]
             if k in answers:
                 out.append(self._summaries[name])
-            elif name in self._summaries:
+            else:  # its worker is down: its last summary, or (never given) its profile's
                 w = self._by_index[k]
-                out.append({**self._summaries[name],
+                known = self._summaries.get(name) or self._summary_of(name)
+                out.append({**known,
                             "link": down_link(self.plan, name, w.last_error or "worker down")})
         return _json_response(200, out)
+
+    def _summary_of(self, name: str) -> dict[str, Any]:
+        """An arm's summary from its profile (link set by the caller): for an arm whose worker
+        has not answered since the front started; every arm of the plan is listed (a client
+        that presses every arm it lists, `armserver estop`, misses none)."""
+        p = self.plan.profile(name)
+        return {"name": name, "model": p.model, "description": p.description,
+                "capabilities": describe.capabilities(p).model_dump(mode="json")}
 
     async def _cameras_list(self, scope: Scope) -> Answer:
         """Every worker's cameras in config order; a down worker's with their last entry and
