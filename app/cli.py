@@ -77,14 +77,17 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def register_client_commands(subparsers: Any) -> None:
-    """Hook for the client commands (`call`, `watch`): added from app.client.cli if present."""
+    """Hook for the client commands (`call`, `watch`, `estop`, `record`, `teleop`): added from
+    app.client if present."""
     if importlib.util.find_spec("app.client.cli") is None:
         return
     from app.client.cli import register_client_commands as register
+    from app.client.estop_cli import add_estop
     from app.client.record_cli import add_record
     from app.client.teleop_cli import add_teleop
 
     register(subparsers)
+    add_estop(subparsers)
     add_record(subparsers)
     add_teleop(subparsers)
 
