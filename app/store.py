@@ -49,6 +49,10 @@ T = TypeVar("T")
 #: The scope of an arm's own settings (`ARM_SCOPE.format(name)`): its safety envelope
 #: (app/web/routes/safety.py), its estop latch (app/service.py).
 ARM_SCOPE = "arm:{}"
+#: The scope of a camera's own settings (`CAMERA_SCOPE.format(name)`): its calibration
+#: (CALIBRATION_KEY, app/cameras/hub.py; a lab's front reads whether one is there).
+CAMERA_SCOPE = "camera:{}"
+CALIBRATION_KEY = "calibration"
 #: The key of an arm's estop latch record under ARM_SCOPE (`latch_record`): written by the
 #: arm's service at each latch and release, and by a lab's front for a press it keeps while
 #: the arm's worker is down (app/lab/front.py); read at the arm's start.

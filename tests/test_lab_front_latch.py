@@ -109,23 +109,31 @@ def _worker_on(uds: Path, data: Path) -> Iterator[None]:
         assert not thread.is_alive(), "the worker's thread outlived the test"
 
 
-async def test_the_arm_list_names_an_arm_whose_worker_never_answered(tmp_path: Path) -> None:
+async def test_the_lists_name_an_arm_and_a_camera_whose_worker_never_answered(
+        tmp_path: Path) -> None:
     """`GET /api/v1/arms` lists every arm of the lab's plan: one whose worker is down and has
     not answered since the front started (no summary of its own yet) from its profile, link
-    down; a client that presses every arm it lists misses none. (With no worker ready at all
-    the list is 503: the workers check the token. `armserver estop` names the arms from
-    health, which answers for every arm regardless.)"""
+    down; a client that presses every arm it lists misses none. `GET /api/v1/cameras` the
+    same: such a camera from its config, not up, calibrated if the store has one. (With no
+    worker ready at all the list is 503: the workers check the token. `armserver estop` names
+    the arms from health, which answers for every arm regardless.)"""
     front = build_front(make_settings(data_dir=str(tmp_path / "data")), 2, tmp_path)
     up, down = front.workers
     assert (up.arms, down.arms) == (("rbe3001",), ("angler",))
+    front.store.open()
     with _worker_on(up.uds, tmp_path / "data"):
         up.ready = True  # (the supervisor, not started here, sets it once it answers)
         try:
             async with httpx.AsyncClient(transport=httpx.ASGITransport(app=front),  # type: ignore[arg-type]
                                          base_url="http://armserver.test") as c:
                 r = await c.get("/api/v1/arms")
+                cams = await c.get("/api/v1/cameras")
+                # a calibration in the store (as the worker's hub keeps it): said calibrated
+                front.store.put_setting_nowait("camera:angler", "calibration", {"k": 1})
+                cams_after = await c.get("/api/v1/cameras")
         finally:
             await up.client.aclose()
+            front.store.close()
     assert r.status_code == 200, r.text
     listed = {a["name"]: a for a in r.json()}
     assert list(listed) == ["rbe3001", "angler"]
@@ -133,8 +141,15 @@ async def test_the_arm_list_names_an_arm_whose_worker_never_answered(tmp_path: P
     angler = listed["angler"]
     assert angler["link"]["state"] == "down" and angler["link"]["connected"] is False
     assert angler["model"] == "angler"
-    # as the angler's own server describes it
+    # as the angler's own server describes it; its camera too (but up)
     async with running_client(make_settings(data_dir=str(tmp_path / "one"))) as (_, c):
         own = {a["name"]: a for a in (await c.get("/api/v1/arms")).json()}["angler"]
+        own_cams = {k["name"]: k for k in (await c.get("/api/v1/cameras")).json()}
     assert angler["capabilities"] == own["capabilities"], (angler, own)
     assert angler["description"] == own["description"]
+    assert cams.status_code == 200, cams.text
+    listed_cams = {k["name"]: k for k in cams.json()}
+    assert list(listed_cams) == list(own_cams) == ["rbe3001", "angler"], listed_cams
+    assert listed_cams["angler"] == {**own_cams["angler"], "up": False}, listed_cams
+    assert listed_cams["rbe3001"]["up"] is True
+    assert {k["name"]: k["calibrated"] for k in cams_after.json()}["angler"] is True

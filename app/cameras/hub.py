@@ -27,13 +27,12 @@ from app.cameras.sources import CaptureSource, FolderSource, RenderSource, Sourc
 from app.errors import Busy, CameraDown, InvalidRequest, NotFound
 from app.service import ArmService
 from app.sim.camera import SimView, render
-from app.store import StoreError
+from app.store import CALIBRATION_KEY, CAMERA_SCOPE, StoreError
 
 __all__ = ["CALIBRATION_KEY", "CameraHub", "Store", "scope"]
 
 log = logging.getLogger(__name__)
 
-CALIBRATION_KEY = "calibration"
 #: Detections waiting or running at once, all cameras; more is 409 `busy` (bounded work).
 MAX_DETECTIONS = 8
 #: Worker threads for JPEG encoding and detection (the machine has few cores to share with the
@@ -49,7 +48,7 @@ class Store(Protocol):
 
 
 def scope(camera: str) -> str:
-    return f"camera:{camera}"
+    return CAMERA_SCOPE.format(camera)
 
 
 def sim_renderer(svc: ArmService, config: CameraConfig) -> Callable[[], Callable[[], np.ndarray]]:

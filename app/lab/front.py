@@ -42,6 +42,7 @@ from typing import Any
 from starlette.types import Receive, Scope, Send
 
 from app.arms import describe
+from app.cameras.config import CameraConfig
 from app.config import Settings
 from app.errors import DifferentWorkers
 from app.lab.across import RECORDINGS, TELEOP, Across, handles
@@ -50,7 +51,17 @@ from app.lab.placement import LabPlan
 from app.lab.supervisor import Supervisor, Worker
 from app.lab.upstream import UpstreamError, UpstreamResponse
 from app.lab.ws_relay import relay_websocket
-from app.store import ARM_SCOPE, ESTOP_KEY, LATCH_SAVE_WAIT_S, Store, latch_record, saved_within
+from app.store import (
+    ARM_SCOPE,
+    CALIBRATION_KEY,
+    CAMERA_SCOPE,
+    ESTOP_KEY,
+    LATCH_SAVE_WAIT_S,
+    Store,
+    StoreError,
+    latch_record,
+    saved_within,
+)
 from app.web.hostguard import HostPolicy
 from app.web.middleware import API_PREFIX
 from app.web.security import Access, bearer_token_of
@@ -439,7 +450,20 @@ class LabFront:
                     out.append(self._cameras[cam.name])
             elif cam.name in self._cameras:
                 out.append({**self._cameras[cam.name], "up": False})
+            elif k is not None:  # its worker never answered since the front started
+                out.append(await self._camera_of(cam))
         return _json_response(200, out)
+
+    async def _camera_of(self, cam: CameraConfig) -> dict[str, Any]:
+        """A down worker's camera from its config (not up) and the store (calibrated)."""
+        try:
+            stored = await self.store.get_setting(CAMERA_SCOPE.format(cam.name),
+                                                  CALIBRATION_KEY)
+        except StoreError:
+            stored = None
+        return {"name": cam.name, "arm": cam.arm, "kind": cam.kind, "width": cam.width,
+                "height": cam.height, "fps": cam.fps, "up": False,
+                "calibrated": stored is not None}
 
     async def _health(self, scope: Scope) -> Answer:
         answers, refusal = await self._ask_all(scope, HEALTH)
