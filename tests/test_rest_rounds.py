@@ -128,6 +128,27 @@ def test_repeats_are_read_until_the_batch_is_due(wake_pipe):
         assert_next_slot(next_slot, start, PERIOD, ats)
 
 
+def test_a_slot_on_its_grid_stays_on_it_read_after_read(wake_pipe):
+    """Each read moves the slot one period on to the grid point itself (`following`), not to
+    a sum of periods: at a monotonic clock many hours up the sum drifts about one ulp a read
+    (2 ns in a few hundred at 69,000 s, 0.6 ms a day), off the grid links share slots on."""
+    with responder(lambda n, req: REPLY) as (fd, got):
+        slot = poller.aligned(time.monotonic(), PERIOD)
+        [(next_slot, ats, end)] = run([(fd, REQ, REPLY, 0.05, slot, PERIOD, slot + 0.4, 1000)],
+                                      wake_pipe[0])
+    assert end is None and len(ats) >= 20, (end, len(ats))
+    k = round(next_slot / PERIOD)
+    assert next_slot == k * PERIOD  # exactly the grid point: one rounding, no sum
+    # and in Python, as the link's own schedule moves: 200,000 polls (400 s at 500 Hz) on
+    for start in (slot, 69288.49):
+        s = poller.aligned(start, PERIOD)
+        for _ in range(200_000):
+            s = poller.following(s, PERIOD)
+        assert s == round(s / PERIOD) * PERIOD, s
+    # a slot off the grid (a caller's own) moves by plain periods
+    assert poller.following(1000.0005, PERIOD) == 1000.0005 + PERIOD
+
+
 def test_rounds_far_behind_skip_ahead_onto_the_grid(wake_pipe):
     """A device that stalls 60 ms (30 periods) on the third request: the rounds do not read
     the slots they missed one after another; the next slot is on the period's grid, ahead."""

@@ -125,6 +125,17 @@ static void take(Rest *r, int ready, Py_ssize_t chunk) {
     r->got += k;
 }
 
+/* A slot this close to its period's grid is on it (`following`), s. */
+#define GRID_TOL_S 1e-6
+
+/* The slot a period after `slot`: on the period's grid (within GRID_TOL_S), the grid point
+ * itself (one rounding), not a sum of periods that drifts off it by about one ulp a poll;
+ * else `slot + period`. As app/links/poller.py `following`. */
+static double following(double slot, double period) {
+    double after = slot + period, on = floor(after / period + 0.5) * period;
+    return fabs(on - after) < GRID_TOL_S ? on : after;
+}
+
 /* The poll in flight is over (whole, longer, or short at its deadline). */
 static void done(Rest *r, double catch_up) {
     double at = clock_s(CLOCK_REALTIME), now = clock_s(CLOCK_MONOTONIC);
@@ -132,7 +143,7 @@ static void done(Rest *r, double catch_up) {
     lowat_off(r);
     if (r->got == r->size && memcmp(r->buf, r->expect, (size_t)r->size) == 0) {
         r->ats[r->n++] = at;
-        r->slot += r->period;
+        r->slot = following(r->slot, r->period);
         if (r->slot < now - catch_up * r->period) /* far behind: onto the grid, ahead */
             r->slot = ceil((now + r->period - 1e-9) / r->period) * r->period;
         return;

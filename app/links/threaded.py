@@ -63,7 +63,16 @@ from collections.abc import Callable
 from typing import Any
 
 from app.links.base import READ_CHUNK, Link, LinkError, LinkState, Reply
-from app.links.poller import CATCH_UP, EARLY_S, PollThread, RestPlan, Told, aligned, shared
+from app.links.poller import (
+    CATCH_UP,
+    EARLY_S,
+    PollThread,
+    RestPlan,
+    Told,
+    aligned,
+    following,
+    shared,
+)
 from app.links.serial import port_fileno
 from app.runtime.control_thread import (
     CONTROL_NICE,
@@ -530,7 +539,7 @@ class ThreadLink(Link):
         self._held += 1
         self.stats["scheduled"] += 1
         period = self._period
-        self._slot += period
+        self._slot = following(self._slot, period)
         if self._slot < now - CATCH_UP * period:  # far behind: skip ahead, on the grid
             self._slot = aligned(now + period, period)
         data = entry.data if isinstance(entry, Reply) else b""
