@@ -194,6 +194,26 @@ def _free_socket(sndbuf: int | None) -> socket.socket:
 
 
 @contextlib.contextmanager
+def uvicorn_thread(server: uvicorn.Server, name: str, **serve: Any) -> Iterator[None]:
+    """`server.serve(**serve)` on a thread of its own for the block: started (bounded wait),
+    then stopped, and the thread must have ended (a thread that outlives its test spins
+    beside every later one: session 31's flood)."""
+    thread = threading.Thread(target=lambda: asyncio.run(server.serve(**serve)), name=name,
+                              daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30.0  # (a bound for a loaded machine, not a timing)
+    while not server.started:
+        assert thread.is_alive() and time.monotonic() < deadline, f"{name} did not start"
+        time.sleep(0.01)
+    try:
+        yield
+    finally:
+        server.should_exit = True
+        thread.join(30)
+        assert not thread.is_alive(), f"{name}'s thread outlived the test"
+
+
+@contextlib.contextmanager
 def serve_live(settings: Settings | None = None, sndbuf: int | None = None,
                profiles: list[ArmProfile] | None = None) -> Iterator[LiveServer]:
     """A real uvicorn server on a free loopback port, in a thread, over `profiles` (default:

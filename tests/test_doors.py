@@ -8,11 +8,8 @@ once compression is negotiated)."""
 
 from __future__ import annotations
 
-import asyncio
 import json
 import socket
-import threading
-import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -21,6 +18,7 @@ import paho.mqtt.client as mqtt
 import pytest
 import serial_asyncio
 import uvicorn
+from conftest import uvicorn_thread
 from starlette.applications import Starlette
 from starlette.middleware import Middleware
 from starlette.routing import WebSocketRoute
@@ -159,20 +157,9 @@ def uvicorn_on_loopback() -> Iterator[str]:
     sock = socket.socket()
     sock.bind(("127.0.0.1", 0))
     server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off"))
-    thread = threading.Thread(target=lambda: asyncio.run(server.serve(sockets=[sock])),
-                              daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 20
-    while not server.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "uvicorn did not start"
-        time.sleep(0.01)
-    try:
+    with uvicorn_thread(server, "doors-uvicorn", sockets=[sock]):
         yield f"ws://127.0.0.1:{sock.getsockname()[1]}/ws"
-    finally:
-        server.should_exit = True
-        thread.join(10)
-        sock.close()
-        assert not thread.is_alive(), "the server's thread outlived the test"
+    sock.close()
 
 
 @pytest.mark.parametrize("compression", [None, "deflate"])

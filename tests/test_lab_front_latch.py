@@ -6,18 +6,15 @@ The whole lab, a worker killed and a press while it restarts: tests/test_lab_wor
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import json
 import sqlite3
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import uvicorn
-from conftest import make_settings, running_client
+from conftest import make_settings, running_client, uvicorn_thread
 
 from app.arms.loading import load_profile
 from app.lab.serve import build_front
@@ -94,19 +91,8 @@ def _worker_on(uds: Path, data: Path) -> Iterator[None]:
     app = create_app(make_settings(data_dir=str(data)), profiles=[load_profile("rbe3001")])
     server = uvicorn.Server(uvicorn.Config(app, uds=str(uds), lifespan="on",
                                            log_level="warning"))
-    thread = threading.Thread(target=lambda: asyncio.run(server.serve()), name="worker-0",
-                              daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 30
-    while not server.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "the worker did not start"
-        time.sleep(0.01)
-    try:
+    with uvicorn_thread(server, "worker-0"):
         yield
-    finally:
-        server.should_exit = True
-        thread.join(30)
-        assert not thread.is_alive(), "the worker's thread outlived the test"
 
 
 async def test_the_lists_name_an_arm_and_a_camera_whose_worker_never_answered(
