@@ -48,15 +48,7 @@ from app.safety.guard import SafetyGuard
 from app.sim.hand import Hand
 from app.sim.world import World
 from app.sim.world_tap import hand_of, world_of
-from app.store import (
-    ARM_SCOPE,
-    ESTOP_KEY,
-    LATCH_SAVE_WAIT_S,
-    Store,
-    StoreError,
-    latch_record,
-    saved_within,
-)
+from app.store import Store, StoreError, saved_within
 from app.telemetry.arm_hub import ArmHub
 from app.telemetry.hub import Subscription, TelemetryHub
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
@@ -428,7 +420,7 @@ class ArmService:
         leaves the profile's)."""
         self._latch_store = store
         try:
-            record = store.get_setting_sync(ARM_SCOPE.format(self.name), ESTOP_KEY)
+            record = store.latch_of(self.name)
         except (StoreError, ValueError) as exc:
             log.error("%s: the stored estop latch could not be read: %s",  # noqa: TRY400
                       self.name, exc)
@@ -445,8 +437,7 @@ class ArmService:
         future (True: on disk), None without a store."""
         if self._latch_store is None:
             return None
-        return self._latch_store.put_setting_nowait(ARM_SCOPE.format(self.name), ESTOP_KEY,
-                                                    latch_record(latched))
+        return self._latch_store.put_latch(self.name, latched)
 
     def calibration_view(self) -> s.ArmCalibration:
         return self.calibration.view(self._gravity_run)
@@ -678,8 +669,8 @@ class ArmService:
                 hold.result()  # its error, if it failed
             # An answered press is on disk: a crash after the answer starts the arm latched.
             # A disk that refuses it (kept in memory, retried; health says) or holds it longer
-            # than LATCH_SAVE_WAIT_S does not hold the answer back.
-            await saved_within(self._latch_saved, LATCH_SAVE_WAIT_S)
+            # than LATCH_SAVE_WAIT_S (app/store.py) does not hold the answer back.
+            await saved_within(self._latch_saved)
         finally:
             if fresh:
                 log.warning("%s: emergency stop latched", self.name)

@@ -53,9 +53,8 @@ ARM_SCOPE = "arm:{}"
 #: (CALIBRATION_KEY, app/cameras/hub.py; a lab's front reads whether one is there).
 CAMERA_SCOPE = "camera:{}"
 CALIBRATION_KEY = "calibration"
-#: The key of an arm's estop latch record under ARM_SCOPE (`latch_record`): written by the
-#: arm's service at each latch and release, and by a lab's front for a press it keeps while
-#: the arm's worker is down (app/lab/front.py); read at the arm's start.
+#: The key of an arm's estop latch record under ARM_SCOPE (`latch_record`; `put_latch`,
+#: `latch_of`).
 ESTOP_KEY = "estop"
 #: Longest an estop press's answer waits for its latch record to be on disk, s: a disk that
 #: holds it longer does not hold the answer back (the store retries; health says).
@@ -286,6 +285,18 @@ class Store:
         fut = self._call(lambda: self._put(scope, key, text))
         fut.add_done_callback(_ignore)
         return fut
+
+    # ------------------------------------------------------------ an arm's estop latch
+
+    def latch_of(self, arm: str) -> Any:
+        """`arm`'s estop latch record (`latch_record`; None: none), blocking: for start-up."""
+        return self.get_setting_sync(ARM_SCOPE.format(arm), ESTOP_KEY)
+
+    def put_latch(self, arm: str, latched: bool) -> concurrent.futures.Future[bool]:
+        """Record `arm`'s estop latch (now) without waiting: the write's future, for
+        `saved_within`. Written by the arm's service at each latch and release, and by a lab's
+        front for a press it keeps while the arm's worker is down."""
+        return self.put_setting_nowait(ARM_SCOPE.format(arm), ESTOP_KEY, latch_record(latched))
 
     # ------------------------------------------------------------ audit log (event loop side)
 
@@ -641,7 +652,8 @@ def latch_record(latched: bool) -> dict[str, Any]:
     return {"latched": latched, "at": datetime.now(UTC).isoformat(timespec="milliseconds")}
 
 
-async def saved_within(fut: concurrent.futures.Future[bool] | None, seconds: float) -> None:
+async def saved_within(fut: concurrent.futures.Future[bool] | None,
+                       seconds: float = LATCH_SAVE_WAIT_S) -> None:
     """Until a `put_setting_nowait` write is done, `seconds` at most (its outcome is the
     store's: a failed write is retried and said in `health()`)."""
     if fut is not None and not fut.done():

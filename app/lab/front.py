@@ -51,17 +51,7 @@ from app.lab.placement import LabPlan
 from app.lab.supervisor import Supervisor, Worker
 from app.lab.upstream import UpstreamError, UpstreamResponse
 from app.lab.ws_relay import relay_websocket
-from app.store import (
-    ARM_SCOPE,
-    CALIBRATION_KEY,
-    CAMERA_SCOPE,
-    ESTOP_KEY,
-    LATCH_SAVE_WAIT_S,
-    Store,
-    StoreError,
-    latch_record,
-    saved_within,
-)
+from app.store import CALIBRATION_KEY, CAMERA_SCOPE, Store, StoreError, saved_within
 from app.web.hostguard import HostPolicy
 from app.web.middleware import API_PREFIX
 from app.web.security import Access, bearer_token_of
@@ -127,6 +117,11 @@ def _target(scope: Scope) -> str:
     if scope.get("query_string"):
         url += b"?" + scope["query_string"]
     return str(url.decode("latin-1"))
+
+
+def _arm_in(path: str) -> str | None:
+    """The arm `{ARMS}/{arm}...` names (None: not an arm's path)."""
+    return path[len(ARMS) + 1:].split("/", 1)[0] if path.startswith(ARMS + "/") else None
 
 
 def _press(scope: Scope) -> bool:
@@ -214,8 +209,8 @@ class LabFront:
 
     def _worker_for(self, path: str) -> Worker | None:
         """The worker of the arm named in `path`, else the first ready one (None: none)."""
-        if path.startswith(ARMS + "/"):
-            arm = path[len(ARMS) + 1:].split("/", 1)[0]
+        arm = _arm_in(path)
+        if arm is not None:
             if arm in self._by_arm:
                 return self._by_arm[arm]
         elif path.startswith(CAMERAS + "/"):
@@ -328,7 +323,7 @@ class LabFront:
     def _all_arms_named(self, path: str, body: bytes) -> bytes:
         """A worker's 404 `unknown_arm` names its own arms (`no arm 'x'; this server hosts
         a, b`, app/web/deps.py, app/recording/manager.py): the lab's names them all."""
-        arm = path[len(ARMS) + 1:].split("/", 1)[0] if path.startswith(ARMS + "/") else None
+        arm = _arm_in(path)
         if arm in self._by_arm or b'"unknown_arm"' not in body:
             return body
         if arm is not None:
@@ -356,17 +351,16 @@ class LabFront:
         auth = credentials(headers)
         if self._access.identify(bearer_token_of(auth)) is None:
             return False
-        arm = scope["path"][len(ARMS) + 1:].split("/", 1)[0]
+        arm = _arm_in(scope["path"])
         saved = None
         if arm in worker.arms and self._hosts.refusal(scope, say=False) is None:
-            saved = self.store.put_setting_nowait(ARM_SCOPE.format(arm), ESTOP_KEY,
-                                                  latch_record(True))
+            saved = self.store.put_latch(arm, True)
             log.warning("%s: an estop press while worker %d is down: latched in the store",
                         arm, worker.index)
         kept = worker.keep_press(_target(scope), headers)
         if not kept:
             log.warning("worker %d: too many estop presses kept; this one is not", worker.index)
-        await saved_within(saved, LATCH_SAVE_WAIT_S)
+        await saved_within(saved)
         return kept or saved is not None
 
     def _down(self, worker: Worker | None, kept: bool = False) -> Answer:
