@@ -4,10 +4,11 @@
                         [--pin]
 
 Starts the arms' simulators out of the server's process (the project's simulated firmware or
-servo bus, one device and one `socket://127.0.0.1:PORT` address per arm), `--per-sim` arms to a
-process (`armserver sim MODEL --listen tcp://127.0.0.1:PORT --listen ...`: one event loop for
-them), then `armserver serve --workers W` over them (W = 1: today's single process), and
-while every arm runs at its poll rate prints:
+servo bus, one device and one `socket://127.0.0.1:PORT` address per arm), `--per-sim` arms of
+one worker to a process (`armserver sim MODEL --listen tcp://127.0.0.1:PORT --listen ...`: one
+event loop for them, woken once by each of that worker's poll rounds), then `armserver serve
+--workers W` over them (W = 1: today's single process), and while every arm runs at its poll
+rate prints:
 
 - server CPU: front and workers together, % of one core, in all and per arm, over `--seconds`
   with no client asking anything (what the arms cost); the simulators' CPU and the whole
@@ -77,8 +78,12 @@ import httpx
 import websockets
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # (its `kinematics` first)
 import _machine  # noqa: E402
 from _server import ROOT, pct, pct_spread  # noqa: E402
+
+from app.config import Settings  # noqa: E402
+from app.lab.placement import plan_lab  # noqa: E402
 
 API = "/api/v1"
 
@@ -91,6 +96,19 @@ def _free_ports(n: int) -> list[int]:
     for s in socks:
         s.close()
     return ports
+
+
+def _sim_groups(config: Path, workers: int, per: int, in_order: bool) -> list[list[int]]:
+    """The simulators' ports, `per` to a process: each process's arms those of one worker
+    (a worker's poll thread writes its arms' due polls at once, so their requests reach one
+    simulator process together: one wake-up a round, not one per worker), or with `in_order`
+    the config's next `per` arms (the arms of every worker: the bench before session 33)."""
+    plan = plan_lab(Settings(config=str(config)), workers)
+    ports = {p.name: int(str(p.link.address).rsplit(":", 1)[1])
+             for arms in plan.workers for p in arms}
+    lists = [list(plan.names)] if in_order else [[p.name for p in arms] for arms in plan.workers]
+    return [[ports[n] for n in names[k:k + per]] for names in lists
+            for k in range(0, len(names), per)]
 
 
 def _autogroup_nice(pid: int, niceness: int) -> bool:
@@ -460,6 +478,9 @@ def main() -> int:
     p.add_argument("--per-sim", type=int, default=16, metavar="K",
                    help="arms each simulator process serves (one device and address each, "
                         "one process's loop for all: `armserver sim MODEL --listen A --listen B`)")
+    p.add_argument("--sims-in-order", action="store_true",
+                   help="each simulator process serves the next K arms of the config (the "
+                        "arms of both workers), not K arms of one worker")
     p.add_argument("--sims-nice", type=int, default=19, metavar="N",
                    help="the simulators' niceness (19: they take what the server leaves, as "
                         "devices with processors of their own; 0: the server's equals)")
@@ -472,6 +493,9 @@ def main() -> int:
     p.add_argument("--io", choices=("thread", "asyncio"), default="thread",
                    help="each arm's serial link ([link] io): on its own thread or on the loop")
     args = p.parse_args()
+    # a SIGTERM ends the run through its `finally`: the server and the simulators are sessions
+    # of their own, which a signal to this process's group does not reach
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     folder = Path(tempfile.mkdtemp(prefix="armserver-bench-lab-"))
     ports = _free_ports(args.arms + 1)
     # (the server's own settings, not the caller's; ARMSERVER_POLL_REST=python passes: the
@@ -481,22 +505,21 @@ def main() -> int:
     env["ARMSERVER_DATA_DIR"] = str(folder / "data")
     cpus = sorted(os.sched_getaffinity(0))
     machine = _machine.describe()  # (before anything of the bench's runs)
-    sims = []
     config = []
-    per = max(1, args.per_sim)
-    for k in range(0, args.arms, per):  # one simulator process serves `per` arms
-        listen = [a for port in ports[1 + k:1 + k + per]
-                  for a in ("--listen", f"tcp://127.0.0.1:{port}")]
-        sims.append(subprocess.Popen(  # (nice: every thread of the simulator inherits it)
-            ["nice", "-n", str(args.sims_nice), sys.executable, "-m", "app.cli", "sim",
-             args.model, *listen], cwd=ROOT, env=env, start_new_session=True,
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
-    grouped = all([_autogroup_nice(s.pid, args.sims_nice) for s in sims])
     for i, port in enumerate(ports[1:]):
         config.append(f'[[arms]]\nprofile = "{args.model}"\nname = "arm-{i + 1}"\n'
                       f'[arms.link]\nkind = "serial"\naddress = "socket://127.0.0.1:{port}"\n'
                       f'io = "{args.io}"\n')
     (folder / "lab.toml").write_text("\n".join(config))
+    sims = []
+    per = max(1, args.per_sim)
+    for group in _sim_groups(folder / "lab.toml", args.workers, per, args.sims_in_order):
+        listen = [a for port in group for a in ("--listen", f"tcp://127.0.0.1:{port}")]
+        sims.append(subprocess.Popen(  # (nice: every thread of the simulator inherits it)
+            ["nice", "-n", str(args.sims_nice), sys.executable, "-m", "app.cli", "sim",
+             args.model, *listen], cwd=ROOT, env=env, start_new_session=True,
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+    grouped = all([_autogroup_nice(s.pid, args.sims_nice) for s in sims])
     server = None
     try:
         if args.pin and len(cpus) > 1:
