@@ -23,7 +23,7 @@ from collections.abc import AsyncIterator
 import numpy as np
 import pytest
 from _tcp import LoopThread, serving
-from _wait import wait_for
+from _wait import TIMEOUT_S, wait_for
 from conftest import may_raise_priority, thread_niceness, with_reply_timeout
 
 from app.arms.dynamixel.driver import DynamixelDriver
@@ -75,6 +75,14 @@ async def arm(name: str, device=None, pty=None, *, in_process: bool = False, **f
         await server.close()
 
 
+def _subscribe(driver: Driver):
+    """A subscription to the driver's samples that keeps every sample the test's bounded waits
+    (a few, each up to `TIMEOUT_S`) may let pile up before it reads them: the hub's default
+    backlog (2,000: 4 s at 500 Hz) made "no sample lost" a hidden 4 s budget, which a pulled
+    cable's reconnect on a busy machine could spend (541 samples dropped with a 5 s outage)."""
+    return driver.hub.subscribe(backlog=int(driver.profile.link.poll_hz * 4 * TIMEOUT_S))
+
+
 def _samples(sub) -> list[dict]:
     samples, _events, dropped = sub.take()
     assert dropped == 0
@@ -94,7 +102,7 @@ def test_a_profile_serial_link_runs_on_its_own_thread_unless_told_otherwise():
 @pytest.mark.parametrize("name", ["rbe3001", "angler"])
 async def test_the_thread_polls_on_the_schedule_and_every_sample_is_published(name):
     async with arm(name, in_process=True) as (driver, link, _server):
-        sub = driver.hub.subscribe()
+        sub = _subscribe(driver)
         try:
             scheduled0, polls0 = link.stats["scheduled"], driver.stats["polls"]
             seq0 = driver.hub.latest["seq"]
@@ -119,7 +127,7 @@ async def test_a_moving_arm_is_published_as_it_moves_and_requests_go_between_pol
             assert isinstance(await driver.status(), rb.StatusReply)
             await driver.set_pid([(10.0 * k, 0, 0), (0.0, 0, 0), (0.0, 0, 0)])
         await driver.set_pid([(400.0, 0, 0), (300.0, 0, 0), (100.0, 0, 0)])
-        sub = driver.hub.subscribe()
+        sub = _subscribe(driver)
         try:
             async def there() -> bool:
                 return bool(np.allclose((await driver.status()).position_ticks,
@@ -162,7 +170,7 @@ async def test_a_silent_device_goes_stale_and_the_thread_polls_again_once_it_ans
     a device that answered late (a loaded machine) cost the link: "closed by the peer"."""
     pty = tmp_path / "ttyRBE" if over == "pty" else None
     async with arm("rbe3001", pty=pty) as (driver, link, server):
-        sub = driver.hub.subscribe()
+        sub = _subscribe(driver)
         try:
             server.set_faults(FaultConfig(drop=1.0))
             await wait_for(lambda: driver.stale, what="stale samples")
@@ -216,7 +224,7 @@ async def test_a_late_status_reply_never_answers_a_later_poll_or_request():
         with pytest.raises(DeviceTimeout):
             await asked
         await wait_for(lambda: fw.position_ticks[0] > 900.0, what="the encoder average")
-        sub = driver.hub.subscribe()
+        sub = _subscribe(driver)
         cleared = time.time()  # a reading taken from now on is the new one
         server.set_faults(FaultConfig())
         try:
@@ -310,7 +318,7 @@ async def test_a_cable_pulled_while_the_thread_polls_is_a_lost_link_and_it_comes
     async with arm("rbe3001", reconnect_after_s=0.3) as (driver, link, server):
         scheduled = link.stats["scheduled"]
         await wait_for(lambda: link.stats["scheduled"] > scheduled + 10, what="thread polls")
-        sub = driver.hub.subscribe()
+        sub = _subscribe(driver)
         try:
             server.disconnect()  # the cable is pulled while the arm is at rest
             await wait_for(lambda: driver.state.value in ("down", "connecting"),
@@ -467,7 +475,7 @@ async def test_one_poll_thread_serves_every_arm_on_shared_slots_and_wakes_them_t
     async with contextlib.AsyncExitStack() as stack:
         arms = [await stack.enter_async_context(arm(name))
                 for name in ("rbe3001",) * 4 + ("angler",) * 2]
-        subs = [d.hub.subscribe() for d, _l, _s in arms]
+        subs = [_subscribe(d) for d, _l, _s in arms]
         for sub in subs:
             stack.callback(sub.close)
         thread = poller.shared()
@@ -529,7 +537,7 @@ async def test_a_cable_pulled_on_one_arm_leaves_the_others_polling_on_the_shared
         # (the others' polls must not fail: their simulators answer from this test's loop)
         others = [await stack.enter_async_context(arm("rbe3001", in_process=True))
                   for _ in range(2)]
-        subs = [d.hub.subscribe() for d, _l, _s in others]
+        subs = [_subscribe(d) for d, _l, _s in others]
         for sub in subs:
             stack.callback(sub.close)
         driver, link, server = pulled
