@@ -130,14 +130,16 @@ async def test_lease_gates_motion_and_protocol_commands() -> None:
 
 
 async def test_lapsed_lease_stops_the_motion_and_sends_an_event() -> None:
-    async with running_client(make_settings(lease_ttl_s=0.5)) as (app, client):
+    # (a ttl of 1 s and renewals 0.3 s apart: a busy machine's stall of the test up to 0.7 s
+    # is not taken for a lapse; with 0.5 s and 0.25 s it had 0.25 s)
+    async with running_client(make_settings(lease_ttl_s=1.0)) as (app, client):
         svc = app.state.services["rbe3001"]
         sub = svc.hub.subscribe()
         try:
             lid = (await client.post(f"{ARM}/lease")).json()["id"]
             # renewals keep it alive past its ttl
-            for _ in range(3):
-                await asyncio.sleep(0.25)
+            for _ in range(4):
+                await asyncio.sleep(0.3)
                 assert (await client.put(f"{ARM}/lease/{lid}")).status_code == 200
             r = await client.post(f"{ARM}/move/joints", json={"positions": [1.0, 1.0, 1.0],
                                                               "duration": 5.0},
@@ -145,7 +147,7 @@ async def test_lapsed_lease_stops_the_motion_and_sends_an_event() -> None:
             assert r.status_code == 202
             mid = r.json()["id"]
             status = None
-            for _ in range(100):  # the lapse (0.5 s) plus a controlled stop
+            for _ in range(100):  # the lapse (1 s) plus a controlled stop
                 await asyncio.sleep(0.05)
                 status = (await client.get(f"{ARM}/motions/{mid}")).json()["status"]
                 if status != "running":
