@@ -397,10 +397,13 @@ async def test_a_stop_says_who_stopped_the_motion() -> None:
 async def test_a_lapsed_lease_says_so_in_the_stopped_motion() -> None:
     import asyncio
 
-    async with running_client(make_settings(lease_ttl_s=0.3)) as (_, client):
+    # (a 1 s ttl: the move must be sent while the lease lives; 0.3 s was a budget a busy
+    # machine's stall between the two requests could spend)
+    async with running_client(make_settings(lease_ttl_s=1.0)) as (_, client):
         lease = (await client.post(f"{RB}/lease")).json()["id"]
         r = await client.post(f"{RB}/move/joints", headers={"X-Arm-Lease": lease},
                               json={"positions": [1.0, 1.2, 1.0], "duration": 20.0})
+        assert r.status_code == 202, r.text
         mid = r.json()["id"]
         for _ in range(100):
             body = (await client.get(f"{RB}/motions/{mid}")).json()
