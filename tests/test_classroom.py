@@ -148,7 +148,9 @@ async def test_offer_claim_handoff_and_next() -> None:
 
 
 async def test_unclaimed_offer_passes_on_and_slot_ends_even_if_renewed() -> None:
-    async with running_client(class_settings(claim_s=0.5, slot_s=1.5)) as (_, c):
+    # (claim_s 1.5: bob claims within it once he sees his offer, polling every 50 ms; at
+    # 0.5 a stall of the test over 0.45 s passed his offer on too)
+    async with running_client(class_settings(claim_s=1.5, slot_s=1.5)) as (_, c):
         arm = "angler"
         a = (await c.post(f"/api/v1/arms/{arm}/queue", headers=H(ALICE))).json()
         b = (await c.post(f"/api/v1/arms/{arm}/queue", headers=H(BOB))).json()
