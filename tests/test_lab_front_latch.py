@@ -101,8 +101,7 @@ async def test_the_lists_name_an_arm_and_a_camera_whose_worker_never_answered(
     not answered since the front started (no summary of its own yet) from its profile, link
     down; a client that presses every arm it lists misses none. `GET /api/v1/cameras` the
     same: such a camera from its config, not up, calibrated if the store has one. (With no
-    worker ready at all the list is 503: the workers check the token. `armserver estop` names
-    the arms from health, which answers for every arm regardless.)"""
+    worker ready at all: the next test.)"""
     front = build_front(make_settings(data_dir=str(tmp_path / "data")), 2, tmp_path)
     up, down = front.workers
     assert (up.arms, down.arms) == (("rbe3001",), ("angler",))
@@ -139,3 +138,77 @@ async def test_the_lists_name_an_arm_and_a_camera_whose_worker_never_answered(
     assert listed_cams["angler"] == {**own_cams["angler"], "up": False}, listed_cams
     assert listed_cams["rbe3001"]["up"] is True
     assert {k["name"]: k["calibrated"] for k in cams_after.json()}["angler"] is True
+
+
+async def test_with_no_worker_ready_the_front_checks_the_caller_and_lists_every_arm_down(
+        tmp_path: Path) -> None:
+    """No worker ready (the lab starting, or every worker restarting): `GET /api/v1/arms` and
+    `/cameras` are answered by the front, which checks the caller as a worker would first (a
+    viewer's token; on an open lab the Host rule), with the worker's own refusals: every arm
+    of the plan listed from its profile, link down; every camera from its config, not up.
+    They were 503 (`link_down`, "no worker process is ready"): a dashboard or a script that
+    lists the arms to press them all had nothing to press."""
+    data = tmp_path / "data"
+    front = build_front(make_settings(data_dir=str(data), viewer_tokens="viewer-secret"), 2,
+                        tmp_path)
+    assert not any(w.ready for w in front.workers)
+    front.store.open()
+    try:
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=front),  # type: ignore[arg-type]
+                                     base_url="http://armserver.test") as c:
+            auth = {"authorization": "Bearer viewer-secret"}
+            arms = await c.get("/api/v1/arms", headers=auth)
+            cams = await c.get("/api/v1/cameras", headers=auth)
+            none = await c.get("/api/v1/arms")
+            wrong = await c.get("/api/v1/cameras", headers={"authorization": "Bearer nope"})
+            moved = await c.get("/api/v1/arms/angler/state", headers=auth)  # still 503
+    finally:
+        front.store.close()
+    # a server with the same tokens refuses the same way, and describes the same arms
+    async with running_client(make_settings(data_dir=str(tmp_path / "one"),
+                                            viewer_tokens="viewer-secret")) as (_, c):
+        own_none = await c.get("/api/v1/arms")
+        own_wrong = await c.get("/api/v1/cameras", headers={"authorization": "Bearer nope"})
+        own = {a["name"]: a for a in (await c.get("/api/v1/arms", headers=auth)).json()}
+        own_cams = {k["name"]: k for k in (await c.get("/api/v1/cameras", headers=auth)).json()}
+    assert (none.status_code, none.json()) == (own_none.status_code, own_none.json()) \
+        and none.status_code == 401, none.text
+    assert none.headers["www-authenticate"] == "Bearer"
+    assert (wrong.status_code, wrong.json()) == (own_wrong.status_code, own_wrong.json()) \
+        and wrong.status_code == 401, wrong.text
+    assert arms.status_code == 200, arms.text
+    listed = {a["name"]: a for a in arms.json()}
+    assert list(listed) == list(own) == ["rbe3001", "angler"]
+    for name, arm in listed.items():
+        assert arm["link"]["state"] == "down" and arm["link"]["connected"] is False, arm
+        assert {k: v for k, v in arm.items() if k != "link"} == \
+            {k: v for k, v in own[name].items() if k != "link"}, (arm, own[name])
+    assert cams.status_code == 200, cams.text
+    assert {k["name"]: k for k in cams.json()} == \
+        {name: {**k, "up": False} for name, k in own_cams.items()}
+    assert moved.status_code == 503 and moved.json()["code"] == "link_down", moved.text
+
+
+async def test_with_no_worker_ready_an_open_labs_lists_keep_its_host_rule(
+        tmp_path: Path) -> None:
+    """An open lab (no tokens) answers the lists with no worker ready only to a Host it
+    answers to: another name is 400 `bad_host`, as a worker's own middleware says it."""
+    front = build_front(make_settings(data_dir=str(tmp_path / "data")), 2, tmp_path)
+    front.store.open()
+    try:
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=front),  # type: ignore[arg-type]
+                                     base_url="http://127.0.0.1:8000") as c:
+            ok = await c.get("/api/v1/arms")
+            rebound = await c.get("/api/v1/arms", headers={"host": "rebound.example"})
+            health = await c.get("/api/v1/health")
+            rebound_health = await c.get("/api/v1/health", headers={"host": "rebound.example"})
+    finally:
+        front.store.close()
+    async with running_client(make_settings(data_dir=str(tmp_path / "one"))) as (_, c):
+        own = await c.get("/api/v1/arms", headers={"host": "rebound.example"})
+    assert ok.status_code == 200 and [a["name"] for a in ok.json()] == ["rbe3001", "angler"]
+    assert (rebound.status_code, rebound.json()) == (own.status_code, own.json()), own.text
+    assert rebound.status_code == 400 and rebound.json()["code"] == "bad_host"
+    # health, which needs no token, keeps the Host rule too (it names the arms' addresses)
+    assert health.status_code == 200 and health.json()["status"] == "degraded", health.text
+    assert (rebound_health.status_code, rebound_health.json()) == (own.status_code, own.json())

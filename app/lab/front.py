@@ -8,7 +8,9 @@ process owning its arm (app/lab/supervisor.py) and answers the lab-wide endpoint
 - `GET /api/v1/arms` and `GET /api/v1/health` ask every ready worker (with the caller's
   headers) and merge their answers in config order; an arm whose worker is down or restarting
   shows in health as link `down` with the reason (and health says `degraded`), and in the
-  list with its last known summary, link `down`.
+  list with its last known summary (or its profile's), link `down`. With no worker ready the
+  front checks the caller as a worker would (the Host rule, a viewer's token) and answers
+  the lists itself, every arm and camera down.
 - `/api/v1/cameras/{cam}/...` goes to the worker of the camera's arm, and `GET
   /api/v1/cameras` is merged like the arms.
 - Teleoperation and recordings go where the arms they name live (app/lab/across.py): a
@@ -18,7 +20,7 @@ process owning its arm (app/lab/supervisor.py) and answers the lab-wide endpoint
   ARMSERVER_DATA_DIR, the dashboard, `/openapi.json`, an unknown arm's 404) goes to the first
   ready worker: each serves the same routes and tokens.
 - A request for an arm whose worker is down is 503 `link_down` ("the server cannot talk to
-  the arm now"), as is a request when no worker is ready. An estop press so refused is kept
+  the arm now"), as is any other request when no worker is ready. An estop press so refused is kept
   and sent to the worker as it comes back, before any other request (app/lab/supervisor.py
   `Worker.keep_press`) and written to the lab's store as the arm's latch, which the worker
   reads as it starts: the arm comes back latched however long its worker takes and whether or
@@ -44,7 +46,7 @@ from starlette.types import Receive, Scope, Send
 from app.arms import describe
 from app.cameras.config import CameraConfig
 from app.config import Settings
-from app.errors import DifferentWorkers
+from app.errors import ArmError, DifferentWorkers
 from app.lab.across import RECORDINGS, TELEOP, Across, handles
 from app.lab.headers import HOP, credentials, forwarded_headers
 from app.lab.placement import LabPlan
@@ -52,9 +54,10 @@ from app.lab.supervisor import Supervisor, Worker
 from app.lab.upstream import UpstreamError, UpstreamResponse
 from app.lab.ws_relay import relay_websocket
 from app.store import CALIBRATION_KEY, CAMERA_SCOPE, Store, StoreError, saved_within
-from app.web.hostguard import HostPolicy
+from app.web.error_responses import arm_error_response
+from app.web.hostguard import REFUSALS, HostPolicy
 from app.web.middleware import API_PREFIX
-from app.web.security import Access, bearer_token_of
+from app.web.security import Access, Role, bearer_token_of
 
 log = logging.getLogger("armserver.lab")
 
@@ -395,12 +398,32 @@ class LabFront:
             answers[w.index] = json.loads(r[2])
         return answers, None
 
+    def _refused(self, scope: Scope, token: bool = True) -> Answer | None:
+        """What a worker refuses a lab-wide list with before its route (an open lab's Host
+        rule, then with `token` a viewer's token: app/web/hostguard.py, app/web/routes/arms.py;
+        health needs none), for the front to answer the list itself while no worker is ready;
+        None if it would answer."""
+        refused = self._hosts.refusal(scope)
+        if refused is not None:
+            status, detail = REFUSALS[refused]
+            return _json_response(status, {"detail": detail, "code": refused})
+        if not token:
+            return None
+        try:
+            self._access.require(bearer_token_of(credentials(forwarded_headers(scope))),
+                                 Role.VIEWER)
+        except ArmError as exc:
+            r = arm_error_response(exc)
+            return r.status_code, [(k, v) for k, v in r.raw_headers
+                                   if k != b"content-length"], bytes(r.body)
+        return None
+
     async def _arms(self, scope: Scope) -> Answer:
         answers, refusal = await self._ask_all(scope, ARMS)
+        if refusal is None and not answers and not any(w.ready for w in self.workers):
+            refusal = self._refused(scope)  # no worker to ask: the front checks, and answers
         if refusal is not None:
             return refusal
-        if not answers and not any(w.ready for w in self.workers):
-            return self._down(None)
         for listed in answers.values():
             for summary in listed:
                 self._summaries[summary["name"]] = summary
@@ -428,10 +451,10 @@ class LabFront:
         """Every worker's cameras in config order; a down worker's with their last entry and
         `up` false."""
         answers, refusal = await self._ask_all(scope, CAMERAS)
+        if refusal is None and not answers and not any(w.ready for w in self.workers):
+            refusal = self._refused(scope)
         if refusal is not None:
             return refusal
-        if not answers and not any(w.ready for w in self.workers):
-            return self._down(None)
         for listed in answers.values():
             for entry in listed:
                 self._cameras[entry["name"]] = entry
@@ -461,6 +484,8 @@ class LabFront:
 
     async def _health(self, scope: Scope) -> Answer:
         answers, refusal = await self._ask_all(scope, HEALTH)
+        if refusal is None and not answers and not any(w.ready for w in self.workers):
+            refusal = self._refused(scope, token=False)
         if refusal is not None:
             return refusal
         bodies = answers

@@ -137,6 +137,16 @@ class HostPolicy:
         return parts.scheme == scheme and parts.netloc == host and bool(host)
 
 
+#: Each refusal's (status, detail) by its code (`HostPolicy.refusal`): the middleware's answer,
+#: and the lab's front's where it answers for its workers (app/lab/front.py).
+REFUSALS: dict[str, tuple[int, str]] = {
+    "bad_host": (400, "this server does not answer to that Host name; allow it with "
+                      "ARMSERVER_ALLOWED_HOSTS (or configure tokens)"),
+    "cross_origin": (403, "a page from another origin may not change anything on this server; "
+                          "allow that origin with ARMSERVER_CORS_ORIGINS"),
+}
+
+
 class HostOriginGuard:
     """ASGI middleware applying :class:`HostPolicy` to HTTP requests and WebSocket upgrades."""
 
@@ -149,15 +159,9 @@ class HostOriginGuard:
             await self.app(scope, receive, send)
             return
         refused = self.policy.refusal(scope)
-        if refused == "bad_host":
-            await self._refuse(scope, receive, send, 400, "bad_host",
-                               "this server does not answer to that Host name; allow it with "
-                               "ARMSERVER_ALLOWED_HOSTS (or configure tokens)")
-            return
-        if refused == "cross_origin":
-            await self._refuse(scope, receive, send, 403, "cross_origin",
-                               "a page from another origin may not change anything on this "
-                               "server; allow that origin with ARMSERVER_CORS_ORIGINS")
+        if refused is not None:
+            status, detail = REFUSALS[refused]
+            await self._refuse(scope, receive, send, status, refused, detail)
             return
         await self.app(scope, receive, send)
 
