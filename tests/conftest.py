@@ -78,10 +78,11 @@ def make_settings(**over: Any) -> Settings:
 IN_PROCESS_REPLY_S = 0.3
 
 
-def with_reply_timeout(profile: ArmProfile, seconds: float = IN_PROCESS_REPLY_S) -> ArmProfile:
-    """`profile` with its link's per-request reply timeout set to `seconds`."""
+def with_reply_timeout(profile: ArmProfile, seconds: float | None = None) -> ArmProfile:
+    """`profile` with its link's per-request reply timeout set to `seconds` (None:
+    IN_PROCESS_REPLY_S)."""
     return profile.model_copy(update={"link": profile.link.model_copy(
-        update={"timeout_s": seconds})})
+        update={"timeout_s": IN_PROCESS_REPLY_S if seconds is None else seconds})})
 
 
 def thread_niceness(pid: int, tid: int) -> int:

@@ -51,7 +51,7 @@ async def started(name: str, link, timeout: float = 5.0, in_process: bool = Fals
     reply timeout, s."""
     profile = load_profile(name)
     if in_process or reply_s is not None:
-        profile = with_reply_timeout(profile, *(() if reply_s is None else (reply_s,)))
+        profile = with_reply_timeout(profile, reply_s)
     driver = DRIVERS[name](profile, link, TelemetryHub(name))
     await driver.start()
     assert await driver.wait_connected(timeout), f"{name} never connected: {link.last_error}"

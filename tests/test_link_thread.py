@@ -59,7 +59,7 @@ async def arm(name: str, device=None, pty=None, *, in_process: bool = False,
     fraction of it)."""
     profile = load_profile(name)
     if in_process or reply_s is not None:
-        profile = with_reply_timeout(profile, *(() if reply_s is None else (reply_s,)))
+        profile = with_reply_timeout(profile, reply_s)
     device = device or make_sim_device(profile)
     fc = FaultConfig(**faults) if faults else None
     if pty is not None:
