@@ -212,3 +212,30 @@ async def test_with_no_worker_ready_an_open_labs_lists_keep_its_host_rule(
     # health, which needs no token, keeps the Host rule too (it names the arms' addresses)
     assert health.status_code == 200 and health.json()["status"] == "degraded", health.text
     assert (rebound_health.status_code, rebound_health.json()) == (own.status_code, own.json())
+
+
+async def test_a_ready_worker_that_does_not_answer_leaves_the_check_to_the_front(
+        tmp_path: Path) -> None:
+    """A worker the supervisor still counts ready but that does not answer (it has just died,
+    nothing on its socket): the lists are answered from the plan, so the front checks the
+    caller first, as with no worker ready (it gave the list to anyone)."""
+    front = build_front(make_settings(data_dir=str(tmp_path / "data"),
+                                      viewer_tokens="viewer-secret"), 2, tmp_path)
+    for w in front.workers:
+        w.ready = True  # (nothing listens on its socket)
+    front.store.open()
+    try:
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=front),  # type: ignore[arg-type]
+                                     base_url="http://armserver.test") as c:
+            none = await c.get("/api/v1/arms")
+            cams = await c.get("/api/v1/cameras")
+            auth = await c.get("/api/v1/arms", headers={"authorization": "Bearer viewer-secret"})
+    finally:
+        for w in front.workers:
+            await w.client.aclose()
+        front.store.close()
+    assert none.status_code == 401 and none.json()["code"] == "unauthorized", none.text
+    assert cams.status_code == 401, cams.text
+    assert auth.status_code == 200, auth.text
+    assert [(a["name"], a["link"]["state"]) for a in auth.json()] == [("rbe3001", "down"),
+                                                                       ("angler", "down")]

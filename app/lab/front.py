@@ -8,9 +8,9 @@ process owning its arm (app/lab/supervisor.py) and answers the lab-wide endpoint
 - `GET /api/v1/arms` and `GET /api/v1/health` ask every ready worker (with the caller's
   headers) and merge their answers in config order; an arm whose worker is down or restarting
   shows in health as link `down` with the reason (and health says `degraded`), and in the
-  list with its last known summary (or its profile's), link `down`. With no worker ready the
-  front checks the caller as a worker would (the Host rule, a viewer's token) and answers
-  the lists itself, every arm and camera down.
+  list with its last known summary (or its profile's), link `down`. Where no worker answers
+  (none ready, or none of those that are) the front checks the caller as a worker would (the
+  Host rule, a viewer's token) and answers the lists itself, every arm and camera down.
 - `/api/v1/cameras/{cam}/...` goes to the worker of the camera's arm, and `GET
   /api/v1/cameras` is merged like the arms.
 - Teleoperation and recordings go where the arms they name live (app/lab/across.py): a
@@ -398,11 +398,20 @@ class LabFront:
             answers[w.index] = json.loads(r[2])
         return answers, None
 
+    async def _ask_or_check(self, scope: Scope, path: str,
+                            token: bool = True) -> tuple[dict[int, Any], Answer | None]:
+        """`_ask_all`; where no worker answered (none ready, or none of the ready ones), the
+        checks a worker makes first, made by the front (`_refused`): a list the front then
+        answers from the plan alone is given to no caller a worker would refuse."""
+        answers, refusal = await self._ask_all(scope, path)
+        if refusal is None and not answers:
+            refusal = self._refused(scope, token)
+        return answers, refusal
+
     def _refused(self, scope: Scope, token: bool = True) -> Answer | None:
         """What a worker refuses a lab-wide list with before its route (an open lab's Host
         rule, then with `token` a viewer's token: app/web/hostguard.py, app/web/routes/arms.py;
-        health needs none), for the front to answer the list itself while no worker is ready;
-        None if it would answer."""
+        health needs none); None if it would answer."""
         refused = self._hosts.refusal(scope)
         if refused is not None:
             status, detail = REFUSALS[refused]
@@ -419,9 +428,7 @@ class LabFront:
         return None
 
     async def _arms(self, scope: Scope) -> Answer:
-        answers, refusal = await self._ask_all(scope, ARMS)
-        if refusal is None and not answers and not any(w.ready for w in self.workers):
-            refusal = self._refused(scope)  # no worker to ask: the front checks, and answers
+        answers, refusal = await self._ask_or_check(scope, ARMS)
         if refusal is not None:
             return refusal
         for listed in answers.values():
@@ -450,9 +457,7 @@ class LabFront:
     async def _cameras_list(self, scope: Scope) -> Answer:
         """Every worker's cameras in config order; a down worker's with their last entry and
         `up` false."""
-        answers, refusal = await self._ask_all(scope, CAMERAS)
-        if refusal is None and not answers and not any(w.ready for w in self.workers):
-            refusal = self._refused(scope)
+        answers, refusal = await self._ask_or_check(scope, CAMERAS)
         if refusal is not None:
             return refusal
         for listed in answers.values():
@@ -483,9 +488,7 @@ class LabFront:
                 "calibrated": stored is not None}
 
     async def _health(self, scope: Scope) -> Answer:
-        answers, refusal = await self._ask_all(scope, HEALTH)
-        if refusal is None and not answers and not any(w.ready for w in self.workers):
-            refusal = self._refused(scope, token=False)
+        answers, refusal = await self._ask_or_check(scope, HEALTH, token=False)
         if refusal is not None:
             return refusal
         bodies = answers
