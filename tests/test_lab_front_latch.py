@@ -32,9 +32,14 @@ def _stored(data: Path, arm: str) -> dict[str, object] | None:
     return None if row is None else json.loads(row[0])
 
 
+def front_client(front: object, base_url: str = "http://armserver.test") -> httpx.AsyncClient:
+    """A client of the front app in this process (its lifespan not run: no supervisor)."""
+    return httpx.AsyncClient(transport=httpx.ASGITransport(app=front),  # type: ignore[arg-type]
+                             base_url=base_url)
+
+
 async def _press(front: object, arm: str, **headers: str) -> httpx.Response:
-    async with httpx.AsyncClient(transport=httpx.ASGITransport(app=front),  # type: ignore[arg-type]
-                                 base_url="http://armserver.test") as c:
+    async with front_client(front) as c:
         return await c.post(ESTOP.format(arm), headers=headers)
 
 
@@ -109,8 +114,7 @@ async def test_the_lists_name_an_arm_and_a_camera_whose_worker_never_answered(
     with _worker_on(up.uds, tmp_path / "data"):
         up.ready = True  # (the supervisor, not started here, sets it once it answers)
         try:
-            async with httpx.AsyncClient(transport=httpx.ASGITransport(app=front),  # type: ignore[arg-type]
-                                         base_url="http://armserver.test") as c:
+            async with front_client(front) as c:
                 r = await c.get("/api/v1/arms")
                 cams = await c.get("/api/v1/cameras")
                 # a calibration in the store (as the worker's hub keeps it): said calibrated
@@ -154,8 +158,7 @@ async def test_with_no_worker_ready_the_front_checks_the_caller_and_lists_every_
     assert not any(w.ready for w in front.workers)
     front.store.open()
     try:
-        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=front),  # type: ignore[arg-type]
-                                     base_url="http://armserver.test") as c:
+        async with front_client(front) as c:
             auth = {"authorization": "Bearer viewer-secret"}
             arms = await c.get("/api/v1/arms", headers=auth)
             cams = await c.get("/api/v1/cameras", headers=auth)
@@ -196,8 +199,7 @@ async def test_with_no_worker_ready_an_open_labs_lists_keep_its_host_rule(
     front = build_front(make_settings(data_dir=str(tmp_path / "data")), 2, tmp_path)
     front.store.open()
     try:
-        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=front),  # type: ignore[arg-type]
-                                     base_url="http://127.0.0.1:8000") as c:
+        async with front_client(front, "http://127.0.0.1:8000") as c:
             ok = await c.get("/api/v1/arms")
             rebound = await c.get("/api/v1/arms", headers={"host": "rebound.example"})
             health = await c.get("/api/v1/health")
@@ -225,8 +227,7 @@ async def test_a_ready_worker_that_does_not_answer_leaves_the_check_to_the_front
         w.ready = True  # (nothing listens on its socket)
     front.store.open()
     try:
-        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=front),  # type: ignore[arg-type]
-                                     base_url="http://armserver.test") as c:
+        async with front_client(front) as c:
             none = await c.get("/api/v1/arms")
             cams = await c.get("/api/v1/cameras")
             auth = await c.get("/api/v1/arms", headers={"authorization": "Bearer viewer-secret"})
