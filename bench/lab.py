@@ -14,7 +14,7 @@ rate prints:
   with no client asking anything (what the arms cost); the simulators' CPU and the whole
   machine's beside it (on two cores the simulators share the machine with the server);
 - samples/s per arm over that window, min and mean over the arms (each arm's `seq` over its
-  own sample clock);
+  own sample clock), the slowest arm's name and how many were under issue 27's 490;
 - then REST `GET /state` p50/p99 through the front, round robin over the arms, one client; the
   same request straight to a worker's Unix socket (the front's own cost is the difference);
 - the estop through the front, two ways (presses spread over the arms, each released after,
@@ -183,6 +183,8 @@ def _idle_s() -> float:
         return int(f.readline().split()[4]) / os.sysconf("SC_CLK_TCK")
 
 
+#: Issue 27's least samples/s of any arm (of 500).
+MIN_RATE = 490
 #: Arms whose telemetry streams at once (each at the poll rate) in the second "latch seen"
 #: figure: the first has one stream open at a time, as `make bench-peers`' harness.
 SEEN_STREAMS = 4
@@ -406,12 +408,15 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int, relay
                 direct.append(time.perf_counter() - start)
             one, more = await _presses(w, [name], presses)
             estop_direct = one + more
-    rates = [(last[a][0] - first[a][0]) / (last[a][1] - first[a][1]) for a in arms]
+    by_arm = {a: (last[a][0] - first[a][0]) / (last[a][1] - first[a][1]) for a in arms}
+    rates = list(by_arm.values())
+    slowest = min(by_arm, key=by_arm.__getitem__)
     n = len(arms)
     print(f"server CPU        {100 * cpu:.0f} % of a core in all, {100 * cpu / n:.1f} % per arm")
     print(f"simulators CPU    {100 * sim_cpu:.0f} % of a core; the whole machine busy "
           f"{100 * busy:.0f} % of {100 * (os.cpu_count() or 1)}")
-    print(f"samples/s per arm min {min(rates):.0f}  mean {sum(rates) / n:.0f}")
+    print(f"samples/s per arm min {min(rates):.0f}  mean {sum(rates) / n:.0f}  (the slowest: "
+          f"{slowest}; {sum(r < MIN_RATE for r in rates)} of {n} under {MIN_RATE})")
     print(f"REST GET state    p50 {1e3 * pct(rest, 0.5):.2f} ms  p99 {1e3 * pct(rest, 0.99):.2f}"
           f" ms through the front ({len(rest)} requests)")
     if direct:
