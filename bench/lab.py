@@ -415,7 +415,7 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int, relay
     print(f"server CPU        {100 * cpu:.0f} % of a core in all, {100 * cpu / n:.1f} % per arm")
     print(f"simulators CPU    {100 * sim_cpu:.0f} % of a core; the whole machine busy "
           f"{100 * busy:.0f} % of {100 * (os.cpu_count() or 1)}")
-    print(f"samples/s per arm min {min(rates):.0f}  mean {sum(rates) / n:.0f}  (the slowest: "
+    print(f"samples/s per arm min {by_arm[slowest]:.0f}  mean {sum(rates) / n:.0f}  (the slowest: "
           f"{slowest}; {sum(r < MIN_RATE for r in rates)} of {n} under {MIN_RATE})")
     print(f"REST GET state    p50 {1e3 * pct(rest, 0.5):.2f} ms  p99 {1e3 * pct(rest, 0.99):.2f}"
           f" ms through the front ({len(rest)} requests)")

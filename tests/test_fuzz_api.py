@@ -292,7 +292,7 @@ def _fuzz(target: Target, headers: dict[str, str], authorized: bool,
         if GenerationMode.NEGATIVE in modes:  # the arm is part of what gets broken
             runs.append((None, GenerationMode.NEGATIVE))
         for arm, mode in runs:
-            def attempt(case: Any, mode: GenerationMode = mode) -> None:
+            def attempt(case: Any) -> None:
                 _cap_waits(case)
                 response = case.call(headers=headers, timeout=CALL_TIMEOUT_S)
                 target.statuses[(op.label, response.status_code, _code(response))] += 1
