@@ -76,6 +76,12 @@ def make_settings(**over: Any) -> Settings:
 #: and read as silence, where a real device's bytes wait in the UART for a late reader. Tests
 #: that judge timeouts themselves keep the profile's own.
 IN_PROCESS_REPLY_S = 0.3
+#: The same over a pty, where a kernel worker at niceness 0 hands the bytes over, which other
+#: processes' raised threads can hold off (session 24): 0.3 s ran out in a clean clone's run
+#: (session 34: the angler's READ over a pty, its worker's first test, four workers starting),
+#: and a late rbe3001 reply, cut by the timeout, was read as a corrupt one under load (session
+#: 33). For tests over a pty that judge no time.
+PTY_REPLY_S = 1.5
 
 
 def with_reply_timeout(profile: ArmProfile, seconds: float | None = None) -> ArmProfile:

@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 from _wait import held_still, new_samples, wait_for
-from conftest import with_reply_timeout
+from conftest import PTY_REPLY_S, with_reply_timeout
 
 from app.arms.dynamixel.driver import DynamixelDriver
 from app.arms.loading import load_profile
@@ -70,9 +70,9 @@ async def test_angler_over_a_real_pty(tmp_path, serial_link):
     device = make_sim_device(load_profile("angler"))
     path = tmp_path / "ttyDXL"
     server = await serve_pty(device, path)
-    driver = await started("angler", serial_link(str(path)), in_process=True)
+    driver = await started("angler", serial_link(str(path)), reply_s=PTY_REPLY_S)
     try:
-        pings = await driver.ping(None)
+        pings = await driver.ping(None)  # (the broadcast's window: the reply timeout)
         assert [p[0] for p in pings] == [1, 2, 3, 4]
         assert {p[1] for p in pings} == {mx28.MODEL_NUMBER}
         assert await driver.read_register(3, mx28.TABLE["id"]) == 3

@@ -13,7 +13,14 @@ import httpx
 import numpy as np
 import pytest
 from _wait import fresh_state, new_samples, wait_for
-from conftest import OPERATOR, VIEWER, make_settings, running_client, with_reply_timeout
+from conftest import (
+    OPERATOR,
+    PTY_REPLY_S,
+    VIEWER,
+    make_settings,
+    running_client,
+    with_reply_timeout,
+)
 
 from app.arms import model_for
 from app.arms.loading import load_profile
@@ -87,7 +94,8 @@ async def test_driver_over_a_socket_url_against_both_firmware_builds(echo, seria
 async def test_driver_over_a_pty_against_both_firmware_builds(echo, tmp_path, serial_link):
     path = tmp_path / "ttyRBE"
     server = await serve_pty(Rbe3001Firmware(load_profile("rbe3001"), echo=echo), path)
-    driver = await _started(serial_link(str(path)), IN_PROCESS)
+    driver = await _started(serial_link(str(path)),
+                            with_reply_timeout(load_profile("rbe3001"), PTY_REPLY_S))
     try:
         await _exercise(driver)
     finally:
