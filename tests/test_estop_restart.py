@@ -105,6 +105,56 @@ async def test_a_press_is_answered_once_its_latch_is_on_disk(tmp_path: Path) -> 
         assert record is not None and record["latched"] is True, record
 
 
+async def _settled(svc: object, store: object) -> None:
+    """Every latch record `svc` has asked for is written: its hold has ended, its control
+    loop has run what was queued for it before now, and the store has written what was
+    queued before a write of the test's (one writer thread, in order)."""
+    await wait_for(lambda: svc._hold is not None and svc._hold.done(),  # type: ignore[attr-defined]
+                   what="the latch's hold ended")
+    await svc.release_estop()  # type: ignore[attr-defined]  # (a round trip through its loop)
+    assert await store.put_setting("test", "settled", True)  # type: ignore[attr-defined]
+
+
+async def test_the_fast_paths_latch_is_kept_once_its_sample_is_out(tmp_path: Path) -> None:
+    """The estop fast path presses on a request's head and sends the sample that shows the
+    latch before the latch's record goes to the store's writer (whose thread woken with the
+    latch kept the GIL from that sample). The record still lands: when the fast path says its
+    sample is out, or at the hold's end if it never does; and a release that comes between
+    the press and either has the last word."""
+    settings = make_settings(data_dir=str(tmp_path))
+    async with running_client(settings) as (app, c):
+        rb, an, store = (app.state.services["rbe3001"], app.state.services["angler"],
+                         app.state.store)
+        await c.get("/api/v1/health")  # builds the middleware stack
+        layer = app.middleware_stack
+        while type(layer).__name__ != "StateFastPath":
+            layer = layer.app
+        # the fast path alone, the request's head: latched and kept, no route's press after it
+        await layer._press_estop({"type": "http", "method": "POST", "headers": [],
+                                  "path": f"{API}/angler/estop"})
+        assert an.estop
+        await _on_disk(tmp_path, "angler", True)
+        # the press without its word that the sample is out: kept at the hold's end
+        rb.press_estop()
+        assert rb.estop
+        await _on_disk(tmp_path, "rbe3001", True)
+        assert (await c.delete(f"{API}/rbe3001/estop")).json() == {"estop": False}
+        await _on_disk(tmp_path, "rbe3001", False)
+        # released before the word comes and before the hold ends (the release is queued on
+        # the arm's loop right behind the press; the hold waits for the board, which answers
+        # 30 ms late, inside the link's timeout): the record says released, then and after
+        rb.driver.link.set_faults(FaultConfig(latency_s=0.03))
+        rb.press_estop()
+        assert (await rb.release_estop()).estop is False
+        rb.pressed_sample_sent()
+        await _settled(rb, store)
+        assert not rb.estop
+        assert (_stored(tmp_path, "rbe3001") or {}).get("latched") is False
+    async with running_client(settings) as (app, c):  # as a restart finds them
+        assert app.state.services["angler"].estop
+        assert not app.state.services["rbe3001"].estop
+
+
 async def test_a_press_on_a_latch_from_before_the_start_is_a_press_on_a_latched_estop(
         tmp_path: Path) -> None:
     """A press after such a start changes nothing (and writes nothing); a release then a

@@ -152,6 +152,8 @@ class StateFastPath:
             await svc.sample_where(_shows_estop, ESTOP_SAMPLE_WAIT_S, svc.press_estop)
         except Exception:  # outside the error layers: the route's press still follows
             log.exception("estop fast path: the early press failed")
+        finally:
+            svc.pressed_sample_sent()  # the latch's record, after the sample (ArmService)
 
     def _arm(self, scope: Scope, tail: str, length: bytes) -> Any:
         """The arm of `{prefix}/arms/{arm}{tail}` if the full stack would let `scope` through
