@@ -164,7 +164,8 @@ class MotionStream:
         (trajectory time over wall time) is the commanded speed's scale; the next tick may
         raise it only as fast as the acceleration limits allow (`_time_rate`). So after the
         loop was held up (the setpoint stood still meanwhile) the motion picks up again along
-        the same path from the last setpoint, never faster than planned and without a jump.
+        the same path from the last setpoint, never faster than planned and without a jump;
+        after a hold-up of more than HELD_UP_S, from rest (its time rate from 0).
         A joint move asked to last `duration` is planned again instead, after a hold-up, to
         end when it was asked to (`_replan_on_time`)."""
         loop = asyncio.get_running_loop()
@@ -197,6 +198,12 @@ class MotionStream:
                                       remaining_s=round(duration, 4),
                                       duration=round(rec.planned_duration, 4),
                                       late_s=round(max(0.0, now + duration - due), 4))
+                else:
+                    # The arm has come to rest at the last setpoint meanwhile: the motion picks
+                    # up from rest, its time rate from 0 under the acceleration limits, not at
+                    # the planned speed (a step of MAX_STEP_S at once had the rbe3001's PID
+                    # chase it at 1.1 x its velocity limit, tests/test_tracking.py).
+                    rate, late = 0.0, dt
             step = min(self._time_rate(rate, qd, qdd, late) * late, MAX_STEP_S)
             if late > 0.0:
                 rate = step / late
