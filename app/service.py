@@ -42,7 +42,7 @@ from app.motion.executor import MotionExecutor, MotionRecord
 from app.motion.stream import AT_REST
 from app.runtime import gc_policy
 from app.runtime.control_thread import on_home, start_now
-from app.runtime.tasks import retrieve, running_loop
+from app.runtime.tasks import retrieve, running_loop, soon_on
 from app.safety.envelope import ArmSafety
 from app.safety.guard import SafetyGuard
 from app.sim.hand import Hand
@@ -651,10 +651,10 @@ class ArmService:
         (docs/performance.md, session 35). The record waits for this, for the hold's end or
         for the route's press, whichever comes first."""
         home = self.home_loop
-        if home is None or home is running_loop() or home.is_closed():
+        if home is None or home.is_closed():
             self._save_latch()
         else:
-            home.call_soon_threadsafe(self._save_latch)
+            soon_on(home, self._save_latch)
 
     def _save_latch(self) -> None:
         """On the control loop: a latch whose record waits (`_latch` from the fast path) goes
@@ -683,9 +683,10 @@ class ArmService:
             # during the hold's device round trip lost it); the writer's thread does the disk.
             # A press from the fast path (`latched`) has its thread send the sample first
             # (`pressed_sample_sent`); any other goes now.
-            self._latch_unsaved = True
             if latched is None:
-                self._save_latch()
+                self._latch_saved = self._keep_latch(True)
+            else:
+                self._latch_unsaved = True
         hold = self._hold
         try:
             if hold is not None and not hold.done():

@@ -22,7 +22,8 @@ from _wait import wait_for
 from conftest import make_settings, running_client
 
 from app.config import FaultConfig
-from app.store import DB_NAME
+from app.service import ArmService
+from app.store import DB_NAME, Store
 
 API = "/api/v1/arms"
 
@@ -105,14 +106,14 @@ async def test_a_press_is_answered_once_its_latch_is_on_disk(tmp_path: Path) -> 
         assert record is not None and record["latched"] is True, record
 
 
-async def _settled(svc: object, store: object) -> None:
+async def _settled(svc: ArmService, store: Store) -> None:
     """Every latch record `svc` has asked for is written: its hold has ended, its control
     loop has run what was queued for it before now, and the store has written what was
     queued before a write of the test's (one writer thread, in order)."""
-    await wait_for(lambda: svc._hold is not None and svc._hold.done(),  # type: ignore[attr-defined]
+    await wait_for(lambda: svc._hold is not None and svc._hold.done(),
                    what="the latch's hold ended")
-    await svc.release_estop()  # type: ignore[attr-defined]  # (a round trip through its loop)
-    assert await store.put_setting("test", "settled", True)  # type: ignore[attr-defined]
+    await svc.release_estop()  # (a round trip through its loop)
+    assert await store.put_setting("test", "settled", True)
 
 
 async def test_the_fast_paths_latch_is_kept_once_its_sample_is_out(tmp_path: Path) -> None:
