@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import resource
 import socket
 import threading
 import time
@@ -35,13 +36,36 @@ def test_the_rounds_in_c_are_built_and_used():
     assert poller.REST_IN_C
 
 
-@contextlib.contextmanager
-def responder(answer: Callable[[int, bytes], bytes | None]) -> Iterator[tuple[int, list[bytes]]]:
-    """A socket pair: the link's end (non-blocking, as pyserial's `socket://` is) and on the
-    other a thread that reads each 64-byte request and writes `answer(n, request)` (None:
-    closes its end). Yields the link's descriptor and the requests read."""
-    ours, theirs = socket.socketpair()
+#: The kind of socket pair the rounds are tested over (each test of `run` with both: the
+#: `wake_pipe` fixture's parameter): "tcp", a loopback TCP connection as pyserial's
+#: `socket://` makes (its replies carry the kernel's time: each is read at the link's next
+#: slot), or "unix", a Unix socket pair (no time: each reply is waited for, as on a tty).
+PAIR = "tcp"
+
+
+def socket_pair() -> tuple[socket.socket, socket.socket]:
+    """The link's end (non-blocking, as pyserial's `socket://` is) and the device's, of the
+    kind `PAIR` says."""
+    if PAIR == "unix":
+        ours, theirs = socket.socketpair()
+    else:
+        with socket.create_server(("127.0.0.1", 0)) as server:
+            ours = socket.create_connection(server.getsockname())
+            theirs, _ = server.accept()
+        for s in (ours, theirs):
+            s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     ours.setblocking(False)
+    return ours, theirs
+
+
+@contextlib.contextmanager
+def responder(answer: Callable[[int, bytes], bytes | None],
+              sent: list[float] | None = None) -> Iterator[tuple[int, list[bytes]]]:
+    """A socket pair (`socket_pair`) with on the device's end a thread that reads each 64-byte
+    request and writes `answer(n, request)` (None: closes its end), and appends to `sent` the
+    time (`time.time()`) each answer's write returned. Yields the link's descriptor and the
+    requests read."""
+    ours, theirs = socket_pair()
     got: list[bytes] = []
 
     def serve() -> None:
@@ -61,6 +85,8 @@ def responder(answer: Callable[[int, bytes], bytes | None]) -> Iterator[tuple[in
                         return
                     if out:
                         theirs.sendall(out)
+                        if sent is not None:
+                            sent.append(time.time())
         except OSError:
             return
 
@@ -74,8 +100,12 @@ def responder(answer: Callable[[int, bytes], bytes | None]) -> Iterator[tuple[in
         t.join(2.0)
 
 
-@pytest.fixture
-def wake_pipe() -> Iterator[tuple[int, int]]:
+@pytest.fixture(params=["tcp", "unix"])
+def wake_pipe(request: pytest.FixtureRequest) -> Iterator[tuple[int, int]]:
+    """The thread's wake-up pipe, for a test of `run` over the kind of pair its parameter
+    names (`PAIR`)."""
+    global PAIR
+    PAIR = request.param
     r, w = os.pipe()
     os.set_blocking(r, False)
     try:
@@ -83,6 +113,7 @@ def wake_pipe() -> Iterator[tuple[int, int]]:
     finally:
         os.close(r)
         os.close(w)
+        PAIR = "tcp"
 
 
 def run(links: list[tuple], wake_fd: int) -> list[tuple]:
@@ -126,6 +157,31 @@ def test_repeats_are_read_until_the_batch_is_due(wake_pipe):
         assert len(got) == len(ats) and all(r == REQ for r in got)
         assert ats == sorted(ats) and abs(ats[-1] - time.time()) < 5.0
         assert_next_slot(next_slot, start, PERIOD, ats)
+
+
+def test_a_timed_reply_is_read_at_the_next_slot_with_its_arrival_time(wake_pipe):
+    """Over TCP each reply carries the kernel's time (SO_TIMESTAMPNS): the thread sleeps from
+    one slot to the next, once a poll, and reads the reply before the next slot's request,
+    the reply stamped with when it came (not when it was read). Over a Unix pair (as a tty)
+    it waits for each reply: twice a poll."""
+    period = 0.02
+    sent: list[float] = []
+    with responder(lambda n, req: REPLY, sent) as (fd, got):
+        now = time.monotonic()
+        before = resource.getrusage(resource.RUSAGE_THREAD).ru_nvcsw
+        [(_slot, ats, end)] = run([(fd, REQ, REPLY, 0.5, now, period, now + 30, 10)],
+                                  wake_pipe[0])
+        sleeps = resource.getrusage(resource.RUSAGE_THREAD).ru_nvcsw - before
+    assert end is None and len(ats) == 10 and len(got) == 10
+    if PAIR == "unix":
+        return  # (a reply already there when the thread looks needs no sleep: no bound)
+    # each time is the reply's arrival: before its write returned on the other end (the
+    # kernel stamps a loopback segment as the sender hands it over), and it is read a period
+    # after (`sent`: the device's thread, which wants the GIL, may note its time late)
+    assert all(at <= s for at, s in zip(ats, sent, strict=False)), (ats, sent)
+    # one sleep a poll, to its slot; a reply not there by the next slot (a loaded machine)
+    # adds one: waiting for each reply would be two a poll
+    assert sleeps <= 1.5 * len(ats) + 2, (sleeps, len(ats))
 
 
 def test_a_slot_on_its_grid_stays_on_it_read_after_read(wake_pipe):
@@ -208,8 +264,7 @@ def test_a_short_reply_is_handed_back_at_its_timeout(wake_pipe):
 
 
 def test_a_reply_in_parts_is_a_repeat(wake_pipe):
-    ours, theirs = socket.socketpair()
-    ours.setblocking(False)
+    ours, theirs = socket_pair()
 
     def serve() -> None:
         for _ in range(3):

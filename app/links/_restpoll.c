@@ -6,6 +6,13 @@
  * go: at each link's slot it writes the link's request, waits (one `ppoll` over every link's
  * descriptor and the thread's wake-up pipe) for the reply, compares it with the expected
  * bytes and keeps only the time it was complete (CLOCK_REALTIME: Python's `time.time()`).
+ * Over a socket that time is the kernel's (SO_TIMESTAMPNS: when its last bytes arrived), so
+ * the thread need not be awake for the reply: once a reply has come with its time, the next
+ * one is read at the link's following slot, just before that slot's request is written, and
+ * the thread wakes once a period instead of twice (its slot, then the reply; most of an arm's
+ * cost at rest is the wake-ups: docs/performance.md, "Session 36"). A reply not whole by then
+ * is waited for as before, until its timeout; while the rounds stop (a pause, a batch due)
+ * every reply in flight is waited for at once.
  * It stops starting polls, lets the ones in flight end (whole, or at their timeout), and
  * returns when
  *   - a reply is not the expected one (another reading, short by its timeout, longer, or the
@@ -37,6 +44,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/socket.h>
+#include <sys/uio.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -55,6 +63,10 @@ typedef struct {
     Py_ssize_t woff, got, bufcap;
     double deadline, write_by;
     int lowat; /* SO_RCVLOWAT set for the rest of a reply (-1: not a socket) */
+    int timed;    /* the port is a socket with SO_TIMESTAMPNS on: read with `recvmsg` */
+    int deferred; /* a reply came with the kernel's time: the next is read at its next slot */
+    int watch;    /* the poll in flight is waited for (not deferred, or late at its slot) */
+    double stamp; /* the kernel's time of the last bytes read of the poll in flight (0: none) */
     char *buf;
     /* what was read */
     double *ats;
@@ -110,9 +122,32 @@ static void take(Rest *r, int ready, Py_ssize_t chunk) {
     if (room <= 0) return;
     if (room > chunk) room = chunk;
     ssize_t k;
-    do {
-        k = read(r->fd, r->buf + r->got, (size_t)room);
-    } while (k < 0 && errno == EINTR);
+    if (r->timed) {
+        struct iovec iov = {r->buf + r->got, (size_t)room};
+        union {
+            char buf[CMSG_SPACE(sizeof(struct timespec))];
+            struct cmsghdr align;
+        } ctl;
+        struct msghdr msg = {0};
+        msg.msg_iov = &iov;
+        msg.msg_iovlen = 1;
+        msg.msg_control = ctl.buf;
+        msg.msg_controllen = sizeof ctl.buf;
+        do {
+            k = recvmsg(r->fd, &msg, 0);
+        } while (k < 0 && errno == EINTR);
+        if (k > 0)
+            for (struct cmsghdr *c = CMSG_FIRSTHDR(&msg); c != NULL; c = CMSG_NXTHDR(&msg, c))
+                if (c->cmsg_level == SOL_SOCKET && c->cmsg_type == SCM_TIMESTAMPNS) {
+                    struct timespec ts;
+                    memcpy(&ts, CMSG_DATA(c), sizeof ts);
+                    r->stamp = (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
+                }
+    } else {
+        do {
+            k = read(r->fd, r->buf + r->got, (size_t)room);
+        } while (k < 0 && errno == EINTR);
+    }
     if (k < 0) {
         if (errno == EAGAIN || errno == EWOULDBLOCK) return;
         lose(r, strerror(errno));
@@ -139,6 +174,12 @@ static double following(double slot, double period) {
 /* The poll in flight is over (whole, longer, or short at its deadline). */
 static void done(Rest *r, double catch_up) {
     double at = clock_s(CLOCK_REALTIME), now = clock_s(CLOCK_MONOTONIC);
+    if (r->stamp > 0) { /* the kernel's time: when the reply's last bytes came */
+        if (r->stamp < at) at = r->stamp;
+        r->deferred = 1;
+    } else {
+        r->deferred = 0;
+    }
     r->flying = 0;
     lowat_off(r);
     if (r->got == r->size && memcmp(r->buf, r->expect, (size_t)r->size) == 0) {
@@ -162,11 +203,31 @@ static void run_rounds(Rest *rs, Py_ssize_t n, int wake_fd, double early, double
             for (Py_ssize_t i = 0; i < n; i++)
                 if (rs[i].end != END_NONE || rs[i].n >= rs[i].cap || now >= rs[i].until)
                     stopping = 1;
+        for (Py_ssize_t i = 0; i < n; i++) { /* replies read at the next slot, or now */
+            Rest *r = &rs[i];
+            if (!r->flying || r->watch || r->woff < r->req_len) continue;
+            if (!stopping && following(r->slot, r->period) - early > now) continue;
+            take(r, 0, chunk);
+            if (r->end != END_NONE) {
+                stopping = 1;
+                continue;
+            }
+            if (r->got >= r->size) {
+                done(r, catch_up); /* (then its `ats` may be full: no poll started after) */
+                if (r->end != END_NONE || r->n >= r->cap) stopping = 1;
+            } else { /* late: waited for, until its timeout */
+                r->watch = 1;
+                if (r->got > 0 && r->lowat != -1)
+                    r->lowat = set_lowat(r->fd, (int)(r->size - r->got)) ? 1 : -1;
+            }
+        }
         if (!stopping)
             for (Py_ssize_t i = 0; i < n; i++) {
                 Rest *r = &rs[i];
                 if (r->flying || r->slot - early > now) continue;
                 r->flying = 1;
+                r->watch = !r->deferred;
+                r->stamp = 0;
                 r->woff = r->got = 0;
                 r->deadline = now + r->timeout;
                 r->write_by = now + write_wait;
@@ -182,8 +243,14 @@ static void run_rounds(Rest *rs, Py_ssize_t n, int wake_fd, double early, double
             Rest *r = &rs[i];
             if (r->flying) {
                 if (r->deadline < wake_at) wake_at = r->deadline;
+                short events = r->woff < r->req_len ? POLLOUT : 0;
+                if (r->watch || stopping || events)
+                    events |= POLLIN;
+                else if (following(r->slot, r->period) - early < wake_at)
+                    wake_at = following(r->slot, r->period) - early; /* read then */
+                if (!events) continue;
                 pfds[nf].fd = r->fd;
-                pfds[nf].events = POLLIN | (r->woff < r->req_len ? POLLOUT : 0);
+                pfds[nf].events = events;
                 pfds[nf].revents = 0;
                 who[nf++] = r;
             } else if (!stopping && r->slot - early < wake_at) {
@@ -325,6 +392,9 @@ static PyObject *run(PyObject *self, PyObject *args) {
             PyErr_NoMemory();
             goto finally;
         }
+        int on = 1; /* (a socket's replies carry the kernel's time; a tty's do not) */
+        r->timed = setsockopt(r->fd, SOL_SOCKET, SO_TIMESTAMPNS, &on, sizeof on) == 0;
+        r->watch = 1;
         memcpy(r->req, req, (size_t)req_len);
         memcpy(r->expect, expect, (size_t)size);
         r->req_len = req_len;

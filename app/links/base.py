@@ -37,7 +37,8 @@ class Reply(NamedTuple):
     #: `time.monotonic()` (asyncio's `loop.time()`) by which the reply was due.
     deadline: float
     #: `time.time()` when the reply was complete, where the link read it on a thread of its
-    #: own ahead of the caller (a scheduled poll's, app/links/threaded.py); else None.
+    #: own ahead of the caller (a scheduled poll's, app/links/threaded.py: when it was read, or
+    #: over a socket the kernel's time of its arrival, app/links/_restpoll.c); else None.
     at: float | None = None
 
 

@@ -29,14 +29,15 @@ tests/test_link_thread.py):
   and no byte of one exchange is read by another; it polls again only after a good poll,
   every reply since whole (`can_schedule`).
 - The owner task is woken at once for a reply that differs from the ones before (an arm that
-  starts to move, a fault), for one that did not come whole within its timeout (and the
-  schedule stops: the driver resynchronises as it does on any link, with its quiet wait,
-  before anything is written again) and for a request; replies that go on changing (a moving
-  arm) wait at most MOVING_BATCH_S, replies that repeat (an arm at rest) BATCH_S, or
-  IDLE_BATCH_S while nobody takes the samples as they come (`batch_repeats`) (a batch
-  that only repeats the last poll's reply is published in the hand-over itself, the owner task
-  left waiting: app/device/owner.py `_on_replies`), and each carries the time it was read
-  (`Reply.at`).
+  starts to move, a fault; for an arm at rest over a socket, once the thread reads it: at the
+  link's next slot, app/links/_restpoll.c), for one that did not come whole within its timeout
+  (and the schedule stops: the driver resynchronises as it does on any link, with its quiet
+  wait, before anything is written again) and for a request; replies that go on changing (a
+  moving arm) wait at most MOVING_BATCH_S, replies that repeat (an arm at rest) BATCH_S, or
+  IDLE_BATCH_S while nobody takes the samples as they come (`batch_repeats`) (a batch that only
+  repeats the last poll's reply is published in the hand-over itself, the owner task left
+  waiting: app/device/owner.py `_on_replies`), and each carries the time it was complete
+  (`Reply.at`; over a socket at rest, the kernel's time of its arrival).
 - A reply is taken for the owner's poll only if the owner task asks for the same request
   bytes; otherwise the replies read ahead are dropped (they answer requests the driver never
   made).
