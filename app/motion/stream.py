@@ -85,6 +85,10 @@ class MotionStream:
         #: `_cmd_seq` (no pass-through command, homing or set-up came after it).
         self._cmd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._cmd_seq = -1
+        #: When the tick that sent `_cmd` began (`time.monotonic()`): a setpoint older than
+        #: HELD_UP_S is one the arm has come to rest at, whatever velocity it was sent with
+        #: (`_start_state`).
+        self._cmd_at = 0.0
         self._halt = False
         self._ids = itertools.count(1)
         self.home_loop: asyncio.AbstractEventLoop | None = None
@@ -102,8 +106,14 @@ class MotionStream:
 
     def _start_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Where a motion starts: the executor's last setpoint while it is still the arm's
-        commanded state, else where the arm is (at rest): never a stale setpoint."""
+        commanded state, else where the arm is (at rest): never a stale setpoint. A setpoint
+        sent more than HELD_UP_S ago (the control loop held up since) is where the arm has come
+        to rest: at rest there, not at the velocity it was sent with (a motion or a brake
+        from that velocity would move an arm that stands still as if it were moving)."""
         if self._cmd is not None and self._cmd_seq == self.device.command_seq:
+            q, qd, qdd = self._cmd
+            if np.any(qd) and time.monotonic() - self._cmd_at > HELD_UP_S:
+                return q, np.zeros_like(q), np.zeros_like(q)
             return self._cmd
         q = self.device.positions
         if q is None:
@@ -183,6 +193,7 @@ class MotionStream:
             if rec.cancel:
                 return rec.cancel
             now = loop.time()
+            tick_at = time.monotonic()
             late, last = now - last, now
             if late > HELD_UP_S and 0.0 < t < duration:
                 log.warning("%s: motion %s: control held up %.0f ms; going on from the last "
@@ -224,6 +235,8 @@ class MotionStream:
             if self._halt:
                 return "halt"
             self._cmd, self._cmd_seq = (q, qd * rate, qdd * rate * rate), self.device.command_seq
+            self._cmd_at = tick_at  # (its tick's start: a hold-up while it was being sent
+            # leaves the arm at rest as much as one before the tick)
             rec.progress = done_before + (1.0 - done_before) * (t / duration if duration > 0
                                                                  else 1.0)
             if t >= duration:
@@ -265,11 +278,15 @@ class MotionStream:
 
     async def _brake(self) -> None:
         """Decelerate from the commanded state to rest under the acceleration and jerk limits
-        (time stretched after a late tick, as in `_stream`)."""
-        if (self._cmd is None or self._cmd_seq != self.device.command_seq
-                or not np.any(self._cmd[1])):
+        (time stretched after a late tick, as in `_stream`). Nothing to do where the arm rests
+        at the last setpoint already: none was sent for more than HELD_UP_S (`_start_state`),
+        before the brake or during it (the rest of the stop would move it on from there)."""
+        if self._cmd is None or self._cmd_seq != self.device.command_seq:
             return
-        q, qd, qdd = self._cmd
+        q, qd, qdd = self._start_state()
+        if not np.any(qd):
+            self._cmd = (q, qd, qdd)
+            return
         m = self.model
         traj = trajectory.plan_stop(q, qd, qdd, m.amax, m.jmax, m.vmax)
         loop = asyncio.get_running_loop()
@@ -278,6 +295,10 @@ class MotionStream:
         last = loop.time()
         while not self._halt:
             now = loop.time()
+            if now - last > HELD_UP_S:  # the arm has stopped at the last setpoint meanwhile
+                log.warning("%s: control held up %.0f ms while braking; the arm rests at the "
+                            "last setpoint", self.name, (now - last) * 1e3)
+                break
             t = min(t + min(now - last, MAX_STEP_S), float(traj.duration))
             last = now
             qs = self._within_limits(traj.sample(t)[0])
