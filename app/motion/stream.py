@@ -111,9 +111,9 @@ class MotionStream:
         to rest: at rest there, not at the velocity it was sent with (a motion or a brake
         from that velocity would move an arm that stands still as if it were moving)."""
         if self._cmd is not None and self._cmd_seq == self.device.command_seq:
-            q, qd, qdd = self._cmd
+            sent, qd, _ = self._cmd
             if np.any(qd) and time.monotonic() - self._cmd_at > HELD_UP_S:
-                return q, np.zeros_like(q), np.zeros_like(q)
+                return sent, np.zeros_like(sent), np.zeros_like(sent)
             return self._cmd
         q = self.device.positions
         if q is None:
