@@ -18,18 +18,20 @@ from conftest import OPERATOR, VIEWER, make_settings, running_client
 
 from app import schemas as s
 from app.arms.loading import load_profile
+from app.motion.history import MotionRecord
 from app.service import ArmService
 
 API = "/api/v1"
 RB = f"{API}/arms/rbe3001"
 
 
-def record_setpoints(svc: ArmService) -> list[tuple[float, np.ndarray]]:
+def record_setpoints(svc: ArmService, seen: list[tuple[float, np.ndarray]] | None = None,
+                     ) -> list[tuple[float, np.ndarray]]:
     """(device time, joint setpoint rad) at every change of the simulated firmware's setpoint
-    from now on."""
+    from now on, appended to `seen` (a new list if None), which is returned."""
     dev = svc.driver.link.device
     tx = svc.model.transmission
-    seen: list[tuple[float, np.ndarray]] = []
+    seen = [] if seen is None else seen
     last = [tx.from_ticks(np.array(dev.setpoint, dtype=float))]
     receive = dev.receive
 
@@ -86,6 +88,21 @@ async def test_a_second_press_on_a_latched_estop_commands_nothing() -> None:
         assert setpoints == [] and svc.driver.stats["requests"] == sent
 
 
+async def fast_move(svc: ArmService,
+                    setpoints: list[tuple[float, np.ndarray]] | None = None) -> MotionRecord:
+    """The rbe3001 moved to a start, then well into a fast move from it, at speed: its record.
+    `setpoints`: filled with the firmware's setpoints from the fast move on (`record_setpoints`)."""
+    assert await svc.driver.wait_connected(5.0)
+    rec = await svc.motion.move_joints(s.MoveJoints(positions=[0.0, 0.3, 0.2]))
+    await rec.wait()
+    assert rec.status == "done", rec.reason
+    if setpoints is not None:
+        record_setpoints(svc, setpoints)
+    rec = await svc.motion.move_joints(s.MoveJoints(positions=[1.2, 1.4, -0.6]))
+    await wait_for(lambda: rec.status == "running" and rec.progress >= 0.15, what="at speed")
+    return rec
+
+
 async def test_a_stop_after_a_hold_up_leaves_the_arm_where_it_stopped() -> None:
     """A stop that comes while the control loop is held up: the arm has come to rest at the
     last setpoint meanwhile, so the brake has nothing to do. Braking from the velocity that
@@ -94,12 +111,7 @@ async def test_a_stop_after_a_hold_up_leaves_the_arm_where_it_stopped() -> None:
     svc = ArmService(load_profile("rbe3001"))
     await svc.start()
     try:
-        assert await svc.driver.wait_connected(5.0)
-        rec = await svc.motion.move_joints(s.MoveJoints(positions=[0.0, 0.3, 0.2]))
-        await rec.wait()
-        assert rec.status == "done", rec.reason
-        rec = await svc.motion.move_joints(s.MoveJoints(positions=[1.2, 1.4, -0.6]))
-        await wait_for(lambda: rec.status == "running" and rec.progress >= 0.15, what="at speed")
+        rec = await fast_move(svc)
         stopping = asyncio.create_task(svc.motion.cancel(rec.id))
         await asyncio.sleep(0)  # (the stop asked for)
         dev, tx = svc.driver.link.device, svc.model.transmission
@@ -125,14 +137,8 @@ async def test_a_held_up_executor_neither_jumps_nor_speeds() -> None:
     svc = ArmService(load_profile("rbe3001"))
     await svc.start()
     try:
-        assert await svc.driver.wait_connected(5.0)
-        rec = await svc.motion.move_joints(s.MoveJoints(positions=[0.0, 0.3, 0.2]))
-        await rec.wait()
-        assert rec.status == "done", rec.reason
-        setpoints = record_setpoints(svc)
-        rec = await svc.motion.move_joints(s.MoveJoints(positions=[1.2, 1.4, -0.6]))
-        # well into the move, at speed
-        await wait_for(lambda: rec.status == "running" and rec.progress >= 0.15, what="at speed")
+        setpoints: list[tuple[float, np.ndarray]] = []
+        rec = await fast_move(svc, setpoints)
         assert rec.status == "running" and 0.0 < rec.progress < 0.7, rec.progress
         time.sleep(0.3)  # noqa: ASYNC251 - hold the loop the executor runs on for 300 ms
         await rec.wait()
