@@ -377,3 +377,50 @@ async def test_a_request_reaches_an_arm_whose_batch_in_c_runs_for_30_s(monkeypat
         link.batch_repeats(0.02)  # a reader came: its batch within 20 ms, not 30 s
         await wait_for(lambda: driver.stats["repeats"] > repeats, timeout=10.0,
                        what="the repeats of the new batch time")
+
+
+async def test_a_held_up_control_loop_gets_a_bounded_backlog_and_the_polls_stop():
+    """The rounds in C read up to MAX_PREFETCHED replies beyond those the owner task was woken
+    for (`rest_begin`): while its control loop is held up (a second here: 500 polls' time),
+    the link's backlog stays within twice that, the thread stops polling on its own, and the
+    owner task takes the backlog and polls again once its loop runs. The board answers from a
+    loop of its own, as a real one does."""
+    from _tcp import LoopThread
+
+    from app.arms.loading import load_profile
+    from app.arms.rbe3001.driver import Rbe3001Driver
+    from app.arms.rbe3001.sim import Rbe3001Firmware
+    from app.links import threaded
+    from app.links.threaded import ThreadLink
+    from app.sim.serve import serve_tcp
+    from app.telemetry.hub import TelemetryHub
+
+    profile = load_profile("rbe3001")
+    board = LoopThread()
+    server = board.run(serve_tcp(Rbe3001Firmware(profile)))
+    link = ThreadLink(f"socket://127.0.0.1:{server.port}")
+    driver = Rbe3001Driver(profile, link, TelemetryHub("rbe3001"))
+    await driver.start()
+    try:
+        assert await driver.wait_connected(10.0), f"never connected: {link.last_error}"
+        thread = poller.shared()
+        runs = thread.stats["rest_runs"]
+        await wait_for(lambda: thread.stats["rest_runs"] > runs + 3 and link._resting,
+                       what="the arm at rest, polled in C")
+        most = 0
+        scheduled = link.stats["scheduled"]
+        stop = time.monotonic() + 1.0
+        while time.monotonic() < stop:  # the control loop held up: no step of its runs
+            most = max(most, link.prefetched)
+            time.sleep(0.005)  # noqa: ASYNC251 - the loop held up on purpose
+        read = link.stats["scheduled"] - scheduled
+        assert not link.armed, "the thread went on polling for a held-up loop"
+        assert most <= 2 * threaded.MAX_PREFETCHED, most
+        assert read <= 2 * threaded.MAX_PREFETCHED, read  # (500 had it not stopped)
+        repeats = driver.stats["repeats"]
+        await wait_for(lambda: driver.stats["repeats"] > repeats + read + 50,
+                       what="the backlog taken and the polls again")
+    finally:
+        await driver.close()
+        board.run(server.close())
+        board.stop()

@@ -103,7 +103,11 @@ IDLE_BATCH_S = 0.1
 #: wakes it at once: a subscriber at the poll rate sees a moving arm this much later at most.
 MOVING_BATCH_S = 0.005
 #: Replies the thread keeps for the owner task at most; then it stops polling on its own (a
-#: stalled control loop gets no backlog to catch up on, as POLL_CATCH_UP bounds it).
+#: stalled control loop gets no backlog to catch up on, as POLL_CATCH_UP bounds it). The rounds
+#: in C read this many beyond those the owner task was already woken for (`rest_begin`): a
+#: batch just handed over is taken within a wake-up of the control loop, and counting it cut
+#: the next rounds short, a second return to Python every batch (docs/performance.md,
+#: "Session 36"); a link still holding this many when its rounds end stops polling.
 MAX_PREFETCHED = 64
 #: Longest wait for a full transmit buffer to take a request, s: then the link is lost.
 WRITE_WAIT_S = 1.0
@@ -161,8 +165,10 @@ class ThreadLink(Link):
         self._notify: Callable[[], None] | None = None
         self._paused: asyncio.Future[None] | None = None
         self._prefetched: deque[tuple[bytes, Reply | BaseException | Repeats]] = deque()
-        #: The replies `_prefetched` holds (a `Repeats` entry holds several).
+        #: The replies `_prefetched` holds (a `Repeats` entry holds several), and how many of
+        #: them (the oldest) the owner task was woken for (`_polls_over`).
         self._held = 0
+        self._told = 0
         #: The poll thread polls this link in C (`rest_begin` to `rest_ended`): a change the
         #: thread must see at once (a pause, closing, another batch) wakes it (`_wake_rest`).
         self._resting = False
@@ -209,7 +215,7 @@ class ThreadLink(Link):
             self._armed = False
             self._in_flight = False
             self._prefetched.clear()
-            self._held = 0
+            self._held = self._told = 0
             self._plan = None
         self._poll = None
         self._clean = False
@@ -303,7 +309,7 @@ class ThreadLink(Link):
         with self._lock:
             self._armed = False
             self._prefetched.clear()
-            self._held = 0
+            self._held = self._told = 0
         await self._stop_thread()  # (`_close_port` wakes rounds in C: `_wake_rest`)
 
     # ------------------------------------------------------------ the owner's schedule
@@ -338,19 +344,24 @@ class ThreadLink(Link):
                     if entry.data != reply:
                         break
                     ats += entry.ats
-                    self._held -= len(entry.ats)
+                    self._taken_locked(len(entry.ats))
                 elif isinstance(entry, Reply) and entry.data == reply and entry.at is not None:
                     ats.append(entry.at)
-                    self._held -= 1
+                    self._taken_locked(1)
                 else:
                     break
                 prefetched.popleft()
         return ats
 
+    def _taken_locked(self, n: int) -> None:
+        """`n` replies taken by the owner task, the oldest first (those it was woken for)."""
+        self._held -= n
+        self._told = max(0, self._told - n)
+
     def _take_one_locked(self) -> Reply | BaseException:
         """The first reply read ahead, taken (a `Repeats` entry gives its first)."""
         packet, entry = self._prefetched[0]
-        self._held -= 1
+        self._taken_locked(1)
         if not isinstance(entry, Repeats):
             self._prefetched.popleft()
             return entry
@@ -469,13 +480,18 @@ class ThreadLink(Link):
             if plan is None or not self._armed:
                 return True
             if (self._in_flight or self._paused is not None or self._closing
-                    or self._changing or not self._clean or self._held >= MAX_PREFETCHED
+                    or self._changing or not self._clean or self._untold >= MAX_PREFETCHED
                     or len(self._last_data) != plan[2] or self._period <= 0):
                 return False
             self._in_flight = self._resting = True
             fd, packet, _, timeout = plan
             return (fd, packet, self._last_data, timeout, self._slot, self._period,
-                    self._batch_since + self._repeat_batch_s, MAX_PREFETCHED - self._held)
+                    self._batch_since + self._repeat_batch_s, MAX_PREFETCHED - self._untold)
+
+    @property
+    def _untold(self) -> int:
+        """The replies held that the owner task was not woken for yet (MAX_PREFETCHED)."""
+        return self._held - self._told
 
     def rest_ended(self, packet: bytes, slot: float, ats: list[float],
                    entry: Reply | BaseException | None) -> Told:
@@ -517,9 +533,11 @@ class ThreadLink(Link):
                     self._batch_since = now
             else:
                 wake = self._one_ended_locked(packet, entry, now)
+            notify = self._notify
             if wake:
                 self._batch_since = now
-            notify = self._notify
+                if notify is not None:  # (the owner takes what it was woken for, soon)
+                    self._told = self._held
             if paused is not None:
                 self._paused = None
             elif not wake or notify is None:
@@ -580,7 +598,7 @@ class ThreadLink(Link):
         with self._lock:
             self.stats["dropped"] += self._held
             self._prefetched.clear()
-            self._held = 0
+            self._held = self._told = 0
 
     # ------------------------------------------------------------ loop side
 
