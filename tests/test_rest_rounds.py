@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable, Iterator
 
 import pytest
-from _wait import wait_for
+from _wait import TIMEOUT_S, wait_for
 from test_link_thread import arm
 
 from app.links import poller
@@ -54,8 +54,35 @@ def socket_pair() -> tuple[socket.socket, socket.socket]:
             theirs, _ = server.accept()
         for s in (ours, theirs):
             s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        timestamps_on(ours, theirs)
     ours.setblocking(False)
     return ours, theirs
+
+
+#: Linux's SO_TIMESTAMPNS (`socket` has no name for it), as app/links/_restpoll.c sets it.
+SO_TIMESTAMPNS = 35
+
+
+def timestamps_on(ours: socket.socket, theirs: socket.socket) -> None:
+    """Receive timestamps on `ours`, and delivered already: the kernel switches them on for
+    the whole system only once a worker thread of its own has run after the first socket asks
+    (`net_enable_timestamp`), and until then a segment comes without one (the rounds then wait
+    for its reply, as on a tty). In a loaded `make test` the first replies of a test came so,
+    and were stamped when read. Probes from `theirs` until one comes with its time."""
+    ours.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    ours.settimeout(TIMEOUT_S)
+    try:
+        deadline = time.monotonic() + TIMEOUT_S
+        while True:
+            theirs.sendall(b"?")
+            data, ancillary, _, _ = ours.recvmsg(1, 1024)
+            assert data == b"?"
+            if any(t == SO_TIMESTAMPNS for _, t, _ in ancillary):
+                return
+            assert time.monotonic() < deadline, "no receive timestamps on a TCP socket"
+            time.sleep(0.01)  # (a poll: the kernel's worker switches them on)
+    finally:
+        ours.settimeout(None)
 
 
 @contextlib.contextmanager
