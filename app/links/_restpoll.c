@@ -12,7 +12,9 @@
  * the thread wakes once a period instead of twice (its slot, then the reply; most of an arm's
  * cost at rest is the wake-ups: docs/performance.md, "Session 36"). A reply not whole by then
  * is waited for as before, until its timeout; while the rounds stop (a pause, a batch due)
- * every reply in flight is waited for at once.
+ * every reply in flight is waited for at once. A reply that comes without a time (a tty, a
+ * Unix socket, or a TCP one before the kernel's worker has switched timestamps on for the
+ * system, a moment after the first socket asks) is waited for and stamped when read.
  * It stops starting polls, lets the ones in flight end (whole, or at their timeout), and
  * returns when
  *   - a reply is not the expected one (another reading, short by its timeout, longer, or the
