@@ -246,11 +246,13 @@ static void run_rounds(Rest *rs, Py_ssize_t n, int wake_fd, double early, double
             if (r->flying) {
                 if (r->deadline < wake_at) wake_at = r->deadline;
                 short events = r->woff < r->req_len ? POLLOUT : 0;
-                if (r->watch || stopping || events)
+                if (r->watch || stopping || events) {
                     events |= POLLIN;
-                else if (following(r->slot, r->period) - early < wake_at)
-                    wake_at = following(r->slot, r->period) - early; /* read then */
-                if (!events) continue;
+                } else { /* its reply read at its next slot */
+                    double read_at = following(r->slot, r->period) - early;
+                    if (read_at < wake_at) wake_at = read_at;
+                    continue;
+                }
                 pfds[nf].fd = r->fd;
                 pfds[nf].events = events;
                 pfds[nf].revents = 0;

@@ -87,7 +87,7 @@ class MotionStream:
         self._cmd_seq = -1
         #: When the tick that sent `_cmd` began (`time.monotonic()`): a setpoint older than
         #: HELD_UP_S is one the arm has come to rest at, whatever velocity it was sent with
-        #: (`_start_state`).
+        #: (`_commanded`).
         self._cmd_at = 0.0
         self._halt = False
         self._ids = itertools.count(1)
@@ -104,17 +104,25 @@ class MotionStream:
         for rec in [*self._queue, *( [self.current] if self.current else [])]:
             self._finish(rec, "stopped", "server shutting down")
 
+    def _commanded(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The arm's commanded state: the executor's last setpoint while it still is (None
+        once a pass-through command, homing or set-up came after it). A setpoint sent more than
+        HELD_UP_S ago (the control loop held up since) is where the arm has come to rest: at
+        rest there, not at the velocity it was sent with (a motion or a brake from that
+        velocity would move an arm that stands still as if it were moving)."""
+        if self._cmd is None or self._cmd_seq != self.device.command_seq:
+            return None
+        sent, qd, _ = self._cmd
+        if np.any(qd) and time.monotonic() - self._cmd_at > HELD_UP_S:
+            return sent, np.zeros_like(sent), np.zeros_like(sent)
+        return self._cmd
+
     def _start_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Where a motion starts: the executor's last setpoint while it is still the arm's
-        commanded state, else where the arm is (at rest): never a stale setpoint. A setpoint
-        sent more than HELD_UP_S ago (the control loop held up since) is where the arm has come
-        to rest: at rest there, not at the velocity it was sent with (a motion or a brake
-        from that velocity would move an arm that stands still as if it were moving)."""
-        if self._cmd is not None and self._cmd_seq == self.device.command_seq:
-            sent, qd, _ = self._cmd
-            if np.any(qd) and time.monotonic() - self._cmd_at > HELD_UP_S:
-                return sent, np.zeros_like(sent), np.zeros_like(sent)
-            return self._cmd
+        """Where a motion starts: the arm's commanded state (`_commanded`), else where the arm
+        is (at rest): never a stale setpoint."""
+        commanded = self._commanded()
+        if commanded is not None:
+            return commanded
         q = self.device.positions
         if q is None:
             raise LinkDown(f"{self.name}: no joint positions from the device yet")
@@ -279,13 +287,13 @@ class MotionStream:
     async def _brake(self) -> None:
         """Decelerate from the commanded state to rest under the acceleration and jerk limits
         (time stretched after a late tick, as in `_stream`). Nothing to do where the arm rests
-        at the last setpoint already: none was sent for more than HELD_UP_S (`_start_state`),
+        at the last setpoint already: none was sent for more than HELD_UP_S (`_commanded`),
         before the brake or during it (the rest of the stop would move it on from there)."""
-        if self._cmd is None or self._cmd_seq != self.device.command_seq:
+        commanded = self._commanded()
+        if commanded is None:
             return
-        q, qd, qdd = self._start_state()
+        q, qd, qdd = self._cmd = commanded
         if not np.any(qd):
-            self._cmd = (q, qd, qdd)
             return
         m = self.model
         traj = trajectory.plan_stop(q, qd, qdd, m.amax, m.jmax, m.vmax)
