@@ -14,7 +14,7 @@ import numpy.typing as npt
 
 from kinematics.errors import Unreachable
 
-__all__ = ["first_violation", "unit", "violations", "within"]
+__all__ = ["corners", "draw", "first_violation", "unit", "violations", "within"]
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -133,3 +133,24 @@ def distinct_solutions(
             )
         out = inside
     return out
+
+
+def draw(
+    lower: npt.ArrayLike,
+    upper: npt.ArrayLike,
+    n: int,
+    rng: np.random.Generator | None = None,
+) -> FloatArray:
+    """``n`` joint vectors (n, k) drawn uniformly within the limits (k,): what a sampled
+    workspace is made from."""
+    r = rng if rng is not None else np.random.default_rng()
+    lo = np.asarray(lower, dtype=np.float64)
+    return r.uniform(lo, np.asarray(upper, dtype=np.float64), size=(n, lo.size))
+
+
+def corners(lower: npt.ArrayLike, upper: npt.ArrayLike) -> FloatArray:
+    """The 2**k joint vectors (2**k, k) with every joint at one of its limits (k,): the
+    extremes a sampled workspace's box adds to its draws."""
+    lo = np.asarray(lower, dtype=np.float64)
+    hi = np.asarray(upper, dtype=np.float64)
+    return np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), -1).reshape(-1, lo.size)

@@ -44,7 +44,7 @@ import numpy as np
 import numpy.typing as npt
 
 from kinematics.errors import Singular, Unreachable
-from kinematics.limits import distinct_solutions, within
+from kinematics.limits import corners, distinct_solutions, draw, within
 from kinematics.rrr import wrap
 
 __all__ = [
@@ -363,10 +363,7 @@ def workspace(
     rng: np.random.Generator | None = None,
 ) -> FloatArray:
     """Tip positions and pitches (n, 4) from joints drawn uniformly within the limits (4,)."""
-    r = rng if rng is not None else np.random.default_rng()
-    q = r.uniform(np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64),
-                  size=(n, 4))
-    return fk(q, g)
+    return fk(draw(lower, upper, n, rng), g)
 
 
 def bounds(
@@ -378,8 +375,5 @@ def bounds(
 ) -> tuple[FloatArray, FloatArray]:
     """Axis-aligned box (min (3,), max (3,)) m of the reachable tip positions, from ``n``
     samples plus the 16 joint-limit corners (a slight inner approximation)."""
-    lo = np.asarray(lower, dtype=np.float64)
-    hi = np.asarray(upper, dtype=np.float64)
-    corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), -1).reshape(-1, 4)
-    pts = np.concatenate([workspace(g, lo, hi, n, rng), fk(corners, g)])[:, :3]
+    pts = fk(np.concatenate([draw(lower, upper, n, rng), corners(lower, upper)]), g)[:, :3]
     return pts.min(axis=0), pts.max(axis=0)

@@ -30,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from kinematics.errors import Unreachable
-from kinematics.limits import distinct_solutions, within
+from kinematics.limits import distinct_solutions, draw, within
 from kinematics.rrr import wrap
 
 __all__ = [
@@ -290,10 +290,7 @@ def workspace(
     rng: np.random.Generator | None = None,
 ) -> FloatArray:
     """Magnet points (n, 3) m from joints drawn uniformly within the limits (4,)."""
-    r = rng if rng is not None else np.random.default_rng()
-    q = r.uniform(np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64),
-                  size=(n, 4))
-    return fk(q, g)
+    return fk(draw(lower, upper, n, rng), g)
 
 
 def bounds(g: PPRP, lower: npt.ArrayLike, upper: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:

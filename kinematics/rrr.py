@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from kinematics.errors import Singular, Unreachable
-from kinematics.limits import distinct_solutions, within
+from kinematics.limits import corners, distinct_solutions, draw, within
 from kinematics.singular import TIP_FORCE_MAX_COND, condition_number
 
 __all__ = [
@@ -277,10 +277,7 @@ def workspace(
     rng: np.random.Generator | None = None,
 ) -> FloatArray:
     """Tip points (n, 3) m from joints drawn uniformly within the limits (3,)."""
-    r = rng if rng is not None else np.random.default_rng()
-    q = r.uniform(np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64),
-                  size=(n, 3))
-    return fk(q, g)
+    return fk(draw(lower, upper, n, rng), g)
 
 
 def bounds(
@@ -295,8 +292,5 @@ def bounds(
     Estimated from ``n`` samples plus the 8 joint-limit corners, so it is a
     slight inner approximation (a few mm with the default n).
     """
-    lo = np.asarray(lower, dtype=np.float64)
-    hi = np.asarray(upper, dtype=np.float64)
-    corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), -1).reshape(-1, 3)
-    pts = np.concatenate([workspace(g, lo, hi, n, rng), fk(corners, g)])
+    pts = fk(np.concatenate([draw(lower, upper, n, rng), corners(lower, upper)]), g)
     return pts.min(axis=0), pts.max(axis=0)

@@ -199,6 +199,24 @@ def test_workspace_and_bounds() -> None:
     assert hi[2] == pytest.approx(L1 + L2 * np.sin(1.75) - L3 * np.cos(2.95), abs=1e-9)
 
 
+
+def test_a_sampled_workspace_draws_within_the_limits_and_adds_their_corners() -> None:
+    from kinematics.limits import corners, draw
+
+    lo, hi = [-1.0, 0.0, 2.0, -0.5], [1.0, 0.1, 3.0, 0.5]
+    q = draw(lo, hi, 5000, np.random.default_rng(2))
+    assert q.shape == (5000, 4)
+    assert np.all((q >= lo) & (q <= hi))
+    assert np.allclose(q.min(axis=0), lo, atol=0.01) and np.allclose(q.max(axis=0), hi, atol=0.01)
+    c = corners(lo, hi)
+    assert c.shape == (16, 4)
+    assert {tuple(row) for row in c} == {(a, b, d, e) for a in (-1.0, 1.0) for b in (0.0, 0.1)
+                                         for d in (2.0, 3.0) for e in (-0.5, 0.5)}
+    # the box of rrr's workspace is that of its draws and corners through FK
+    pts = rrr.fk(np.concatenate([draw(LO, HI, 100, np.random.default_rng(3)), corners(LO, HI)]), G)
+    lo3, hi3 = rrr.bounds(G, LO, HI, 100, np.random.default_rng(3))
+    assert np.array_equal(lo3, pts.min(axis=0)) and np.array_equal(hi3, pts.max(axis=0))
+
 def test_limit_messages_survive_infinite_values() -> None:
     from kinematics.limits import violations
 
