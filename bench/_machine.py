@@ -16,6 +16,7 @@ import os
 import select
 import statistics
 import time
+from pathlib import Path
 
 
 def wake_us(groups: int = 5, n: int = 100) -> float:
@@ -48,6 +49,36 @@ def threads_cpu_s(pid: int | str = "self") -> dict[int, float]:
 def process_cpu_s(pid: int | str = "self") -> float:
     """CPU time (s) of every thread of process `pid` together (`threads_cpu_s`)."""
     return sum(threads_cpu_s(pid).values())
+
+
+def proc_stat(pid: int | str = "self", tid: int | None = None) -> list[str]:
+    """The fields of /proc/PID/stat (of thread `tid`'s: /proc/PID/task/TID/stat) after the
+    command's name, which may hold spaces and parentheses: [0] is proc(5)'s field 3 (`state`),
+    field N is [N - 3]. [] for a process or thread that is gone."""
+    path = f"/proc/{pid}/stat" if tid is None else f"/proc/{pid}/task/{tid}/stat"
+    try:
+        return Path(path).read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return []
+
+
+def ticks_cpu_s(*pids: int | str, part: slice = slice(0, 2)) -> float:
+    """User and system CPU time of processes `pids` together, s, their ended threads' included
+    (proc(5)'s `utime` and `stime`, in the kernel's clock ticks: what a process cost over a
+    window; `threads_cpu_s` is finer but knows only the living threads). `part`: slice(0, 1)
+    user time alone, slice(1, 2) system time alone. A process that is gone counts 0."""
+    ticks = sum(int(x) for pid in pids for x in proc_stat(pid)[11:13][part])
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
+def threads_by_niceness(pid: int | str) -> dict[int, int]:
+    """How many of process `pid`'s threads run at each niceness (proc(5)'s field 19)."""
+    out: dict[int, int] = {}
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        f = proc_stat(pid, int(task.name))
+        if f:
+            out[int(f[16])] = out.get(int(f[16]), 0) + 1
+    return dict(sorted(out.items()))
 
 
 def describe() -> str:

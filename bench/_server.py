@@ -12,8 +12,11 @@ import subprocess
 import sys
 import time
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
+
+import _machine
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -40,30 +43,39 @@ def free_port() -> int:
 
 
 class ServerProcess:
-    """`armserver serve` on a free loopback port: simulated arms (or `config`'s), no tokens."""
+    """`armserver serve` on a free loopback port: simulated arms (or `config`'s), no tokens;
+    `env`: ARMSERVER_ settings of its own (none of this process's pass). Ready once its health
+    says `ok` (and `ready(health)`, where given) within `timeout` s."""
 
-    def __init__(self, pin: bool = False, config: Path | None = None) -> None:
+    def __init__(self, pin: bool = False, config: Path | None = None,
+                 env: dict[str, str] | None = None, timeout: float = 30.0,
+                 ready: Callable[[dict[str, Any]], bool] | None = None) -> None:
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.ws_url = f"ws://127.0.0.1:{self.port}"
-        env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
+        environ = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
         self.proc = subprocess.Popen(
             [sys.executable, "-c", "from app.cli import run; run()", "serve", "--port",
              str(self.port), "--log-level", "warning",
              *(["--config", str(config)] if config is not None else [])],
-            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            cwd=ROOT, env={**environ, **(env or {})}, stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL)
         self.pinned = pin_apart(self.proc.pid) if pin else False
-        self._wait_ready()
+        self._wait_ready(timeout, ready)
 
-    def _wait_ready(self, timeout: float = 30.0) -> None:
+    def health(self, timeout: float = 20.0) -> dict[str, Any]:
+        """`GET /health`'s answer."""
+        with urllib.request.urlopen(self.url + "/api/v1/health", timeout=timeout) as r:
+            return json.loads(r.read())  # type: ignore[no-any-return]
+
+    def _wait_ready(self, timeout: float,
+                    ready: Callable[[dict[str, Any]], bool] | None) -> None:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            try:
-                with urllib.request.urlopen(self.url + "/api/v1/health", timeout=1) as r:
-                    if json.loads(r.read())["status"] == "ok":
-                        return
-            except OSError:
-                pass
+            with contextlib.suppress(OSError, ValueError, KeyError):
+                health = self.health(timeout=1)
+                if health["status"] == "ok" and (ready is None or ready(health)):
+                    return
             time.sleep(0.1)
         self.close()
         raise RuntimeError("the server did not become healthy")
@@ -80,8 +92,7 @@ class ServerProcess:
 
     def cpu_seconds(self) -> float:
         """User + system CPU time of the server process, s."""
-        f = self._proc("stat").rsplit(")", 1)[1].split()
-        return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+        return _machine.ticks_cpu_s(self.proc.pid)
 
     def close(self) -> None:
         self.proc.terminate()

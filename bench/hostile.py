@@ -52,6 +52,7 @@ from websockets.asyncio.client import connect
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+import _machine  # noqa: E402
 from _server import ROOT, ServerProcess  # noqa: E402
 
 from app.arms.loading import load_profile  # noqa: E402
@@ -194,16 +195,6 @@ async def main() -> None:
             server.close()
 
 
-def threads_by_niceness(pid: int) -> dict[int, int]:
-    """How many of `pid`'s threads run at each niceness (/proc: the stat's 19th field)."""
-    out: dict[int, int] = {}
-    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
-        with contextlib.suppress(OSError):
-            nice = int(stat.read_text().rsplit(")", 1)[1].split()[16])
-            out[nice] = out.get(nice, 0) + 1
-    return dict(sorted(out.items()))
-
-
 @contextlib.contextmanager
 def serial_arm_config() -> Iterator[Path]:
     """A config file: the built-in simulated arms, and the angler again as `angler-tty` on a
@@ -237,7 +228,7 @@ async def attack(args: argparse.Namespace, nominal: float, vmax: float,
     """Phases 1 and 2 on one server (`config`'s arms, or the built-in simulated ones)."""
     server = ServerProcess(pin=True, config=config)
     try:
-        print(f"the server's threads by niceness: {threads_by_niceness(server.proc.pid)}")
+        print(f"the server's threads by niceness: {_machine.threads_by_niceness(server.proc.pid)}")
         watcher = Watcher(server.ws_url)
         watcher.task = asyncio.create_task(watcher.run())
         async with httpx.AsyncClient(base_url=server.url, timeout=60) as client:

@@ -136,18 +136,6 @@ def _tree(pid: int) -> list[int]:
     return [pid, *(int(k) for k in kids)]
 
 
-def _cpu_s(pids: list[int], part: slice = slice(0, 2)) -> float:
-    """CPU time of `pids`, s: user and system (`part`: user alone 0:1, system alone 1:2)."""
-    total = 0
-    for pid in pids:
-        try:
-            f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        except FileNotFoundError:
-            continue
-        total += sum(int(x) for x in f[11:13][part])
-    return total / os.sysconf("SC_CLK_TCK")
-
-
 def _worker_socket(pids: list[int]) -> str | None:
     for pid in pids[1:]:
         argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
@@ -332,12 +320,12 @@ async def relay_cost(url: str, arms: list[str], seconds: float, front: int,
     try:
         await asyncio.sleep(1.0)  # streaming
         n0, b0 = got
-        cpu0, user0 = _machine.process_cpu_s(front), _cpu_s([front], slice(0, 1))
+        cpu0, user0 = _machine.process_cpu_s(front), _machine.ticks_cpu_s(front, part=slice(0, 1))
         t0 = time.monotonic()
         await asyncio.sleep(seconds)
         span = time.monotonic() - t0
         cpu = (_machine.process_cpu_s(front) - cpu0) / span
-        user = (_cpu_s([front], slice(0, 1)) - user0) / span
+        user = (_machine.ticks_cpu_s(front, part=slice(0, 1)) - user0) / span
         n, b = got[0] - n0, got[1] - b0
     finally:
         for r in readers:
@@ -370,13 +358,14 @@ async def measure(url: str, arms: list[str], seconds: float, presses: int, relay
                   uds: str | None, pids: list[int], sims: list[int]) -> None:
     async with httpx.AsyncClient(base_url=url, timeout=10) as c:
         first = await _rates(c, arms)
-        cpu0, sim0, idle0, t0 = _cpu_s(pids), _cpu_s(sims), _idle_s(), time.monotonic()
+        cpu0, sim0 = _machine.ticks_cpu_s(*pids), _machine.ticks_cpu_s(*sims)
+        idle0, t0 = _idle_s(), time.monotonic()
         front0 = _machine.process_cpu_s(pids[0])
         await asyncio.sleep(seconds)  # the arms alone: their cost, no client's
         span = time.monotonic() - t0
-        cpu = (_cpu_s(pids) - cpu0) / span
+        cpu = (_machine.ticks_cpu_s(*pids) - cpu0) / span
         front_idle = (_machine.process_cpu_s(pids[0]) - front0) / span
-        sim_cpu = (_cpu_s(sims) - sim0) / span
+        sim_cpu = (_machine.ticks_cpu_s(*sims) - sim0) / span
         busy = (os.cpu_count() or 1) - (_idle_s() - idle0) / span
         last = await _rates(c, arms)
         rest: list[float] = []

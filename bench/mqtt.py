@@ -28,7 +28,6 @@ import json
 import os
 import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -38,7 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import websockets
-from _server import ROOT, pct, pin_apart  # bench/_server.py
+from _server import ROOT, ServerProcess, pct  # bench/_server.py
 
 sys.path.insert(0, str(ROOT / "tests"))
 from _mosquitto import Broker  # noqa: E402  (tests/_mosquitto.py: the suite's broker)
@@ -153,37 +152,17 @@ class Sub(asyncio.Protocol):
 # ---------------------------------------------------------------- the server under test
 
 
-class Server:
-    def __init__(self, config: Path, broker_url: str | None, rate: float, pin: bool) -> None:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            self.port = s.getsockname()[1]
-        self.url = f"http://127.0.0.1:{self.port}"
-        env = {k: v for k, v in os.environ.items() if not k.startswith("ARMSERVER_")}
-        env["ARMSERVER_CONFIG"] = str(config)
-        if broker_url:
-            env.update(ARMSERVER_MQTT_URL=broker_url, ARMSERVER_MQTT_RATE=str(rate))
-        self.proc = subprocess.Popen(
-            [sys.executable, "-c", "from app.cli import run; run()", "serve", "--port",
-             str(self.port), "--log-level", "warning"], cwd=ROOT, env=env,
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        # server on one core, bench and broker on the rest (on a shared machine the others' load
-        # then lands on the server's core while the subscribers keep theirs busy: --no-pin)
-        self.pinned = pin_apart(self.proc.pid) if pin else False
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            with contextlib.suppress(OSError, ValueError, KeyError):
-                health = self.health()
-                if health["status"] == "ok" and (not broker_url or
-                                                 health["mqtt"]["state"] == "up"):
-                    return
-            time.sleep(0.2)
-        self.close()
-        raise RuntimeError("the server did not become healthy")
+class Server(ServerProcess):
+    """`armserver serve` over `config`'s arms, bridged to the broker at `broker_url` (None: no
+    bridge) at `rate`; with `pin`, the server on one core and the bench and broker on the rest
+    (on a shared machine the others' load then lands on the server's core while the
+    subscribers keep theirs busy: --no-pin)."""
 
-    def health(self) -> dict:  # type: ignore[type-arg]
-        with urllib.request.urlopen(self.url + "/api/v1/health", timeout=20) as r:
-            return json.loads(r.read())  # type: ignore[no-any-return]
+    def __init__(self, config: Path, broker_url: str | None, rate: float, pin: bool) -> None:
+        env = ({"ARMSERVER_MQTT_URL": broker_url, "ARMSERVER_MQTT_RATE": str(rate)}
+               if broker_url else {})
+        super().__init__(pin, config, env, timeout=60,
+                         ready=lambda h: not broker_url or h["mqtt"]["state"] == "up")
 
     async def published(self, arms: list[str]) -> dict[str, tuple[int, float]]:
         """Each arm's latest `seq` (the samples published so far) and its device time: one
@@ -203,17 +182,6 @@ class Server:
             raise AssertionError("unreachable")
 
         return {a: await asyncio.to_thread(seq, a) for a in arms}
-
-    def cpu_seconds(self) -> float:
-        f = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
-
-    def close(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
 
 
 @contextlib.contextmanager

@@ -57,15 +57,10 @@ address = "socket://127.0.0.1:{angler}"
 """
 
 
-def cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
 def idle_cpu(pid: int, seconds: float) -> float:
-    c0, t0 = cpu_seconds(pid), time.monotonic()
+    c0, t0 = _machine.ticks_cpu_s(pid), time.monotonic()
     time.sleep(seconds)
-    return 100.0 * (cpu_seconds(pid) - c0) / (time.monotonic() - t0)
+    return 100.0 * (_machine.ticks_cpu_s(pid) - c0) / (time.monotonic() - t0)
 
 
 def remote_idle(seconds: float = 5.0) -> dict[str, float]:
