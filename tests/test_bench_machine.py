@@ -40,6 +40,9 @@ def test_a_process_cpu_counts_its_ended_threads_and_its_niceness_is_read() -> No
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         assert child.stdout is not None and child.stdout.readline() == "spun\n"
+        # (a joined thread's task is gone from /proc a moment after `join` returns)
+        wait_until(lambda: len(os.listdir(f"/proc/{child.pid}/task")) == 1,
+                   what="the spinning thread's task gone")
         fields = _machine.proc_stat(child.pid)
         assert fields[0] in "RSD"  # proc(5)'s field 3, the state, first
         assert int(fields[1]) == os.getpid()  # field 4, the parent
