@@ -8,6 +8,7 @@ import asyncio
 import httpx
 import numpy as np
 import pytest
+from _wait import held_still
 from _walk import pid_walk
 from fastapi import FastAPI
 
@@ -201,4 +202,62 @@ async def test_driver_settings_of_the_arms_servos_are_refused(
     r = await client.get(f"{API}/arms/angler/dynamixel/2/registers/id")
     assert r.status_code == 200 and r.json()["raw"] == 2  # still answering as id 2
     assert bus.servo(2).get(name) == before
-    await client.put(f"{API}/arms/angler/dynamixel/2/registers/torque_enable", json={"raw": 1})
+    r = await client.post(f"{API}/arms/angler/dynamixel/2/reboot")  # torque on, set up again
+    assert r.status_code == 200, r.text
+
+
+async def test_torque_goes_off_through_passthrough_but_on_again_only_by_a_reboot(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """Torque off, the joints moved by a hand (the simulated world's), torque on again: through
+    pass-through that was a write like any other, the server's record of what the arm was told
+    kept its last command, and the next planned move started there: a move of y alone drove x
+    16 mm back towards it first, a path no check had seen. Now torque on to the arm's own
+    servos is 409 `in_use` (nothing written); the README's way, a reboot of each servo and the
+    arm homed where the hand left it, has the next move go from there."""
+    app, client = app_and_client
+    svc = app.state.services["angler"]
+    bus = svc.driver.link.device
+    tol = 1e-4
+    q0 = await held_still(lambda: svc.positions, tol)
+    for i in (1, 2, 3, 4):
+        r = await client.put(f"{DX}/{i}/registers/torque_enable", json={"raw": 0})
+        assert r.status_code == 200, r.text
+    moved = [q0[0] + 0.03, q0[1] + 0.02, q0[2], q0[3]]
+    r = await client.put(f"{API}/arms/angler/world/hand",
+                         json={"positions": moved, "speed": 0.1, "wait": True})
+    assert r.status_code == 200, r.text
+    q1 = await held_still(lambda: svc.positions, tol)
+    np.testing.assert_allclose(q1, moved, atol=1e-3)
+    for way in ("PUT", "SYNC"):
+        r = (await client.put(f"{DX}/1/registers/torque_enable", json={"raw": 1}) if way == "PUT"
+             else await client.post(f"{DX}/sync-write", json={"name": "torque_enable",
+                                                              "values": {"1": 1, "2": 1}}))
+        assert r.status_code == 409 and r.json()["code"] == "in_use", r.text
+        assert "reboot" in r.json()["detail"]
+        assert not any(bus.servo(i).torque for i in (1, 2, 3, 4))
+    for i in (1, 2, 3, 4):
+        r = await client.post(f"{DX}/{i}/reboot")
+        assert r.status_code == 200, r.text
+    assert all(bus.servo(i).torque for i in (1, 2, 3, 4))
+    # a rebooted multi-turn servo has lost its turns (x, y): declared where the hand left them
+    r = await client.post(f"{API}/arms/angler/home", json={"positions": moved})
+    assert r.status_code == 200 and all(r.json()["homed"]), r.text
+    q1 = await held_still(lambda: svc.positions, tol)
+    np.testing.assert_allclose(q1, moved, atol=1e-3)
+    seen: list[np.ndarray] = []
+
+    async def watch() -> None:
+        while True:
+            seen.append(np.array(svc.positions, dtype=float))
+            await asyncio.sleep(0.002)
+
+    watcher = asyncio.create_task(watch())
+    try:
+        goal = [q1[0], q1[1] + 0.005, q1[2], q1[3]]
+        r = await client.post(f"{API}/arms/angler/move/joints",
+                              json={"positions": goal, "wait": True})
+        assert r.status_code == 200 and r.json()["status"] == "done", r.text
+    finally:
+        watcher.cancel()
+    xs = np.array([q[0] for q in seen])
+    assert len(xs) > 10 and np.max(np.abs(xs - q1[0])) < 1e-3, (q1[0], xs.min(), xs.max())

@@ -107,6 +107,19 @@ DRIVER_SETTINGS: dict[str, tuple[str, str]] = {
 }
 
 
+#: Why torque on is not a pass-through write to the arm's own servos (torque off is: the
+#: README's homing by hand): a servo in a position mode drives to its Goal Position as its
+#: torque comes on (`DynamixelChainDriver.set_torque` writes the present position there
+#: first), and after a hand or gravity moved the joint that goal is an older one. The server's
+#: record of what the arm was told (its last command) would not know of that move nor of the
+#: position the joint comes to hold: the next planned move started from that last command and
+#: drove the arm back towards it first, a path no check had seen (tests/test_api_passthrough.py).
+#: A servo's reboot sets it up again to hold where it is, and forgets that command.
+TORQUE_ON = ("as torque comes on, a servo in a position mode drives to its Goal Position, an "
+             "older goal than where a hand or gravity left the joint, and the server's record "
+             "of what the arm was told would not know of either")
+
+
 def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int) -> None:
     """Everything a write must pass before it is queued."""
     if not item.writable:
@@ -114,9 +127,9 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
     if not item.min_raw <= raw <= item.max_raw:
         raise OutOfRange(f"{item.name} takes raw values {item.min_raw}..{item.max_raw}, "
                          f"got {raw}")
-    if item.name in DRIVER_SETTINGS and not svc.profile.raw_access and (any(
-            j.motor_id == dxl_id for j in svc.profile.joints)
-            or dxl_id == svc.profile.gripper.motor_id):  # a gripper's own servo is the arm's
+    own = not svc.profile.raw_access and (any(j.motor_id == dxl_id for j in svc.profile.joints)
+                                          or dxl_id == svc.profile.gripper.motor_id)
+    if item.name in DRIVER_SETTINGS and own:  # (a gripper's own servo is the arm's)
         why, route = DRIVER_SETTINGS[item.name]
         raise InUse(f"{item.name} of servo {dxl_id} is set by the {svc.name} driver ({why}); "
                     f"change it with {route.format(arm=svc.name, id=dxl_id)}. Pass-through "
@@ -125,6 +138,11 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
         _joint_of(svc, dxl_id)  # checked with the others' goals: `_send`
     elif not _safe(item, raw):
         svc.require_motion_allowed()
+    if item.name == "torque_enable" and raw != 0 and own:
+        raise InUse(f"torque_enable of servo {dxl_id} may go off through pass-through but not "
+                    f"on again: {TORQUE_ON}; switch it on with "
+                    f"{_REBOOT.format(arm=svc.name, id=dxl_id)} to hold where it is. The "
+                    "profile does not allow raw access")
 
 
 def _safe(item: mx28.ControlItem, raw: int) -> bool:
@@ -189,7 +207,10 @@ async def read_register(svc: ControlArm, dxl_id: DxlId, name: RegName) -> s.Regi
     "(422 `joint_limit`); 409 `in_use`, naming the route that changes it, for the settings the "
     "driver relies on (" + ", ".join(DRIVER_SETTINGS) + ") of the arm's own servos unless the "
     "profile allows raw access; 409 `estop_latched` for anything but torque "
-    "off and the LED while the estop is latched. Answers the value written. " + _NOT_SUPPORTED,
+    "off and the LED while the estop is latched; 409 `in_use` for `torque_enable` 1 to the arm's "
+    "own servos unless the profile allows raw access (as torque comes on a servo drives to its "
+    "Goal Position, perhaps older than where the joint is: switch it on with the servo's "
+    "reboot). Answers the value written. " + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
 async def write_register(svc: ControlArm, dxl_id: DxlId, name: RegName,
