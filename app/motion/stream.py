@@ -221,8 +221,12 @@ class MotionStream:
                     # The arm has come to rest at the last setpoint meanwhile: the motion picks
                     # up from rest, its time rate from 0 under the acceleration limits, not at
                     # the planned speed (a step of MAX_STEP_S at once had the rbe3001's PID
-                    # chase it at 1.1 x its velocity limit, tests/test_tracking.py).
+                    # chase it at 1.1 x its velocity limit, tests/test_tracking.py). Its clock
+                    # starts again now, after the warning and the event: time they took before
+                    # this setpoint goes out would count as the next tick's lateness, a rate
+                    # from 0 to a third of the plan's in one tick (tests/test_control.py).
                     rate, late = 0.0, dt
+                    last = loop.time()
             step = min(self._time_rate(rate, qd, qdd, late) * late, MAX_STEP_S)
             if late > 0.0:
                 rate = step / late
