@@ -556,9 +556,12 @@ async def test_a_cable_pulled_on_one_arm_leaves_the_others_polling_on_the_shared
         scheduled = link.stats["scheduled"]
         await wait_for(lambda: link.stats["scheduled"] > scheduled + 10,
                        what="the pulled arm's polls on the thread again")
-        for (d, _l, _s), sub in zip(others, subs, strict=True):
+        for (d, d_link, _s), sub in zip(others, subs, strict=True):
             samples = _samples(sub)
             seqs = [s["seq"] for s in samples]
             assert len(seqs) > 20 and seqs == list(range(seqs[0], seqs[0] + len(seqs)))
             assert not any(s["stale"] for s in samples)
-            assert d.stats["poll_failures"] == 0 and d.stats["reconnects"] == 0
+            # (what failed, if one did: once in a clean clone's suite one poll of another arm,
+            # not reproduced in 27 runs alone and beside stress-ng, session 37)
+            assert d.stats["poll_failures"] == 0 and d.stats["reconnects"] == 0, (
+                d.stats, d.last_error, d_link.stats)
