@@ -15,7 +15,7 @@ estop is latched, except the safe ones: torque off and the LED. Reads may name a
 from __future__ import annotations
 
 from collections.abc import Awaitable, Callable
-from typing import Annotated, Any
+from typing import Annotated, Any, NoReturn
 
 from fastapi import APIRouter, Body, FastAPI, Path
 from pydantic import ValidationError
@@ -114,10 +114,12 @@ DRIVER_SETTINGS: dict[str, tuple[str, str]] = {
 #: record of what the arm was told (its last command) would not know of that move nor of the
 #: position the joint comes to hold: the next planned move started from that last command and
 #: drove the arm back towards it first, a path no check had seen (tests/test_api_passthrough.py).
-#: A servo's reboot sets it up again to hold where it is, and forgets that command.
-TORQUE_ON = ("as torque comes on, a servo in a position mode drives to its Goal Position, an "
+#: A servo's reboot sets it up again to hold where it is, and forgets that command. As a
+#: DRIVER_SETTINGS entry, for `torque_enable` 1 only.
+TORQUE_ON = ("it goes off through pass-through, on again only as the driver sets the servo up: "
+             "as torque comes on, a servo in a position mode drives to its Goal Position, an "
              "older goal than where a hand or gravity left the joint, and the server's record "
-             "of what the arm was told would not know of either")
+             "of what the arm was told would not know of either", _REBOOT)
 
 
 def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int) -> None:
@@ -130,19 +132,23 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
     own = not svc.profile.raw_access and (any(j.motor_id == dxl_id for j in svc.profile.joints)
                                           or dxl_id == svc.profile.gripper.motor_id)
     if item.name in DRIVER_SETTINGS and own:  # (a gripper's own servo is the arm's)
-        why, route = DRIVER_SETTINGS[item.name]
-        raise InUse(f"{item.name} of servo {dxl_id} is set by the {svc.name} driver ({why}); "
-                    f"change it with {route.format(arm=svc.name, id=dxl_id)}. Pass-through "
-                    "may not write it: the profile does not allow raw access")
+        _in_use(svc, item, dxl_id, DRIVER_SETTINGS[item.name])
     if item.name == "goal_position":
         _joint_of(svc, dxl_id)  # checked with the others' goals: `_send`
     elif not _safe(item, raw):
-        svc.require_motion_allowed()
+        svc.require_motion_allowed()  # (first: torque on while latched is `estop_latched`)
     if item.name == "torque_enable" and raw != 0 and own:
-        raise InUse(f"torque_enable of servo {dxl_id} may go off through pass-through but not "
-                    f"on again: {TORQUE_ON}; switch it on with "
-                    f"{_REBOOT.format(arm=svc.name, id=dxl_id)} to hold where it is. The "
-                    "profile does not allow raw access")
+        _in_use(svc, item, dxl_id, TORQUE_ON)
+
+
+def _in_use(svc: ArmService, item: mx28.ControlItem, dxl_id: int,
+            setting: tuple[str, str]) -> NoReturn:
+    """409 `in_use`: `item` of the arm's servo `dxl_id` is the driver's (`setting`: why, and
+    the route or profile key that changes it)."""
+    why, route = setting
+    raise InUse(f"{item.name} of servo {dxl_id} is set by the {svc.name} driver ({why}); "
+                f"change it with {route.format(arm=svc.name, id=dxl_id)}. Pass-through "
+                "may not write it: the profile does not allow raw access")
 
 
 def _safe(item: mx28.ControlItem, raw: int) -> bool:
