@@ -10,7 +10,11 @@ import numpy as np
 import pytest
 from _wait import held_still
 from _walk import pid_walk
+from conftest import running_client
 from fastapi import FastAPI
+
+from app.arms.loading import load_profile
+from app.config import homed_at_start
 
 API = "/api/v1"
 RB = f"{API}/arms/rbe3001/rbe3001"
@@ -206,6 +210,67 @@ async def test_driver_settings_of_the_arms_servos_are_refused(
     assert r.status_code == 200, r.text
 
 
+async def test_a_joint_that_falls_without_torque_keeps_it_through_passthrough(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """The angler's z winch pays out its load once its servo's torque is off (the profile's
+    `falls_without_torque`): gravity would move it where no planned move may go. Torque off
+    to its servo is 409 `in_use` through the register write and SYNC_WRITE (all or nothing:
+    theta3's, in the same SYNC_WRITE, is not sent either), latched or not; the other joints'
+    torque goes off as before. A reboot, which switches the torque off until the servo is set
+    up again, is 409 `in_use` while the servo holds torque unless the body says the load is
+    supported; then it runs (z comes back not homed, as a rebooted multi-turn servo does)."""
+    app, client = app_and_client
+    svc = app.state.services["angler"]
+    bus = svc.driver.link.device
+    for attempt in ("PUT", "SYNC", "LATCHED"):
+        if attempt == "LATCHED":
+            assert (await client.post(f"{API}/arms/angler/estop")).status_code == 200
+        r = (await client.post(f"{DX}/sync-write", json={"name": "torque_enable",
+                                                         "values": {"3": 0, "4": 0}})
+             if attempt == "SYNC" else
+             await client.put(f"{DX}/4/registers/torque_enable", json={"raw": 0}))
+        assert r.status_code == 409 and r.json()["code"] == "in_use", (attempt, r.text)
+        detail = r.json()["detail"]
+        assert "servo 4" in detail and "let z fall" in detail, detail
+        assert "falls_without_torque" in detail and "/arms/angler/move/joints" in detail
+        assert bus.servo(4).torque and bus.servo(3).torque, attempt
+    r = await client.put(f"{DX}/3/registers/torque_enable", json={"raw": 0})  # latched: safe
+    assert r.status_code == 200 and not bus.servo(3).torque, r.text
+    r = await client.post(f"{DX}/4/reboot", json={"load_supported": True})
+    assert r.status_code == 409 and r.json()["code"] == "estop_latched", r.text
+    assert (await client.delete(f"{API}/arms/angler/estop")).status_code == 200
+    r = await client.post(f"{DX}/3/reboot")  # theta3 does not fall: no question asked
+    assert r.status_code == 200 and bus.servo(3).torque, r.text
+    for body in (None, {}, {"load_supported": False}):
+        r = await client.post(f"{DX}/4/reboot", json=body)
+        assert r.status_code == 409 and r.json()["code"] == "in_use", (body, r.text)
+        assert "load_supported" in r.json()["detail"] and "z falls" in r.json()["detail"]
+        assert bus.servo(4).torque and svc.driver.homed[3], body  # no REBOOT went out
+    r = await client.post(f"{DX}/4/reboot", json={"load_supported": True})
+    assert r.status_code == 200 and r.json()["command"] == "REBOOT 4", r.text
+    assert bus.servo(4).torque and not svc.driver.homed[3]
+
+
+async def test_raw_access_and_the_servos_own_shutdown_keep_torque_off_and_the_reboot_open(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """Where the servo's torque is already off (its own shutdown after an overload), a reboot
+    of a falling joint's servo asks nothing: the load has already fallen or rests. A profile
+    with raw access may switch z's torque off through pass-through (its owner's choice)."""
+    app, client = app_and_client
+    svc = app.state.services["angler"]
+    bus = svc.driver.link.device
+    bus.servo(4).set("torque_enable", 0)  # as the servo's own Shutdown does
+    r = await client.post(f"{DX}/4/reboot")
+    assert r.status_code == 200 and bus.servo(4).torque, r.text
+    raw = homed_at_start(load_profile("angler")).model_copy(update={"raw_access": True})
+    async with running_client(profiles=[raw]) as (app, client):
+        bus = app.state.services["angler"].driver.link.device
+        r = await client.put(f"{DX}/4/registers/torque_enable", json={"raw": 0})
+        assert r.status_code == 200 and not bus.servo(4).torque, r.text
+        r = await client.post(f"{DX}/4/reboot")  # (its torque off: as above)
+        assert r.status_code == 200 and bus.servo(4).torque, r.text
+
+
 async def test_torque_goes_off_through_passthrough_but_on_again_only_by_a_reboot(
         app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
     """Torque off, the joints moved by a hand (the simulated world's), torque on again: through
@@ -219,10 +284,14 @@ async def test_torque_goes_off_through_passthrough_but_on_again_only_by_a_reboot
     bus = svc.driver.link.device
     tol = 1e-4
     q0 = await held_still(lambda: svc.positions, tol)
-    for i in (1, 2, 3, 4):
+    for i in (1, 2, 3):  # (z's winch falls without torque: its torque stays on, next test)
         r = await client.put(f"{DX}/{i}/registers/torque_enable", json={"raw": 0})
         assert r.status_code == 200, r.text
     moved = [q0[0] + 0.03, q0[1] + 0.02, q0[2], q0[3]]
+    r = await client.put(f"{API}/arms/angler/world/hand",  # z holds: the hand cannot move it
+                         json={"positions": moved[:3] + [q0[3] + 0.01], "wait": True})
+    assert r.status_code == 409 and r.json()["code"] == "conflict", r.text
+    assert "z hold torque" in r.json()["detail"], r.text
     r = await client.put(f"{API}/arms/angler/world/hand",
                          json={"positions": moved, "speed": 0.1, "wait": True})
     assert r.status_code == 200, r.text
@@ -234,8 +303,8 @@ async def test_torque_goes_off_through_passthrough_but_on_again_only_by_a_reboot
                                                               "values": {"1": 1, "2": 1}}))
         assert r.status_code == 409 and r.json()["code"] == "in_use", r.text
         assert "reboot" in r.json()["detail"]
-        assert not any(bus.servo(i).torque for i in (1, 2, 3, 4))
-    for i in (1, 2, 3, 4):
+        assert not any(bus.servo(i).torque for i in (1, 2, 3))
+    for i in (1, 2, 3):
         r = await client.post(f"{DX}/{i}/reboot")
         assert r.status_code == 200, r.text
     assert all(bus.servo(i).torque for i in (1, 2, 3, 4))

@@ -502,3 +502,41 @@ def test_safety_zones_are_drawn_and_the_speed_slider_changes_the_override(browse
         finally:
             pg.close()
         assert not errors, f"uncaught errors in the page: {errors}"
+
+
+def test_rebooting_a_servo_whose_joint_falls_asks_whether_its_load_is_supported(
+        page: Any, server: Server) -> None:
+    """z's winch falls without torque and a reboot switches the torque off: with the servo
+    holding torque (an input-voltage alert does not shut it down) the reboot button's first
+    answer is 409 `in_use`; the page asks, and only a yes reboots it, saying so."""
+    bus = server.app.state.services["angler"].driver.link.device
+    bus.inject_hardware_error(4, "input_voltage")
+    wait_until(lambda: page.locator("#angler-faults").get_attribute("data-count") == "1",
+               what="fault shown")
+    assert bus.servo(4).torque  # not in the Shutdown mask: it still holds
+    asked: list[str] = []
+
+    def answer(yes: bool) -> Any:
+        def on_dialog(dialog: Any) -> None:
+            asked.append(dialog.message)
+            dialog.accept() if yes else dialog.dismiss()
+        return on_dialog
+
+    page.once("dialog", answer(False))
+    page.click("#angler-reboot-4")
+    err = page.locator("#angler-faults-error")
+    wait_until(lambda: err.get_attribute("data-code") == "in_use", what="the refusal shown")
+    wait_until(lambda: len(asked) == 1, what="the question asked")
+    assert "load_supported" in asked[0] and "z falls" in asked[0], asked
+    assert page.locator("#angler-faults").get_attribute("data-count") == "1"
+    assert api(server, "GET", "/arms/angler")["homed"] == [True] * 4  # no REBOOT went out
+    page.once("dialog", answer(True))
+    page.click("#angler-reboot-4")
+    wait_until(lambda: page.locator("#angler-faults").get_attribute("data-count") == "0",
+               what="fault cleared")
+    assert len(asked) == 2 and bus.servo(4).torque
+    assert api(server, "GET", "/arms/angler")["homed"] == [True, True, True, False]
+    assert "load supported" in page.inner_text("#angler-faults-note")
+    page.click("#angler-home")
+    wait_until(lambda: api(server, "GET", "/arms/angler")["homed"] == [True] * 4,
+               what="homed again")

@@ -188,6 +188,21 @@ async def test_passthrough_protects_the_gripper_servo_settings(
     assert r.status_code == 200 and bus.servo(15).get("led") == 1
 
 
+async def test_the_joints_that_fold_under_the_arm_keep_their_torque(
+        three: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """Shoulder, elbow and wrist fall without torque (the profile's `falls_without_torque`):
+    torque off to their servos is 409 `in_use`, nothing written; the waist's and the gripper's
+    go off as before."""
+    app, c = three
+    bus = app.state.services["omx"].driver.link.device
+    for dxl_id, joint in ((12, "shoulder"), (13, "elbow"), (14, "wrist")):
+        r = await c.put(f"{OMX}/dynamixel/{dxl_id}/registers/torque_enable", json={"raw": 0})
+        assert r.status_code == 409 and r.json()["code"] == "in_use", r.text
+        assert f"let {joint} fall" in r.json()["detail"] and bus.servo(dxl_id).torque
+    for dxl_id in (11, 15):
+        r = await c.put(f"{OMX}/dynamixel/{dxl_id}/registers/torque_enable", json={"raw": 0})
+        assert r.status_code == 200 and not bus.servo(dxl_id).torque, r.text
+
 
 async def test_a_servo_fault_refuses_moves_until_its_reboot(
         three: tuple[FastAPI, httpx.AsyncClient]) -> None:

@@ -248,8 +248,10 @@ class AsyncArmClient:
     async def dxl_sync_write(self, arm: str, name: str, values: Mapping[int, int]) -> s.Ack:
         return await self.send(Requests.dxl_sync_write(arm, name, values))
 
-    async def dxl_reboot(self, arm: str, dxl_id: int) -> s.Ack:
-        return await self.send(Requests.dxl_reboot(arm, dxl_id))
+    async def dxl_reboot(self, arm: str, dxl_id: int, load_supported: bool = False) -> s.Ack:
+        """REBOOT one servo; `load_supported` where its joint falls without torque and its
+        load rests or is held (409 `in_use` otherwise while the servo holds torque)."""
+        return await self.send(Requests.dxl_reboot(arm, dxl_id, load_supported))
 
     async def home(self, arm: str, positions: Sequence[float] | None = None) -> s.ArmDetail:
         """Declare the arm's current pose (the profile's home pose without positions)."""

@@ -228,8 +228,9 @@ class Requests:
                     _body(s.SyncWriteRequest(name=name, values=dict(values))), arm=arm)
 
     @staticmethod
-    def dxl_reboot(arm: str, dxl_id: int) -> Call[s.Ack]:
+    def dxl_reboot(arm: str, dxl_id: int, load_supported: bool = False) -> Call[s.Ack]:
         return Call("POST", url_path("arms", arm, "dynamixel", dxl_id, "reboot"), _model(s.Ack),
+                    _body(s.RebootRequest(load_supported=True)) if load_supported else None,
                     arm=arm)
 
     @staticmethod

@@ -124,6 +124,11 @@ class JointConfig(_Strict):
     )
     needs_homing: bool = Field(False, description="the joint's zero is lost at power-up (a "
                                "multi-turn screw or winch): moves wait for POST /home")
+    falls_without_torque: bool = Field(
+        False, description="gravity moves the joint once its servo's torque is off (the "
+        "angler's z winch, an OpenManipulator-X's shoulder, elbow and wrist): pass-through "
+        "torque off, and a reboot while its servo holds torque, are 409 `in_use` unless the "
+        "profile allows raw access (a reboot also with `load_supported`)")
     settle_tolerance: float | None = Field(
         None, gt=0.0, description="rad or m: a motion is done when the joint is this close to "
         "where it was sent (default: 8 encoder ticks)")

@@ -89,6 +89,13 @@ class RegisterWrite(Model):
     raw: Int
 
 
+class RebootRequest(Model):
+    load_supported: bool = Field(
+        False, description="the load of a joint that falls without torque (the profile's "
+        "`falls_without_torque`) rests or is held: its servo may be rebooted while it holds "
+        "torque (the reboot switches it off until the servo is set up again)")
+
+
 class SyncReadRequest(Model):
     name: str
     ids: list[DxlIdValue] = Field(min_length=1, max_length=32)

@@ -8,9 +8,10 @@ Position and Present Velocity set to where the hand has it, and the server reads
 link as it reads hardware. The ROBOTIS e-manual's X-series control table, Torque Enable (64):
 0 is "Torque OFF (Free-run) and the motor does not generate torque", so a hand turns the horn;
 with torque on, a position-mode servo drives to its Goal Position and holds it, so the hand
-does not move it: a move is refused at the start with 409 `conflict` when any joint holds
-torque, and a joint whose torque comes on during a move (the session that freed it has ended)
-is let go.
+does not move it: a move is refused at the start with 409 `conflict` when a joint it would
+move (further than `STILL_TICKS` from where it is) holds torque, and a joint whose torque comes
+on during a move (the session that freed it has ended) is let go. A joint held where the goal
+has it (the angler's z winch, whose torque stays on: it falls without) stays held.
 
 The hand goes in a straight line in joint space from where the joints are when the device
 next runs (the simulated clock of its link) to the goal, at `speed` (rad/s or m/s) on the
@@ -37,6 +38,9 @@ from app.sim.world import World
 DEFAULT_SPEED = 0.5
 #: The fastest the hand goes (rad/s or m/s): an XM430's no-load speed is about 4.8 rad/s.
 MAX_SPEED = 4.0
+#: Encoder ticks within which a goal leaves a joint where it is (a joint the hand does not move
+#: may hold torque).
+STILL_TICKS = 8.0
 
 
 @dataclass(frozen=True)
@@ -75,14 +79,16 @@ class Hand:
 
     # --- a request's side --------------------------------------------------------------
 
-    def holding(self) -> list[str]:
+    def holding(self, goal: np.ndarray | None = None) -> list[str]:
         """The joints whose servo holds torque now (or does not answer: a hand cannot move
-        what is not there)."""
+        what is not there); with `goal` (rad, m), only those it would move."""
         names = [j.name for j in self.world.profile.joints]
+        ticks = None if goal is None else self.world.model.transmission.to_ticks(goal)
         out = []
-        for name, i in zip(names, self.ids, strict=True):
+        for k, (name, i) in enumerate(zip(names, self.ids, strict=True)):
             s = self.device.servo(i)
-            if s is None or s.torque:
+            if s is None or (s.torque and (ticks is None or abs(
+                    float(ticks[k]) - float(s.get("present_position"))) > STILL_TICKS)):
                 out.append(name)
         return out
 
@@ -102,7 +108,7 @@ class Hand:
         if np.any((q < m.lower) | (q > m.upper)):
             raise JointLimit(f"the hand cannot take {self.world.profile.name} there: "
                              + "; ".join(m.violations(q) or [f"outside {q.tolist()}"]))
-        held = self.holding()
+        held = self.holding(q)
         if held:
             raise Conflict(f"{self.world.profile.name}: {', '.join(held)} hold torque: a servo "
                            "with torque on keeps its goal against a hand (switch it off: a "

@@ -139,6 +139,22 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
         svc.require_motion_allowed()  # (first: torque on while latched is `estop_latched`)
     if item.name == "torque_enable" and raw != 0 and own:
         _in_use(svc, item, dxl_id, TORQUE_ON)
+    falls = _falls(svc, dxl_id)
+    if item.name == "torque_enable" and raw == 0 and falls is not None:
+        raise InUse(f"torque off of servo {dxl_id} would let {falls} fall (the profile's "
+                    f"joints.falls_without_torque): gravity would move it where no planned "
+                    f"move may go, at no speed the server set. Move it with POST "
+                    f"/api/v1/arms/{svc.name}/move/joints. Pass-through may not switch it off: "
+                    "the profile does not allow raw access")
+
+
+def _falls(svc: ArmService, dxl_id: int) -> str | None:
+    """The name of the arm's joint on servo `dxl_id` that gravity moves once the servo's torque
+    is off (the profile's `falls_without_torque`), unless the profile allows raw access."""
+    if svc.profile.raw_access:
+        return None
+    return next((j.name for j in svc.profile.joints
+                 if j.motor_id == dxl_id and j.falls_without_torque), None)
 
 
 def _in_use(svc: ArmService, item: mx28.ControlItem, dxl_id: int,
@@ -216,7 +232,10 @@ async def read_register(svc: ControlArm, dxl_id: DxlId, name: RegName) -> s.Regi
     "off and the LED while the estop is latched; 409 `in_use` for `torque_enable` 1 to the arm's "
     "own servos unless the profile allows raw access (as torque comes on a servo drives to its "
     "Goal Position, perhaps older than where the joint is: switch it on with the servo's "
-    "reboot). Answers the value written. " + _NOT_SUPPORTED,
+    "reboot); 409 `in_use` for `torque_enable` 0 to the servo of a joint that falls without "
+    "torque (the profile's `falls_without_torque`: gravity would move it where no planned "
+    "move may go) unless the profile allows raw access. Answers the value written. "
+    + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
 async def write_register(svc: ControlArm, dxl_id: DxlId, name: RegName,
@@ -279,11 +298,24 @@ async def sync_write(svc: ControlArm, req: s.SyncWriteRequest) -> s.Ack:
     "connect (operating mode, profile velocity, goal = present position, torque on); a joint "
     "that needs homing comes back not homed. Works while the arm has a fault; refused while "
     "the estop is latched (409 `estop_latched`) or a motion runs or is queued (409 `busy`). "
-    + _NOT_SUPPORTED,
+    "The servo's torque is off from the REBOOT until it is set up again: for a joint that "
+    "falls without torque (the profile's `falls_without_torque`: the angler's z winch) whose "
+    "servo holds torque, 409 `in_use` unless the body says `{\"load_supported\": true}` (its "
+    "load rests or is held) or the profile allows raw access. " + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
-async def reboot(svc: ControlArm, dxl_id: DxlId) -> s.Ack:
-    _driver(svc)
+async def reboot(svc: ControlArm, dxl_id: DxlId,
+                 req: Annotated[s.RebootRequest | None, Body()] = None) -> s.Ack:
+    drv = _driver(svc)
+    falls = _falls(svc, dxl_id)
+    if falls is not None and not (req is not None and req.load_supported):
+        svc.require_motion_allowed()  # (first: latched is `estop_latched`, as before)
+    if falls is not None and not (req is not None and req.load_supported) \
+            and await drv.read_register(dxl_id, _item(svc, "torque_enable")):
+        raise InUse(f"a reboot switches servo {dxl_id}'s torque off until it is set up again, "
+                    f"and {falls} falls without torque (the profile's "
+                    "joints.falls_without_torque). Rest or hold its load first, then say so: "
+                    '{"load_supported": true}')
     await svc.reboot(dxl_id)
     return s.Ack(command=f"REBOOT {dxl_id}")
 

@@ -48,8 +48,7 @@ class Panel extends CardPanel {
       el("strong", {}, `Servo ${f.servo} (${f.joint}): ${f.bits.join(", ") || "alert"}`), " ",
       el("span", { class: "muted small" }, f.advice), " ",
       el("button", { type: "button", class: "stop", id: `${this.name}-reboot-${f.servo}`,
-        onclick: () => this.run("POST", `/arms/${encodeURIComponent(this.name)}/dynamixel/${f.servo}/reboot`, undefined,
-          `servo ${f.servo} rebooted`) }, `Reboot servo ${f.servo}`)));
+        onclick: () => this.reboot(f.servo) }, `Reboot servo ${f.servo}`)));
     this.el.faults.replaceChildren(...(rows.length ? rows : [el("li", { class: "muted small ok" }, "no faults")]));
     this.el.faults.dataset.count = String(this.faults.length);
     const names = this.detail.joints.map((j) => j.name);
@@ -57,6 +56,19 @@ class Panel extends CardPanel {
       ...names.map((n, i) => el("span", { class: `badge ${this.homed[i] === false ? "warn" : "ok"}`, "data-joint": n },
         `${n} ${this.homed[i] === false ? "✗" : "✓"}`)));
     this.el.homed.dataset.homed = JSON.stringify(this.homed);
+  }
+
+  // A reboot switches the servo's torque off until it is set up again: for a joint that falls
+  // without torque (the profile's falls_without_torque) the server asks whether its load rests
+  // or is held (409 in_use naming load_supported); the operator's yes sends it again saying so.
+  async reboot(servo) {
+    const path = `/arms/${encodeURIComponent(this.name)}/dynamixel/${servo}/reboot`;
+    const d = await this.run("POST", path, undefined, `servo ${servo} rebooted`);
+    if (d === null && this.el.error.dataset.code === "in_use"
+        && this.el.error.textContent.includes("load_supported")
+        && window.confirm(`${this.el.error.textContent}\n\nIs the load resting or held? OK reboots servo ${servo}.`)) {
+      await this.run("POST", path, { load_supported: true }, `servo ${servo} rebooted (load supported)`);
+    }
   }
 
   async home() {
