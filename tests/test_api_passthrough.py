@@ -166,7 +166,7 @@ async def test_dynamixel_sync_read_write_and_reboot(app_client: httpx.AsyncClien
 async def test_estop_blocks_writes_but_not_reads_or_torque_off(
         app_client: httpx.AsyncClient) -> None:
     assert (await app_client.post(f"{API}/arms/angler/estop")).status_code == 200
-    r = await app_client.put(f"{DX}/1/registers/position_p_gain", json={"raw": 850})
+    r = await app_client.put(f"{DX}/1/registers/goal_velocity", json={"raw": 10})
     assert r.status_code == 409 and r.json()["code"] == "estop_latched"
     r = await app_client.post(f"{DX}/1/reboot")
     assert r.status_code == 409 and r.json()["code"] == "estop_latched"
@@ -251,6 +251,39 @@ async def test_a_joint_that_falls_without_torque_keeps_it_through_passthrough(
     assert bus.servo(4).torque and not svc.driver.homed[3]
 
 
+async def test_the_force_and_the_gains_a_servo_follows_its_plan_with_are_the_drivers(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """Goal PWM limits the PWM in a position mode (e-manual, Goal PWM(100)): written 0 during a
+    planned move of z and 885 again, the simulated winch caught up at 0.127 m/s against its
+    0.05 m/s limit. Goal PWM, the PWM limit and every gain of the arm's own servos are 409
+    `in_use` through pass-through (register write and SYNC_WRITE), naming raw access as the
+    way; nothing is written and the move ends done."""
+    app, client = app_and_client
+    svc = app.state.services["angler"]
+    bus = svc.driver.link.device
+    before = {(i, n): bus.servo(i).get(n) for i in (1, 4)
+              for n in ("goal_pwm", "pwm_limit", "position_p_gain", "velocity_i_gain")}
+    q = list(svc.positions)
+    r = await client.post(f"{API}/arms/angler/move/joints",
+                          json={"positions": [q[0], q[1], q[2], 0.12]})
+    assert r.status_code == 202, r.text
+    motion = r.json()["id"]
+    for name, raw in (("goal_pwm", 0), ("pwm_limit", 10), ("position_p_gain", 0),
+                      ("velocity_i_gain", 0)):
+        r = await client.put(f"{DX}/4/registers/{name}", json={"raw": raw})
+        assert r.status_code == 409 and r.json()["code"] == "in_use", (name, r.text)
+        assert "raw_access" in r.json()["detail"], r.text
+        r = await client.post(f"{DX}/sync-write", json={"name": name, "values": {"1": raw}})
+        assert r.status_code == 409 and r.json()["code"] == "in_use", (name, r.text)
+    for _ in range(1000):  # the move takes about 1.5 s: bounded at 20 s
+        r = await client.get(f"{API}/arms/angler/motions/{motion}")
+        if r.json()["status"] not in ("queued", "running"):
+            break
+        await asyncio.sleep(0.02)
+    assert r.status_code == 200 and r.json()["status"] == "done", r.text
+    assert {k: bus.servo(k[0]).get(k[1]) for k in before} == before
+
+
 async def test_raw_access_and_the_servos_own_shutdown_keep_torque_off_and_the_reboot_open(
         app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
     """Where the servo's torque is already off (its own shutdown after an overload), a reboot
@@ -269,6 +302,8 @@ async def test_raw_access_and_the_servos_own_shutdown_keep_torque_off_and_the_re
         assert r.status_code == 200 and not bus.servo(4).torque, r.text
         r = await client.post(f"{DX}/4/reboot")  # (its torque off: as above)
         assert r.status_code == 200 and bus.servo(4).torque, r.text
+        r = await client.put(f"{DX}/4/registers/goal_pwm", json={"raw": 400})  # and the force
+        assert r.status_code == 200 and bus.servo(4).get("goal_pwm") == 400, r.text
 
 
 async def test_torque_goes_off_through_passthrough_but_on_again_only_by_a_reboot(

@@ -209,7 +209,7 @@ async def test_estop_refuses_everything_that_moves() -> None:
             ("POST", f"{AN}/move/joints", {"positions": [0.0, 0.0, 0.1, 0.0]}),
             ("PUT", f"{AN}/dynamixel/3/registers/goal_position", {"raw": goal_ok}),
             ("PUT", f"{AN}/dynamixel/1/registers/torque_enable", {"raw": 1}),
-            ("PUT", f"{AN}/dynamixel/1/registers/position_p_gain", {"raw": 850}),
+            ("PUT", f"{AN}/dynamixel/1/registers/goal_velocity", {"raw": 10}),
             ("POST", f"{AN}/dynamixel/sync-write", {"name": "goal_position",
                                                     "values": {"3": goal_ok}}),
             ("POST", f"{AN}/dynamixel/2/reboot", None),

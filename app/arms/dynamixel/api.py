@@ -69,6 +69,19 @@ def _joint_of(svc: ArmService, dxl_id: int) -> int:
 
 _PROFILE = "the arm profile's {what} (then restart the server)"
 _REBOOT = "POST /api/v1/arms/{arm}/dynamixel/{id}/reboot, which sets the servo up again"
+_RAW = "an arm profile with raw_access = true, its owner's choice (then restart the server)"
+#: Goal PWM (and an X-series servo's Goal Current) in a position mode: the e-manual's Goal
+#: PWM(100), "in other control modes, this value is used to limit PWM value". Set to 0 during
+#: a planned move of the angler's z and back to 885, the simulated winch caught up at 0.127 m/s
+#: against its 0.05 m/s limit (tests/test_api_passthrough.py).
+_FORCE = ("it limits the force the servo drives and holds with: lowered, the joint lags its "
+          "planned path (a joint under gravity falls), and raised again it catches up faster "
+          "than any plan", "none: the driver leaves it at the servo's limit; " + _RAW)
+_FORCE_LIMIT = ("it caps Goal PWM or Goal Current, the force the servo drives and holds with",
+                "none: the driver leaves it at the servo's default; " + _RAW)
+_GAIN = ("it sets how closely the joint follows the planned path: lowered, the joint lags it (a "
+         "joint under gravity sags) and catches up faster than any plan once raised; raised, "
+         "it overshoots", _RAW)
 #: Items the driver relies on for the arm's own servos, each with why and with the route (or
 #: the profile setting) that changes it properly: how the driver addresses the servos, at what
 #: speed and protocol they answer, how a goal is read, and every limit and profile it sets so
@@ -104,6 +117,11 @@ DRIVER_SETTINGS: dict[str, tuple[str, str]] = {
                              "the move routes' `speed` and `duration` (POST /api/v1/arms/"
                              "{arm}/move/joints)"),
     "shutdown": ("it says which faults turn the torque off to protect the servo", _REBOOT),
+    **dict.fromkeys(("goal_pwm", "goal_current"), _FORCE),
+    **dict.fromkeys(("pwm_limit", "current_limit"), _FORCE_LIMIT),
+    **dict.fromkeys(("position_p_gain", "position_i_gain", "position_d_gain",
+                     "velocity_p_gain", "velocity_i_gain", "feedforward_1st_gain",
+                     "feedforward_2nd_gain"), _GAIN),
 }
 
 
