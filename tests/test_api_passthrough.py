@@ -8,7 +8,7 @@ import asyncio
 import httpx
 import numpy as np
 import pytest
-from _wait import held_still
+from _wait import held_still, wait_for
 from _walk import pid_walk
 from conftest import running_client
 from fastapi import FastAPI
@@ -76,6 +76,34 @@ async def test_rbe3001_gain_and_claw(app_and_client: tuple[FastAPI, httpx.AsyncC
     assert app.state.services["rbe3001"].driver.gripper == 0.3
     r = await client.post(f"{RB}/set-gain", json={"axis": 3, "kp": 0, "ki": 0, "kd": 0})
     assert r.status_code == 422
+
+
+async def test_set_gain_keeps_a_proportional_gain_that_holds_the_arm(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """With kp 0 a joint holds nothing: through a raw-access profile's SET_GAIN the simulated
+    shoulder falls past its lower limit. Without raw access kp below the joint's `min_kp` is 422
+    `out_of_range` naming the joint, nothing sent; at `min_kp` it is taken."""
+    app, client = app_and_client
+    svc = app.state.services["rbe3001"]
+    fw = svc.driver.link.device
+    before = [list(g) for g in fw.gains]
+    for axis, name in enumerate(("base", "shoulder", "elbow")):
+        r = await client.post(f"{RB}/set-gain", json={"axis": axis, "kp": 0.001, "ki": 0.01,
+                                                      "kd": 0.0})
+        assert r.status_code == 422 and r.json()["code"] == "out_of_range", r.text
+        assert name in r.json()["detail"] and "min_kp" in r.json()["detail"]
+    assert [list(g) for g in fw.gains] == before
+    kp = svc.profile.joints[1].min_kp
+    r = await client.post(f"{RB}/set-gain", json={"axis": 1, "kp": kp, "ki": 0.0, "kd": 0.0})
+    assert r.status_code == 200 and fw.gains[1] == pytest.approx([kp, 0.0, 0.0]), r.text
+    raw = homed_at_start(load_profile("rbe3001")).model_copy(update={"raw_access": True})
+    async with running_client(profiles=[raw]) as (app2, c2):
+        arm = app2.state.services["rbe3001"]
+        lower = float(arm.model.lower[1])
+        r = await c2.post(f"{RB}/set-gain", json={"axis": 1, "kp": 0, "ki": 0, "kd": 0})
+        assert r.status_code == 200, r.text
+        await wait_for(lambda: arm.positions[1] < lower, timeout=10,
+                       what="the shoulder, with kp 0, below its lower limit")
 
 
 async def test_protocol_mismatch_is_409_not_supported(app_client: httpx.AsyncClient) -> None:

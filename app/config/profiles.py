@@ -124,6 +124,10 @@ class JointConfig(_Strict):
     )
     needs_homing: bool = Field(False, description="the joint's zero is lost at power-up (a "
                                "multi-turn screw or winch): moves wait for POST /home")
+    min_kp: float | None = Field(
+        None, ge=0.0, description="rbe3001 SET_GAIN: the least kp (firmware units) accepted for "
+        "this joint through pass-through unless the profile allows raw access: with no "
+        "proportional gain the joint holds nothing (422 `out_of_range` below it)")
     falls_without_torque: bool = Field(
         False, description="gravity moves the joint once its servo's torque is off (the "
         "angler's z winch, an OpenManipulator-X's shoulder, elbow and wrist): pass-through "

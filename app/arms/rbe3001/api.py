@@ -15,7 +15,7 @@ from fastapi import APIRouter
 
 from app import schemas as s
 from app.arms.rbe3001.driver import Rbe3001Driver
-from app.errors import InvalidRequest
+from app.errors import InvalidRequest, OutOfRange
 from app.service import ArmService
 from app.web.deps import ControlArm
 from app.web.routes.common import DEVICE, errors
@@ -84,7 +84,9 @@ async def status(svc: ControlArm) -> s.Rbe3001Status:
     response_model=s.Ack,
     summary="SET_GAIN (39): PID gains of one joint",
     description="kp, ki, kd in firmware units (each 0..1000; the firmware's default kp is "
-    "0.005, and a negative gain makes the loop unstable: 422) for axis 0-2. Refused while the "
+    "0.005, and a negative gain makes the loop unstable: 422) for axis 0-2; kp below the "
+    "joint's `min_kp` in the profile is 422 `out_of_range` unless the profile allows raw "
+    "access (with kp 0 the simulated shoulder fell past its limit). Refused while the "
     "estop is latched (new gains can move a joint). The firmware's reply carries nothing: "
     "`reply` says whether it answered (`sent`: no reply within one timeout, as builds that "
     "answer nothing). " + _NOT_SUPPORTED,
@@ -93,6 +95,13 @@ async def status(svc: ControlArm) -> s.Rbe3001Status:
 async def set_gain(svc: ControlArm, req: s.SetGain) -> s.Ack:
     drv = _driver(svc)
     _encodable(rb.SetGain(req.axis, req.kp, req.ki, req.kd))
+    joint = svc.profile.joints[req.axis]
+    if joint.min_kp is not None and req.kp < joint.min_kp and not svc.profile.raw_access:
+        raise OutOfRange(f"kp {req.kp:g} for {joint.name} is below the profile's min_kp "
+                         f"{joint.min_kp:g}: a joint with too little proportional gain no longer "
+                         "holds against its load (at kp 0 the shoulder falls), and catches up "
+                         "faster than any plan when it is raised again. Tuning below it needs a "
+                         "profile with raw_access = true")
     svc.require_motion_allowed()
     how = await drv.set_gain(req.axis, req.kp, req.ki, req.kd)
     return s.Ack(command="SET_GAIN", reply=how)
