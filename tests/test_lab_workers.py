@@ -230,7 +230,10 @@ def test_tokens_and_leases_as_today(lab: Lab) -> None:
             other = c.post("/api/v1/arms/left/move/joints", json=move, headers=OP)
             assert other.status_code == 409 and other.json()["code"] == "leased"
             # the lease is the left arm's worker's: the right arm is free
-            assert c.post("/api/v1/arms/right/lease", headers=OP).status_code in (200, 201)
+            other_lease = c.post("/api/v1/arms/right/lease", headers=OP)
+            assert other_lease.status_code in (200, 201), other_lease.text
+            assert c.delete(f"/api/v1/arms/right/lease/{other_lease.json()['id']}",
+                            headers=OP).status_code in (200, 204)
         finally:
             assert c.delete(f"/api/v1/arms/left/lease/{lease_id}",
                             headers=OP).status_code in (200, 204)
@@ -445,6 +448,40 @@ async def test_a_latched_estop_holds_across_its_workers_kill(lab: Lab) -> None:
         finally:
             released = await c.delete(f"{right}/estop")
         assert released.status_code == 200 and released.json() == {"estop": False}
+
+
+@pytest.mark.serial  # as above
+async def test_a_lease_holds_across_its_workers_kill(lab: Lab) -> None:
+    """The right arm leased, its worker killed with SIGKILL: the worker started in its place
+    has the lease (kept in the lab's store), so a move without it is 409 `leased`, a new lease
+    is refused, and the holder's renewal and moves go on."""
+    right = "/api/v1/arms/right"
+    async with httpx.AsyncClient(base_url=lab.url, headers=OP, timeout=30) as c:
+        r = await c.post(f"{right}/lease")
+        assert r.status_code == 201, r.text
+        lease = r.json()["id"]
+        try:
+            before = lab.workers()[1]
+            os.kill(before, signal.SIGKILL)
+
+            async def right_state() -> int:
+                return (await c.get(f"{right}/state")).status_code
+
+            await wait_for(lambda: lab.workers().get(1) not in (None, before),
+                           timeout=BACK_WITHIN_S, what="worker 1 on a new process")
+            await wait_for(_is(right_state, 200), timeout=BACK_WITHIN_S,
+                           what="the right arm back")
+            r = await c.post(f"{right}/move/joints", json={"positions": [0.1, 0.1, 0.1]})
+            assert r.status_code == 409 and r.json()["code"] == "leased", r.text
+            r = await c.post(f"{right}/lease")
+            assert r.status_code == 409 and r.json()["code"] == "leased", r.text
+            r = await c.put(f"{right}/lease/{lease}")
+            assert r.status_code == 200 and r.json()["id"] == lease, r.text
+            r = await c.post(f"{right}/stop", headers={"X-Arm-Lease": lease})
+            assert r.status_code == 200, r.text
+        finally:
+            released = await c.delete(f"{right}/lease/{lease}")
+        assert released.status_code == 204, released.text
 
 
 @pytest.mark.serial  # as above

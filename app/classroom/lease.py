@@ -14,6 +14,14 @@ the rule and why).
 A lapsed lease is expired by whichever comes first: the watcher task (which wakes at the
 earliest expiry) or the next request that looks at it, so a request can never slip a motion in
 between the expiry and its stop.
+
+A plain lease is kept in the store (`SCOPE`: its id, ttl and deadline, as each take, renewal
+and end changes them) and comes back when the server, or in a lab the arm's worker process,
+starts again (`load`): its holder's next renewal finds it, and nobody else takes the arm
+meanwhile. It comes back with one ttl to be renewed in (the process was down for a while, and
+renewals met nothing), unless it had lapsed more than a ttl before the start. A lease of the
+classroom queue is not kept: the queue's entries are, and the queue offers the arm again
+(app/classroom/queue.py); nor a plain lease on an arm people queue for.
 """
 
 from __future__ import annotations
@@ -24,15 +32,20 @@ import hmac
 import logging
 import secrets
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 
 from app import schemas as s
 from app.errors import ArmError, Leased, UnknownLease
 from app.runtime.tasks import cancel_and_wait
 from app.service import ArmService
+from app.store import Store, StoreError
 
 log = logging.getLogger(__name__)
+
+#: The store's scope of an arm's plain lease (key `KEY`).
+SCOPE = "lease:{}"
+KEY = "lease"
 
 
 @dataclass
@@ -61,9 +74,11 @@ class _Lease:
 class LeaseManager:
     """The leases of every arm of one server, and the watcher that expires them."""
 
-    def __init__(self, services: Mapping[str, ArmService], ttl: float) -> None:
+    def __init__(self, services: Mapping[str, ArmService], ttl: float,
+                 store: Store | None = None) -> None:
         self._services = services
         self.ttl = ttl
+        self._store = store
         self._leases: dict[str, _Lease] = {}
         self._changed = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -113,6 +128,7 @@ class LeaseManager:
                        offered=claim_s is not None, slot_s=slot_s)
         self._leases[arm] = lease
         self._changed.set()
+        self._save(arm)
         log.info("%s: lease taken (ttl %.1f s)", arm, self.ttl)
         return lease.to_schema()
 
@@ -125,6 +141,7 @@ class LeaseManager:
         if lease.slot_end is not None:
             lease.deadline = min(lease.deadline, lease.slot_end)
         self._changed.set()
+        self._save(arm)
         if lease.offered:
             lease.offered = False
             self._notify("claimed", arm, lease.id)
@@ -134,6 +151,7 @@ class LeaseManager:
         lease = await self._find(arm, lease_id)
         del self._leases[lease.arm]
         self._changed.set()
+        self._save(arm)
         log.info("%s: lease released", arm)
         self._notify("released", arm, lease.id)
 
@@ -198,6 +216,50 @@ class LeaseManager:
             raise Leased(f"{arm} is leased: send the lease id in the X-Arm-Lease header "
                          "(only the emergency stop is open without it)")
 
+    # ------------------------------------------------------------ across restarts
+
+    def _save(self, arm: str) -> None:
+        """Keep `arm`'s plain lease in the store (None once it is gone, or the queue's)."""
+        if self._store is None:
+            return
+        lease = self._leases.get(arm)
+        row = None
+        if lease is not None and not lease.offered and lease.slot_s is None:
+            row = {"id": lease.id, "ttl": lease.ttl,
+                   "deadline": time.time() + (lease.deadline - time.monotonic())}
+        self._store.put_setting_nowait(SCOPE.format(arm), KEY, row)
+
+    def load(self, skip: Collection[str] = ()) -> None:
+        """The plain leases kept in the store (blocking: start-up, before serving), each
+        with one ttl from now, but for an arm in `skip` (people queue for it: the queue
+        offers it) and a lease that lapsed more than its ttl before now."""
+        if self._store is None:
+            return
+        now = time.time()
+        for arm in self._services:
+            try:
+                row = self._store.get_setting_sync(SCOPE.format(arm), KEY)
+            except StoreError as exc:
+                log.error("%s: stored lease not read: %s", arm, exc)  # noqa: TRY400
+                continue
+            if not isinstance(row, dict) or arm in self._leases:
+                continue
+            try:
+                lease_id, ttl, deadline = str(row["id"]), float(row["ttl"]), float(row["deadline"])
+            except (KeyError, TypeError, ValueError):
+                log.warning("%s: stored lease %r not understood: dropped", arm, row)
+                self._save(arm)
+                continue
+            if arm in skip or deadline < now - ttl:
+                why = "people queue for the arm" if arm in skip else "it had lapsed"
+                log.info("%s: stored lease not restored (%s)", arm, why)
+                self._save(arm)
+                continue
+            self._leases[arm] = _Lease(lease_id, arm, ttl, time.monotonic() + ttl)
+            self._save(arm)
+            log.info("%s: lease restored from the store (renew within %.1f s)", arm, ttl)
+        self._changed.set()
+
     # ------------------------------------------------------------ expiry
 
     async def _find(self, arm: str, lease_id: str) -> _Lease:
@@ -220,6 +282,7 @@ class LeaseManager:
             at_end = lease.slot_end is not None and time.monotonic() >= lease.slot_end
             why = "slot_over" if at_end else "lapsed"
         del self._leases[lease.arm]
+        self._save(lease.arm)
         svc = self._services.get(lease.arm)
         if why == "slot_over":
             what = f"the lease on {lease.arm} reached the end of its slot"

@@ -162,6 +162,10 @@ class Classroom:
             if q.entries:
                 log.info("%s: %d queued from the store", arm, len(q.entries))
 
+    def queued_arms(self) -> list[str]:
+        """The arms someone queues for (after `load`)."""
+        return [arm for arm, q in self._queues.items() if q.entries]
+
     def start(self) -> None:
         """Offer the heads of the stored queues; where people wait, hand off first (the arm
         may be anywhere after a restart)."""

@@ -87,10 +87,10 @@ def create_app(settings: Settings | None = None,
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         services: dict[str, ArmService] = {}
-        leases = LeaseManager(services, settings.lease_ttl_s)
+        store = Store(settings.data_dir, audit_max_rows=settings.audit_max_rows)
+        leases = LeaseManager(services, settings.lease_ttl_s, store)
         app.state.services = services
         app.state.leases = leases
-        store = Store(settings.data_dir, audit_max_rows=settings.audit_max_rows)
         app.state.store = store
         # The arms run on the control thread's loop (app.runtime.control_thread); HTTP stays on
         # this one.
@@ -124,6 +124,7 @@ def create_app(settings: Settings | None = None,
                                                          app.state.cameras)
             app.state.mqtt = start_mqtt_bridge(settings, services)
             room.load(app.state.access.names)  # entries of names no token has: dropped
+            leases.load(skip=room.queued_arms())  # a lease held when this process stopped
             room.start()
             # every route built now, not by its first request (an estop press: app/web/warm.py)
             if settings.warm_start:
