@@ -53,7 +53,7 @@ async def test_a_lease_that_lapsed_long_before_the_start_or_is_unreadable_is_not
     store.open()
     try:
         rows = {"rbe3001": {"id": "old", "ttl": ttl, "deadline": time.time() - 2 * ttl},
-                "angler": {"id": 5}}
+                "angler": [5]}
         for arm, row in rows.items():
             store.put_setting_nowait(SCOPE.format(arm), KEY, row).result()
     finally:

@@ -79,6 +79,8 @@ class LeaseManager:
         self._services = services
         self.ttl = ttl
         self._store = store
+        #: Arms with a row in the store (`_save`, `load`): only they need a None written.
+        self._stored: set[str] = set()
         self._leases: dict[str, _Lease] = {}
         self._changed = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -227,6 +229,11 @@ class LeaseManager:
         if lease is not None and not lease.offered and lease.slot_s is None:
             row = {"id": lease.id, "ttl": lease.ttl,
                    "deadline": time.time() + (lease.deadline - time.monotonic())}
+            self._stored.add(arm)
+        elif arm in self._stored:
+            self._stored.discard(arm)
+        else:
+            return  # nothing kept for it: the queue's lease renewed, nothing to write
         self._store.put_setting_nowait(SCOPE.format(arm), KEY, row)
 
     def load(self, skip: Collection[str] = ()) -> None:
@@ -242,8 +249,9 @@ class LeaseManager:
             except StoreError as exc:
                 log.error("%s: stored lease not read: %s", arm, exc)  # noqa: TRY400
                 continue
-            if not isinstance(row, dict) or arm in self._leases:
+            if row is None or arm in self._leases:
                 continue
+            self._stored.add(arm)
             try:
                 lease_id, ttl, deadline = str(row["id"]), float(row["ttl"]), float(row["deadline"])
             except (KeyError, TypeError, ValueError):
