@@ -422,6 +422,19 @@ async def test_a_hung_worker_is_killed_and_restarted(lab: Lab) -> None:
         assert all(a["link"]["connected"] for a in arms)
 
 
+async def _kill_the_right_arms_worker(lab: Lab, c: httpx.AsyncClient) -> None:
+    """SIGKILL worker 1 (the right arm's) and wait, bounded, for the right arm on a new one."""
+    before = lab.workers()[1]
+    os.kill(before, signal.SIGKILL)
+
+    async def right_state() -> int:
+        return (await c.get("/api/v1/arms/right/state")).status_code
+
+    await wait_for(lambda: lab.workers().get(1) not in (None, before),
+                   timeout=BACK_WITHIN_S, what="worker 1 on a new process")
+    await wait_for(_is(right_state, 200), timeout=BACK_WITHIN_S, what="the right arm back")
+
+
 @pytest.mark.serial  # beside this module's other kills, on the serial part's lab
 async def test_a_latched_estop_holds_across_its_workers_kill(lab: Lab) -> None:
     """The right arm latched, its worker killed with SIGKILL: the worker started in its place
@@ -432,16 +445,7 @@ async def test_a_latched_estop_holds_across_its_workers_kill(lab: Lab) -> None:
         assert (await c.post(f"{right}/estop")).json() == {"estop": True}
         try:
             assert _right_latched_on_disk(lab)  # at the answer
-            before = lab.workers()[1]
-            os.kill(before, signal.SIGKILL)
-
-            async def right_state() -> int:
-                return (await c.get(f"{right}/state")).status_code
-
-            await wait_for(lambda: lab.workers().get(1) not in (None, before),
-                           timeout=BACK_WITHIN_S, what="worker 1 on a new process")
-            await wait_for(_is(right_state, 200), timeout=BACK_WITHIN_S,
-                           what="the right arm back")
+            await _kill_the_right_arms_worker(lab, c)
             assert (await c.get(f"{right}/state")).json()["estop"] is True
             r = await c.post(f"{right}/move/joints", json={"positions": [0.1, 0.1, 0.1]})
             assert r.status_code == 409 and r.json()["code"] == "estop_latched", r.text
@@ -461,16 +465,7 @@ async def test_a_lease_holds_across_its_workers_kill(lab: Lab) -> None:
         assert r.status_code == 201, r.text
         lease = r.json()["id"]
         try:
-            before = lab.workers()[1]
-            os.kill(before, signal.SIGKILL)
-
-            async def right_state() -> int:
-                return (await c.get(f"{right}/state")).status_code
-
-            await wait_for(lambda: lab.workers().get(1) not in (None, before),
-                           timeout=BACK_WITHIN_S, what="worker 1 on a new process")
-            await wait_for(_is(right_state, 200), timeout=BACK_WITHIN_S,
-                           what="the right arm back")
+            await _kill_the_right_arms_worker(lab, c)
             r = await c.post(f"{right}/move/joints", json={"positions": [0.1, 0.1, 0.1]})
             assert r.status_code == 409 and r.json()["code"] == "leased", r.text
             r = await c.post(f"{right}/lease")
