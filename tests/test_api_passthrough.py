@@ -269,6 +269,9 @@ async def test_a_joint_that_falls_without_torque_keeps_it_through_passthrough(
     assert (await client.delete(f"{API}/arms/angler/estop")).status_code == 200
     r = await client.post(f"{DX}/3/reboot")  # theta3 does not fall: no question asked
     assert r.status_code == 200 and bus.servo(3).torque, r.text
+    for body in ({"load_supported": "yes"}, {"load_supported": 1}):  # said, not implied
+        r = await client.post(f"{DX}/4/reboot", json=body)
+        assert r.status_code == 422 and r.json()["code"] == "invalid_request", (body, r.text)
     for body in (None, {}, {"load_supported": False}):
         r = await client.post(f"{DX}/4/reboot", json=body)
         assert r.status_code == 409 and r.json()["code"] == "in_use", (body, r.text)

@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
-from app.schemas.common import DxlIdValue, Finite, Int, Model, Unit
+from app.schemas.common import Bool, DxlIdValue, Finite, Int, Model, Unit
 
 # ---------------------------------------------------------------- rbe3001 pass-through
 
@@ -90,7 +90,7 @@ class RegisterWrite(Model):
 
 
 class RebootRequest(Model):
-    load_supported: bool = Field(
+    load_supported: Bool = Field(
         False, description="the load of a joint that falls without torque (the profile's "
         "`falls_without_torque`) rests or is held: its servo may be rebooted while it holds "
         "torque (the reboot switches it off until the servo is set up again)")
