@@ -315,6 +315,31 @@ async def test_the_force_and_the_gains_a_servo_follows_its_plan_with_are_the_dri
     assert {k: bus.servo(k[0]).get(k[1]) for k in before} == before
 
 
+async def test_no_other_servo_may_take_an_id_of_the_arms(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """A servo on the arm's bus that is not the arm's (id 7 here) may be set up through
+    pass-through, but not to an id (or Secondary ID) of the arm's own servos: it would take
+    the arm's commands (x's goals would move it too) and collide with x's replies."""
+    app, client = app_and_client
+    bus = app.state.services["angler"].driver.link.device
+    from app.arms.dynamixel.sim_mx28 import Mx28Servo
+    extra = bus.add_servo(Mx28Servo, id=7, baudrate=1_000_000)
+    try:
+        for name in ("id", "secondary_id"):
+            for way in ("PUT", "SYNC"):
+                r = (await client.put(f"{DX}/7/registers/{name}", json={"raw": 2})
+                     if way == "PUT" else
+                     await client.post(f"{DX}/sync-write", json={"name": name,
+                                                                  "values": {"7": 2}}))
+                assert r.status_code == 409 and r.json()["code"] == "in_use", (name, r.text)
+                assert "servo for x" in r.json()["detail"], r.text
+        assert (extra.id, extra.get("secondary_id")) == (7, 255)
+        r = await client.put(f"{DX}/7/registers/led", json={"raw": 1})  # its own settings
+        assert r.status_code == 200 and extra.get("led") == 1, r.text
+    finally:
+        bus.remove_servo(extra)
+
+
 async def test_raw_access_and_the_servos_own_shutdown_keep_torque_off_and_the_reboot_open(
         app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
     """Where the servo's torque is already off (its own shutdown after an overload), a reboot

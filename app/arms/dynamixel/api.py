@@ -147,10 +147,15 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
     if not item.min_raw <= raw <= item.max_raw:
         raise OutOfRange(f"{item.name} takes raw values {item.min_raw}..{item.max_raw}, "
                          f"got {raw}")
-    own = not svc.profile.raw_access and (any(j.motor_id == dxl_id for j in svc.profile.joints)
-                                          or dxl_id == svc.profile.gripper.motor_id)
+    ids = _own_ids(svc)
+    own = not svc.profile.raw_access and dxl_id in ids
     if item.name in DRIVER_SETTINGS and own:  # (a gripper's own servo is the arm's)
         _in_use(svc, item, dxl_id, DRIVER_SETTINGS[item.name])
+    if item.name in ("id", "secondary_id") and raw in ids and not svc.profile.raw_access:
+        raise InUse(f"{item.name} {raw} of servo {dxl_id}: {raw} is the id of {svc.name}'s "
+                    f"servo for {ids[raw]}; a second servo answering to it would take the arm's "
+                    "commands (and, as its id, collide with its replies). Pass-through may not "
+                    "give it: the profile does not allow raw access")
     if item.name == "goal_position":
         _joint_of(svc, dxl_id)  # checked with the others' goals: `_send`
     elif not _safe(item, raw):
@@ -164,6 +169,14 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
                     f"move may go, at no speed the server set. Move it with POST "
                     f"/api/v1/arms/{svc.name}/move/joints. Pass-through may not switch it off: "
                     "the profile does not allow raw access")
+
+
+def _own_ids(svc: ArmService) -> dict[int, str]:
+    """The arm's own servo ids (its joints' and its gripper's), each with what it drives."""
+    ids = {j.motor_id: j.name for j in svc.profile.joints if j.motor_id is not None}
+    if svc.profile.gripper.motor_id is not None:
+        ids[svc.profile.gripper.motor_id] = "gripper"
+    return ids
 
 
 def _falls(svc: ArmService, dxl_id: int) -> str | None:
@@ -252,7 +265,9 @@ async def read_register(svc: ControlArm, dxl_id: DxlId, name: RegName) -> s.Regi
     "Goal Position, perhaps older than where the joint is: switch it on with the servo's "
     "reboot); 409 `in_use` for `torque_enable` 0 to the servo of a joint that falls without "
     "torque (the profile's `falls_without_torque`: gravity would move it where no planned "
-    "move may go) unless the profile allows raw access. Answers the value written. "
+    "move may go) unless the profile allows raw access; 409 `in_use` for `id` or `secondary_id` "
+    "of any servo set to one of the arm's own ids (it would take the arm's commands) unless "
+    "the profile allows raw access. Answers the value written. "
     + _NOT_SUPPORTED,
     responses=errors(*DEVICE),
 )
