@@ -165,8 +165,8 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
     falls = _falls(svc, dxl_id)
     if item.name == "torque_enable" and raw == 0 and falls is not None:
         raise InUse(f"torque off of servo {dxl_id} would let {falls} fall (the profile's "
-                    f"joints.falls_without_torque): gravity would move it where no planned "
-                    f"move may go, at no speed the server set. Move it with POST "
+                    "joints.falls_without_torque): gravity would move it where no planned "
+                    "move may go, at no speed the server set. Move it with POST "
                     f"/api/v1/arms/{svc.name}/move/joints. Pass-through may not switch it off: "
                     "the profile does not allow raw access")
 
@@ -199,7 +199,8 @@ def _in_use(svc: ArmService, item: mx28.ControlItem, dxl_id: int,
 
 
 def _safe(item: mx28.ControlItem, raw: int) -> bool:
-    """Writes that cannot move the arm, allowed while the estop is latched: torque off, LED."""
+    """Writes that cannot move the arm, allowed while the estop is latched: torque off, LED
+    (torque off of a joint that falls without it is refused apart: `_falls`)."""
     return item.name == "led" or (item.name == "torque_enable" and raw == 0)
 
 
