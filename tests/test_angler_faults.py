@@ -223,6 +223,24 @@ async def test_faults_and_homing_over_a_real_pty(tmp_path):
 # ------------------------------------------------------------------ API
 
 
+async def test_the_advice_for_a_falling_joints_servo_says_how_its_reboot_goes(sim_app):
+    """z falls without torque: its fault's advice names the reboot's `load_supported` (an
+    input-voltage alert leaves the torque on, and the reboot asks); x's does not."""
+    app, c = sim_app
+    svc = app.state.services["angler"]
+    for i in (2, 4):
+        _bus(app).inject_hardware_error(i, "input_voltage")
+    await _until(lambda: len(svc.driver.faults) == 2)
+    advice = {f["servo"]: f["advice"] for f in (await c.get(API)).json()["faults"]}
+    assert "z falls without torque" in advice[4] and '{"load_supported": true}' in advice[4]
+    assert "load_supported" not in advice[2] and "/dynamixel/2/reboot" in advice[2]
+    r = await c.post(f"{API}/dynamixel/4/reboot", json={"load_supported": True})
+    assert r.status_code == 200, r.text
+    r = await c.post(f"{API}/dynamixel/2/reboot")
+    assert r.status_code == 200, r.text
+    await _until(lambda: not svc.driver.faults)
+
+
 async def test_api_fault_refuses_moves_until_reboot_then_homing(sim_app):
     app, c = sim_app
     r = await c.get(API)

@@ -25,8 +25,13 @@ def decode_faults(raw: int) -> list[str]:
     return known + [f"bit{b}" for b in range(8) if raw >> b & 1 and b not in FAULT_BITS]
 
 
-def fault_advice(dxl_id: int, raw: int, arm: str) -> str:
+def fault_advice(dxl_id: int, raw: int, arm: str, falls: str | None = None) -> str:
+    """What to do about servo `dxl_id`'s Hardware Error Status `raw`; `falls`: the name of its
+    joint where gravity moves it without torque (the profile's `falls_without_torque`: the
+    reboot asks whether its load is supported while the servo still holds torque)."""
     hints = [FAULT_BITS[b][1] for b in FAULT_BITS if raw >> b & 1]
+    load = ("" if falls is None else f"; {falls} falls without torque: rest or hold its load, "
+            'and say so with {"load_supported": true} if the servo still holds torque')
     return ("; ".join(hints) + "; " if hints else "") + (
         f"then clear it with POST /api/v1/arms/{arm}/dynamixel/{dxl_id}/reboot (only a reboot "
-        "clears a hardware error; multi-turn joints then need homing again)")
+        f"clears a hardware error; multi-turn joints then need homing again{load})")
