@@ -352,6 +352,12 @@ class ArmProfile(_Strict):
     def joint_names(self) -> list[str]:
         return [j.name for j in self.joints]
 
+    def falls_on(self, motor_id: int) -> str | None:
+        """The name of the joint servo `motor_id` drives if gravity moves it once the servo's
+        torque is off (`falls_without_torque`), else None."""
+        return next((j.name for j in self.joints
+                     if j.motor_id == motor_id and j.falls_without_torque), None)
+
     @property
     def lower(self) -> list[float]:
         return [j.min for j in self.joints]

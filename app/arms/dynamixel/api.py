@@ -182,10 +182,7 @@ def _own_ids(svc: ArmService) -> dict[int, str]:
 def _falls(svc: ArmService, dxl_id: int) -> str | None:
     """The name of the arm's joint on servo `dxl_id` that gravity moves once the servo's torque
     is off (the profile's `falls_without_torque`), unless the profile allows raw access."""
-    if svc.profile.raw_access:
-        return None
-    return next((j.name for j in svc.profile.joints
-                 if j.motor_id == dxl_id and j.falls_without_torque), None)
+    return None if svc.profile.raw_access else svc.profile.falls_on(dxl_id)
 
 
 def _in_use(svc: ArmService, item: mx28.ControlItem, dxl_id: int,

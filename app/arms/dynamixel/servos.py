@@ -488,12 +488,6 @@ class DynamixelChainDriver(DynamixelBusDriver):
             return
         self._hw_errors[i] = (p.params[-1], time.monotonic())
 
-    def _falls(self, i: int) -> str | None:
-        """The name of servo `i`'s joint if it falls without torque (the profile's
-        `falls_without_torque`), else None."""
-        return next((j.name for j in self.profile.joints
-                     if j.motor_id == i and j.falls_without_torque), None)
-
     def _publish_faults(self) -> None:
         faults: list[dict[str, Any]] = []
         for i in self.servo_ids:
@@ -501,7 +495,8 @@ class DynamixelChainDriver(DynamixelBusDriver):
                 raw = self._hw_errors[i][0]
                 faults.append({"joint": self.servo_name(i), "servo": i,
                                "bits": decode_faults(raw), "raw": raw,
-                               "advice": fault_advice(i, raw, self.name, self._falls(i))})
+                               "advice": fault_advice(i, raw, self.name,
+                                                      self.profile.falls_on(i))})
         if faults == self.faults:
             return
         old = {f["servo"]: f for f in self.faults}
