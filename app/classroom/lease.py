@@ -66,9 +66,12 @@ class _Lease:
     def expired(self, now: float) -> bool:
         return now >= self.deadline
 
+    def expires(self) -> float:
+        """The deadline in wall-clock time (`time.time()`), s."""
+        return time.time() + (self.deadline - time.monotonic())
+
     def to_schema(self) -> s.Lease:
-        wall = time.time() + (self.deadline - time.monotonic())
-        return s.Lease(id=self.id, arm=self.arm, expires=wall, ttl=self.ttl)
+        return s.Lease(id=self.id, arm=self.arm, expires=self.expires(), ttl=self.ttl)
 
 
 class LeaseManager:
@@ -227,8 +230,7 @@ class LeaseManager:
         lease = self._leases.get(arm)
         row = None
         if lease is not None and not lease.offered and lease.slot_s is None:
-            row = {"id": lease.id, "ttl": lease.ttl,
-                   "deadline": time.time() + (lease.deadline - time.monotonic())}
+            row = {"id": lease.id, "ttl": lease.ttl, "deadline": lease.expires()}
             self._stored.add(arm)
         elif arm in self._stored:
             self._stored.discard(arm)

@@ -147,11 +147,12 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
     if not item.min_raw <= raw <= item.max_raw:
         raise OutOfRange(f"{item.name} takes raw values {item.min_raw}..{item.max_raw}, "
                          f"got {raw}")
-    ids = _own_ids(svc)
-    own = not svc.profile.raw_access and dxl_id in ids
-    if item.name in DRIVER_SETTINGS and own:  # (a gripper's own servo is the arm's)
-        _in_use(svc, item, dxl_id, DRIVER_SETTINGS[item.name])
-    if item.name in ("id", "secondary_id") and raw in ids and not svc.profile.raw_access:
+    # (the arm's own ids are looked up only for the items that need them: a goal, the
+    # pass-through's hot write, needs none of these)
+    guarded = not svc.profile.raw_access
+    if guarded and item.name in DRIVER_SETTINGS and dxl_id in _own_ids(svc):
+        _in_use(svc, item, dxl_id, DRIVER_SETTINGS[item.name])  # (a gripper's servo too)
+    if guarded and item.name in ("id", "secondary_id") and raw in (ids := _own_ids(svc)):
         raise InUse(f"{item.name} {raw} of servo {dxl_id}: {raw} is the id of {svc.name}'s "
                     f"servo for {ids[raw]}; a second servo answering to it would take the arm's "
                     "commands (and, as its id, collide with its replies). Pass-through may not "
@@ -160,15 +161,16 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
         _joint_of(svc, dxl_id)  # checked with the others' goals: `_send`
     elif not _safe(item, raw):
         svc.require_motion_allowed()  # (first: torque on while latched is `estop_latched`)
-    if item.name == "torque_enable" and raw != 0 and own:
-        _in_use(svc, item, dxl_id, TORQUE_ON)
-    falls = _falls(svc, dxl_id)
-    if item.name == "torque_enable" and raw == 0 and falls is not None:
-        raise InUse(f"torque off of servo {dxl_id} would let {falls} fall (the profile's "
-                    "joints.falls_without_torque): gravity would move it where no planned "
-                    "move may go, at no speed the server set. Move it with POST "
-                    f"/api/v1/arms/{svc.name}/move/joints. Pass-through may not switch it off: "
-                    "the profile does not allow raw access")
+    if guarded and item.name == "torque_enable":
+        if raw != 0 and dxl_id in _own_ids(svc):
+            _in_use(svc, item, dxl_id, TORQUE_ON)
+        falls = svc.profile.falls_on(dxl_id)
+        if raw == 0 and falls is not None:
+            raise InUse(f"torque off of servo {dxl_id} would let {falls} fall (the profile's "
+                        "joints.falls_without_torque): gravity would move it where no planned "
+                        "move may go, at no speed the server set. Move it with POST "
+                        f"/api/v1/arms/{svc.name}/move/joints. Pass-through may not switch it "
+                        "off: the profile does not allow raw access")
 
 
 def _own_ids(svc: ArmService) -> dict[int, str]:
@@ -177,12 +179,6 @@ def _own_ids(svc: ArmService) -> dict[int, str]:
     if svc.profile.gripper.motor_id is not None:
         ids[svc.profile.gripper.motor_id] = "gripper"
     return ids
-
-
-def _falls(svc: ArmService, dxl_id: int) -> str | None:
-    """The name of the arm's joint on servo `dxl_id` that gravity moves once the servo's torque
-    is off (the profile's `falls_without_torque`), unless the profile allows raw access."""
-    return None if svc.profile.raw_access else svc.profile.falls_on(dxl_id)
 
 
 def _in_use(svc: ArmService, item: mx28.ControlItem, dxl_id: int,
@@ -197,7 +193,7 @@ def _in_use(svc: ArmService, item: mx28.ControlItem, dxl_id: int,
 
 def _safe(item: mx28.ControlItem, raw: int) -> bool:
     """Writes that cannot move the arm, allowed while the estop is latched: torque off, LED
-    (torque off of a joint that falls without it is refused apart: `_falls`)."""
+    (torque off of a joint that falls without it is refused apart: `_check_write`)."""
     return item.name == "led" or (item.name == "torque_enable" and raw == 0)
 
 
@@ -338,15 +334,14 @@ async def sync_write(svc: ControlArm, req: s.SyncWriteRequest) -> s.Ack:
 async def reboot(svc: ControlArm, dxl_id: DxlId,
                  req: Annotated[s.RebootRequest | None, Body()] = None) -> s.Ack:
     drv = _driver(svc)
-    falls = _falls(svc, dxl_id)
+    falls = None if svc.profile.raw_access else svc.profile.falls_on(dxl_id)
     if falls is not None and not (req is not None and req.load_supported):
         svc.require_motion_allowed()  # (first: latched is `estop_latched`, as before)
-    if falls is not None and not (req is not None and req.load_supported) \
-            and await drv.read_register(dxl_id, _item(svc, "torque_enable")):
-        raise InUse(f"a reboot switches servo {dxl_id}'s torque off until it is set up again, "
-                    f"and {falls} falls without torque (the profile's "
-                    "joints.falls_without_torque). Rest or hold its load first, then say so: "
-                    '{"load_supported": true}')
+        if await drv.read_register(dxl_id, _item(svc, "torque_enable")):
+            raise InUse(f"a reboot switches servo {dxl_id}'s torque off until it is set up "
+                        f"again, and {falls} falls without torque (the profile's "
+                        "joints.falls_without_torque). Rest or hold its load first, then say "
+                        'so: {"load_supported": true}')
     await svc.reboot(dxl_id)
     return s.Ack(command=f"REBOOT {dxl_id}")
 
