@@ -536,7 +536,9 @@ def test_rebooting_a_servo_whose_joint_falls_asks_whether_its_load_is_supported(
                what="fault cleared")
     assert len(asked) == 2 and bus.servo(4).torque
     assert api(server, "GET", "/arms/angler")["homed"] == [True, True, True, False]
-    assert "load supported" in page.inner_text("#angler-faults-note")
+    # (the samples can show the fault cleared before the page has the POST's answer)
+    wait_until(lambda: "load supported" in page.inner_text("#angler-faults-note"),
+               what="the reboot's note")
     page.click("#angler-home")
     wait_until(lambda: api(server, "GET", "/arms/angler")["homed"] == [True] * 4,
                what="homed again")
