@@ -336,6 +336,15 @@ async def test_no_other_servo_may_take_an_id_of_the_arms(
         assert (extra.id, extra.get("secondary_id")) == (7, 255)
         r = await client.put(f"{DX}/7/registers/led", json={"raw": 1})  # its own settings
         assert r.status_code == 200 and extra.get("led") == 1, r.text
+        # another id of its own: the simulated servo answers the WRITE from its new id, as
+        # ROBOTIS's device library does; that status is the write's (it had been a 504)
+        r = await client.put(f"{DX}/7/registers/id", json={"raw": 9})
+        assert r.status_code == 200 and r.json()["raw"] == 9, r.text
+        assert extra.id == 9
+        r = await client.get(f"{DX}/9/registers/led")
+        assert r.status_code == 200 and r.json()["raw"] == 1, r.text
+        r = await client.get(f"{DX}/7/registers/led")  # nobody answers there now
+        assert r.status_code == 504 and r.json()["code"] == "device_timeout", r.text
     finally:
         bus.remove_servo(extra)
 

@@ -35,6 +35,11 @@ class DxlRequest:
     #: ... but no sooner than this after the write, s: when the effect can first show (a
     #: goal's first encoder tick, `_effect_delay`), else the poll reads the sample before.
     poll_delay_s: float = 0.0
+    #: A WRITE of the ID item: its new ID, from which the status may come in place of the
+    #: old one's. ROBOTIS's own device library answers from the new ID (Dynamixel2Arduino,
+    #: `Slave::processInstWrite`: the ID item written, then `txStatusPacket(id_, ...)`); which
+    #: one an MX-28's firmware uses is not in the e-manual, so either is the status.
+    renamed_to: int | None = None
     #: The parameter bytes of each status it asks for (`dxl.status_params`): read off the
     #: packet once, not at every exchange (the poll's request is built once and sent 200
     #: times a second).
@@ -94,7 +99,8 @@ class DynamixelBusDriver(Driver):
         values = {dxl_id: raw}
         await self.submit(DxlRequest(dxl.write(dxl_id, item.address, data), expect,
                                      what=f"WRITE {item.name} to {dxl_id}", poll_after=True,
-                                     poll_delay_s=self._effect_delay(item, values)),
+                                     poll_delay_s=self._effect_delay(item, values),
+                                     renamed_to=raw if item.name == "id" else None),
                           gated=gated, on_send=lambda: self._note_sent(item, values))
         self._note_written(item, values)
 
@@ -172,7 +178,8 @@ class DynamixelBusDriver(Driver):
                     got.append(ev)
                     continue
                 error = ev.error or 0
-                if (len(got) >= len(req.expect) or ev.id != req.expect[len(got)]
+                if (len(got) >= len(req.expect)
+                        or (ev.id != req.expect[len(got)] and ev.id != req.renamed_to)
                         or (len(ev.params) != size and not error & ~dxl.ALERT_BIT)):
                     self.stats["stale_replies"] += 1
                     continue
