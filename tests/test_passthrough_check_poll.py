@@ -22,6 +22,15 @@ import pytest
 from _wait import wait_for
 from conftest import make_settings, running_client
 
+from app.arms.dynamixel.driver import DynamixelDriver
+from app.arms.loading import load_profile
+from app.device.factory import make_sim_device
+from app.links.base import Reply
+from app.links.sim import SimLink
+from app.telemetry.hub import TelemetryHub
+from protocol import dynamixel as dxl
+from protocol import mx28
+
 #: Serial (tests/conftest.py): the poll's wait and the servo's first tick are both wall time
 #: (one goal of 40 read a poll early beside three loaded workers).
 pytestmark = pytest.mark.serial
@@ -71,5 +80,59 @@ async def test_the_first_sample_after_a_goal_shows_the_servo_moving() -> None:
                     what="theta3 on its goal")
         finally:
             remove()
+    assert late == [], (f"goals {late} of {GOALS}: the first sample after the write still "
+                        "showed theta3 where it was")
+
+
+GOAL_ADDRESS = mx28.TABLE["goal_position"].address
+#: Longer than the wait for theta3's first tick at its pace (1.5 ticks at 2 rad/s: 1.15 ms).
+HOLD_S = 0.003
+
+
+class HeldUpLink(SimLink):
+    """The in-process simulated link, whose process is held up for `HOLD_S` between the
+    owner task taking a goal's WRITE up and writing it (a blocking sleep: the whole thread
+    stops, as a loaded machine's preemption stops it)."""
+
+    async def transact(self, packet: bytes, reply_size: int, timeout: float) -> Reply:
+        if packet[7] == dxl.Instruction.WRITE and packet[8] == GOAL_ADDRESS:
+            time.sleep(HOLD_S)  # noqa: ASYNC251 - the hold-up itself: the whole thread stops
+        return await super().transact(packet, reply_size, timeout)
+
+
+
+async def test_the_poll_after_a_goal_is_timed_from_its_write() -> None:
+    """Held up between taking a goal up and writing it, the owner task still polls once the
+    servo has had its first tick after the write (`Link.written_at`): timed from before the
+    exchange, the poll after every goal read the servo where it was (its wait was over before
+    the write went out), and the move showed a poll period later."""
+    profile = load_profile("angler")
+    drv = DynamixelDriver(profile, HeldUpLink(make_sim_device(profile)), TelemetryHub("angler"))
+    await drv.start()
+    samples: list[tuple[float, float]] = []
+    remove = drv.hub.add_listener(lambda s: samples.append((s["time"], s["positions"][K])))
+    try:
+        assert await drv.wait_connected(10.0), drv.link.last_error
+        await wait_for(lambda: drv.positions is not None and np.isfinite(drv.pace()[K]),
+                       what="theta3's Profile Velocity set")
+        last = await drv.read_register(3, mx28.TABLE["present_position"])
+        late = []
+        for i in range(GOALS):
+            last += 40 if i % 2 == 0 else -40
+            before = float(drv.positions[K])
+            n0 = len(samples)
+            await drv.write_register(3, mx28.TABLE["goal_position"], last)
+            written = time.time() - (time.monotonic() - drv.link.written_at)
+            (first,) = await wait_for(lambda n0=n0, written=written: next(
+                ((q,) for t, q in samples[n0:] if t > written), None),
+                what="a sample read after the goal's write")
+            if abs(first - before) <= 1e-4:
+                late.append(i)
+            await wait_for(lambda: drv.commanded is not None and abs(
+                float(drv.positions[K]) - float(drv.commanded[K])) < TICK / 2,
+                what="theta3 on its goal")
+    finally:
+        remove()
+        await drv.close()
     assert late == [], (f"goals {late} of {GOALS}: the first sample after the write still "
                         "showed theta3 where it was")

@@ -397,9 +397,14 @@ class OwnerTask:
             # ... once the device can show the request's effect (`poll_delay_s`: a goal's
             # first encoder tick at the servo's pace), or a request comes: a read sooner reads
             # what the last sample said, and the effect shows only a poll period later (issue
-            # 23's goal tail). The caller has its answer already.
+            # 23's goal tail). The caller has its answer already. Timed from the request's
+            # write (the link's `written_at`), not from before the exchange: a link's thread
+            # may first end the poll in flight (a round trip), and a process held up between
+            # the two had the poll read the sample before (tests/test_passthrough_check_poll.py).
             loop = asyncio.get_running_loop()
-            until = sent_at + getattr(req.message, "poll_delay_s", 0.0)
+            written = self.link.written_at
+            start = written if written is not None and written > sent_at else sent_at
+            until = start + getattr(req.message, "poll_delay_s", 0.0)
             if loop.time() < until and self._queue.empty():
                 await self._idle_until(loop, until)
 

@@ -57,6 +57,10 @@ class Link(abc.ABC):
         #: simulator's), or None where the link cannot tell (a serial port's): the stored
         #: calibration is kept under it (app/calibration).
         self.identity: str | None = None
+        #: `time.monotonic()` as `transact` wrote its last request (None: none yet): when a
+        #: request went out, after whatever it waited for (a link's thread pausing its
+        #: schedule), for the owner task's poll after a write (`poll_delay_s`).
+        self.written_at: float | None = None
 
     @abc.abstractmethod
     async def open(self) -> None:
@@ -77,7 +81,8 @@ class Link(abc.ABC):
         returns no bytes (`Reply(b"", deadline)`): the caller reads the reply with `read`, as
         the asyncio links are read. A link with a thread of its own (app/links/threaded.py)
         does both in one blocking call on that thread."""
-        deadline = time.monotonic() + timeout
+        self.written_at = time.monotonic()
+        deadline = self.written_at + timeout
         await self.write(packet)
         return Reply(b"", deadline)
 

@@ -625,7 +625,8 @@ class ThreadLink(Link):
         return self._fd
 
     async def _transact_here(self, fd: int, packet: bytes, size: int, timeout: float) -> Reply:
-        deadline = time.monotonic() + timeout
+        self.written_at = time.monotonic()
+        deadline = self.written_at + timeout
         rest = self._write_here(fd, packet)
         if rest:
             await self._call(self._write_all, rest)
@@ -795,7 +796,8 @@ class ThreadLink(Link):
             terminal.release()
 
     def _transact(self, packet: bytes, size: int, timeout: float, stamp: bool) -> Reply:
-        deadline = time.monotonic() + timeout
+        self.written_at = time.monotonic()
+        deadline = self.written_at + timeout
         self._write_all(packet)
         data = b""
         while len(data) < size:

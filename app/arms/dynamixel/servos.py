@@ -135,11 +135,11 @@ class DynamixelChainDriver(DynamixelBusDriver):
         """A Goal Position write to joint servos shows in Present Position once a servo has
         turned one encoder tick at its Profile Velocity (e-manual MX-28 (2.0), Profile
         Velocity (112); Profile Acceleration only makes it later): `TICKS_TO_SHOW` ticks' time
-        at the fastest written joint (the half: the owner task times the wait from just
-        before the exchange, the write itself goes out a little later), at most one poll
-        period; 0 where no written joint has a profile (its servo steps at once). At 2 rad/s
-        (the angler's theta3) a tick takes 0.77 ms, and a status reply comes back in about
-        0.3 ms at 1 Mbps."""
+        at the fastest written joint (the owner task times it from the write, `written_at`;
+        Present Position rounds, so a half tick more), at most one poll period; 0 where no
+        written joint has a profile (its servo steps at once). At 2 rad/s (the angler's
+        theta3) a tick takes 0.77 ms, and a status reply comes back in about 0.3 ms at 1
+        Mbps."""
         pace = self.pace()
         if item.name != "goal_position" or pace is None:
             return 0.0
