@@ -106,6 +106,38 @@ async def test_set_gain_keeps_a_proportional_gain_that_holds_the_arm(
                        what="the shoulder, with kp 0, below its lower limit")
 
 
+async def test_set_gain_keeps_the_loop_from_chattering(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """The firmware's integral is the error's running mean, so at rest ki adds to kp: kp + ki
+    above the joint's `max_kp_ki` is 422 `out_of_range` naming the joint, nothing sent, unless
+    raw access; at it, taken. Through a raw-access profile kp 0.05 has the simulated shoulder
+    chatter at rest faster than its speed limit."""
+    app, client = app_and_client
+    svc = app.state.services["rbe3001"]
+    fw = svc.driver.link.device
+    before = [list(g) for g in fw.gains]
+    for axis, name in enumerate(("base", "shoulder", "elbow")):
+        for kp, ki in ((0.05, 0.0), (0.005, 0.05), (0.02, 0.02), (1000.0, 0.0)):
+            r = await client.post(f"{RB}/set-gain", json={"axis": axis, "kp": kp, "ki": ki,
+                                                          "kd": 0.0})
+            assert r.status_code == 422 and r.json()["code"] == "out_of_range", r.text
+            assert name in r.json()["detail"] and "max_kp_ki" in r.json()["detail"]
+    assert [list(g) for g in fw.gains] == before
+    top = svc.profile.joints[1].max_kp_ki
+    r = await client.post(f"{RB}/set-gain", json={"axis": 1, "kp": top / 2, "ki": top / 2,
+                                                  "kd": 1.0})
+    assert r.status_code == 200 and fw.gains[1] == pytest.approx([top / 2, top / 2, 1.0])
+    raw = homed_at_start(load_profile("rbe3001")).model_copy(update={"raw_access": True})
+    async with running_client(profiles=[raw]) as (app2, c2):
+        arm = app2.state.services["rbe3001"]
+        sim = arm.driver.link.device
+        limit = raw.joints[1].max_velocity
+        r = await c2.post(f"{RB}/set-gain", json={"axis": 1, "kp": 0.05, "ki": 0, "kd": 0})
+        assert r.status_code == 200, r.text
+        await wait_for(lambda: abs(sim.qd[1]) > limit, timeout=10,
+                       what="the shoulder, at kp 0.05, faster than its speed limit at rest")
+
+
 async def test_protocol_mismatch_is_409_not_supported(app_client: httpx.AsyncClient) -> None:
     r = await app_client.get(f"{API}/arms/angler/rbe3001/status")
     assert r.status_code == 409 and r.json()["code"] == "not_supported"

@@ -178,11 +178,41 @@ def test_set_gain_and_kp_zero_stops_tracking() -> None:
     assert run(fw, 0.5, 1.0)[-1].position_ticks[0] == pytest.approx(500.0, abs=10.0)
 
 
-def test_integral_gain_removes_gravity_droop() -> None:
+def test_integral_gain_narrows_the_gravity_droop_as_the_firmware_does() -> None:
+    """The firmware's "integral" is a running mean of the error (PID_Bowler
+    `RunAbstractPIDCalc`), so at rest it equals the error and ki adds to kp: ki = kp halves
+    the shoulder's standing droop, it does not remove it (a textbook integral would)."""
+    droop = []
+    for ki in (0.0, 0.005):
+        fw = make()
+        if ki:
+            ask(fw, SetGain(1, 0.005, ki, 0.0), 0.0)
+        tail = run(fw, 0.0, 2.0)[-50:]  # the last half second, at rest
+        assert len({r.position_ticks[1] for r in tail}) == 1, "not at rest"
+        droop.append(tail[-1].position_ticks[1])
+    assert droop[0] == pytest.approx(-6.0, abs=1.0)
+    assert droop[1] == pytest.approx(droop[0] / 2, abs=0.5)
+
+
+def test_a_controller_cycle_is_pid_bowlers_arithmetic() -> None:
+    """One cycle's output, three cycles after a new setpoint, by hand from PID_Bowler's
+    `RunAbstractPIDCalc`: D is the error's change over the cycle (the error before a new
+    setpoint counts as 0), I the error's running mean over 20 cycles, zeroed at a sign change."""
     fw = make()
-    ask(fw, SetGain(1, 0.005, 0.05, 0.0), 0.0)
-    end = run(fw, 0.0, 2.0)[-1]
-    assert abs(end.position_ticks[1]) <= 1.0
+    ask(fw, SetGain(0, 0.001, 0.002, 0.0005), 0.0)
+    ask(fw, set_pid(fw.setpoint[0] + 100.0, fw.setpoint[1], fw.setpoint[2]), 0.0)
+    sp = fw.setpoint[0]
+    # e 100: I = 100 / 20 = 5, D = 100 - 0: 0.1 + 0.05 + 0.01
+    assert fw._pid(0, sp - 100.0) == pytest.approx(0.16)
+    # e 90: I = 4.5 + 5 * 19 / 20 = 9.25, D = -10: 0.09 - 0.005 + 0.0185
+    assert fw._pid(0, sp - 90.0) == pytest.approx(0.1035)
+    # e -10: the sign changed, I = 0; D = -100: -0.01 - 0.05
+    assert fw._pid(0, sp + 10.0) == pytest.approx(-0.06)
+    # a large error: the output clamp (0.3..0.7 around stop 0.5)
+    assert fw._pid(0, sp - 5000.0) == pytest.approx(0.2)
+    # SET_GAIN keeps the controller's history (setPIDConstants sets the gains only)
+    ask(fw, SetGain(0, 0.0, 0.0, 0.001), 0.0)
+    assert fw._pid(0, sp - 4990.0) == pytest.approx(0.001 * (4990.0 - 5000.0))
 
 
 def test_set_claw_moves_at_a_finite_rate() -> None:

@@ -128,6 +128,11 @@ class JointConfig(_Strict):
         None, ge=0.0, description="rbe3001 SET_GAIN: the least kp (firmware units) accepted for "
         "this joint through pass-through unless the profile allows raw access: with no "
         "proportional gain the joint holds nothing (422 `out_of_range` below it)")
+    max_kp_ki: float | None = Field(
+        None, gt=0.0, description="rbe3001 SET_GAIN: the largest kp + ki (firmware units) "
+        "accepted for this joint through pass-through unless the profile allows raw access: "
+        "the firmware's integral is the error's running mean, so at rest ki adds to kp, and "
+        "a stiffer loop chatters (422 `out_of_range` above it)")
     falls_without_torque: bool = Field(
         False, description="gravity moves the joint once its servo's torque is off (the "
         "angler's z winch, an OpenManipulator-X's shoulder, elbow and wrist): pass-through "

@@ -86,7 +86,9 @@ async def status(svc: ControlArm) -> s.Rbe3001Status:
     description="kp, ki, kd in firmware units (each 0..1000; the firmware's default kp is "
     "0.005, and a negative gain makes the loop unstable: 422) for axis 0-2; kp below the "
     "joint's `min_kp` in the profile is 422 `out_of_range` unless the profile allows raw "
-    "access (with kp 0 the simulated shoulder fell past its limit). Refused while the "
+    "access (with kp 0 the simulated shoulder fell past its limit), and so is kp + ki above "
+    "its `max_kp_ki` (the firmware's integral is the error's running mean: at rest ki adds to "
+    "kp, and a stiffer loop chatters). Refused while the "
     "estop is latched (new gains can move a joint). The firmware's reply carries nothing: "
     "`reply` says whether it answered (`sent`: no reply within one timeout, as builds that "
     "answer nothing). " + _NOT_SUPPORTED,
@@ -102,6 +104,13 @@ async def set_gain(svc: ControlArm, req: s.SetGain) -> s.Ack:
                          "holds against its load (at kp 0 the shoulder falls), and catches up "
                          "faster than any plan when it is raised again. Tuning below it needs a "
                          "profile with raw_access = true")
+    top = joint.max_kp_ki
+    if top is not None and req.kp + req.ki > top and not svc.profile.raw_access:
+        raise OutOfRange(f"kp + ki {req.kp + req.ki:g} for {joint.name} is above the "
+                         f"profile's max_kp_ki {top:g}: the firmware's integral is the error's "
+                         "running mean, so at rest ki adds to kp, and a loop that stiff "
+                         "chatters (the simulated shoulder at 0.05: 1.7 rad/s, past its speed "
+                         "limit). Tuning above it needs a profile with raw_access = true")
     svc.require_motion_allowed()
     how = await drv.set_gain(req.axis, req.kp, req.ki, req.kd)
     return s.Ack(command="SET_GAIN", reply=how)

@@ -26,12 +26,17 @@ Behaviour copied from WPIRoboticsEngineering/RBE3001_nucleo_firmware (see
   calibration's identity, is the profile's `[link] serial_number`, which the SimLink reports.)
 - Encoder: whole ticks, firmware 4-sample moving average (so readings move in 1/4 ticks).
 - Velocity: position difference over 61 PID cycles (~152 ms), stale between updates.
-- Controller output: 0.5 +- 0.2 (clamped 0.3..0.7) from stop, kp 0.005, ki 0, kd 0.
+- Controller output: 0.5 +- 0.2 (clamped 0.3..0.7) from stop, kp 0.005, ki 0, kd 0. Each
+  400 Hz cycle computes it as PID_Bowler's `RunAbstractPIDCalc` (WPIRoboticsEngineering/
+  PID_Bowler, the firmware's `lib/PID_Bowler`): kp * e + kd * (e - e of the cycle before) +
+  ki * (the running mean of e over about 20 cycles, zeroed as e changes sign); a new setpoint
+  zeroes the mean and the error before (`InitAbsPIDWithPosition`); SET_GAIN keeps them.
 
 Gain mapping (firmware units -> SI). The PID output `u` is a servo command around stop 0.5,
 clamped to +-0.2; the sim reads it as the motor voltage fraction v = u / 0.2 of a geared DC
 motor: torque = stall_torque * (v - omega / free_speed). With error e in ticks, kp in
-output/tick, ki in output/(tick s), kd in output/(tick/s), the small-signal stiffness is
+output/tick, ki in output per tick of the error's mean, kd in output per tick of change
+in a cycle (2.5 ms), the small-signal stiffness is
     K [N m/rad] = kp * (stall_torque / 0.2) * ticks_per_rev / (2 pi)
 = 0.005 * 20 * 651.9 ~ 65 N m/rad for the defaults (4 N m stall): a 1 rad step runs at the
 speed limit (~3 rad/s) and settles in ~0.4-0.6 s with back-EMF damping (zeta ~ 0.8) and a
@@ -79,6 +84,11 @@ ENCODER_AVERAGE = 4  # firmware moving average of the AS5050 reading, samples
 STRAIN_AVERAGE = 5  # samples in the reported load-cell average
 SETPOINT_DEADBAND_TICKS = 0.01  # PidServer ignores setpoints this close to the last one
 OUTPUT_SPAN = 0.2  # output clamp 0.3..0.7 around stop 0.5
+#: The firmware's integral is a running mean of the error over about this many cycles, not a
+#: sum over time (WPIRoboticsEngineering/PID_Bowler src/PID_Bowler.cpp `RunAbstractPIDCalc`:
+#: `integralTotal = error / integralSize + integralTotal * (integralSize - 1) / integralSize`,
+#: `integralSize = 20.0` in `InitAbsPIDWithPosition`).
+INTEGRAL_SIZE = 20.0
 END_STOP_MARGIN = 0.3  # rad past each software limit where the mechanism stops the joint
 MAX_CATCHUP_S = 2.0  # beyond this gap, older simulated time is skipped rather than computed
 REPLY_DELAY_S = 0.0005  # firmware turnaround (the reference says round trip <= 2 ms)
@@ -165,8 +175,8 @@ class Rbe3001Firmware:
         self.setpoint = [float(s) for s in start]  # ticks
         self.gains = [[0.005, 0.0, 0.0] for _ in range(3)]  # kp, ki, kd (firmware units)
         self.enabled = [True, True, True]
-        self._integral = [0.0, 0.0, 0.0]  # tick s
-        self._last_error: list[float | None] = [None, None, None]
+        self._integral = [0.0, 0.0, 0.0]  # ticks: the error's running mean (INTEGRAL_SIZE)
+        self._last_error = [0.0, 0.0, 0.0]  # ticks (the firmware's PreviousError)
         self.velocity_ticks_s = [0.0, 0.0, 0.0]
         self._vel_ref: list[float] = list(start)
         self._vel_count = 0
@@ -265,6 +275,9 @@ class Rbe3001Firmware:
                 if abs(sp.position_ticks - self.setpoint[i]) > SETPOINT_DEADBAND_TICKS:
                     self.setpoint[i] = sp.position_ticks
                     self.enabled[i] = True
+                    # a new setpoint starts the controller afresh (PidServer's SetPIDTimed:
+                    # `InitAbsPIDWithPosition` zeroes integralTotal and PreviousError)
+                    self._integral[i] = self._last_error[i] = 0.0
             reading = (self.position_ticks, self._velocity(), self.strain_adc)
             return encode_reply(SetPidReply(*reading), request, echo=self.echo)
         if isinstance(cmd, Status):
@@ -275,10 +288,8 @@ class Rbe3001Firmware:
         if isinstance(cmd, SetGain):
             i = cmd.axis
             self.enabled[i] = False
-            self.gains[i] = [cmd.kp, cmd.ki, cmd.kd]
-            self._integral[i] = 0.0
-            self._last_error[i] = None
-            self.enabled[i] = True
+            self.gains[i] = [cmd.kp, cmd.ki, cmd.kd]  # (the controller's history is kept:
+            self.enabled[i] = True                      # PID_Bowler's setPIDConstants)
             return self._ack(cmd.command_id, request)
         self.claw_setpoint = cmd.value
         return self._ack(cmd.command_id, request)
@@ -304,7 +315,7 @@ class Rbe3001Firmware:
         gravity = self._gravity()
         inertia = self._inertia()
         for i in range(3):
-            u = self._pid(i, measured[i], dt) if self.enabled[i] else 0.0
+            u = self._pid(i, measured[i]) if self.enabled[i] else 0.0
             # Motor: voltage fraction u/span, torque falls with speed (back-EMF).
             drive = self.stall_torque * u / OUTPUT_SPAN * self.sign[i]
             damping = self.stall_torque / self.free_speed + self.viscous
@@ -338,17 +349,21 @@ class Rbe3001Firmware:
         self.claw += max(-step, min(step, self.claw_setpoint - self.claw))
         self.cycles += 1
 
-    def _pid(self, i: int, measured: float, dt: float) -> float:
+    def _pid(self, i: int, measured: float) -> float:
+        """One cycle of the firmware's controller (PID_Bowler `RunAbstractPIDCalc`): the
+        derivative is the error's change over the cycle (not per second), the integral the
+        error's running mean (`INTEGRAL_SIZE`), zeroed as the error changes sign; the
+        output clamped as `setOutput` clamps it."""
         kp, ki, kd = self.gains[i]
         error = self.setpoint[i] - measured
         last = self._last_error[i]
-        derivative = 0.0 if last is None else (error - last) / dt
+        integral = (error / INTEGRAL_SIZE
+                    + self._integral[i] * (INTEGRAL_SIZE - 1.0) / INTEGRAL_SIZE)
+        if (last >= 0.0 and error < 0.0) or (last < 0.0 and error >= 0.0):
+            integral = 0.0
+        self._integral[i] = integral
         self._last_error[i] = error
-        if ki != 0.0:
-            self._integral[i] += error * dt
-            limit = OUTPUT_SPAN / abs(ki)
-            self._integral[i] = max(-limit, min(limit, self._integral[i]))
-        u = kp * error + ki * self._integral[i] + kd * derivative
+        u = kp * error + kd * (error - last) + ki * integral
         return max(-OUTPUT_SPAN, min(OUTPUT_SPAN, u))
 
     def _update_velocity(self) -> None:
