@@ -42,6 +42,21 @@ K = 2
 TICK = 2 * np.pi / 4096
 
 
+async def _moved(drv: DynamixelDriver, samples: list[tuple[float, float]], n0: int,
+                 before: float, written_at: float) -> bool:
+    """Whether the first sample read after the goal's write (`written_at`, monotonic; samples
+    from `n0` on) shows theta3 moved from `before` (the harness's "moved"); returns once
+    theta3 is at rest on its goal (as the harness's 50-100 ms pause before the next one)."""
+    written = time.time() - (time.monotonic() - written_at)  # on the samples' clock
+    (first,) = await wait_for(lambda: next(
+        ((q,) for t, q in samples[n0:] if t > written), None),
+        what="a sample read after the goal's write")
+    await wait_for(lambda: drv.commanded is not None and abs(
+        float(drv.positions[K]) - float(drv.commanded[K])) < TICK / 2,
+        what="theta3 on its goal")
+    return abs(first - before) > 1e-4
+
+
 async def test_the_first_sample_after_a_goal_shows_the_servo_moving() -> None:
     rng = random.Random(23)
     async with running_client(make_settings(control_thread=False)) as (app, client):
@@ -68,16 +83,8 @@ async def test_the_first_sample_after_a_goal_shows_the_servo_moving() -> None:
                 r = await client.put(GOAL, json={"raw": goal})
                 assert r.status_code == 200, r.text
                 # noted as the write went out (monotonic), on the samples' clock
-                written = time.time() - (time.monotonic() - drv.commanded_at)
-                (first,) = await wait_for(lambda n0=n0, written=written: next(
-                    ((q,) for t, q in samples[n0:] if t > written), None),
-                    what="a sample read after the goal's write")
-                if abs(first - before) <= 1e-4:  # the harness's "moved"
+                if not await _moved(drv, samples, n0, before, drv.commanded_at):
                     late.append(i)
-                # at rest on the goal before the next one (as the harness's 50-100 ms pause)
-                await wait_for(lambda: drv.commanded is not None and abs(
-                    float(drv.positions[K]) - float(drv.commanded[K])) < TICK / 2,
-                    what="theta3 on its goal")
         finally:
             remove()
     assert late == [], (f"goals {late} of {GOALS}: the first sample after the write still "
@@ -98,7 +105,6 @@ class HeldUpLink(SimLink):
         if packet[7] == dxl.Instruction.WRITE and packet[8] == GOAL_ADDRESS:
             time.sleep(HOLD_S)  # noqa: ASYNC251 - the hold-up itself: the whole thread stops
         return await super().transact(packet, reply_size, timeout)
-
 
 
 async def test_the_poll_after_a_goal_is_timed_from_its_write() -> None:
@@ -122,15 +128,8 @@ async def test_the_poll_after_a_goal_is_timed_from_its_write() -> None:
             before = float(drv.positions[K])
             n0 = len(samples)
             await drv.write_register(3, mx28.TABLE["goal_position"], last)
-            written = time.time() - (time.monotonic() - drv.link.written_at)
-            (first,) = await wait_for(lambda n0=n0, written=written: next(
-                ((q,) for t, q in samples[n0:] if t > written), None),
-                what="a sample read after the goal's write")
-            if abs(first - before) <= 1e-4:
+            if not await _moved(drv, samples, n0, before, drv.link.written_at):
                 late.append(i)
-            await wait_for(lambda: drv.commanded is not None and abs(
-                float(drv.positions[K]) - float(drv.commanded[K])) < TICK / 2,
-                what="theta3 on its goal")
     finally:
         remove()
         await drv.close()
