@@ -235,6 +235,8 @@ def test_rbe3001_sim_at_rest_answers_the_same_bytes_as_stepping_every_cycle() ->
         assert lazy.receive(packet, t) == full.receive(packet, t), k
         skipped += lazy._rest is not None and lazy.cycles > c0
     assert lazy.cycles == full.cycles and lazy.q == full.q
+    # the controller's running means of the error, taken on through the skipped cycles
+    assert lazy._integral == full._integral and lazy._last_error == full._last_error
     assert skipped > 500  # it did rest (and skip) for a good part of the run
     assert t - 100.0 > 1000 * CYCLE_S
 

@@ -177,6 +177,7 @@ class Rbe3001Firmware:
         self.enabled = [True, True, True]
         self._integral = [0.0, 0.0, 0.0]  # ticks: the error's running mean (INTEGRAL_SIZE)
         self._last_error = [0.0, 0.0, 0.0]  # ticks (the firmware's PreviousError)
+        self._converging = True  # the running means may still change at rest (`_skip_cycle`)
         self.velocity_ticks_s = [0.0, 0.0, 0.0]
         self._vel_ref: list[float] = list(start)
         self._vel_count = 0
@@ -216,6 +217,7 @@ class Rbe3001Firmware:
             else:
                 before = self._state() if self._still() else None
                 self._cycle()
+                self._converging = True
                 still = before is not None and self._still() and self._state() == before
                 self._rest = self._inputs() if still else None
             self._t += CYCLE_S
@@ -228,11 +230,13 @@ class Rbe3001Firmware:
                 self.enabled[:], self.claw, self.claw_setpoint, self.m_tip)
 
     def _state(self) -> tuple[object, ...]:
-        """Everything a cycle writes, but its counters."""
+        """Everything a cycle writes, but its counters and the controller's running mean of
+        the error: at rest that mean goes on converging to the (constant) error, and
+        `_skip_cycle` goes on with it; it moves the output only where ki is not 0, and then
+        the torque shows it."""
         return (self.q[:], self.qd[:], self.torque[:], self.load[:],
                 [tuple(d) for d in self._samples],
-                [tuple(d) for d in self._strain], self._integral[:], self._last_error[:],
-                self.claw)
+                [tuple(d) for d in self._strain], self._last_error[:], self.claw)
 
     def _still(self) -> bool:
         """No joint moving and the velocity estimate already the zero it would compute."""
@@ -240,7 +244,18 @@ class Rbe3001Firmware:
                 and all(v == 0.0 and math.copysign(1.0, v) > 0 for v in self.velocity_ticks_s))
 
     def _skip_cycle(self) -> None:
-        """What `_cycle` does to a state it leaves unchanged: count."""
+        """What `_cycle` does to a state it leaves unchanged: count, and take each enabled
+        joint's running mean of the error one cycle on (`_pid`'s arithmetic; at rest the
+        error is the last cycle's), until it no longer changes."""
+        if self._converging:
+            self._converging = False
+            for i in range(3):
+                if self.enabled[i]:
+                    mean = (self._last_error[i] / INTEGRAL_SIZE
+                            + self._integral[i] * (INTEGRAL_SIZE - 1.0) / INTEGRAL_SIZE)
+                    if mean != self._integral[i]:
+                        self._integral[i] = mean
+                        self._converging = True
         self._vel_count += 1
         if self._vel_count >= VELOCITY_CYCLES:
             self._vel_count = 0
