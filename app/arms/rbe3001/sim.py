@@ -302,9 +302,11 @@ class Rbe3001Firmware:
             return encode_reply(StatusReply(*reading), request, echo=self.echo)
         if isinstance(cmd, SetGain):
             i = cmd.axis
+            # the controller's history (its running mean, the last error) is kept: PID_Bowler's
+            # setPIDConstants sets the gains only
             self.enabled[i] = False
-            self.gains[i] = [cmd.kp, cmd.ki, cmd.kd]  # (the controller's history is kept:
-            self.enabled[i] = True                      # PID_Bowler's setPIDConstants)
+            self.gains[i] = [cmd.kp, cmd.ki, cmd.kd]
+            self.enabled[i] = True
             return self._ack(cmd.command_id, request)
         self.claw_setpoint = cmd.value
         return self._ack(cmd.command_id, request)
