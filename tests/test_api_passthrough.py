@@ -124,9 +124,11 @@ async def test_set_gain_keeps_the_loop_from_chattering(
             assert name in r.json()["detail"] and "max_kp_ki" in r.json()["detail"]
     assert [list(g) for g in fw.gains] == before
     top = svc.profile.joints[1].max_kp_ki
-    r = await client.post(f"{RB}/set-gain", json={"axis": 1, "kp": top / 2, "ki": top / 2,
+    # the firmware's kp and the rest of the bound as ki: their sum is above 0.03 in floats
+    assert top == 0.03 and 0.005 + 0.025 > top
+    r = await client.post(f"{RB}/set-gain", json={"axis": 1, "kp": 0.005, "ki": 0.025,
                                                   "kd": 1.0})
-    assert r.status_code == 200 and fw.gains[1] == pytest.approx([top / 2, top / 2, 1.0])
+    assert r.status_code == 200 and fw.gains[1] == pytest.approx([0.005, 0.025, 1.0]), r.text
     raw = homed_at_start(load_profile("rbe3001")).model_copy(update={"raw_access": True})
     async with running_client(profiles=[raw]) as (app2, c2):
         arm = app2.state.services["rbe3001"]

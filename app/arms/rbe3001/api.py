@@ -105,7 +105,8 @@ async def set_gain(svc: ControlArm, req: s.SetGain) -> s.Ack:
                          "faster than any plan when it is raised again. Tuning below it needs a "
                          "profile with raw_access = true")
     top = joint.max_kp_ki
-    if top is not None and req.kp + req.ki > top and not svc.profile.raw_access:
+    # (a sum a user reads as the bound is taken: 0.005 + 0.025 is above 0.03 in floats)
+    if top is not None and req.kp + req.ki > top + 1e-12 and not svc.profile.raw_access:
         raise OutOfRange(f"kp + ki {req.kp + req.ki:g} for {joint.name} is above the "
                          f"profile's max_kp_ki {top:g}: the firmware's integral is the error's "
                          "running mean, so at rest ki adds to kp, and a loop that stiff "
