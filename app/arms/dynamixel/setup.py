@@ -243,13 +243,30 @@ def scan(bus: Bus, rates: Iterable[int] = SCAN_ORDER) -> Scan:
     bytes over later than the window (its worker held off the CPU: docs/performance.md
     "Session 24"), and a servo that is there should not read as absent for it; an empty bus
     costs twice the time."""
-    tried: list[int | None] = list(rates) if carries_baud(bus.url) else [None]
     out = Scan()
-    _scan_pass(bus, tried, out)
+    _scan_pass(bus, _tried(bus, rates), out)
     if not (out.found or out.collisions or out.garbled):
         out.passes = 2
-        _scan_pass(bus, tried, out)
+        _scan_pass(bus, _tried(bus, rates), out)
     return out
+
+
+def scan_again(bus: Bus, rates: Iterable[int], first: Scan) -> Scan:
+    """A second pass over the rates after a `first` one that heard something: what both
+    heard (a servo heard twice once)."""
+    again = Scan(passes=2)
+    _scan_pass(bus, _tried(bus, rates), again)
+    out = Scan(collisions=first.collisions + again.collisions,
+               garbled=first.garbled + again.garbled, passes=2)
+    for f in first.found + again.found:
+        if all((f.id, f.baudrate) != (g.id, g.baudrate) for g in out.found):
+            out.found.append(f)
+    return out
+
+
+def _tried(bus: Bus, rates: Iterable[int]) -> list[int | None]:
+    """The rates a pass tries: each of `rates`, or once over a socket (no baud rate)."""
+    return list(rates) if carries_baud(bus.url) else [None]
 
 
 def _scan_pass(bus: Bus, rates: list[int | None], out: Scan) -> None:
@@ -342,6 +359,14 @@ def others_in_place(profile: ArmProfile, joint: str, found: list[Found]) -> dict
             if f.id in ids and f.baudrate == profile.link.baudrate}
 
 
+def _to_set_up(profile: ArmProfile, joint: str, result: Scan) -> tuple[dict[int, str],
+                                                                       list[Found]]:
+    """The found servos that are other joints' (in place), and those left to set up."""
+    placed = others_in_place(profile, joint, result.found)
+    return placed, [f for f in result.found
+                    if f.id not in placed or f.baudrate != profile.link.baudrate]
+
+
 def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 0.1,
                  rates: Iterable[int] = SCAN_ORDER, say: Callable[[str], None] = print,
                  opener: Callable[..., Any] | None = None) -> Found:
@@ -353,15 +378,20 @@ def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 
     want = wanted(profile, joint)
     bus = Bus(url, timeout=timeout, opener=opener)
     try:
+        rates = list(rates)
         result = scan(bus, rates)
+        placed, todo = _to_set_up(profile, joint, result)
+        if not todo and result.found and not result.collisions and result.passes == 1:
+            # Only servos already set up answered. A busy PC's port can hand a new servo's
+            # replies over after its rate's window (`scan` passes again only where it heard
+            # nothing at all): once more before saying there is none to set up.
+            result = scan_again(bus, rates, result)
+            placed, todo = _to_set_up(profile, joint, result)
         for f in result.found:
             say(f"found {f.describe()}")
         if result.collisions:
             raise SetupError("; ".join(result.collisions) + ": connect one servo at a time "
                              "(each new one alone with the ones already set up)", EXIT_SEVERAL)
-        placed = others_in_place(profile, joint, result.found)
-        todo = [f for f in result.found if f.id not in placed
-                or f.baudrate != profile.link.baudrate]
         if not todo:
             what = ", ".join(f"ID {i} ({n})" for i, n in sorted(placed.items()))
             raise SetupError("no servo to set up" + (f": only {what}, already set up"
