@@ -5,6 +5,9 @@ real app and its store, started twice."""
 
 from __future__ import annotations
 
+import asyncio
+import json
+import sqlite3
 import tempfile
 import time
 
@@ -91,3 +94,41 @@ async def test_a_lease_within_a_ttl_of_its_deadline_comes_back_with_a_ttl_to_ren
         assert held.expires > max(time.time(), stored + ttl)  # a ttl from the start
         r = await c.put(f"{ARM}/lease/abc")
         assert r.status_code == 200, r.text
+
+
+async def test_a_lease_is_answered_once_its_record_is_on_disk() -> None:
+    """A worker killed just after it answered a lease had lost it (its write still queued: a
+    clean clone's loaded run of tests/test_lab_workers.py). With the store's writer held up
+    0.3 s, the take, the renewal and the release each answer only once the database file
+    says so, read from a connection of the test's own."""
+    settings = make_settings(data_dir=tempfile.mkdtemp(prefix="lease-"))
+    async with running_client(settings) as (app, c):
+        store = app.state.store
+
+        def on_disk() -> object:
+            with sqlite3.connect(store.path) as db:
+                row = db.execute("SELECT value FROM settings WHERE scope = ? AND key = ?",
+                                 (SCOPE.format("rbe3001"), KEY)).fetchone()
+            return None if row is None else json.loads(row[0])
+
+        async def held_up(request):
+            """The answer to `request` made while the writer is busy 0.3 s with another job,
+            and what the file says as it comes."""
+            blocker = asyncio.create_task(store.run(lambda _db: time.sleep(0.3)))
+            await asyncio.sleep(0)
+            r = await request
+            row = on_disk()
+            await blocker
+            return r, row
+
+        r, row = await held_up(c.post(f"{ARM}/lease"))
+        assert r.status_code == 201, r.text
+        lease = r.json()["id"]
+        assert isinstance(row, dict) and row["id"] == lease, row
+        deadline = row["deadline"]
+        r, row = await held_up(c.put(f"{ARM}/lease/{lease}"))
+        assert r.status_code == 200, r.text
+        assert isinstance(row, dict) and row["deadline"] > deadline, row
+        r, row = await held_up(c.delete(f"{ARM}/lease/{lease}"))
+        assert r.status_code == 204, r.text
+        assert row is None

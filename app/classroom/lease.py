@@ -21,12 +21,16 @@ starts again (`load`): its holder's next renewal finds it, and nobody else takes
 meanwhile. It comes back with one ttl to be renewed in (the process was down for a while, and
 renewals met nothing), unless it had lapsed more than a ttl before the start. A lease of the
 classroom queue is not kept: the queue's entries are, and the queue offers the arm again
-(app/classroom/queue.py); nor a plain lease on an arm people queue for.
+(app/classroom/queue.py); nor a plain lease on an arm people queue for. A take, a renewal and
+a release are answered once their record is on disk (as an estop press is; a disk that holds
+it over `LATCH_SAVE_WAIT_S` does not hold the answer back): a worker killed just after
+answering a lease had lost it, its write still queued (a clean clone's loaded run).
 """
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
 import hmac
 import logging
@@ -39,7 +43,7 @@ from app import schemas as s
 from app.errors import ArmError, Leased, UnknownLease
 from app.runtime.tasks import cancel_and_wait
 from app.service import ArmService
-from app.store import Store, StoreError
+from app.store import Store, StoreError, saved_within
 
 log = logging.getLogger(__name__)
 
@@ -133,9 +137,11 @@ class LeaseManager:
                        offered=claim_s is not None, slot_s=slot_s)
         self._leases[arm] = lease
         self._changed.set()
-        self._save(arm)
+        saved = self._save(arm)
         log.info("%s: lease taken (ttl %.1f s)", arm, self.ttl)
-        return lease.to_schema()
+        out = lease.to_schema()
+        await saved_within(saved)
+        return out
 
     async def renew(self, arm: str, lease_id: str) -> s.Lease:
         lease = await self._find(arm, lease_id)
@@ -146,19 +152,22 @@ class LeaseManager:
         if lease.slot_end is not None:
             lease.deadline = min(lease.deadline, lease.slot_end)
         self._changed.set()
-        self._save(arm)
+        saved = self._save(arm)
         if lease.offered:
             lease.offered = False
             self._notify("claimed", arm, lease.id)
-        return lease.to_schema()
+        out = lease.to_schema()
+        await saved_within(saved)
+        return out
 
     async def release(self, arm: str, lease_id: str) -> None:
         lease = await self._find(arm, lease_id)
         del self._leases[lease.arm]
         self._changed.set()
-        self._save(arm)
+        saved = self._save(arm)
         log.info("%s: lease released", arm)
         self._notify("released", arm, lease.id)
+        await saved_within(saved)
 
     async def revoke(self, arm: str) -> str | None:
         """End the arm's lease whoever holds it (an instructor's call): stop the arm, send
@@ -223,10 +232,11 @@ class LeaseManager:
 
     # ------------------------------------------------------------ across restarts
 
-    def _save(self, arm: str) -> None:
-        """Keep `arm`'s plain lease in the store (None once it is gone, or the queue's)."""
+    def _save(self, arm: str) -> concurrent.futures.Future[bool] | None:
+        """Keep `arm`'s plain lease in the store (None once it is gone, or the queue's): the
+        write's future (`saved_within`), or None where nothing is written."""
         if self._store is None:
-            return
+            return None
         lease = self._leases.get(arm)
         row = None
         if lease is not None and not lease.offered and lease.slot_s is None:
@@ -235,8 +245,8 @@ class LeaseManager:
         elif arm in self._stored:
             self._stored.discard(arm)
         else:
-            return  # nothing kept for it: the queue's lease renewed, nothing to write
-        self._store.put_setting_nowait(SCOPE.format(arm), KEY, row)
+            return None  # nothing kept for it: the queue's lease renewed, nothing to write
+        return self._store.put_setting_nowait(SCOPE.format(arm), KEY, row)
 
     def load(self, skip: Collection[str] = ()) -> None:
         """The plain leases kept in the store (blocking: start-up, before serving), each
