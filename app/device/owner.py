@@ -397,10 +397,11 @@ class OwnerTask:
             # ... once the device can show the request's effect (`poll_delay_s`: a goal's
             # first encoder tick at the servo's pace), or a request comes: a read sooner reads
             # what the last sample said, and the effect shows only a poll period later (issue
-            # 23's goal tail). The caller has its answer already. Timed from the request's
-            # write (the link's `written_at`), not from before the exchange: a link's thread
-            # may first end the poll in flight (a round trip), and a process held up between
-            # the two had the poll read the sample before (tests/test_passthrough_check_poll.py).
+            # 23's goal tail). The caller has its answer already. Timed from the end of the
+            # request's write (the link's `written_at`), not from before the exchange: a
+            # process held up between the two had the poll read the sample before
+            # (tests/test_passthrough_check_poll.py; from the write's start, once in a loaded
+            # clean clone, the same within the write).
             loop = asyncio.get_running_loop()
             written = self.link.written_at
             start = written if written is not None and written > sent_at else sent_at

@@ -57,9 +57,10 @@ class Link(abc.ABC):
         #: simulator's), or None where the link cannot tell (a serial port's): the stored
         #: calibration is kept under it (app/calibration).
         self.identity: str | None = None
-        #: `time.monotonic()` as `transact` wrote its last request (None: none yet): when a
-        #: request went out, after whatever it waited for (a link's thread pausing its
-        #: schedule), for the owner task's poll after a write (`poll_delay_s`).
+        #: `time.monotonic()` once `transact` had written its last request (None: none yet):
+        #: the device has it by then, whatever the request waited for before (a link's
+        #: thread pausing its schedule); the owner task's poll after a write is timed from
+        #: it (`poll_delay_s`).
         self.written_at: float | None = None
 
     @abc.abstractmethod
@@ -81,9 +82,9 @@ class Link(abc.ABC):
         returns no bytes (`Reply(b"", deadline)`): the caller reads the reply with `read`, as
         the asyncio links are read. A link with a thread of its own (app/links/threaded.py)
         does both in one blocking call on that thread."""
-        self.written_at = time.monotonic()
-        deadline = self.written_at + timeout
+        deadline = time.monotonic() + timeout
         await self.write(packet)
+        self.written_at = time.monotonic()
         return Reply(b"", deadline)
 
     @abc.abstractmethod

@@ -625,11 +625,11 @@ class ThreadLink(Link):
         return self._fd
 
     async def _transact_here(self, fd: int, packet: bytes, size: int, timeout: float) -> Reply:
-        self.written_at = time.monotonic()
-        deadline = self.written_at + timeout
+        deadline = time.monotonic() + timeout
         rest = self._write_here(fd, packet)
         if rest:
             await self._call(self._write_all, rest)
+        self.written_at = time.monotonic()
         data = b""
         first = True
         while len(data) < size:
@@ -796,9 +796,9 @@ class ThreadLink(Link):
             terminal.release()
 
     def _transact(self, packet: bytes, size: int, timeout: float, stamp: bool) -> Reply:
-        self.written_at = time.monotonic()
-        deadline = self.written_at + timeout
+        deadline = time.monotonic() + timeout
         self._write_all(packet)
+        self.written_at = time.monotonic()
         data = b""
         while len(data) < size:
             left = deadline - time.monotonic()
