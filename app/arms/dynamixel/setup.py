@@ -243,24 +243,20 @@ def scan(bus: Bus, rates: Iterable[int] = SCAN_ORDER) -> Scan:
     bytes over later than the window (its worker held off the CPU: docs/performance.md
     "Session 24"), and a servo that is there should not read as absent for it; an empty bus
     costs twice the time."""
+    tried = _tried(bus, rates)
     out = Scan()
-    _scan_pass(bus, _tried(bus, rates), out)
+    _scan_pass(bus, tried, out)
     if not (out.found or out.collisions or out.garbled):
         out.passes = 2
-        _scan_pass(bus, _tried(bus, rates), out)
+        _scan_pass(bus, tried, out)
     return out
 
 
 def scan_again(bus: Bus, rates: Iterable[int], first: Scan) -> Scan:
     """A second pass over the rates after a `first` one that heard something: what both
     heard (a servo heard twice once)."""
-    again = Scan(passes=2)
-    _scan_pass(bus, _tried(bus, rates), again)
-    out = Scan(collisions=first.collisions + again.collisions,
-               garbled=first.garbled + again.garbled, passes=2)
-    for f in first.found + again.found:
-        if all((f.id, f.baudrate) != (g.id, g.baudrate) for g in out.found):
-            out.found.append(f)
+    out = Scan(list(first.found), list(first.collisions), list(first.garbled), passes=2)
+    _scan_pass(bus, _tried(bus, rates), out)
     return out
 
 
@@ -270,7 +266,9 @@ def _tried(bus: Bus, rates: Iterable[int]) -> list[int | None]:
 
 
 def _scan_pass(bus: Bus, rates: list[int | None], out: Scan) -> None:
-    seen: set[tuple[int, int]] = set()
+    """One broadcast PING at each of `rates`; what it hears is added to `out` (a servo
+    `out` holds already, at its rate, once)."""
+    seen = {(f.id, f.baudrate) for f in out.found}
     for rate in rates:
         if rate is not None:
             bus.set_rate(rate)
