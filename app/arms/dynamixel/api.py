@@ -147,12 +147,14 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
     if not item.min_raw <= raw <= item.max_raw:
         raise OutOfRange(f"{item.name} takes raw values {item.min_raw}..{item.max_raw}, "
                          f"got {raw}")
-    # (the arm's own ids are looked up only for the items that need them: a goal, the
-    # pass-through's hot write, needs none of these)
+    # (the arm's own ids are looked up once, and only for the items that need them: a goal,
+    # the pass-through's hot write, needs none of these)
     guarded = not svc.profile.raw_access
-    if guarded and item.name in DRIVER_SETTINGS and dxl_id in _own_ids(svc):
+    ids = (_own_ids(svc) if guarded and (item.name in DRIVER_SETTINGS
+                                         or item.name == "torque_enable") else {})
+    if item.name in DRIVER_SETTINGS and dxl_id in ids:
         _in_use(svc, item, dxl_id, DRIVER_SETTINGS[item.name])  # (a gripper's servo too)
-    if guarded and item.name in ("id", "secondary_id") and raw in (ids := _own_ids(svc)):
+    if item.name in ("id", "secondary_id") and raw in ids:
         raise InUse(f"{item.name} {raw} of servo {dxl_id}: {raw} is the id of {svc.name}'s "
                     f"servo for {ids[raw]}; a second servo answering to it would take the arm's "
                     "commands (and, as its id, collide with its replies). Pass-through may not "
@@ -162,7 +164,7 @@ def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int)
     elif not _safe(item, raw):
         svc.require_motion_allowed()  # (first: torque on while latched is `estop_latched`)
     if guarded and item.name == "torque_enable":
-        if raw != 0 and dxl_id in _own_ids(svc):
+        if raw != 0 and dxl_id in ids:
             _in_use(svc, item, dxl_id, TORQUE_ON)
         falls = svc.profile.falls_on(dxl_id)
         if raw == 0 and falls is not None:
