@@ -251,8 +251,7 @@ class Rbe3001Firmware:
             self._converging = False
             for i in range(3):
                 if self.enabled[i]:
-                    mean = (self._last_error[i] / INTEGRAL_SIZE
-                            + self._integral[i] * (INTEGRAL_SIZE - 1.0) / INTEGRAL_SIZE)
+                    mean = self._mean_with(i, self._last_error[i])
                     if mean != self._integral[i]:
                         self._integral[i] = mean
                         self._converging = True
@@ -374,14 +373,18 @@ class Rbe3001Firmware:
         kp, ki, kd = self.gains[i]
         error = self.setpoint[i] - measured
         last = self._last_error[i]
-        integral = (error / INTEGRAL_SIZE
-                    + self._integral[i] * (INTEGRAL_SIZE - 1.0) / INTEGRAL_SIZE)
+        integral = self._mean_with(i, error)
         if (last >= 0.0 and error < 0.0) or (last < 0.0 and error >= 0.0):
             integral = 0.0
         self._integral[i] = integral
         self._last_error[i] = error
         u = kp * error + kd * (error - last) + ki * integral
         return max(-OUTPUT_SPAN, min(OUTPUT_SPAN, u))
+
+    def _mean_with(self, i: int, error: float) -> float:
+        """Joint `i`'s running mean of the error taken one cycle on with `error` (the
+        firmware's `integralTotal`; the one expression for a cycle run or skipped)."""
+        return error / INTEGRAL_SIZE + self._integral[i] * (INTEGRAL_SIZE - 1.0) / INTEGRAL_SIZE
 
     def _update_velocity(self) -> None:
         self._vel_count += 1
