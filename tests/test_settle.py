@@ -6,6 +6,7 @@ device: app/device/actuator.py), each look at `positions` the next reading of th
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Sequence
 
 import numpy as np
@@ -50,6 +51,16 @@ class ScriptedArm:
         return SettleState()
 
 
+class LateArm(ScriptedArm):
+    """The same, whose first `settle_state` answers after the settle timeout (a process held
+    up before the settle loop's first look)."""
+
+    async def settle_state(self) -> SettleState:
+        if self.asked == 0:
+            await asyncio.sleep(settle.SETTLE_TIMEOUT_S + 0.1)
+        return await super().settle_state()
+
+
 def test_two_checks_in_a_row_are_the_rule() -> None:
     assert SETTLE_CONFIRM == 2
 
@@ -70,6 +81,23 @@ async def test_an_arm_at_the_target_is_done_on_its_second_check() -> None:
     verdict, _ = await Settle("rbe3001", ["base", "shoulder", "elbow"], arm).wait(
         TARGET, TOL, lambda: False)
     assert verdict == "done" and arm.looks == SETTLE_CONFIRM
+
+
+async def test_a_settle_held_up_past_its_deadline_still_looks_before_its_verdict(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Held up past the settle timeout before its first look, the check still takes
+    SETTLE_CONFIRM readings: an arm at the target is done, one on its way fails naming how
+    far off it is (it had failed on no reading, "inf off", in a loaded clean clone)."""
+    monkeypatch.setattr(settle, "SETTLE_TIMEOUT_S", 0.2)
+    arm = LateArm([NEAR])
+    verdict, err = await Settle("rbe3001", ["base", "shoulder", "elbow"], arm).wait(
+        TARGET, TOL, lambda: False)
+    assert (verdict, err) == ("done", None) and arm.looks == SETTLE_CONFIRM
+    arm = LateArm([FAR])
+    verdict, err = await Settle("rbe3001", ["base", "shoulder", "elbow"], arm).wait(
+        TARGET, TOL, lambda: False)
+    assert verdict == "failed" and err is not None and "base is 0.200000 off" in str(err)
+    assert arm.looks == SETTLE_CONFIRM
 
 
 @pytest.mark.parametrize("far_first", [True, False])

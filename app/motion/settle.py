@@ -54,7 +54,11 @@ class Settle:
             return "watchdog", moving
         inside = 0  # checks in a row that found every joint in tolerance
         worst = err  # per joint, the larger error of the last two checks (for the reason)
-        while loop.time() < deadline:
+        looks = 0
+        # (at least SETTLE_CONFIRM looks, however late: a process held up past the deadline
+        # before its first look had failed the motion on no reading at all, "inf off")
+        while loop.time() < deadline or looks < SETTLE_CONFIRM:
+            looks += 1
             if halted():
                 return "halted", None
             fault = self.device_fault()
