@@ -167,6 +167,25 @@ def test_a_new_servo_late_at_its_rate_is_scanned_again_before_there_is_none(
         served.close()
 
 
+def test_a_listing_scans_twice_for_a_servo_late_beside_one_that_answered(
+        tmp_path: Path) -> None:
+    """The listing (`setup-servos` without `--joint`, the scan route): y's servo answers at
+    1 Mbps, a factory servo's replies at 57,600 come after the first pass's window. Both
+    are listed, each once (session 39 listed only y)."""
+    from app.arms.dynamixel.setup import scan_port
+
+    bus = LateAt57600.factory(1)
+    served = Served(bus, tmp_path / "ttyLateList")
+    try:
+        served.call(lambda: bus.add_servo(id=1, baudrate=1_000_000))
+        got = scan_port(served.url, rates=(57_600, 1_000_000))
+        assert not bus.late  # (the first PING at 57,600 went unanswered)
+        assert got.passes == 2 and not got.collisions
+        assert sorted((f.id, f.baudrate) for f in got.found) == [(1, 57_600), (1, 1_000_000)]
+    finally:
+        served.close()
+
+
 def test_refusals_exit_non_zero_with_a_reason(tmp_path: Path,
                                               capsys: pytest.CaptureFixture[str]) -> None:
     served = Served(DynamixelBus.factory(0), tmp_path / "ttyEmpty")
@@ -220,13 +239,19 @@ def test_over_a_socket_the_rate_is_read_from_the_servo(capsys: pytest.CaptureFix
 
 def test_a_scan_that_heard_nothing_tries_once_more() -> None:
     """A servo whose first PING went unanswered (as a reply the machine delivered after the
-    window reads) is found by the second pass; an empty bus is tried twice and a bus that
-    answered, once."""
-    from app.arms.dynamixel.setup import scan_port
+    window reads) is found by the second pass; an empty bus is tried twice, and so is a bus
+    that answered (a listing; the set-up's own scan passes once where it heard a servo)."""
+    from app.arms.dynamixel.setup import Bus, scan, scan_port
 
     served = Served(DynamixelBus.factory(1, baudrate=None), None)
     try:
-        assert scan_port(served.url, timeout=IN_PROCESS_REPLY_S).passes == 1
+        got = scan_port(served.url, timeout=IN_PROCESS_REPLY_S)
+        assert got.passes == 2 and [(f.id, f.baudrate) for f in got.found] == [(1, 57_600)]
+        bus = Bus(served.url, timeout=IN_PROCESS_REPLY_S)
+        try:
+            assert scan(bus).passes == 1
+        finally:
+            bus.close()
         answer = served.bus.receive
         heard: list[bytes] = []
 

@@ -257,6 +257,8 @@ def scan_again(bus: Bus, rates: Iterable[int], first: Scan) -> Scan:
     heard (a servo heard twice once)."""
     out = Scan(list(first.found), list(first.collisions), list(first.garbled), passes=2)
     _scan_pass(bus, _tried(bus, rates), out)
+    out.collisions = list(dict.fromkeys(out.collisions))  # (a note heard twice, once)
+    out.garbled = list(dict.fromkeys(out.garbled))
     return out
 
 
@@ -447,10 +449,15 @@ def set_up_joint(url: str, profile: ArmProfile, joint: str, *, timeout: float = 
 
 def scan_port(url: str, *, timeout: float = 0.1, rates: Iterable[int] = SCAN_ORDER,
               opener: Callable[..., Any] | None = None) -> Scan:
-    """Open `url`, scan it (`scan`) and close it."""
+    """Open `url`, scan it (`scan`) and close it. A listing is scanned twice in any case (a
+    pass that heard one servo can have missed another whose replies a busy PC's port handed
+    over late: `scan_again`); the listing is what a student sets up from, and a second
+    scan is a second or so more."""
     bus = Bus(url, timeout=timeout, opener=opener)
     try:
-        return scan(bus, rates)
+        rates = list(rates)
+        result = scan(bus, rates)
+        return result if result.passes > 1 else scan_again(bus, rates, result)
     finally:
         bus.close()
 

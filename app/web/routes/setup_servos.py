@@ -254,8 +254,8 @@ async def setup_info(request: Request, _: ViewerRole) -> s.ServoSetupInfo:
     response_model=s.ServoScan,
     summary="Find the servos on a port",
     description="Broadcast PING at each rate (once over a socket), each servo's Baud Rate, "
-    "Torque Enable and Operating Mode read, and whose it is against the profile; where nothing "
-    "at all answered, every rate a second time (a busy PC can hand replies over late). Writes "
+    "Torque Enable and Operating Mode read, and whose it is against the profile; every rate a "
+    "second time, each servo listed once (a busy PC can hand one rate's replies over late). Writes "
     "nothing. Instructor (the port is opened exclusively).",
     responses=_SETUP_ERRORS,
 )
