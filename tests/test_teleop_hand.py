@@ -29,7 +29,8 @@ from tests.test_recording_teleop import path_distance
 API = "/api/v1"
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "teleop_omx.toml"
 TOL = 8 * 2 * np.pi / 4096  # rad: the XM430's settle tolerance (8 ticks)
-START = {"leader": "leader", "follower": "follower", "rate_hz": 50, "free_leader": True}
+START = {"leader": "leader", "follower": "follower", "rate_hz": 50, "free_leader": True,
+         "load_supported": True}
 PATH = [[0.4, -0.3, 0.2, 0.5], [0.6, -0.5, 0.4, 0.7], [-0.2, -0.1, 0.1, 0.3]]
 SPEED = 0.8  # rad/s on the joint with the longest way
 
@@ -66,6 +67,27 @@ async def test_a_torque_on_arm_resists_the_hand(pair: tuple[FastAPI, httpx.Async
             ({"positions": PATH[0], "speed": "1"}, 422, "invalid_request")):
         r = await c.put(f"{API}/arms/leader/world/hand", json=body)
         assert r.status_code == status and r.json()["code"] == code, (body, r.text)
+
+
+async def test_a_leader_that_falls_without_torque_is_freed_only_when_held(
+        pair: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """An OpenManipulator-X's shoulder, elbow and wrist fall without torque (its profile's
+    `falls_without_torque`): freeing it as a leader is 409 `in_use`, its torque left on and
+    no session started, unless the body says its load is held; not freed, it leads by its
+    own commands."""
+    app, c = pair
+    leader: ArmService = app.state.services["leader"]
+    assert leader.profile.falling_joints == ["shoulder", "elbow", "wrist"]
+    r = await c.post(f"{API}/teleop", json={**START, "load_supported": False})
+    assert r.status_code == 409 and r.json()["code"] == "in_use", r.text
+    assert '{"load_supported": true}' in r.json()["detail"]
+    assert all(sv.torque for sv in servos(leader)), "a refused session freed the leader"
+    assert (await c.get(f"{API}/teleop")).json() == []
+    r = await c.post(f"{API}/teleop", json={**START, "free_leader": False,
+                                            "load_supported": False})
+    assert r.status_code == 201 and r.json()["free_leader"] is False, r.text
+    assert all(sv.torque for sv in servos(leader))
+    assert (await c.delete(f"{API}/teleop/{r.json()['id']}")).status_code == 200
 
 
 async def test_the_follower_follows_a_leader_moved_by_hand(

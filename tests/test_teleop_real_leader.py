@@ -25,7 +25,7 @@ from tests.conftest import make_settings, running_client
 
 API = "/api/v1"
 TOL = 8 * 2 * np.pi / 4096
-START = {"leader": "leader", "follower": "follower", "rate_hz": 50}
+START = {"leader": "leader", "follower": "follower", "rate_hz": 50, "load_supported": True}
 
 
 def named(profile: ArmProfile, name: str, **link: Any) -> ArmProfile:
@@ -60,6 +60,14 @@ async def test_a_real_leader_is_moved_by_hand(
     follower: ArmService = app.state.services["follower"]
     servos = joint_servos(bus, leader)
     assert leader.link_status().kind == "serial" and all(sv.torque for sv in servos)
+    # its shoulder, elbow and wrist fall without torque: freed only when said to be held
+    unsaid = {k: v for k, v in START.items() if k != "load_supported"}
+    for body in (unsaid, {**unsaid, "load_supported": False}):
+        r = await c.post(f"{API}/teleop", json=body)
+        assert r.status_code == 409 and r.json()["code"] == "in_use", r.text
+        assert "shoulder, elbow, wrist fall without torque" in r.json()["detail"]
+    assert all(sv.torque for sv in servos), "a refused session switched the leader's torque"
+    assert (await c.get(f"{API}/teleop")).json() == []
     r = await c.post(f"{API}/teleop", json=START)
     assert r.status_code == 201, r.text
     sid = r.json()["id"]

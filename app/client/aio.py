@@ -343,15 +343,18 @@ class AsyncArmClient:
                            offset: Sequence[float] | None = None, tip_scale: float = 1.0,
                            tip_offset: Sequence[float] | None = None,
                            clamp_margin: float = 0.0,
-                           free_leader: bool | None = None) -> s.TeleopSession:
+                           free_leader: bool | None = None,
+                           load_supported: bool = False) -> s.TeleopSession:
         """Start teleoperation: `leader` drives `follower` (whose lease this client must
         hold) at `rate_hz` (30..100), mapping `joints` (one to one: `scale`, `offset` per
         joint) or `tip` (`tip_scale`, `tip_offset` m); targets clamped `clamp_margin` inside
         the follower's limits; a leader sample older than `deadman_s` holds the follower.
-        `free_leader`: the leader's torque off for the session (default: a real leader's)."""
+        `free_leader`: the leader's torque off for the session (default: a real leader's);
+        `load_supported`: its joints that fall without torque are held (else 409 `in_use`
+        for such a leader freed)."""
         req = s.TeleopStart(leader=leader, follower=follower, rate_hz=rate_hz, mapping=mapping,
                             deadman_s=deadman_s, tip_scale=tip_scale, clamp_margin=clamp_margin,
-                            free_leader=free_leader,
+                            free_leader=free_leader, load_supported=load_supported,
                             scale=None if scale is None else list(scale),
                             offset=None if offset is None else list(offset),
                             tip_offset=None if tip_offset is None else list(tip_offset))

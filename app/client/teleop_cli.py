@@ -2,7 +2,7 @@
 "Teleoperation (v1.2)").
 
     armserver teleop --leader leader --follower follower --rate 50
-    armserver teleop --leader leader --follower follower --free-leader   # moved by hand
+    armserver teleop --leader leader --follower follower --free-leader --load-supported
 
 It takes the follower's lease (renewed while it runs; `--lease ID` uses one already held),
 starts the session, prints its figures every second (achieved rate, latency p50/p99 from a
@@ -67,7 +67,8 @@ def run_teleop(a: argparse.Namespace) -> int:
     try:
         with _client(a) as c, _follower_lease(c, a):
             t = c.start_teleop(a.leader, a.follower, rate_hz=a.rate, mapping=a.mapping,
-                               deadman_s=a.deadman, free_leader=a.free_leader)
+                               deadman_s=a.deadman, free_leader=a.free_leader,
+                               load_supported=a.load_supported)
             print(f"teleop {t.id}: {t.leader} -> {t.follower} at {t.rate_hz:g} Hz "
                   f"({t.mapping}{', leader by hand' if t.free_leader else ''}); "
                   "Ctrl-C stops", flush=True)
@@ -115,6 +116,10 @@ def add_teleop(sub: Any) -> None:
                    help="the leader's torque off for the session, to be moved by hand "
                    "(default: a real leader's; a simulated one is then moved by PUT "
                    "/arms/{leader}/world/hand)")
+    p.add_argument("--load-supported", action="store_true",
+                   help="the freed leader's joints that fall without torque (an "
+                   "OpenManipulator-X's shoulder, elbow and wrist; the angler's z winch) are "
+                   "held by hand or rest: without it such a leader is refused (409 in_use)")
     p.add_argument("--every", type=float, default=1.0, help="print the figures every this "
                    "many seconds (default 1)")
     p.set_defaults(func=run_teleop)

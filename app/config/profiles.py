@@ -357,6 +357,14 @@ class ArmProfile(_Strict):
     def joint_names(self) -> list[str]:
         return [j.name for j in self.joints]
 
+    @property
+    def falling_joints(self) -> list[str]:
+        """The joints gravity moves once their servos' torque is off (`falls_without_torque`),
+        unless the profile allows raw access (which lifts every such refusal): what a
+        teleoperation session that frees the arm as its leader asks to be held."""
+        return [] if self.raw_access else [j.name for j in self.joints
+                                           if j.falls_without_torque]
+
     def falls_on(self, motor_id: int) -> str | None:
         """The name of the joint servo `motor_id` drives if gravity moves it once the servo's
         torque is off (`falls_without_torque`), else None."""

@@ -15,7 +15,7 @@ ArmRef = Annotated[str, Field(min_length=1, max_length=64)]
 class TeleopStart(Model):
     """Start a session: `leader` drives `follower` at `rate_hz`. The mapping's parameters
     (`scale`, `offset`, `tip_scale`, `tip_offset`, `clamp_margin`), `deadman_s` and
-    `free_leader` are additions to API.md's body, all optional."""
+    `free_leader` and `load_supported` are additions to API.md's body, all optional."""
 
     leader: ArmRef
     follower: ArmRef
@@ -43,6 +43,11 @@ class TeleopStart(Model):
         "again, holding, when it ends): default true for a real leader, false for a simulated "
         "one (moved by its own commands); true for a simulated leader moved through its world "
         "(PUT /api/v1/arms/{leader}/world/hand)")
+    load_supported: Bool = Field(
+        False, description="the leader's joints that fall without torque (its profile's "
+        "`falls_without_torque`: the angler's z winch, an OpenManipulator-X's shoulder, elbow "
+        "and wrist) are held by hand or rest: without it a session that frees such a leader "
+        "is 409 `in_use` (gravity would move it where no planned move may go), as a reboot's")
 
 
 class TeleopLatency(Model):

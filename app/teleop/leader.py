@@ -1,6 +1,6 @@
-"""What a teleoperation session needs of its leader: its name, model, estop latch, link, torque
-switch and a subscription to its samples. An arm of this server (`ArmService`) is one; so is an
-arm on another worker of a lab, read over the network (app/teleop/remote.py)."""
+"""What a teleoperation session needs of its leader: its name, profile, model, estop latch,
+link, torque switch and a subscription to its samples. An arm of this server (`ArmService`) is
+one; so is an arm on another worker of a lab, read over the network (app/teleop/remote.py)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from typing import Protocol
 
 from app import schemas as s
 from app.arms.model import KinematicsModel
+from app.config import ArmProfile
 
 
 class LeaderFeed(Protocol):
@@ -26,6 +27,9 @@ class LeaderFeed(Protocol):
 class Leader(Protocol):
     @property
     def name(self) -> str: ...
+
+    @property
+    def profile(self) -> ArmProfile: ...
 
     @property
     def model(self) -> KinematicsModel: ...

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from app import schemas as s
 from app.classroom.lease import LeaseManager
-from app.errors import Busy, EstopLatched, InvalidRequest, Leased, NotFound
+from app.errors import Busy, EstopLatched, InUse, InvalidRequest, Leased, NotFound
 from app.runtime.control_thread import on_home
 from app.runtime.tasks import cancel_and_wait
 from app.service import ArmService
@@ -80,7 +80,8 @@ class TeleopSessions:
         leader that is the follower or a mapping that does not fit the arms; 409 `busy` for
         a follower another session drives; 409 `estop_latched` for either arm latched; 409
         `not_supported` for a real leader whose device cannot switch its torque off (a
-        real leader's torque is off for the session, on again when it ends); the
+        real leader's torque is off for the session, on again when it ends); 409 `in_use`
+        for a leader so freed whose joints fall without torque, unless `load_supported`; the
         follower's own refusals (shutdown) as they are."""
         async with self._starting:
             return await self._start(with_pair(req, self._pairs), leader, follower, lease)
@@ -103,6 +104,14 @@ class TeleopSessions:
         # where its device cannot); a simulated one is moved by its own commands, or by a
         # hand in its world when asked (free_leader)
         free = frees_leader(req, leader)
+        falls = leader.profile.falling_joints if free else []
+        if falls and not req.load_supported:
+            raise InUse(f"the session switches {leader.name}'s torque off to be moved by hand, "
+                        f"and {', '.join(falls)} fall without torque (the profile's "
+                        "joints.falls_without_torque): gravity would move them where no "
+                        "planned move may go. Hold them (or rest their load), then say so: "
+                        '{"load_supported": true}; or {"free_leader": false} for a leader '
+                        "moved by its own commands")
         if free:
             await leader.set_torque(False)
         sid = f"t{next(self._ids)}-{uuid.uuid4().hex[:8]}"

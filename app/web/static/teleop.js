@@ -24,6 +24,10 @@ const rate = el("input", { id: "teleop-rate", type: "number", min: "30", max: "1
   value: "50", style: "width:4.5em", title: "Commands a second (30..100 Hz)" });
 const byHand = el("input", { id: "teleop-by-hand", type: "checkbox",
   title: "The leader's torque off for the session, to be moved by hand" });
+const holding = el("input", { id: "teleop-holding", type: "checkbox",
+  title: "The leader's joints that fall without torque (an OpenManipulator-X's shoulder, " +
+    "elbow and wrist; the angler's z winch) are held by hand or rest (load_supported): " +
+    "without it a freed leader with such joints is refused" });
 const start = el("button", { id: "teleop-start", type: "button", class: "go", disabled: true,
   title: "Start: the leader drives the follower" }, "▶ Start");
 const stop = el("button", { id: "teleop-stop", type: "button", class: "primary", disabled: true,
@@ -32,7 +36,7 @@ const status = el("span", { id: "teleop-status", class: "muted" }, "not running"
 const err = el("span", { id: "teleop-error", class: "err", role: "alert" });
 bar.append(el("strong", {}, "Teleoperation"), leader, el("span", { class: "muted" }, "→"), follower,
   el("label", {}, rate, " Hz"), el("label", { class: "small" }, byHand, " leader by hand"),
-  start, stop, status, err);
+  el("label", { class: "small" }, holding, " I hold it"), start, stop, status, err);
 
 const HELD = { deadman: "held by deadman (leader sample stale or late)",
   no_target: "held (no follower target for the leader's pose)" };
@@ -55,7 +59,7 @@ function show(t) {
   status.className = running ? `badge ${t.held ? "warn" : "ok"}` : "muted";
   stop.disabled = !running;
   start.disabled = running || !leader.value || !follower.value;
-  for (const c of [leader, follower, rate, byHand]) c.disabled = running;
+  for (const c of [leader, follower, rate, byHand, holding]) c.disabled = running;
 }
 
 let polling = null;    // the refresh under way (one at a time: a 401 waits for the token dialog)
@@ -98,6 +102,7 @@ async function act(fn) {
 start.addEventListener("click", () => act(async () => {
   const body = { leader: leader.value, follower: follower.value, rate_hz: Number(rate.value) };
   if (byHand.checked) body.free_leader = true;
+  if (holding.checked) body.load_supported = true;
   session = (await begin(body)).id;
 }));
 stop.addEventListener("click", () => act(() =>
