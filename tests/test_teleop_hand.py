@@ -95,6 +95,12 @@ async def test_the_follower_follows_a_leader_moved_by_hand(
     app, c = pair
     leader: ArmService = app.state.services["leader"]
     follower: ArmService = app.state.services["follower"]
+    here = await held_still(lambda: leader.positions, TOL)
+    # the hand takes hold of the leader where it is (torque on: it moves nothing), then the
+    # session frees it: its shoulder, elbow and wrist would fall on their own
+    r = await c.put(f"{API}/arms/leader/world/hand", json={"wait": True})
+    assert r.status_code == 200, r.text
+    np.testing.assert_allclose(r.json()["positions"], here, atol=TOL)
     r = await c.post(f"{API}/teleop", json=START)
     assert r.status_code == 201, r.text
     t = r.json()
@@ -102,6 +108,8 @@ async def test_the_follower_follows_a_leader_moved_by_hand(
     assert not any(sv.torque for sv in servos(leader)), "the leader's torque is still on"
     await wait_for(lambda: np.allclose(follower.positions, leader.positions, atol=TOL),
                    what="the follower where the leader is")
+    np.testing.assert_allclose(await held_still(lambda: leader.positions, TOL), here,
+                               atol=TOL)  # held: it did not fall
     r = await c.post(f"{API}/recordings", json={"name": "byhand", "arms": ["follower"],
                                                 "fps": 25, "task": "follow the hand"})
     assert r.status_code == 201, r.text
@@ -199,7 +207,8 @@ async def test_a_joint_whose_torque_comes_on_is_let_go(
 async def test_the_hand_on_the_anglers_prismatic_joints() -> None:
     """A simulated MX-28 bus (the angler: three lead-screw carriages and a revolute joint):
     with its torque off (the facade's set_torque, as a session does), the hand puts the joints
-    where asked, metres and radians, and the server reads them there."""
+    where asked, metres and radians, and the server reads them there; let go, the winch's
+    load goes down."""
     async with running_client(make_settings()) as (app, c):
         angler: ArmService = app.state.services["angler"]
         detail = (await c.get(f"{API}/arms/angler")).json()
@@ -211,6 +220,18 @@ async def test_the_hand_on_the_anglers_prismatic_joints() -> None:
         assert r.status_code == 200 and r.json()["moving"] is False, r.text
         await wait_for(lambda: np.allclose(angler.positions, goal, atol=1e-3),
                        what="the angler's samples where the hand put it")
+        # the client's hand lets go: the z winch's load goes down to its lower limit, the
+        # carriages and theta3 stay where the hand left them; taking hold again (no
+        # positions) holds it where it is, and on again it holds itself
+        async with AsyncArmClient("http://armserver.test",
+                                  transport=httpx.ASGITransport(app=app)) as client:
+            await client.let_go_hand("angler")
+            z = angler.profile.joint_names.index("z")
+            down = [*goal[:z], float(lo[z]), *goal[z + 1:]]
+            await wait_for(lambda: np.allclose(angler.positions, down, atol=1e-3),
+                           what="the angler's load down, the rest where the hand left it")
+            held = await client.move_hand("angler", wait=True)
+        np.testing.assert_allclose(held.positions, down, atol=1e-3)
         await angler.set_torque(True)
         r = await hand(c, "angler", (lo + 0.5 * (hi - lo)).tolist())
         assert r.status_code == 409 and r.json()["code"] == "conflict", r.text
@@ -251,3 +272,44 @@ async def test_the_hand_is_the_lease_holders_or_an_instructors() -> None:
         await wait_for(lambda: np.allclose(leader.positions, PATH[0], atol=TOL),
                        what="the leader where the client's hand put it")
         await leader.set_torque(True)
+
+
+async def test_a_freed_leader_let_go_falls_and_the_follower_follows_the_fall(
+        pair: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """Held, freed, let go (DELETE .../world/hand): the leader's shoulder, elbow and wrist
+    fall on the simulated bus (its torque off, nothing holding it), the server reads the
+    fall as it reads hardware, with the servos' own Present Velocity, the waist (turning
+    about the vertical) stays, and the follower follows to where the leader came to rest."""
+    app, c = pair
+    leader: ArmService = app.state.services["leader"]
+    follower: ArmService = app.state.services["follower"]
+    here = np.asarray(await held_still(lambda: leader.positions, TOL))
+    assert (await c.put(f"{API}/arms/leader/world/hand", json={})).status_code == 200
+    r = await c.post(f"{API}/teleop", json=START)
+    assert r.status_code == 201, r.text
+    sub = leader.subscribe(4000)
+    try:
+        r = await c.delete(f"{API}/arms/leader/world/hand")
+        assert r.status_code == 204, r.text
+        rest = np.asarray(await held_still(lambda: leader.positions, TOL, window=0.3))
+        samples = [orjson.loads(x) for x in sub.take()[0]]
+    finally:
+        sub.close()
+    fell = rest - here
+    assert abs(fell[0]) <= TOL, fell  # the waist
+    # the shoulder came down forward onto its stop; the elbow and the wrist swung on the way
+    np.testing.assert_allclose(rest[1], leader.model.upper[1], atol=TOL)
+    swing = np.max(np.abs([smp["velocities"] for smp in samples]), axis=0)
+    assert swing[0] == 0.0 and np.all(swing[1:] > 0.1), swing
+    # lower: the summed height of the arm's body points (the model's own kinematics)
+    def height(q: np.ndarray) -> float:
+        return float(np.sum(np.asarray(leader.model.joint_origins(q))[1:, 2]))
+
+    assert height(rest) < height(here) - 0.01
+    # (the pair's clamp_margin, 0.05 rad in config/teleop_omx.toml, keeps the follower that
+    # far inside its limits: its shoulder stops short of the stop the leader fell onto)
+    m = follower.model
+    want = np.clip(rest, np.asarray(m.lower) + 0.05, np.asarray(m.upper) - 0.05)
+    await wait_for(lambda: np.allclose(follower.positions, want, atol=TOL),
+                   what="the follower where the leader fell")
+    assert (await c.delete(f"{API}/arms/leader/world/hand")).status_code == 204  # (again: 204)

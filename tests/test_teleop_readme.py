@@ -1,8 +1,8 @@
 """README "Teleoperation and replay", the block after `<!-- README-TELEOP-BY-HAND -->`, run as
 written (in a shell, on a free port instead of 8000): `armserver serve` on the two simulated
-OpenManipulator-X arms, `armserver teleop --free-leader` in the background, the world's hand
-moving the leader by curl, the follower where the hand put the leader, and Ctrl-C ending the
-CLI with exit code 0."""
+OpenManipulator-X arms, the world's hand taking hold of the leader, `armserver teleop
+--free-leader --load-supported` in the background, the hand moving the leader by curl, the
+follower where the hand put the leader, and Ctrl-C ending the CLI with exit code 0."""
 
 from __future__ import annotations
 
@@ -75,7 +75,8 @@ def healthy(port: int) -> bool:
 
 def test_the_readme_block_runs_as_written() -> None:
     cmds = readme_block()
-    assert [c.split()[0] for c in cmds] == ["armserver", "armserver", "curl", "curl", "curl"]
+    assert [c.split()[0] for c in cmds] == ["armserver", "curl", "armserver", "curl", "curl",
+                                            "curl"]
     port = free_port()
     env = {k: v for k, v in os.environ.items()
            if not k.startswith("ARMSERVER_") or k == "ARMSERVER_DATA_DIR"}
@@ -112,7 +113,8 @@ def test_the_readme_block_runs_as_written() -> None:
             out = subprocess.run(local(cmds[-1], port), shell=True, cwd=ROOT, env=env,
                                  capture_output=True, text=True, timeout=60)
             return bool(np.allclose(json.loads(out.stdout)["positions"], goals[-1], atol=TOL))
-        assert len(goals) == 2 and last["positions"] is not None
+        # the hold (where the leader was: nothing moved), then the two moves
+        assert len(goals) == 3 and last["positions"] is not None
         wait_until(follower_there, what="the follower where the hand put the leader")
         teleop = jobs[1]
         wait_until(lambda: any(ln.startswith("running") and "latency p50" in ln

@@ -72,7 +72,9 @@ async def test_a_real_leader_is_moved_by_hand(
     assert r.status_code == 201, r.text
     sid = r.json()["id"]
     assert not any(sv.torque for sv in servos), "the leader's torque is still on"
-    # the hand: each servo put at the pose, at rest (torque off: it stays there)
+    # the hand: each servo put at the pose, and held there (torque off, its shoulder, elbow
+    # and wrist would fall on the simulated bus as on an arm: app/arms/dynamixel/sim_gravity.py)
+    bus.gravity.held = True
     hand = np.array([0.4, -0.3, 0.2, 0.5])
     for sv, ticks in zip(servos, leader.model.transmission.to_ticks(hand), strict=True):
         sv.pos = float(ticks)

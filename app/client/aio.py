@@ -329,13 +329,21 @@ class AsyncArmClient:
         body = scene if isinstance(scene, s.WorldScene) else s.WorldScene.model_validate(scene)
         return await self.send(Requests.set_world(arm, body))
 
-    async def move_hand(self, arm: str, positions: Sequence[float], *, speed: float = 0.5,
-                        wait: bool = False) -> s.HandState:
+    async def move_hand(self, arm: str, positions: Sequence[float] | None = None, *,
+                        speed: float = 0.5, wait: bool = False) -> s.HandState:
         """Move a simulated arm's joints by the hand in its world (rad or m), as a person
         moves an arm whose torque is off (a `free_leader` of a teleoperation session); at
-        `speed` on the longest way; `wait`: answer when the hand has arrived."""
-        req = s.HandMoveRequest(positions=list(positions), speed=speed, wait=wait)
+        `speed` on the longest way; `wait`: answer when the hand has arrived. `positions`
+        None: take hold where the arm is (moving nothing; allowed with its torque on). The
+        hand holds the arm until `let_go_hand`."""
+        req = s.HandMoveRequest(positions=None if positions is None else list(positions),
+                                speed=speed, wait=wait)
         return await self.send(Requests.move_hand(arm, req))
+
+    async def let_go_hand(self, arm: str) -> None:
+        """Take the hand off a simulated arm: a joint that falls without torque and whose
+        servo's torque is off falls, as on hardware."""
+        return await self.send(Requests.let_go_hand(arm))
 
     async def start_teleop(self, leader: str, follower: str, *, rate_hz: float = 50.0,
                            mapping: Literal["joints", "tip"] = "joints",

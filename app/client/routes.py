@@ -259,6 +259,10 @@ class Requests:
                     _body(req), arm=arm, timeout=WAIT_TIMEOUT_S if req.wait else None)
 
     @staticmethod
+    def let_go_hand(arm: str) -> Call[None]:
+        return Call("DELETE", url_path("arms", arm, "world", "hand"), _none, arm=arm, safe=True)
+
+    @staticmethod
     def start_teleop(req: s.TeleopStart, leader_lease: str | None = None
                      ) -> Call[s.TeleopSession]:
         # the lease header is the follower's: the session moves it; a real leader's torque

@@ -207,6 +207,7 @@ class ArmClient:
     world = blocking(AsyncArmClient.world)
     set_world = blocking(AsyncArmClient.set_world)
     move_hand = blocking(AsyncArmClient.move_hand)
+    let_go_hand = blocking(AsyncArmClient.let_go_hand)
     start_teleop = blocking(AsyncArmClient.start_teleop)
     replay = blocking(AsyncArmClient.replay)
     teleop_sessions = blocking(AsyncArmClient.teleop_sessions)

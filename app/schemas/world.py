@@ -57,8 +57,10 @@ class HandMoveRequest(Model):
     """Move a simulated arm's joints as a hand moves an arm whose servos' torque is off (an
     addition to API.md's "Simulated world")."""
 
-    positions: list[Finite] = Field(min_length=1, max_length=16, description="the joints' goal "
-                                    "(rad or m, the arm's joint order), within its joint limits")
+    positions: list[Finite] | None = Field(
+        None, min_length=1, max_length=16, description="the joints' goal (rad or m, the arm's "
+        "joint order), within its joint limits; absent: where they are (the hand takes hold "
+        "of the arm, moving nothing: allowed with its torque on)")
     speed: Annotated[float, Field(gt=0.0, le=4.0, allow_inf_nan=False, strict=True)] = Field(
         0.5, description="rad/s or m/s on the joint with the longest way; every joint arrives "
         "together")

@@ -13,6 +13,13 @@ move (further than `STILL_TICKS` from where it is) holds torque, and a joint who
 on during a move (the session that freed it has ended) is let go. A joint held where the goal
 has it (the angler's z winch, whose torque stays on: it falls without) stays held.
 
+The hand stays on the arm from its first move until it lets go (`let_go`, `DELETE
+/arms/{arm}/world/hand`): it holds the joints where it left them. A joint that falls without
+torque (the profile's `falls_without_torque`) falls on the simulated bus once its servo's
+torque is off and nothing holds it (app/arms/dynamixel/sim_gravity.py), as a real one does:
+take hold of a leader first (a move to where it is, `here`, moves nothing and is allowed with
+its torque on), then free it.
+
 The hand goes in a straight line in joint space from where the joints are when the device
 next runs (the simulated clock of its link) to the goal, at `speed` (rad/s or m/s) on the
 joint with the longest way, every joint arriving together. Units: joint units at this
@@ -76,6 +83,10 @@ class Hand:
         self._under: _Under | None = None
         self._done = 0  # the serial of the last move ended (arrived, or let go)
         self._serial = 0
+        #: The hand is on the arm (from its first move until `let_go`): it holds the joints
+        #: it moved where it left them, against gravity (the bus's `gravity`, if any).
+        self._grip = False
+        self._gravity = getattr(device, "gravity", None)
 
     # --- a request's side --------------------------------------------------------------
 
@@ -115,8 +126,37 @@ class Hand:
                            "teleoperation session with free_leader, or Torque Enable 0)")
         self._serial += 1
         move = HandMove(tuple(float(x) for x in q), float(speed), self._serial)
+        self._hold(True)
         self._asked = move
         return move
+
+    def here(self) -> list[float]:
+        """Where the joints are now (rad, m): a goal that moves nothing (`move_to` it to take
+        hold of the arm where it is, its torque on or off)."""
+        ticks = []
+        for i in self.ids:
+            s = self.device.servo(i)
+            if s is None:
+                raise Conflict(f"{self.world.profile.name}: servo {i} does not answer: a hand "
+                               "cannot hold what is not there")
+            ticks.append(float(s.get("present_position")))
+        return [float(x) for x in self.world.model.transmission.from_ticks(ticks)]
+
+    @property
+    def gripping(self) -> bool:
+        """The hand is on the arm (a move asked for since the last `let_go`)."""
+        return self._grip
+
+    def let_go(self) -> None:
+        """Take the hand off the arm: a move under way ends where it is, and a joint whose
+        servo's torque is off and that falls without it (the bus's gravity) falls."""
+        self._asked = None
+        self._hold(False)
+
+    def _hold(self, on: bool) -> None:
+        self._grip = on
+        if self._gravity is not None:
+            self._gravity.held = on
 
     @property
     def active(self) -> bool:
@@ -133,6 +173,11 @@ class Hand:
         """Set each free joint servo where the hand has it at `now` (device clock, s)."""
         asked = self._asked
         under = self._under
+        if not self._grip:  # let go: a move under way ends here
+            if under is not None:
+                self._under = None
+                self._done = under.move.serial
+            return
         if asked is not None and (under is None or under.move is not asked):
             if under is not None:  # replaced: the earlier move ends here
                 self._done = under.move.serial

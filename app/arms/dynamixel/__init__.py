@@ -5,7 +5,6 @@ nothing here names one."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
 from app.arms.base import UsbMatch
@@ -22,21 +21,29 @@ ROUTER = "app.arms.dynamixel.api"
 U2D2 = UsbMatch("serial", 0x0403, 0x6014, "dynamixel-u2d2", ftdi_latency=True)
 
 
-def simulated_bus(profile: ArmProfile, servo: type[Mx28Servo] | None = None,
-                  extra_ids: Iterable[int] = ()) -> SimDevice:
-    """A simulated bus holding the profile's servos (its joints' `motor_id`s, then
-    `extra_ids`, e.g. a gripper's servo) at the link's baud rate, in the joints' operating
-    modes; `servo` is the servo class of them all (default MX-28, e.g. an XM430 class)."""
+def simulated_bus(profile: ArmProfile, servo: type[Mx28Servo] | None = None) -> SimDevice:
+    """A simulated bus holding the profile's servos (its joints' `motor_id`s, then an actuated
+    gripper's) at the link's baud rate, in their operating modes; `servo` is the servo class
+    of them all (default MX-28, e.g. an XM430 class). The joints that fall without torque
+    fall on it too (app/arms/dynamixel/sim_gravity.py)."""
     from app.arms.dynamixel.sim_bus import DynamixelBus
 
     modes = {int(j.motor_id): j.operating_mode for j in profile.joints
              if j.motor_id is not None and j.operating_mode is not None}
     ids = tuple(int(j.motor_id) for j in profile.joints if j.motor_id is not None)
-    ids += tuple(int(i) for i in extra_ids if int(i) not in ids)
+    g = profile.gripper
+    if g.actuated and g.motor_id is not None and int(g.motor_id) not in ids:
+        ids += (int(g.motor_id),)
+        if g.operating_mode is not None:
+            modes[int(g.motor_id)] = g.operating_mode
     models = None if servo is None else dict.fromkeys(ids, servo)
     bus = DynamixelBus(ids=ids, baudrate=profile.link.baudrate, operating_modes=modes,
                        models=models)
     _start_within_limits(profile, bus)
+    if any(j.falls_without_torque for j in profile.joints):
+        from app.arms.dynamixel.sim_gravity import Gravity
+
+        bus.gravity = Gravity(profile, bus)
     return bus
 
 

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Iterable, Mapping
+from typing import Any
 
 from app.arms.dynamixel.sim_mx28 import BAUD_CODES, Mx28Servo
 from app.sim.uart import resample
@@ -90,6 +91,9 @@ class DynamixelBus:
         self.errors: list[ParseError] = []  # last framing errors seen, newest last (bounded)
         self._now: float | None = None
         self._busy_until = 0.0
+        #: Gravity on the falling joints of the arm these servos are (app/arms/dynamixel/
+        #: sim_gravity.py; `simulated_bus` sets it from the profile), None: none modelled.
+        self.gravity: Any = None
 
     @classmethod
     def factory(cls, count: int = 1, baudrate: int | None = FACTORY_BAUDRATE,
@@ -131,6 +135,8 @@ class DynamixelBus:
         self._now = now
         for s in self.servos:
             s.advance(dt, now)
+        if self.gravity is not None:
+            self.gravity.step(now)
 
     def receive(self, data: bytes, now: float) -> list[tuple[float, bytes]]:
         self.advance(now)

@@ -32,18 +32,9 @@ def _driver(profile: ArmProfile, link: Link, hub: TelemetryHub) -> Driver:
 
 def _simulator(profile: ArmProfile) -> SimDevice:
     """The joints' and the gripper's servos, every one an XM430-W350, in their modes."""
-    from app.arms.dynamixel.sim_bus import DynamixelBus
     from app.arms.dynamixel.sim_xm430 import Xm430Servo
 
-    modes = {int(j.motor_id or 0): j.operating_mode for j in profile.joints
-             if j.operating_mode is not None}
-    g = profile.gripper
-    if g.actuated and g.motor_id is not None and g.operating_mode is not None:
-        modes[g.motor_id] = g.operating_mode
-    ids = [int(j.motor_id or 0) for j in profile.joints]
-    ids += [g.motor_id] if g.actuated and g.motor_id is not None else []
-    return DynamixelBus(ids=ids, baudrate=profile.link.baudrate, operating_modes=modes,
-                        models=dict.fromkeys(ids, Xm430Servo))
+    return dynamixel.simulated_bus(profile, Xm430Servo)
 
 
 def _check(profile: ArmProfile) -> None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Depends, Request, Response, status
 
 from app import schemas as s
 from app.errors import InvalidRequest, NotFound, NotSupported
@@ -139,12 +139,17 @@ def hand_of(svc: ArmService) -> Hand:
     "speed), 422 `joint_limit` (beyond the arm's joint limits); 409 `not_supported` for a "
     "simulated device without servos (the rbe3001's firmware); lease holder or instructor. "
     "Simulated arms only: 404 `not_found` on a real arm. With `wait: true` it answers when "
-    "the hand has arrived or let go.",
+    "the hand has arrived or let go. The hand stays on the arm and holds it where it left it "
+    "until DELETE: a joint that falls without torque (the profile's `falls_without_torque`) "
+    "falls on the simulated bus while its torque is off and no hand holds it, as on "
+    "hardware; without `positions` the hand takes hold where the arm is (moving nothing, so "
+    "allowed with the torque on): hold a leader, then free it.",
     responses=errors(401, 403, 404, 409, 422),
 )
 async def put_hand(svc: EditorArm, body: HandMoveRequest) -> HandState:
     hand = hand_of(svc)
-    move = hand.move_to(body.positions, body.speed)
+    goal = hand.here() if body.positions is None else body.positions
+    move = hand.move_to(goal, body.speed)
     if body.wait:
         here = svc.positions
         way = (0.0 if here is None else
@@ -155,3 +160,20 @@ async def put_hand(svc: EditorArm, body: HandMoveRequest) -> HandState:
             await asyncio.sleep(HAND_LOOK_S)
     return HandState(positions=list(move.goal), speed=move.speed,
                      moving=hand.busy(move.serial))
+
+
+@router.delete(
+    "/hand",
+    status_code=status.HTTP_204_NO_CONTENT,
+    summary="Take the hand off the simulated arm",
+    description="The hand lets go: a move under way ends where it is, and a joint that "
+    "falls without torque (the profile's `falls_without_torque`: the angler's z winch, an "
+    "OpenManipulator-X's shoulder, elbow and wrist) whose servo's torque is off falls, down "
+    "the slope of the arm's weight to a joint limit, as on hardware. Nothing happens to an "
+    "arm the hand is not on. 409 `not_supported` for a simulated device without servos; "
+    "lease holder or instructor; 404 `not_found` on a real arm.",
+    responses=errors(401, 403, 404, 409),
+)
+async def delete_hand(svc: EditorArm) -> Response:
+    hand_of(svc).let_go()
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
