@@ -2,7 +2,8 @@
 against a real server of two simulated OpenManipulator-X arms (config/teleop_omx.toml): pick
 leader, follower and rate, Start, the bar says running with the latency, the follower follows
 the leader; the leader's samples going stale make it say held by the deadman; Stop ends the
-session and the bar says stopped and by whom."""
+session and the bar says stopped and by whom. The leader by hand: refused with its reason
+until "I hold it" (`load_supported`) is ticked."""
 
 from __future__ import annotations
 
@@ -68,4 +69,22 @@ def test_start_and_stop_teleop_from_the_bar() -> None:
         wait_until(lambda: status().startswith("stopped: stopped by"), what="stopped, and by whom")
         assert [t["status"] for t in HTTP.get(f"{live.url}/api/v1/teleop").json()] == ["ended"]
         assert not page.locator("#teleop-start").is_disabled()
+        # the leader by hand: its shoulder, elbow and wrist fall without torque, so the bar's
+        # Start is refused (its reason shown, the torque left on) until "I hold it" is ticked
+        page.check("#teleop-by-hand")
+        page.click("#teleop-start")
+        wait_until(lambda: "fall without torque" in str(
+            page.locator("#teleop-error").text_content() or ""), what="the refusal shown")
+        assert len(HTTP.get(f"{live.url}/api/v1/teleop").json()) == 1  # none started
+        r = HTTP.put(f"{live.url}/api/v1/arms/leader/world/hand", json={"wait": True})
+        assert r.status_code == 200, r.text  # the world's hand takes hold of it first
+        page.check("#teleop-holding")
+        page.click("#teleop-start")
+        wait_until(lambda: status().startswith("running · "), what="running, leader by hand")
+        running = [t for t in HTTP.get(f"{live.url}/api/v1/teleop").json()
+                   if t["status"] == "running"]
+        assert [t["free_leader"] for t in running] == [True]
+        assert page.locator("#teleop-holding").is_disabled()
+        page.click("#teleop-stop")
+        wait_until(lambda: status().startswith("stopped: stopped by"), what="stopped again")
         assert errors == []

@@ -172,7 +172,7 @@ async def put_hand(svc: EditorArm, body: HandMoveRequest) -> HandState:
     "the slope of the arm's weight to a joint limit, as on hardware. Nothing happens to an "
     "arm the hand is not on. 409 `not_supported` for a simulated device without servos; "
     "lease holder or instructor; 404 `not_found` on a real arm.",
-    responses=errors(401, 403, 404, 409),
+    responses=errors(401, 403, 404, 409, 422),
 )
 async def delete_hand(svc: EditorArm) -> Response:
     hand_of(svc).let_go()
