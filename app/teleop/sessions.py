@@ -106,10 +106,12 @@ class TeleopSessions:
         free = frees_leader(req, leader)
         falls = leader.profile.falling_joints if free else []
         if falls and not req.load_supported:
+            one = len(falls) == 1
             raise InUse(f"the session switches {leader.name}'s torque off to be moved by hand, "
-                        f"and {', '.join(falls)} fall without torque (the profile's "
-                        "joints.falls_without_torque): gravity would move them where no "
-                        "planned move may go. Hold them (or rest their load), then say so: "
+                        f"and {', '.join(falls)} {'falls' if one else 'fall'} without torque "
+                        "(the profile's joints.falls_without_torque): gravity would move "
+                        f"{'it' if one else 'them'} where no planned move may go. Hold "
+                        f"{'it' if one else 'them'} (or rest the load), then say so: "
                         '{"load_supported": true}; or {"free_leader": false} for a leader '
                         "moved by its own commands")
         if free:
