@@ -142,11 +142,6 @@ class Hand:
             ticks.append(float(s.get("present_position")))
         return [float(x) for x in self.world.model.transmission.from_ticks(ticks)]
 
-    @property
-    def gripping(self) -> bool:
-        """The hand is on the arm (a move asked for since the last `let_go`)."""
-        return self._grip
-
     def let_go(self) -> None:
         """Take the hand off the arm: a move under way ends where it is, and a joint whose
         servo's torque is off and that falls without it (the bus's gravity) falls."""
