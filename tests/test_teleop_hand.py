@@ -313,3 +313,8 @@ async def test_a_freed_leader_let_go_falls_and_the_follower_follows_the_fall(
     await wait_for(lambda: np.allclose(follower.positions, want, atol=TOL),
                    what="the follower where the leader fell")
     assert (await c.delete(f"{API}/arms/leader/world/hand")).status_code == 204  # (again: 204)
+    # taken hold of again where it fell: its shoulder on its stop reads half a tick beyond
+    # the limit (3,072 ticks), and the hand holds it there all the same
+    r = await c.put(f"{API}/arms/leader/world/hand", json={"wait": True})
+    assert r.status_code == 200, r.text
+    np.testing.assert_allclose(r.json()["positions"], rest, atol=TOL)

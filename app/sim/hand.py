@@ -132,7 +132,9 @@ class Hand:
 
     def here(self) -> list[float]:
         """Where the joints are now (rad, m): a goal that moves nothing (`move_to` it to take
-        hold of the arm where it is, its torque on or off)."""
+        hold of the arm where it is, its torque on or off). Within the joint limits: a joint
+        on its stop reads up to half a tick beyond it (the OpenManipulator-X's shoulder, fallen
+        onto its stop, 3,072 ticks: 1.5707963 rad against its limit 1.570796)."""
         ticks = []
         for i in self.ids:
             s = self.device.servo(i)
@@ -140,7 +142,9 @@ class Hand:
                 raise Conflict(f"{self.world.profile.name}: servo {i} does not answer: a hand "
                                "cannot hold what is not there")
             ticks.append(float(s.get("present_position")))
-        return [float(x) for x in self.world.model.transmission.from_ticks(ticks)]
+        m = self.world.model
+        q = np.clip(m.transmission.from_ticks(ticks), m.lower, m.upper)
+        return [float(x) for x in q]
 
     def let_go(self) -> None:
         """Take the hand off the arm: a move under way ends where it is, and a joint whose
