@@ -135,13 +135,11 @@ class Hand:
         hold of the arm where it is, its torque on or off). Within the joint limits: a joint
         on its stop reads up to half a tick beyond it (the OpenManipulator-X's shoulder, fallen
         onto its stop, 3,072 ticks: 1.5707963 rad against its limit 1.570796)."""
-        ticks = []
-        for i in self.ids:
-            s = self.device.servo(i)
-            if s is None:
-                raise Conflict(f"{self.world.profile.name}: servo {i} does not answer: a hand "
-                               "cannot hold what is not there")
-            ticks.append(float(s.get("present_position")))
+        ticks = self._present_ticks()
+        if ticks is None:
+            i = next((i for i in self.ids if self.device.servo(i) is None), "of a joint")
+            raise Conflict(f"{self.world.profile.name}: servo {i} does not answer: a hand "
+                           "cannot hold what is not there")
         m = self.world.model
         q = np.clip(m.transmission.from_ticks(ticks), m.lower, m.upper)
         return [float(x) for x in q]
@@ -197,25 +195,29 @@ class Hand:
             if s is None or s.torque:
                 continue  # holds its goal: the hand lets this joint go
             free += 1
-            s.pos = float(ticks[k])  # at rest there (the motor model's own state) ...
-            s.motion.vel = float(tps[k])  # ... turning as the hand turns it
-            s.advance(0.0, now)  # Present Position and Velocity published, no time passed
+            s.carry(ticks[k], tps[k], now)  # there, turning as the hand turns it
         if t >= under.duration or free == 0:
             self._under = None
             self._done = under.move.serial
             if self._asked is under.move:
                 self._asked = None
 
-    def _begin(self, move: HandMove, now: float) -> _Under | None:
-        tr = self.world.model.transmission
+    def _present_ticks(self) -> list[float] | None:
+        """Every joint servo's Present Position, ticks (None: one does not answer)."""
         ticks = []
         for i in self.ids:
             s = self.device.servo(i)
-            if s is None:  # a servo that does not answer: nothing to hold on to
-                self._done, self._asked, self._under = move.serial, None, None
+            if s is None:
                 return None
             ticks.append(float(s.get("present_position")))
-        start = np.asarray(tr.from_ticks(ticks), dtype=float)
+        return ticks
+
+    def _begin(self, move: HandMove, now: float) -> _Under | None:
+        ticks = self._present_ticks()
+        if ticks is None:  # a servo that does not answer: nothing to hold on to
+            self._done, self._asked, self._under = move.serial, None, None
+            return None
+        start = np.asarray(self.world.model.transmission.from_ticks(ticks), dtype=float)
         way = float(np.max(np.abs(np.asarray(move.goal) - start)))
         self._under = _Under(move, start, now, way / move.speed)
         return self._under

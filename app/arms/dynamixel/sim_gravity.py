@@ -78,7 +78,7 @@ class Gravity:
 
     def step(self, now: float) -> None:
         """Move the free falling joints from the last step to `now` (device clock, s)."""
-        free = self.free() if self.falls else []  # (each call notes the servos' torque)
+        free = self.free()  # (each call notes the servos' torque)
         if self.held or not free:
             self._last = None
             return
@@ -103,7 +103,4 @@ class Gravity:
         for k in free:
             if v[k] == 0.0 and target[k] == q[k]:
                 continue  # at rest already: its items as they are
-            x = servos[k]
-            x.pos = float(ticks[k])
-            x.motion.vel = float(tps[k])
-            x.advance(0.0, now)  # Present Position and Velocity published
+            servos[k].carry(ticks[k], tps[k], now)

@@ -139,6 +139,14 @@ class Mx28Servo:
         self.motion.reset(float(value))
         self._publish()
 
+    def carry(self, ticks: float, ticks_per_s: float, now: float) -> None:
+        """An outside force turns the horn (torque off: a hand, gravity): the motor at `ticks`,
+        turning at `ticks_per_s`, its Present Position and Velocity published at `now` with
+        no time passed (app/sim/hand.py, app/arms/dynamixel/sim_gravity.py)."""
+        self.motion.reset(float(ticks))
+        self.motion.vel = float(ticks_per_s)
+        self.advance(0.0, now)
+
     @property
     def vel(self) -> float:
         """Present velocity, ticks/s."""
