@@ -178,7 +178,7 @@ async def test_openapi_documents_every_route(app_client: httpx.AsyncClient) -> N
         "/api/v1/arms/{arm}/dynamixel/ping",
         "/api/v1/arms/{arm}/dynamixel/{dxl_id}/registers/{name}",
         "/api/v1/arms/{arm}/dynamixel/sync-read", "/api/v1/arms/{arm}/dynamixel/sync-write",
-        "/api/v1/arms/{arm}/dynamixel/{dxl_id}/reboot",
+        "/api/v1/arms/{arm}/dynamixel/{dxl_id}/reboot", "/api/v1/arms/{arm}/torque",
         "/api/v1/arms/{arm}/lease", "/api/v1/arms/{arm}/lease/{lease_id}",
     }
     assert expected <= set(paths)

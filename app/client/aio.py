@@ -261,6 +261,12 @@ class AsyncArmClient:
         """Un-home the arm on purpose (before declaring a new home pose)."""
         return await self.send(Requests.unhome(arm))
 
+    async def set_torque(self, arm: str, on: bool,
+                         load_supported: bool = False) -> s.TorqueState:
+        """The joints' torque off (the arm moved by hand) or on again, holding where it is;
+        `load_supported`: its joints that fall without torque are held (else 409 `in_use`)."""
+        return await self.send(Requests.set_torque(arm, on, load_supported))
+
     async def calibration(self, arm: str) -> s.ArmCalibration:
         """The joints' calibration on this hardware and the gravity fit."""
         return await self.send(Requests.calibration(arm))

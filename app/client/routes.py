@@ -295,6 +295,11 @@ class Requests:
         return Call("DELETE", url_path("arms", arm, "home"), _model(s.ArmDetail), arm=arm)
 
     @staticmethod
+    def set_torque(arm: str, on: bool, load_supported: bool = False) -> Call[s.TorqueState]:
+        return Call("PUT", url_path("arms", arm, "torque"), _model(s.TorqueState),
+                    _body(s.TorqueRequest(on=on, load_supported=load_supported)), arm=arm)
+
+    @staticmethod
     def calibration(arm: str) -> Call[s.ArmCalibration]:
         return Call("GET", url_path("arms", arm, "calibration"), _model(s.ArmCalibration),
                     arm=arm, safe=True)

@@ -192,6 +192,7 @@ class ArmClient:
     dxl_reboot = blocking(AsyncArmClient.dxl_reboot)
     home = blocking(AsyncArmClient.home)
     unhome = blocking(AsyncArmClient.unhome)
+    set_torque = blocking(AsyncArmClient.set_torque)
     calibration = blocking(AsyncArmClient.calibration)
     calibrate = blocking(AsyncArmClient.calibrate)
     forget_calibration = blocking(AsyncArmClient.forget_calibration)

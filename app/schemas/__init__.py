@@ -24,6 +24,8 @@ from app.schemas.arms import (
     LinkStatus,
     TelemetryStats,
     Tip,
+    TorqueRequest,
+    TorqueState,
     Vec3,
 )
 from app.schemas.calibration import (
@@ -254,6 +256,8 @@ __all__ = [
     "TeleopSession",
     "TeleopStart",
     "Tip",
+    "TorqueRequest",
+    "TorqueState",
     "Unit",
     "Vec3",
     "Workspace",

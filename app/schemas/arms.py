@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from app.schemas.common import Finite, Model
+from app.schemas.common import Bool, Finite, Model
 
 # ---------------------------------------------------------------- arms
 
@@ -153,3 +153,20 @@ class HomeRequest(Model):
         None, min_length=1, max_length=16,
         description="the arm's current physical joint positions (rad, m); none: the "
         "profile's home pose")
+
+
+class TorqueRequest(Model):
+    """The joints' torque off (the arm free to be moved by hand) or on again, holding where
+    it is (an addition to API.md)."""
+
+    on: Bool
+    load_supported: Bool = Field(
+        False, description="the joints that fall without torque (the profile's "
+        "`falls_without_torque`: the angler's z winch, an OpenManipulator-X's shoulder, elbow "
+        "and wrist) are held by hand or rest: without it torque off is 409 `in_use` (gravity "
+        "would move them where no planned move may go), as a reboot's")
+
+
+class TorqueState(Model):
+    arm: str
+    on: bool = Field(description="the joints' torque as just switched")

@@ -17,9 +17,10 @@ from dataclasses import dataclass
 
 from app import schemas as s
 from app.classroom.lease import LeaseManager
-from app.errors import Busy, EstopLatched, InUse, InvalidRequest, Leased, NotFound
+from app.errors import Busy, EstopLatched, InvalidRequest, Leased, NotFound
 from app.runtime.control_thread import on_home
 from app.runtime.tasks import cancel_and_wait
+from app.safety.falling import falling_refusal
 from app.service import ArmService
 from app.teleop.config import TeleopPair, with_pair
 from app.teleop.leader import Leader
@@ -68,6 +69,11 @@ class TeleopSessions:
     def list(self) -> list[s.TeleopSession]:
         return [t.describe() for t in list(self._sessions.values())]
 
+    def running_with(self, arm: str) -> TeleopSession | None:
+        """The running session `arm` leads or follows, if any."""
+        return next((t for t in self._sessions.values() if t.status == "running"
+                     and arm in (t.leader.name, t.follower.name)), None)
+
     def get(self, sid: str) -> TeleopSession:
         t = self._sessions.get(sid)
         if t is None:
@@ -106,14 +112,9 @@ class TeleopSessions:
         free = frees_leader(req, leader)
         falls = leader.profile.falling_joints if free else []
         if falls and not req.load_supported:
-            one = len(falls) == 1
-            raise InUse(f"the session switches {leader.name}'s torque off to be moved by hand, "
-                        f"and {', '.join(falls)} {'falls' if one else 'fall'} without torque "
-                        "(the profile's joints.falls_without_torque): gravity would move "
-                        f"{'it' if one else 'them'} where no planned move may go. Hold "
-                        f"{'it' if one else 'them'} (or rest the load), then say so: "
-                        '{"load_supported": true}; or {"free_leader": false} for a leader '
-                        "moved by its own commands")
+            raise falling_refusal(leader.name, falls, "the session",
+                                  '; or {"free_leader": false} for a leader moved by its own '
+                                  "commands")
         if free:
             await leader.set_torque(False)
         sid = f"t{next(self._ids)}-{uuid.uuid4().hex[:8]}"

@@ -59,6 +59,7 @@ from app.web.routes import (
     setup_servos,
     telemetry,
     teleop,
+    torque,
     world,
 )
 from app.web.security import Access, install_log_redaction
@@ -184,6 +185,7 @@ def create_app(settings: Settings | None = None,
     for router in arm_routers():  # each arm type's pass-through routes (app/arms)
         app.include_router(router, prefix=API_PREFIX)
     app.include_router(homing.router, prefix=API_PREFIX)  # faults and homing (v1.1)
+    app.include_router(torque.router, prefix=API_PREFIX)  # the joints' torque (addition)
     app.include_router(calibration.router, prefix=API_PREFIX)  # joint calibration (v1.2)
     app.include_router(teleop.router, prefix=API_PREFIX)  # teleoperation (v1.2)
     app.include_router(replay.router, prefix=API_PREFIX)  # replay of recordings (v1.2)
