@@ -6,6 +6,7 @@ tests/test_lab_workers.py: left on worker 0, right on worker 1, rails on worker 
 - A recording of arms (or cameras) on different workers is refused, 409 `different_workers`;
   one of the second worker's arm and camera records through the front.
 - The simulated world of an arm on the second worker is that arm's.
+- A leader freed for a session has its torque switched in its own worker.
 - A cross-worker session outlives a restart of its leader's worker (last: it kills worker 0).
 """
 
@@ -139,6 +140,66 @@ def test_the_world_of_an_arm_on_the_second_worker(lab: Lab) -> None:  # noqa: F8
             "only-right"]
         assert c.get("/api/v1/arms/left/world").json()["objects"] == left.json()["objects"]
         assert "only-right" not in [o["id"] for o in left.json()["objects"]]
+
+
+def _torque(c: httpx.Client, arm: str, ids: range, lease: str | None = None) -> list[int]:
+    """Torque Enable (64) of `arm`'s servos `ids`, read through the front from its worker
+    (with `lease`, the arm's lease id, while one is held)."""
+    out = []
+    headers = {} if lease is None else {"X-Arm-Lease": lease}
+    for i in ids:
+        r = c.get(f"/api/v1/arms/{arm}/dynamixel/{i}/registers/torque_enable",
+                  headers=headers)
+        assert r.status_code == 200, r.text
+        out.append(r.json()["raw"])
+    return out
+
+
+def test_a_leader_on_another_worker_is_freed_there_and_given_its_torque_back(
+        lab: Lab) -> None:  # noqa: F811 - the fixture
+    """A session that frees its leader (`free_leader`) switches the leader's torque in the
+    leader's own worker (rails, an angler, on worker 0; the follower right on worker 1): off
+    for the session once the body says its winch is held, on again when it ends. That worker
+    judges the request: its lease, the winch that falls without torque."""
+    servos = range(1, 5)
+    body = {"leader": "rails", "follower": "right", "rate_hz": 50, "mapping": "tip",
+            "free_leader": True}
+    with httpx.Client(base_url=lab.url, headers=OP, timeout=30) as c:
+        assert _torque(c, "rails", servos) == [1, 1, 1, 1]
+        # the winch falls without torque: refused in the follower's worker, nothing switched
+        refused = c.post("/api/v1/teleop", json=body)
+        assert refused.status_code == 409 and refused.json()["code"] == "in_use", refused.text
+        assert "z falls without torque" in refused.json()["detail"]
+        assert _torque(c, "rails", servos) == [1, 1, 1, 1]
+        # the leader's lease, held by this client: its worker wants it (X-Leader-Lease)
+        lease = c.post("/api/v1/arms/rails/lease")
+        assert lease.status_code in (200, 201), lease.text
+        lid = lease.json()["id"]
+        try:
+            leased = c.post("/api/v1/teleop", json={**body, "load_supported": True})
+            assert leased.status_code == 409 and leased.json()["code"] == "leased", leased.text
+            assert "rails's worker" in leased.json()["detail"]
+            assert _torque(c, "rails", servos, lid) == [1, 1, 1, 1]
+            assert [t for t in c.get("/api/v1/teleop").json() if t["status"] == "running"] == []
+            started = c.post("/api/v1/teleop", headers={"X-Leader-Lease": lid},
+                             json={**body, "load_supported": True})
+            assert started.status_code == 201, started.text
+            sid = started.json()["id"]
+            assert started.json()["free_leader"] is True
+            try:
+                assert _torque(c, "rails", servos, lid) == [0, 0, 0, 0]
+                # the leader's lease given up mid-session: its torque still comes back at the
+                # end (torque on, holding, needs no lease)
+                released = c.delete(f"/api/v1/arms/rails/lease/{lid}")
+                assert released.status_code in (200, 204), released.text
+            finally:
+                stopped = c.delete(f"/api/v1/teleop/{sid}")
+            assert stopped.status_code == 200 and stopped.json()["status"] == "ended"
+            # given back as the session ended (the follower's worker asked the leader's)
+            wait_until(lambda: _torque(c, "rails", servos) == [1, 1, 1, 1],
+                       what="the leader's torque on again in its own worker")
+        finally:
+            c.delete(f"/api/v1/arms/rails/lease/{lid}")
 
 
 def test_a_cross_worker_session_outlives_its_leaders_worker(lab: Lab) -> None:  # noqa: F811

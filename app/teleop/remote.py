@@ -11,9 +11,14 @@ follower command) then includes the hop: the leader worker's sender, the socket,
 
 The leader's estop latch is its samples' `estop` stamp (app/telemetry/arm_hub.py). A lost
 socket (the leader's worker restarting: close 1012) is opened again with a backoff; meanwhile
-no sample comes, and the session's deadman holds the follower. Only a simulated leader may be
-remote: a real one has its torque off for the session, a command to it that needs its lease,
-both in its own worker (409 `not_supported`: put the pair on one worker).
+no sample comes, and the session's deadman holds the follower.
+
+A leader freed for the session (a real arm's default, `free_leader`) has its torque switched
+in its own worker, where its lease and its state are: `PUT /api/v1/arms/{leader}/torque` on
+that worker's socket, with the caller's token, the leader's lease (X-Leader-Lease) and the
+body's `load_supported`, on this worker's HTTP loop (the session's end asks from the
+follower's control loop). That worker's answer is the refusal: its lease, a motion it runs,
+a device without a torque switch.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import httpx
 import orjson
 from websockets.asyncio.client import unix_connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
@@ -36,7 +42,8 @@ from app import schemas as s
 from app.arms import model_for
 from app.arms.model import KinematicsModel
 from app.config import ArmProfile
-from app.errors import LinkDown, NotSupported
+from app.errors import ArmError, DeviceTimeout, LinkDown
+from app.runtime.control_thread import on_home
 from app.runtime.tasks import soon_on
 
 log = logging.getLogger(__name__)
@@ -51,6 +58,9 @@ RECONNECT_S = 0.1
 RECONNECT_MAX_S = 2.0
 #: Newest samples kept between two takes (the session reads only the last).
 KEEP = 8
+#: How long the leader's worker may take to switch its torque, s (its reply timeouts, a
+#: read of the servos' positions before torque on).
+TORQUE_TIMEOUT_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -83,10 +93,15 @@ class RemoteLeader:
     """An arm of another worker as a teleoperation leader (`Leader`); `open()` it first (on the
     HTTP loop), `close()` it from any thread."""
 
-    def __init__(self, peer: Peer, headers: list[tuple[str, str]]) -> None:
+    def __init__(self, peer: Peer, headers: list[tuple[str, str]], lease: str | None = None,
+                 load_supported: bool = False) -> None:
+        """`headers`: the caller's (its token); `lease`: the leader's lease id, where one is
+        held, and `load_supported`, for its torque (`set_torque`)."""
         self.profile = peer.profile
         self._uds = peer.uds
         self._headers = headers
+        self._lease = lease
+        self._load_supported = load_supported
         self._model = model_for(peer.profile)
         self._lock = threading.Lock()
         self._pending: deque[str] = deque(maxlen=KEEP)
@@ -118,8 +133,36 @@ class RemoteLeader:
                             last_error=None if up else self.last_error)
 
     async def set_torque(self, on: bool) -> None:
-        raise NotSupported(f"{self.name} is on another worker process: its torque is switched "
-                           "there (put the leader and the follower on one worker)")
+        """Switch the leader's torque in its own worker (on this worker's HTTP loop, from any
+        loop): that worker's refusal is raised as its code says; 504 `device_timeout` where
+        it does not answer within TORQUE_TIMEOUT_S, 503 `link_down` where its socket
+        refuses."""
+        await on_home(self._loop, lambda: self._put_torque(on))
+
+    async def _put_torque(self, on: bool) -> None:
+        headers = dict(self._headers)
+        if self._lease is not None:
+            headers["X-Arm-Lease"] = self._lease
+        body = {"on": on, "load_supported": self._load_supported}
+        try:
+            async with httpx.AsyncClient(transport=httpx.AsyncHTTPTransport(uds=str(self._uds)),
+                                         base_url="http://localhost",
+                                         timeout=TORQUE_TIMEOUT_S) as client:
+                r = await client.put(f"/api/v1/arms/{self.name}/torque", json=body,
+                                     headers=headers)
+        except httpx.TimeoutException:
+            raise DeviceTimeout(f"{self.name}'s worker did not switch its torque within "
+                                f"{TORQUE_TIMEOUT_S:g} s") from None
+        except httpx.HTTPError as exc:
+            raise LinkDown(f"{self.name}'s worker: {exc!r}") from None
+        if r.status_code == 200:
+            return
+        try:
+            err = r.json()
+            detail, code = str(err["detail"]), str(err["code"])
+        except (ValueError, KeyError, TypeError):
+            detail, code = r.text[:200], "device_error"
+        raise ArmError(f"{self.name}'s worker: {detail}", code=code, status_code=r.status_code)
 
     def subscribe(self, backlog: int | None = None) -> RemoteFeed:
         with self._lock:

@@ -10,7 +10,6 @@ from fastapi import APIRouter, Header, Path, Request, status
 
 from app import schemas as s
 from app.classroom.lease import LeaseManager
-from app.errors import NotSupported
 from app.teleop.config import TeleopPair, with_pair
 from app.teleop.leader import Leader
 from app.teleop.remote import Peer, RemoteLeader, peer_of
@@ -72,9 +71,10 @@ def sessions_of(request: Request) -> TeleopSessions:
     "hand, or resting), as a reboot's. The session ends when another client's lease "
     "holds the follower. In a lab of worker processes (`armserver serve --workers`) "
     "the session runs in the follower's worker and reads a leader on another worker "
-    "over that worker's telemetry socket (its latency includes the hop); 409 "
-    "`not_supported` where such a leader's torque would go off (`free_leader`, a real "
-    "arm's default).",
+    "over that worker's telemetry socket (its latency includes the hop), and a leader "
+    "freed for the session has its torque switched in its own worker (PUT "
+    "/api/v1/arms/{leader}/torque, with X-Leader-Lease and `load_supported`): that "
+    "worker's refusals are the answer's.",
     responses=errors(*DEVICE),
 )
 async def start_teleop(request: Request, req: s.TeleopStart, services: ServicesDep,
@@ -91,7 +91,7 @@ async def start_teleop(request: Request, req: s.TeleopStart, services: ServicesD
         getattr(request.app.state, "lab_peers", None), req.leader)
     follower = lookup_arm(services, req.follower)
     leader: Leader = lookup_arm(services, req.leader) if peer is None else \
-        await open_remote(peer, request, req)
+        await open_remote(peer, request, req, x_leader_lease)
     try:
         leases: LeaseManager = request.app.state.leases
         gated = who.role < Role.INSTRUCTOR
@@ -109,18 +109,14 @@ async def start_teleop(request: Request, req: s.TeleopStart, services: ServicesD
     return session.describe()
 
 
-async def open_remote(peer: Peer, request: Request, req: s.TeleopStart) -> RemoteLeader:
-    """A leader on another worker, read with the caller's token. 409 `not_supported` where
-    its torque would go off for the session (a real arm unless `free_leader` is false, or
-    `free_leader` true): that is a command to it, under its lease, in its own worker."""
+async def open_remote(peer: Peer, request: Request, req: s.TeleopStart,
+                      leader_lease: str | None) -> RemoteLeader:
+    """A leader on another worker, read with the caller's token; where the session frees it,
+    its torque is switched in its own worker with that token, `leader_lease` and the body's
+    `load_supported` (app/teleop/remote.py)."""
     auth = request.headers.get("authorization")
-    leader = RemoteLeader(peer, [("Authorization", auth)] if auth else [])
-    if frees_leader(with_pair(req, pairs_of(request)), leader):
-        raise NotSupported(f"{peer.profile.name} is on another worker process, and its torque "
-                           "would go off for the session (free_leader; a real arm's default): "
-                           "that is done in its own worker; put the leader and the follower "
-                           "on one worker (`worker = K` in both [[arms]] entries), or send "
-                           "free_leader: false to drive it by its own commands")
+    leader = RemoteLeader(peer, [("Authorization", auth)] if auth else [], leader_lease,
+                          req.load_supported)
     await leader.open()
     return leader
 
