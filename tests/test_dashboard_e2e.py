@@ -542,3 +542,49 @@ def test_rebooting_a_servo_whose_joint_falls_asks_whether_its_load_is_supported(
     page.click("#angler-home")
     wait_until(lambda: api(server, "GET", "/arms/angler")["homed"] == [True] * 4,
                what="homed again")
+
+
+def test_torque_off_by_hand_asks_for_the_winch_then_on_again_holding(
+        page: Any, server: Server) -> None:
+    """The angler's panel switches the joints' torque off (PUT /arms/angler/torque): z's winch
+    falls without torque, so the first answer is 409 `in_use` and the page asks; only a yes
+    switches it off, and Torque on switches it on again. The rbe3001's firmware has no torque
+    switch: no buttons. The world's hand holds the simulated arm meanwhile, so nothing falls
+    and the module's other tests find the angler where it was."""
+    bus = server.app.state.services["angler"].driver.link.device
+    servos = [bus.servo(i) for i in (1, 2, 3, 4)]
+    assert page.locator("#rbe3001-torque-off").count() == 0
+    api(server, "PUT", "/arms/angler/world/hand", json={"wait": True})  # hold where it is
+    asked: list[str] = []
+
+    def answer(yes: bool) -> Any:
+        def on_dialog(dialog: Any) -> None:
+            asked.append(dialog.message)
+            dialog.accept() if yes else dialog.dismiss()
+        return on_dialog
+
+    try:
+        page.once("dialog", answer(False))
+        page.click("#angler-torque-off")
+        err = page.locator("#angler-faults-error")
+        # (a wait that calls the page: the sync API dispatches the dialog only then)
+        wait_until(lambda: err.get_attribute("data-code") == "in_use", what="the refusal shown")
+        wait_until(lambda: page.evaluate("1") and len(asked) == 1, what="the question asked")
+        assert "load_supported" in asked[0] and "z falls" in asked[0], asked
+        assert all(sv.torque for sv in servos)  # a no switched nothing
+        page.once("dialog", answer(True))
+        page.click("#angler-torque-off")
+        wait_until(lambda: page.locator("#angler-torque").get_attribute("data-on") == "false",
+                   what="torque off shown")
+        assert not any(sv.torque for sv in servos) and len(asked) == 2
+        assert "load supported" in page.inner_text("#angler-faults-note")
+        page.locator("#angler-torque").scroll_into_view_if_needed()
+        shot(page, "09-torque-off")
+        page.click("#angler-torque-on")
+        wait_until(lambda: page.locator("#angler-torque").get_attribute("data-on") == "true",
+                   what="torque on shown")
+        assert all(sv.torque for sv in servos)
+        assert page.inner_text("#angler-faults-error") == ""
+    finally:
+        api(server, "PUT", "/arms/angler/torque", json={"on": True})
+        HTTP.delete(f"{server.url}/api/v1/arms/angler/world/hand", timeout=10)

@@ -2,8 +2,8 @@
 //
 // app.js announces each arm card ("arm-card" on document) and its newest sample ("arm-sample"
 // on the card); this module adds a panel that shows the servos' hardware faults with their
-// advice, which joints are homed, and offers reboot (per faulted servo) and home (the tare is
-// in app.js's Force panel). The
+// advice, which joints are homed, and offers reboot (per faulted servo), home, and the joints'
+// torque off and on (a Dynamixel arm; the tare is in app.js's Force panel). The
 // calls go through app.js's `api` (window.armDashboard.api), so tokens work as everywhere.
 import { CardPanel, el, panelPerCard } from "./panel.js";
 
@@ -29,6 +29,7 @@ class Panel extends CardPanel {
       el("div", { class: "row" }, this.el.positions,
         el("button", { type: "button", class: "primary", id: id("home"), title: "Declare the arm's current pose (nothing moves)",
           onclick: () => this.home() }, "Home")),
+      this.torqueRow(id),
       this.el.note, this.el.error);
     (card.querySelector(".controls") || card).append(this.el.section);
     card.addEventListener("arm-sample", (ev) => this.update(ev.detail));
@@ -41,6 +42,35 @@ class Panel extends CardPanel {
     this.faults = f;
     this.homed = hm;
     this.render();
+  }
+
+  // The joints' torque (PUT /arms/{arm}/torque): off to move the arm by hand, on again to hold
+  // where the hand left it; only on an arm whose servos have a torque switch (Dynamixel).
+  torqueRow(id) {
+    if (this.detail.capabilities?.protocol !== "dynamixel") return null;
+    this.el.torque = el("span", { class: "muted small", id: id("torque"), "data-on": "true" }, "torque on");
+    return el("div", { class: "row" },
+      el("button", { type: "button", id: id("torque-off"), title: "Switch every joint's torque off: the arm is moved by hand",
+        onclick: () => this.setTorque(false) }, "Torque off (by hand)"),
+      el("button", { type: "button", id: id("torque-on"), title: "Switch the torque on again: each joint holds where it is",
+        onclick: () => this.setTorque(true) }, "Torque on (hold)"),
+      this.el.torque);
+  }
+
+  // Torque off lets a joint that falls without torque fall: the server asks whether its load
+  // rests or is held (409 in_use naming load_supported), as for a reboot.
+  async setTorque(on) {
+    const path = `/arms/${encodeURIComponent(this.name)}/torque`;
+    let d = await this.run("PUT", path, { on }, on ? "torque on" : "torque off");
+    if (d === null && !on && this.el.error.dataset.code === "in_use"
+        && this.el.error.textContent.includes("load_supported")
+        && window.confirm(`${this.el.error.textContent}\n\nIs the load held or resting? OK switches the torque off.`)) {
+      d = await this.run("PUT", path, { on, load_supported: true }, "torque off (load supported)");
+    }
+    if (d && typeof d.on === "boolean") {
+      this.el.torque.dataset.on = String(d.on);
+      this.el.torque.textContent = d.on ? "torque on" : "torque off: move it by hand";
+    }
   }
 
   render() {
