@@ -12,9 +12,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _wait import wait_for
+from _wait import held_still, wait_for
 
 from app.service import ArmService
+from tests._lerobot import check_dataset
 from tests.conftest import make_settings, running_client
 
 API = "/api/v1"
@@ -127,3 +128,57 @@ async def test_an_arm_in_a_teleoperation_session_is_busy() -> None:
         assert (await c.delete(f"{API}/teleop/{sid}")).status_code == 200
         r = await c.put(f"{API}/arms/follower/torque", json={"on": False, "load_supported": True})
         assert r.status_code == 200, r.text
+
+
+async def test_a_demonstration_by_hand_records_where_the_hand_took_the_arm() -> None:
+    """Torque off, an arm moved by hand while a recording runs (the simulated world's hand on
+    an OpenManipulator-X): its episode's action is where the hand has the arm, as its state
+    is, not the goal the servos held before the torque went off (the commanded state is
+    forgotten with the torque); the dataset is read as LeRobot's."""
+    async with running_client(make_settings(config=str(CONFIG))) as (app, c):
+        arm: ArmService = app.state.services["leader"]
+        n = len(arm.profile.joints)
+        tol = 8 * 2 * np.pi / 4096  # the XM430's settle tolerance (8 ticks), rad
+        # a move first: the servos' goal, the arm's commanded state, is then this pose
+        start = [0.1, -0.2, 0.1, 0.2]
+        r = await c.post(f"{API}/arms/leader/move/joints", json={"positions": start,
+                                                                 "wait": True})
+        assert r.status_code == 200 and r.json()["status"] == "done", r.text
+        np.testing.assert_allclose(await held_still(lambda: arm.positions, tol), start,
+                                   atol=2 * tol)
+        path = [[0.4, -0.3, 0.2, 0.5], [-0.2, -0.1, 0.1, 0.3]]
+        r = await c.put(f"{API}/arms/leader/world/hand", json={"wait": True})  # held first
+        assert r.status_code == 200, r.text
+        r = await c.put(f"{API}/arms/leader/torque", json={"on": False, "load_supported": True})
+        assert r.status_code == 200, r.text
+        r = await c.post(f"{API}/recordings", json={"name": "shown", "arms": ["leader"],
+                                                     "fps": 25, "task": "shown by hand"})
+        assert r.status_code == 201, r.text
+        assert (await c.post(f"{API}/recordings/shown/episodes")).status_code == 201
+        for q in path:
+            r = await c.put(f"{API}/arms/leader/world/hand",
+                            json={"positions": q, "speed": 0.8, "wait": True})
+            assert r.status_code == 200, r.text
+            await wait_for(lambda q=q: np.allclose(arm.positions, q, atol=tol),
+                           what=f"the arm's samples at {q}")
+        there = (await c.get(f"{API}/recordings/shown")).json()["current"]["frames"]
+
+        async def later() -> bool:
+            cur = (await c.get(f"{API}/recordings/shown")).json()["current"]
+            return bool(cur["frames"] >= there + 3)
+        await wait_for(later, what="three more frames")
+        r = await c.post(f"{API}/recordings/shown/episodes/stop")
+        assert r.status_code == 200, r.text
+        read = check_dataset(Path(r.json()["path"]))
+        action = read.frames["action"][:, :n].astype(float)
+        state = read.frames["observation.state"][:, :n].astype(float)
+        # the hand's way, in the state and in the action alike, ending where it let the arm
+        np.testing.assert_allclose(state[-1], path[-1], atol=tol)
+        np.testing.assert_allclose(action[-1], path[-1], atol=tol)
+        assert float(np.max(np.abs(action - state))) < 0.8 / 25 + 2 * tol
+        assert float(np.max(np.abs(action[-1] - start))) > 0.25  # not the goal held before
+        r = await c.put(f"{API}/arms/leader/torque", json={"on": True})
+        assert r.status_code == 200, r.text
+        assert (await c.delete(f"{API}/arms/leader/world/hand")).status_code == 204
+        np.testing.assert_allclose(await held_still(lambda: arm.positions, tol), path[-1],
+                                   atol=2 * tol)  # holding where the hand left it
