@@ -464,3 +464,60 @@ async def test_torque_goes_off_through_passthrough_but_on_again_only_by_a_reboot
         watcher.cancel()
     xs = np.array([q[0] for q in seen])
     assert len(xs) > 10 and np.max(np.abs(xs - q1[0])) < 1e-3, (q1[0], xs.min(), xs.max())
+
+
+async def test_torque_off_through_passthrough_then_on_again_by_the_torque_route(
+        app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
+    """The other way back from a pass-through torque off: `PUT /arms/{arm}/torque` `{"on":
+    true}` writes each servo's present position as its goal before the torque, and the arm
+    holds where the hand left it (no reboot: the multi-turn joints keep their turns and stay
+    homed). The torque off already made the arm told nothing on those joints, so the next
+    planned move goes from where they are: a move of y alone leaves x where it is."""
+    app, client = app_and_client
+    svc = app.state.services["angler"]
+    bus = svc.driver.link.device
+    tol = 1e-4
+    q0 = await held_still(lambda: svc.positions, tol)
+    r = await client.post(f"{API}/arms/angler/move/joints",  # a command the servos then hold
+                          json={"positions": [q0[0] - 0.01, q0[1], q0[2], q0[3]], "wait": True})
+    assert r.status_code == 200 and r.json()["status"] == "done", r.text
+    q0 = await held_still(lambda: svc.positions, tol)
+    for i in (1, 2, 3):
+        r = await client.put(f"{DX}/{i}/registers/torque_enable", json={"raw": 0})
+        assert r.status_code == 200, r.text
+    told = svc.setpoint()
+    assert told is not None
+    np.testing.assert_allclose(told[:3], svc.positions[:3])  # told nothing: where they are
+    moved = [q0[0] + 0.03, q0[1] + 0.02, q0[2], q0[3]]
+    r = await client.put(f"{API}/arms/angler/world/hand",
+                         json={"positions": moved, "speed": 0.1, "wait": True})
+    assert r.status_code == 200, r.text
+    np.testing.assert_allclose(await held_still(lambda: svc.positions, tol), moved, atol=1e-3)
+    told = svc.setpoint()  # (a recording's action): where the hand left the joints
+    assert told is not None
+    np.testing.assert_allclose(told, moved, atol=1e-3)
+    r = await client.put(f"{DX}/1/registers/torque_enable", json={"raw": 1})
+    assert r.status_code == 409 and "/torque" in r.json()["detail"], r.text
+    r = await client.put(f"{API}/arms/angler/torque", json={"on": True})
+    assert r.status_code == 200, r.text
+    assert all(bus.servo(i).torque for i in (1, 2, 3, 4))
+    assert (await client.get(f"{API}/arms/angler")).json()["homed"] == [True] * 4
+    q1 = await held_still(lambda: svc.positions, tol)
+    np.testing.assert_allclose(q1, moved, atol=1e-3)
+    seen: list[np.ndarray] = []
+
+    async def watch() -> None:
+        while True:
+            seen.append(np.array(svc.positions, dtype=float))
+            await asyncio.sleep(0.002)
+
+    watcher = asyncio.create_task(watch())
+    try:
+        goal = [q1[0], q1[1] + 0.005, q1[2], q1[3]]
+        r = await client.post(f"{API}/arms/angler/move/joints",
+                              json={"positions": goal, "wait": True})
+        assert r.status_code == 200 and r.json()["status"] == "done", r.text
+    finally:
+        watcher.cancel()
+    xs = np.array([q[0] for q in seen])
+    assert len(xs) > 10 and np.max(np.abs(xs - q1[0])) < 1e-3, (q1[0], xs.min(), xs.max())

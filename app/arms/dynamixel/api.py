@@ -132,12 +132,15 @@ DRIVER_SETTINGS: dict[str, tuple[str, str]] = {
 #: record of what the arm was told (its last command) would not know of that move nor of the
 #: position the joint comes to hold: the next planned move started from that last command and
 #: drove the arm back towards it first, a path no check had seen (tests/test_api_passthrough.py).
-#: A servo's reboot sets it up again to hold where it is, and forgets that command. As a
-#: DRIVER_SETTINGS entry, for `torque_enable` 1 only.
+#: The torque route (`PUT /arms/{arm}/torque`, `ArmService.set_torque`) and a servo's reboot
+#: set the servos up to hold where they are and note it. As a DRIVER_SETTINGS entry, for
+#: `torque_enable` 1 only.
 TORQUE_ON = ("it goes off through pass-through, on again only as the driver sets the servo up: "
              "as torque comes on, a servo in a position mode drives to its Goal Position, an "
              "older goal than where a hand or gravity left the joint, and the server's record "
-             "of what the arm was told would not know of either", _REBOOT)
+             "of what the arm was told would not know of either",
+             'PUT /api/v1/arms/{arm}/torque {{"on": true}}, which holds every joint where it '
+             "is, or " + _REBOOT)
 
 
 def _check_write(svc: ArmService, item: mx28.ControlItem, dxl_id: int, raw: int) -> None:
@@ -258,8 +261,10 @@ async def read_register(svc: ControlArm, dxl_id: DxlId, name: RegName) -> s.Regi
     "profile allows raw access; 409 `estop_latched` for anything but torque "
     "off and the LED while the estop is latched; 409 `in_use` for `torque_enable` 1 to the arm's "
     "own servos unless the profile allows raw access (as torque comes on a servo drives to its "
-    "Goal Position, perhaps older than where the joint is: switch it on with the servo's "
-    "reboot); 409 `in_use` for `torque_enable` 0 to the servo of a joint that falls without "
+    "Goal Position, perhaps older than where the joint is: switch it on with PUT "
+    "/api/v1/arms/{arm}/torque, every joint holding where it is, or the servo's reboot); a "
+    "joint whose torque goes off is told nothing any more (its commanded state forgotten); "
+    "409 `in_use` for `torque_enable` 0 to the servo of a joint that falls without "
     "torque (the profile's `falls_without_torque`: gravity would move it where no planned "
     "move may go) unless the profile allows raw access; 409 `in_use` for `id` or `secondary_id` "
     "of any servo set to one of the arm's own ids (it would take the arm's commands) unless "

@@ -117,11 +117,16 @@ class DynamixelChainDriver(DynamixelBusDriver):
         return "gripper" if dxl_id in self.aux_ids else f"servo {dxl_id}"
 
     def _note_written(self, item: ControlItem, values: dict[int, int]) -> None:
-        """A pass-through Profile Velocity is what the power check expects back."""
+        """A pass-through Profile Velocity is what the power check expects back; a joint whose
+        torque went off is told nothing any more (as `set_torque`'s off: a hand may move it)."""
         if item.name == "profile_velocity":
             for i, raw in values.items():
                 if i in self.servo_ids:
                     self.profile_velocity[i] = raw
+        elif item.name == "torque_enable":
+            off = [self.ids.index(i) for i, raw in values.items() if raw == 0 and i in self.ids]
+            if off:
+                self.forget_commanded(off)
 
     def _note_sent(self, item: ControlItem, values: dict[int, int]) -> None:
         """Goal Position of the arm's joints is the arm's commanded state."""
