@@ -15,6 +15,7 @@ from fastapi import FastAPI
 
 from app.arms.loading import load_profile
 from app.config import homed_at_start
+from app.service import ArmService
 
 API = "/api/v1"
 RB = f"{API}/arms/rbe3001/rbe3001"
@@ -405,6 +406,29 @@ async def test_raw_access_and_the_servos_own_shutdown_keep_torque_off_and_the_re
         assert r.status_code == 200 and bus.servo(4).get("goal_pwm") == 400, r.text
 
 
+async def _y_alone_leaves_x(client: httpx.AsyncClient, svc: ArmService,
+                            q1: np.ndarray) -> None:
+    """A planned move of the angler's y alone from `q1`, watched every 2 ms: x stays where it
+    is (a move that started from an older command drove x back towards it first)."""
+    seen: list[np.ndarray] = []
+
+    async def watch() -> None:
+        while True:
+            seen.append(np.array(svc.positions, dtype=float))
+            await asyncio.sleep(0.002)
+
+    watcher = asyncio.create_task(watch())
+    try:
+        goal = [q1[0], q1[1] + 0.005, q1[2], q1[3]]
+        r = await client.post(f"{API}/arms/angler/move/joints",
+                              json={"positions": goal, "wait": True})
+        assert r.status_code == 200 and r.json()["status"] == "done", r.text
+    finally:
+        watcher.cancel()
+    xs = np.array([q[0] for q in seen])
+    assert len(xs) > 10 and np.max(np.abs(xs - q1[0])) < 1e-3, (q1[0], xs.min(), xs.max())
+
+
 async def test_torque_goes_off_through_passthrough_but_on_again_only_by_a_reboot(
         app_and_client: tuple[FastAPI, httpx.AsyncClient]) -> None:
     """Torque off, the joints moved by a hand (the simulated world's), torque on again: through
@@ -447,23 +471,7 @@ async def test_torque_goes_off_through_passthrough_but_on_again_only_by_a_reboot
     assert r.status_code == 200 and all(r.json()["homed"]), r.text
     q1 = await held_still(lambda: svc.positions, tol)
     np.testing.assert_allclose(q1, moved, atol=1e-3)
-    seen: list[np.ndarray] = []
-
-    async def watch() -> None:
-        while True:
-            seen.append(np.array(svc.positions, dtype=float))
-            await asyncio.sleep(0.002)
-
-    watcher = asyncio.create_task(watch())
-    try:
-        goal = [q1[0], q1[1] + 0.005, q1[2], q1[3]]
-        r = await client.post(f"{API}/arms/angler/move/joints",
-                              json={"positions": goal, "wait": True})
-        assert r.status_code == 200 and r.json()["status"] == "done", r.text
-    finally:
-        watcher.cancel()
-    xs = np.array([q[0] for q in seen])
-    assert len(xs) > 10 and np.max(np.abs(xs - q1[0])) < 1e-3, (q1[0], xs.min(), xs.max())
+    await _y_alone_leaves_x(client, svc, q1)
 
 
 async def test_torque_off_through_passthrough_then_on_again_by_the_torque_route(
@@ -504,20 +512,4 @@ async def test_torque_off_through_passthrough_then_on_again_by_the_torque_route(
     assert (await client.get(f"{API}/arms/angler")).json()["homed"] == [True] * 4
     q1 = await held_still(lambda: svc.positions, tol)
     np.testing.assert_allclose(q1, moved, atol=1e-3)
-    seen: list[np.ndarray] = []
-
-    async def watch() -> None:
-        while True:
-            seen.append(np.array(svc.positions, dtype=float))
-            await asyncio.sleep(0.002)
-
-    watcher = asyncio.create_task(watch())
-    try:
-        goal = [q1[0], q1[1] + 0.005, q1[2], q1[3]]
-        r = await client.post(f"{API}/arms/angler/move/joints",
-                              json={"positions": goal, "wait": True})
-        assert r.status_code == 200 and r.json()["status"] == "done", r.text
-    finally:
-        watcher.cancel()
-    xs = np.array([q[0] for q in seen])
-    assert len(xs) > 10 and np.max(np.abs(xs - q1[0])) < 1e-3, (q1[0], xs.min(), xs.max())
+    await _y_alone_leaves_x(client, svc, q1)

@@ -192,6 +192,14 @@ def shot(pg: Any, name: str, full_page: bool = False) -> Path:
     return path
 
 
+def answering(asked: list[str], yes: bool) -> Any:
+    """A page's dialog handler that notes the question in `asked` and answers it."""
+    def on_dialog(dialog: Any) -> None:
+        asked.append(dialog.message)
+        dialog.accept() if yes else dialog.dismiss()
+    return on_dialog
+
+
 # ---------------------------------------------------------------- tests (in order, one page)
 
 
@@ -516,13 +524,7 @@ def test_rebooting_a_servo_whose_joint_falls_asks_whether_its_load_is_supported(
     assert bus.servo(4).torque  # not in the Shutdown mask: it still holds
     asked: list[str] = []
 
-    def answer(yes: bool) -> Any:
-        def on_dialog(dialog: Any) -> None:
-            asked.append(dialog.message)
-            dialog.accept() if yes else dialog.dismiss()
-        return on_dialog
-
-    page.once("dialog", answer(False))
+    page.once("dialog", answering(asked, False))
     page.click("#angler-reboot-4")
     err = page.locator("#angler-faults-error")
     wait_until(lambda: err.get_attribute("data-code") == "in_use", what="the refusal shown")
@@ -530,7 +532,7 @@ def test_rebooting_a_servo_whose_joint_falls_asks_whether_its_load_is_supported(
     assert "load_supported" in asked[0] and "z falls" in asked[0], asked
     assert page.locator("#angler-faults").get_attribute("data-count") == "1"
     assert api(server, "GET", "/arms/angler")["homed"] == [True] * 4  # no REBOOT went out
-    page.once("dialog", answer(True))
+    page.once("dialog", answering(asked, True))
     page.click("#angler-reboot-4")
     wait_until(lambda: page.locator("#angler-faults").get_attribute("data-count") == "0",
                what="fault cleared")
@@ -557,14 +559,8 @@ def test_torque_off_by_hand_asks_for_the_winch_then_on_again_holding(
     api(server, "PUT", "/arms/angler/world/hand", json={"wait": True})  # hold where it is
     asked: list[str] = []
 
-    def answer(yes: bool) -> Any:
-        def on_dialog(dialog: Any) -> None:
-            asked.append(dialog.message)
-            dialog.accept() if yes else dialog.dismiss()
-        return on_dialog
-
     try:
-        page.once("dialog", answer(False))
+        page.once("dialog", answering(asked, False))
         page.click("#angler-torque-off")
         err = page.locator("#angler-faults-error")
         # (a wait that calls the page: the sync API dispatches the dialog only then)
@@ -572,7 +568,7 @@ def test_torque_off_by_hand_asks_for_the_winch_then_on_again_holding(
         wait_until(lambda: page.evaluate("1") and len(asked) == 1, what="the question asked")
         assert "load_supported" in asked[0] and "z falls" in asked[0], asked
         assert all(sv.torque for sv in servos)  # a no switched nothing
-        page.once("dialog", answer(True))
+        page.once("dialog", answering(asked, True))
         page.click("#angler-torque-off")
         wait_until(lambda: page.locator("#angler-torque").get_attribute("data-on") == "false",
                    what="torque off shown")
