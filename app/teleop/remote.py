@@ -42,7 +42,7 @@ from app import schemas as s
 from app.arms import model_for
 from app.arms.model import KinematicsModel
 from app.config import ArmProfile
-from app.errors import ArmError, DeviceTimeout, LinkDown
+from app.errors import CODES, ArmError, DeviceTimeout, LinkDown
 from app.runtime.control_thread import on_home
 from app.runtime.tasks import soon_on
 
@@ -161,8 +161,11 @@ class RemoteLeader:
             err = r.json()
             detail, code = str(err["detail"]), str(err["code"])
         except (ValueError, KeyError, TypeError):
-            detail, code = r.text[:200], "device_error"
-        raise ArmError(f"{self.name}'s worker: {detail}", code=code, status_code=r.status_code)
+            detail, code = f"HTTP {r.status_code}: {r.text[:200]}", "device_error"
+        row = CODES.get(code)
+        if row is None or row.status is None:  # not an answer of the table: the worker's fault
+            code = "device_error"
+        raise ArmError(f"{self.name}'s worker: {detail}", code=code)
 
     def subscribe(self, backlog: int | None = None) -> RemoteFeed:
         with self._lock:
