@@ -51,6 +51,6 @@ async def set_torque(svc: OperatorArm, who: OperatorCaller, request: Request,
                    f"stop it first (DELETE /api/v1/teleop/{session.id})")
     falls = svc.profile.falling_joints
     if not req.on and falls and not req.load_supported:
-        raise falling_refusal(svc.name, falls, "torque off")
+        raise falling_refusal(svc.name, falls, "this request")
     await svc.set_torque(req.on)
     return s.TorqueState(arm=svc.name, on=req.on)
