@@ -455,6 +455,25 @@ def test_cli_call_and_watch(server: Server, capsys: pytest.CaptureFixture[str]) 
     assert json.loads(capsys.readouterr().out) == {"estop": True}
     assert cli_main(["call", "--url", server.url, "rbe3001", "release"]) == 0
     assert json.loads(capsys.readouterr().out) == {"estop": False}
+    # the joints' torque: the angler's winch falls without it, so off needs --load-supported
+    # (the simulated world's hand holds the arm meanwhile: the module's server goes on)
+    with ArmClient(server.url) as c:
+        c.move_hand("angler", wait=True)
+    assert cli_main(["call", "--url", server.url, "angler", "torque", "off"]) == 1
+    assert json.loads(capsys.readouterr().err)["code"] == "in_use"
+    def torque() -> list[int]:
+        with ArmClient(server.url) as c:
+            return [c.dxl_read_register("angler", i, "torque_enable").raw for i in (1, 2, 3, 4)]
+    assert torque() == [1, 1, 1, 1]
+    assert cli_main(["call", "--url", server.url, "angler", "torque", "off",
+                     "--load-supported"]) == 0
+    assert json.loads(capsys.readouterr().out) == {"arm": "angler", "on": False}
+    assert torque() == [0, 0, 0, 0]
+    assert cli_main(["call", "--url", server.url, "angler", "torque", "on"]) == 0
+    assert json.loads(capsys.readouterr().out) == {"arm": "angler", "on": True}
+    assert torque() == [1, 1, 1, 1]
+    with ArmClient(server.url) as c:
+        c.let_go_hand("angler")
     assert cli_main(["watch", "rbe3001", "--url", server.url, "--rate", "20",
                      "--count", "3"]) == 0
     lines = capsys.readouterr().out.splitlines()

@@ -90,6 +90,11 @@ def _add_call(sub: Any) -> None:
     cmd("stop", lambda c, a: c.stop(a.arm), "stop all motion; the arm holds")
     cmd("estop", lambda c, a: c.estop(a.arm), "latch the emergency stop")
     cmd("release", lambda c, a: c.release_estop(a.arm), "release the emergency stop")
+    tq = cmd("torque", lambda c, a: c.set_torque(a.arm, a.on == "on", a.load_supported),
+             "the joints' torque off (moved by hand) or on again (holding)")
+    tq.add_argument("on", choices=["on", "off"])
+    tq.add_argument("--load-supported", action="store_true",
+                    help="the joints that fall without torque are held or rest")
     gr = cmd("gripper", lambda c, a: c.gripper(a.arm, a.value), "gripper 0 open .. 1 closed")
     gr.add_argument("value", type=float)
     fk = cmd("forward", lambda c, a: c.forward(a.arm, a.q), "forward kinematics of Q...")
