@@ -27,10 +27,11 @@ MARKER = "<!-- README-TELEOP-BY-HAND -->"
 TOL = 8 * 2 * np.pi / 4096
 
 
-def readme_block() -> list[str]:
-    """The block's commands: continuation lines joined, trailing comments dropped."""
+def readme_block(marker: str = MARKER) -> list[str]:
+    """The commands of the block after `marker`: continuation lines joined, trailing comments
+    dropped."""
     text = (ROOT / "README.md").read_text(encoding="utf-8")
-    after = text[text.index(MARKER):]
+    after = text[text.index(marker):]
     body = after.split("```sh\n", 1)[1].split("```", 1)[0]
     joined = re.sub(r"\\\n\s*", "", body)
     return [re.sub(r"\s+#\s.*$", "", ln).strip() for ln in joined.splitlines() if ln.strip()]
@@ -63,6 +64,15 @@ class Background:
         if self.proc.poll() is None:
             self.proc.send_signal(sig)
         return self.proc.wait(timeout=30)
+
+
+def stop_all(jobs: list[Background]) -> None:
+    """End the background commands, the last started first (SIGTERM, then SIGKILL)."""
+    for job in reversed(jobs):
+        try:
+            job.stop(signal.SIGTERM)
+        except subprocess.TimeoutExpired:
+            job.proc.kill()
 
 
 def healthy(port: int) -> bool:
@@ -122,8 +132,4 @@ def test_the_readme_block_runs_as_written() -> None:
         assert teleop.stop(signal.SIGINT) == 0, "\n".join(teleop.lines)
         assert any(ln.startswith("stopped: stopped by") for ln in teleop.lines), teleop.lines
     finally:
-        for job in reversed(jobs):
-            try:
-                job.stop(signal.SIGTERM)
-            except subprocess.TimeoutExpired:
-                job.proc.kill()
+        stop_all(jobs)

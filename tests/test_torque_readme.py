@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
-import signal
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -18,7 +16,7 @@ from typing import Any
 import numpy as np
 from _serve import free_port
 from _wait import wait_until
-from test_teleop_readme import ROOT, Background, healthy, local
+from test_teleop_readme import ROOT, Background, healthy, local, readme_block, stop_all
 
 from tests._lerobot import check_dataset
 
@@ -26,17 +24,8 @@ MARKER = "<!-- README-DEMO-BY-HAND -->"
 TOL = 8 * 2 * np.pi / 4096  # the XM430's settle tolerance (8 ticks), rad
 
 
-def readme_block() -> list[str]:
-    """The block's commands: continuation lines joined, trailing comments dropped."""
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    after = text[text.index(MARKER):]
-    body = after.split("```sh\n", 1)[1].split("```", 1)[0]
-    joined = re.sub(r"\\\n\s*", "", body)
-    return [re.sub(r"\s+#\s.*$", "", ln).strip() for ln in joined.splitlines() if ln.strip()]
-
-
 def test_the_readme_block_runs_as_written(tmp_path: Path) -> None:
-    cmds = readme_block()
+    cmds = readme_block(MARKER)
     assert [c.split()[0] for c in cmds] == ["armserver", "curl", "armserver", "curl", "curl",
                                             "curl", "curl", "armserver"]
     port = free_port()
@@ -59,11 +48,7 @@ def test_the_readme_block_runs_as_written(tmp_path: Path) -> None:
             assert out.returncode == 0, (run, out.stdout, out.stderr)
             answers.append(json.loads(out.stdout))
     finally:
-        for job in reversed(jobs):
-            try:
-                job.stop(signal.SIGTERM)
-            except subprocess.TimeoutExpired:
-                job.proc.kill()
+        stop_all(jobs)
     held, off, _made, _started, moved, stopped, on = answers
     assert held["moving"] is False and off == {"arm": "leader", "on": False}
     assert moved == {"positions": [0.4, -0.3, 0.2, 0.5], "speed": 0.8, "moving": False}
