@@ -195,3 +195,25 @@ async def test_a_busy_check_that_fails_does_not_end_the_policy() -> None:
         assert calls[0] >= 2
     finally:
         await col.close()
+
+
+async def test_a_due_young_collection_runs_at_a_wake_up_the_loop_makes_anyway() -> None:
+    """Issue 27, session 41: the policy's timer woke an idle control loop 20 times a second for
+    its young collections. `young_if_due` runs a due one at a wake-up the loop makes anyway
+    (an arm's hand-over of replies, a poll's sample), none sooner than `YOUNG_EVERY_S` after
+    the last; the timer waits `YOUNG_TIMER_S` from the last one (bench/sample_cost.py
+    measures the wake-ups saved)."""
+    async with running_client(make_settings(control_thread=False)) as (app, _):
+        col = app.state.collector
+        seen, cb = collections()
+        try:
+            gc_policy.young_if_due()  # (due or not: the clock starts at the policy's last)
+            n0 = col.young_collections
+            gc_policy.young_if_due()  # just run: not due
+            assert col.young_collections == n0
+            await asyncio.sleep(gc_policy.YOUNG_EVERY_S)  # (the arms' polls may run it first)
+            gc_policy.young_if_due()
+            assert col.young_collections >= n0 + 1 and seen
+            assert gc_policy._last_young > 0.0
+        finally:
+            gc.callbacks.remove(cb)

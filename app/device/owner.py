@@ -21,6 +21,7 @@ import numpy as np
 from app.errors import ArmError, DeviceError, DeviceTimeout, LinkDown
 from app.links.base import Link, LinkError, LinkState
 from app.links.threaded import BATCH_S, IDLE_BATCH_S, ThreadLink
+from app.runtime.gc_policy import young_if_due
 from app.runtime.tasks import resolve
 from app.telemetry.hub import TelemetryHub
 
@@ -321,6 +322,7 @@ class OwnerTask:
         if (fut is not None and not fut.done() and isinstance(link, ThreadLink)
                 and link.armed and self._queue.empty() and not self._poll_now
                 and self._repeat(link) and not link.prefetched):
+            young_if_due()  # this wake-up, not the policy's timer's (app/runtime/gc_policy.py)
             return
         self._wake_owner()
 
@@ -448,6 +450,7 @@ class OwnerTask:
         sample, inputs = self._publish(q, qd, self._tared(tau, q), stale=False, at=at)
         self._template = (sample, inputs, (q, qd, tau, self.gravity, self.torque_tare,
                                            self.units_version))
+        young_if_due()  # a moving or read arm's polls wake the loop anyway
         return True
 
     def _repeat(self, link: ThreadLink) -> bool:

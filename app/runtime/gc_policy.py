@@ -21,10 +21,13 @@ fell. In a traced run of 1,000 Dynamixel goals (bench/goal_trace.py) 184 goals m
 goal is some 7 ms in 80), and a generation-1 or a full one was in 15 of the slowest 20, which
 set the goal's p99 (a generation-1 collection walks the young generations' thousands of live
 samples: 2-4 ms of CPU, more with the trace's own records). So:
-- the policy collects the young generations itself, at every tick of a timer
-  (`YOUNG_EVERY_S`), generation 1 at every third (`YOUNG_GEN1_AFTER`): the collections then
-  come at moments of the timer, not of a command, and a command's allocations seldom reach
-  the threshold (which stays, for bursts the timer does not keep up with). At every tick, not
+- the policy collects the young generations itself, every `YOUNG_EVERY_S`, generation 1 at
+  every third (`YOUNG_GEN1_AFTER`): at a wake-up the control loop makes anyway once one is
+  due (`young_if_due`: an arm's hand-over of replies, a poll's sample), else at its own
+  timer's (`YOUNG_TIMER_S` after the last; session 41: an idle loop was woken 20 times a
+  second for them). The collections then come at moments of the loop, not of a command,
+  and a command's allocations seldom reach the threshold (which stays, for bursts the policy
+  does not keep up with). At every `YOUNG_EVERY_S`, not
   once CPython's count says one is due (issue 27): that count is the allocations less the
   deallocations of tracked objects of any generation, so a process that frees old objects as
   fast as it makes new ones (the telemetry logs: a sample in, the oldest out) keeps it near
@@ -73,6 +76,12 @@ RETRY_S = 0.5
 #: in a lab worker of 16 arms at 500 Hz, 800 in a period (a collection of them: well under a
 #: millisecond).
 YOUNG_EVERY_S = 0.05
+#: The policy's own timer wakes the loop for a young collection only once none has run for
+#: this long: the loop's other wake-ups run a due one first (`young_if_due`: an arm at rest
+#: hands its replies over every 100 ms, a moving or read arm polls every 2 ms), so an idle
+#: control loop is not woken 20 times a second for it (issue 27: at rest, each wake-up of the
+#: control loop cost it a few hundred microseconds of a slow hour's CPU; session 41).
+YOUNG_TIMER_S = 0.15
 #: Generation 0's collections after which the policy's next is of generation 1 (CPython's own
 #: second threshold is 10): every sample a log keeps goes through generation 1, so a worker of
 #: 16 arms had 8,000 containers there at 10, a 1-4.5 ms collection; at 3, about 2,400.
@@ -89,6 +98,10 @@ HOLD_MAX_PENDING = 4
 HOLD_LOST_S = 1.0
 
 _active = 0  # collectors running in this process (tests run several apps at once)
+#: The collector whose young collections `young_if_due` runs (the last started), and when the
+#: policy last ran one (`time.monotonic()`).
+_young_by: Collector | None = None
+_last_young = 0.0
 _saved: tuple[int, int, int] | None = None
 _hold_lock = threading.Lock()
 _held = False  # automatic collections disabled by a hold (and by nothing else)
@@ -180,12 +193,14 @@ class Collector:
         self._young = loop.create_task(self._run_young(), name="gc-young")
 
     async def close(self) -> None:
-        global _active, _saved
+        global _active, _saved, _young_by
         if self._task is None:
             return
         await cancel_and_wait(self._task)
         await cancel_and_wait(self._young)
         self._task = self._young = None
+        if _young_by is self:
+            _young_by = None
         _active -= 1
         if _active == 0:
             with _hold_lock:
@@ -214,9 +229,16 @@ class Collector:
             return False
 
     async def _run_young(self) -> None:
+        global _young_by
+        _young_by = self
         while True:
-            await asyncio.sleep(YOUNG_EVERY_S)
+            wait = _last_young + YOUNG_TIMER_S - time.monotonic()
+            if wait > 0:  # (another wake-up ran one meanwhile)
+                await asyncio.sleep(wait)
+                continue
             self.collect_young()
+            if _last_young + YOUNG_TIMER_S <= time.monotonic():  # held off: try at the tick
+                await asyncio.sleep(YOUNG_EVERY_S)
 
     def collect_young(self) -> int | None:
         """A young collection now, unless a hold is active or automatic collection is off (a
@@ -229,8 +251,10 @@ class Collector:
         _, c1, _ = gc.get_count()
         if gc.get_threshold()[0] <= 0:
             return None
+        global _last_young
         gen = 1 if c1 >= YOUNG_GEN1_AFTER else 0
         gc.collect(gen)
+        _last_young = time.monotonic()
         self.young_collections += 1
         return gen
 
@@ -243,6 +267,15 @@ class Collector:
         self.longest_s = max(self.longest_s, pause)
         log.debug("full garbage collection: %d unreachable, %.1f ms", found, pause * 1e3)
         return found
+
+
+def young_if_due() -> None:
+    """A young collection now if the policy's is due (`YOUNG_EVERY_S` since its last): called
+    at a wake-up the loop makes anyway (an arm's hand-over of replies, a poll's sample), so that
+    the policy's own timer (`YOUNG_TIMER_S`) seldom has to wake it. From any thread."""
+    col = _young_by
+    if col is not None and time.monotonic() - _last_young >= YOUNG_EVERY_S:
+        col.collect_young()
 
 
 def moving(services: Mapping[str, Any]) -> Callable[[], bool]:
