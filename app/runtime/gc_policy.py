@@ -236,8 +236,7 @@ class Collector:
             if wait > 0:  # (another wake-up ran one meanwhile)
                 await asyncio.sleep(wait)
                 continue
-            self.collect_young()
-            if _last_young + YOUNG_TIMER_S <= time.monotonic():  # held off: try at the tick
+            if self.collect_young() is None:  # held off (or collection off): look again soon
                 await asyncio.sleep(YOUNG_EVERY_S)
 
     def collect_young(self) -> int | None:
@@ -246,12 +245,12 @@ class Collector:
         times since, else generation 0; whatever CPython's count of generation 0 says (the
         module doc: it stays near zero while old samples are freed as new ones come). The
         generation collected, or None."""
+        global _last_young
         if _held or not gc.isenabled():
             return None
         _, c1, _ = gc.get_count()
         if gc.get_threshold()[0] <= 0:
             return None
-        global _last_young
         gen = 1 if c1 >= YOUNG_GEN1_AFTER else 0
         gc.collect(gen)
         _last_young = time.monotonic()

@@ -187,15 +187,14 @@ class DynamixelChainDriver(DynamixelBusDriver):
         On again: Goal Position first written as each servo's Present Position, so that it
         holds where the hand left it instead of going back to an older goal (the position
         modes drive to Goal Position as soon as torque is on), and noted as the commanded
-        state. Off, no joint is told anything any more: the commanded state is forgotten, so
-        that what the arm is said to be headed for (`told`: a recording's action, a check's
-        start) is where the hand has it, not the goal it held before. Neither write is gated
-        by the estop latch: torque off is the safe write, and a goal at the present position
-        moves nothing."""
+        state. Off, no joint is told anything any more: the write forgets the commanded state
+        (`_note_written`, as for a pass-through torque off), so that what the arm is said to
+        be headed for (`told`: a recording's action, a check's start) is where the hand has
+        it, not the goal it held before. Neither write is gated by the estop latch: torque off
+        is the safe write, and a goal at the present position moves nothing."""
         enable = mx28.TABLE["torque_enable"]
         if not on:
             await self.sync_write(enable, {i: 0 for i in self.ids}, gated=False)
-            self.forget_commanded()
             return
         here: dict[int, int] | None = None
         for _ in range(TORQUE_ON_READS):  # a late reply to a timed-out poll fails one read
