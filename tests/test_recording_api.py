@@ -25,7 +25,8 @@ API = "/api/v1"
 FPS = 10
 
 
-async def _frames_at_least(client: httpx.AsyncClient, rid: str, n: int) -> None:
+async def frames_at_least(client: httpx.AsyncClient, rid: str, n: int) -> None:
+    """Until recording `rid`'s current episode has `n` frames (bounded)."""
     async def enough() -> bool:
         cur = (await client.get(f"{API}/recordings/{rid}")).json()["current"]
         return cur is not None and cur["frames"] >= n
@@ -75,20 +76,20 @@ async def test_record_episodes_discard_and_refusals() -> None:
                               json={"positions": target, "speed": 0.5, "wait": True})
         assert r.status_code == 200, r.text
         there = (await client.get(f"{API}/recordings/demo")).json()["current"]["frames"]
-        await _frames_at_least(client, "demo", max(25, there + 3))  # some with the arm there
+        await frames_at_least(client, "demo", max(25, there + 3))  # some with the arm there
         r = await client.post(f"{API}/recordings/demo/episodes/stop")
         assert r.status_code == 200, r.text
         assert r.json()["episodes"] == 1 and r.json()["current"] is None
 
         # episode 1 discarded, episode 2 kept
         assert (await client.post(f"{API}/recordings/demo/episodes")).status_code == 201
-        await _frames_at_least(client, "demo", 3)
+        await frames_at_least(client, "demo", 3)
         r = await client.delete(f"{API}/recordings/demo/episodes/current")
         assert r.status_code == 200 and r.json()["episodes"] == 1
         r = await client.delete(f"{API}/recordings/demo/episodes/current")
         assert (r.status_code, r.json()["code"]) == (409, "conflict")
         assert (await client.post(f"{API}/recordings/demo/episodes")).status_code == 201
-        await _frames_at_least(client, "demo", 5)
+        await frames_at_least(client, "demo", 5)
         r = await client.post(f"{API}/recordings/demo/episodes/stop")
         d = r.json()
         assert d["episodes"] == 2 and [e["tasks"] for e in d["episode_list"]] == [["reach"],
@@ -140,12 +141,12 @@ async def test_disk_full_answers_503_and_keeps_the_dataset(tmp_path: Path) -> No
                                                           "fps": FPS})
         root = Path(r.json()["path"])
         assert (await client.post(f"{API}/recordings/full/episodes")).status_code == 201
-        await _frames_at_least(client, "full", 3)
+        await frames_at_least(client, "full", 3)
         assert (await client.post(f"{API}/recordings/full/episodes/stop")).status_code == 200
         # the kernel's ENOSPC: the frames' temporary file is /dev/full
         (root / "data/chunk-000/.file-000.parquet.tmp").symlink_to("/dev/full")
         assert (await client.post(f"{API}/recordings/full/episodes")).status_code == 201
-        await _frames_at_least(client, "full", 3)
+        await frames_at_least(client, "full", 3)
         r = await client.post(f"{API}/recordings/full/episodes/stop")
         assert (r.status_code, r.json()["code"]) == (503, "recording_failed"), r.text
         d = (await client.get(f"{API}/recordings/full")).json()
@@ -154,7 +155,7 @@ async def test_disk_full_answers_503_and_keeps_the_dataset(tmp_path: Path) -> No
         assert check_dataset(root).info["total_episodes"] == 1
         # and it records on
         assert (await client.post(f"{API}/recordings/full/episodes")).status_code == 201
-        await _frames_at_least(client, "full", 3)
+        await frames_at_least(client, "full", 3)
         r = await client.post(f"{API}/recordings/full/episodes/stop")
         assert r.json()["episodes"] == 2 and r.json()["last_error"] is None
         check_dataset(root)
@@ -178,7 +179,7 @@ async def test_a_camera_lost_mid_episode_ends_it_and_keeps_it(tmp_path: Path) ->
                 "name": "cam", "arms": [profiles[0].name], "cameras": ["desk"], "fps": FPS})
             assert r.status_code == 201, r.text
             assert (await client.post(f"{API}/recordings/cam/episodes")).status_code == 201
-            await _frames_at_least(client, "cam", 5)
+            await frames_at_least(client, "cam", 5)
             for p in folder.iterdir():
                 p.unlink()
 
@@ -200,7 +201,7 @@ async def test_shutdown_writes_the_episode_that_records() -> None:
                                                           "fps": FPS})
         root = Path(r.json()["path"])
         assert (await client.post(f"{API}/recordings/bye/episodes")).status_code == 201
-        await _frames_at_least(client, "bye", 4)
+        await frames_at_least(client, "bye", 4)
     read = check_dataset(root)  # the lifespan's end wrote it
     assert read.info["total_episodes"] == 1 and read.episodes[0]["length"] >= 4
 

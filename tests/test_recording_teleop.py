@@ -12,6 +12,7 @@ from _wait import wait_for
 
 from tests._lerobot import check_dataset
 from tests.conftest import make_settings, running_client
+from tests.test_recording_api import frames_at_least
 
 API = "/api/v1"
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "teleop_omx.toml"
@@ -51,11 +52,7 @@ async def test_the_action_is_the_leaders_joints_the_state_the_followers() -> Non
             await wait_for(lambda: np.allclose(follower.positions, GOAL, atol=TOL),
                            what="the follower at the leader's goal")
             there = (await c.get(f"{API}/recordings/tele")).json()["current"]["frames"]
-
-            async def later() -> bool:  # a few frames with the follower there
-                cur = (await c.get(f"{API}/recordings/tele")).json()["current"]
-                return bool(cur["frames"] >= there + 3)
-            await wait_for(later, what="three more frames")
+            await frames_at_least(c, "tele", there + 3)  # three more frames
             r = await c.post(f"{API}/recordings/tele/episodes/stop")
             assert r.status_code == 200, r.text
             lq = np.array([orjson.loads(x)["positions"] for x in lsub.take()[0]])

@@ -24,6 +24,7 @@ from app.client import AsyncArmClient
 from app.service import ArmService
 from tests._lerobot import check_dataset
 from tests.conftest import make_settings, running_client
+from tests.test_recording_api import frames_at_least
 from tests.test_recording_teleop import path_distance
 
 API = "/api/v1"
@@ -126,11 +127,7 @@ async def test_the_follower_follows_a_leader_moved_by_hand(
             await wait_for(lambda q=q: np.allclose(follower.positions, q, atol=TOL),
                            what=f"the follower at {q}")
         there = (await c.get(f"{API}/recordings/byhand")).json()["current"]["frames"]
-
-        async def later() -> bool:
-            cur = (await c.get(f"{API}/recordings/byhand")).json()["current"]
-            return bool(cur["frames"] >= there + 3)
-        await wait_for(later, what="three more frames")
+        await frames_at_least(c, "byhand", there + 3)  # three more frames
         r = await c.post(f"{API}/recordings/byhand/episodes/stop")
         assert r.status_code == 200, r.text
         lsamples = [orjson.loads(x) for x in lsub.take()[0]]

@@ -17,6 +17,7 @@ from _wait import held_still, wait_for
 from app.service import ArmService
 from tests._lerobot import check_dataset
 from tests.conftest import make_settings, running_client
+from tests.test_recording_api import frames_at_least
 
 API = "/api/v1"
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "teleop_omx.toml"
@@ -162,11 +163,7 @@ async def test_a_demonstration_by_hand_records_where_the_hand_took_the_arm() -> 
             await wait_for(lambda q=q: np.allclose(arm.positions, q, atol=tol),
                            what=f"the arm's samples at {q}")
         there = (await c.get(f"{API}/recordings/shown")).json()["current"]["frames"]
-
-        async def later() -> bool:
-            cur = (await c.get(f"{API}/recordings/shown")).json()["current"]
-            return bool(cur["frames"] >= there + 3)
-        await wait_for(later, what="three more frames")
+        await frames_at_least(c, "shown", there + 3)  # three more frames
         r = await c.post(f"{API}/recordings/shown/episodes/stop")
         assert r.status_code == 200, r.text
         read = check_dataset(Path(r.json()["path"]))
