@@ -266,6 +266,9 @@ class ArmService:
     def require_motion_allowed(self) -> None:
         self.guard.require_motion_allowed()
 
+    def require_torque(self) -> None:
+        self.guard.require_torque()
+
     async def command_passthrough(self, goals: dict[int, float],
                                   send: Callable[[], Awaitable[T]]) -> T:
         """Runs `_command_passthrough` on the arm's control loop (its state changes only there).

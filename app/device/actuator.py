@@ -36,6 +36,10 @@ class Actuator(Protocol):
     faults: list[dict[str, Any]]
     homed: list[bool]
     calibrated: list[bool]
+    #: The joints whose actuator this server switched off (the torque route, a teleoperation
+    #: leader, a pass-through Torque Enable 0) and not on again since: no command can move
+    #: them (the safety guard's `require_torque`). A device without a torque switch: ().
+    torque_off: tuple[int, ...]
     #: Counts the commands noted as sent (any source): the executor's own last setpoint is
     #: still the arm's commanded state while this has not moved on.
     command_seq: int

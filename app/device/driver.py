@@ -137,6 +137,8 @@ class Driver(OwnerTask, abc.ABC):
         #: Hardware faults (API "Faults and homing"): `{"joint", "servo", "bits", "raw",
         #: "advice"}` each; empty when healthy or for a device that reports none.
         self.faults: list[dict[str, Any]] = []
+        #: The joints whose torque this server switched off and not on again (`note_torque`).
+        self.torque_off: tuple[int, ...] = ()
         #: One flag per joint: False for a joint that needs homing until POST /home.
         self.homed = [not j.needs_homing or profile.link.homed_at_start for j in profile.joints]
         #: One flag per joint: False for a joint whose zero the hardware does not know
@@ -275,6 +277,15 @@ class Driver(OwnerTask, abc.ABC):
             cur[list(joints)] = np.nan
             self._commanded_ticks = cur
         self.command_seq += 1
+
+    def note_torque(self, joints: Any, on: bool) -> None:
+        """The torque of `joints` (indices) was just switched on or off (`torque_off`)."""
+        off = set(self.torque_off)
+        if on:
+            off.difference_update(joints)
+        else:
+            off.update(joints)
+        self.torque_off = tuple(sorted(off))
 
     @property
     def commanded(self) -> np.ndarray | None:

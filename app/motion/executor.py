@@ -197,6 +197,7 @@ class MotionExecutor(MotionStream):
                 target: np.ndarray) -> MotionRecord:
         self.guard.require_motion_allowed()
         self.guard.require_no_fault()
+        self.guard.require_torque()
         if req.mode == "queue" and len(self._queue) >= MAX_QUEUED:
             raise Busy(f"{self.name}: {MAX_QUEUED} motions already queued")
         start, at_rest = self._tail_state(req.mode)

@@ -104,9 +104,10 @@ class Settle:
             names = ", ".join(self.names[k] for k in st.torque_off)
             return TorqueOff(
                 f"{names}: the servo holds no torque (torque off after a reboot or a fault, or "
-                f"switched off), so the joint cannot be at its target; reboot it with POST "
-                f"/api/v1/arms/{self.arm}/dynamixel/{{id}}/reboot, which switches the torque on "
-                f"holding where the joint is")
+                f"switched off), so the joint cannot be at its target; switch it on with PUT "
+                f'/api/v1/arms/{self.arm}/torque {{"on": true}} or reboot it with POST '
+                f"/api/v1/arms/{self.arm}/dynamixel/{{id}}/reboot, either holding where the "
+                f"joint is")
         return st.moving
 
     def device_fault(self) -> ArmError | None:

@@ -153,6 +153,7 @@ class MotionStream:
     async def _execute(self, rec: MotionRecord) -> None:
         self.guard.require_motion_allowed()
         self.guard.require_no_fault()
+        self.guard.require_torque()  # (switched off while it was queued)
         start = self._start_state()
         at_rest = not np.any(start[1]) or rec.path == "line"
         if rec.path == "line" and np.any(start[1]):
@@ -240,6 +241,12 @@ class MotionStream:
                 err = self.device.stale_error
             except ArmError as exc:
                 err = exc
+            if self.device.torque_off:  # a pass-through Torque Enable 0 while it runs
+                try:
+                    self.guard.require_torque()
+                except ArmError as exc:
+                    await self._watchdog(rec, exc)
+                    return "halt"
             failures = failures + 1 if err is not None else 0
             if err is not None and (err.code == "link_down" or failures >= MAX_SETPOINT_FAILURES):
                 await self._watchdog(rec, err)

@@ -27,6 +27,7 @@ from app.errors import (
     NotCalibrated,
     NotHomed,
     ShuttingDown,
+    TorqueOff,
     VelocityLimit,
 )
 from app.safety.envelope import ArmSafety, path_fractions
@@ -75,6 +76,19 @@ class SafetyGuard:
                         + " | ".join(f"servo {f['servo']} ({f['joint']}): "
                                      f"{', '.join(f['bits']) or 'alert'}: {f['advice']}"
                                      for f in faults))
+
+    def require_torque(self) -> None:
+        """409 `torque_off` while a joint's torque is off (switched off through this server and
+        not on again, `Actuator.torque_off`): a command would go to a servo that cannot follow
+        it, and its goal would wait there for the torque to come back, a move from wherever a
+        hand or gravity has taken the joint that no check has seen. Every joint: a limp one
+        can swing while the others move."""
+        off = self.device.torque_off
+        if off:
+            names = ", ".join(self.profile.joints[k].name for k in off)
+            raise TorqueOff(f"{self.name}: the torque of {names} is off, so no command can move "
+                            f"the arm; switch it on with PUT /api/v1/arms/{self.name}/torque "
+                            '{"on": true}, which holds every joint where it is')
 
     def tolerance(self) -> np.ndarray:
         """Per joint (rad or m): the profile's `settle_tolerance`, else 8 encoder ticks."""
@@ -132,7 +146,7 @@ class SafetyGuard:
         take from where it is (measured) to `target` (rad or m, every joint: the caller fills
         the joints it does not command with where they are told to go):
 
-        - the estop, shutdown and faults; NaN; homing;
+        - the estop, shutdown and faults; a joint's torque off; NaN; homing;
         - the joint limits, unless the profile allows raw access;
         - the envelope (raw access too), along that path: every joint together, each paced
           joint ramping at its own pace (a servo's profile, independent of the others), the
@@ -146,6 +160,7 @@ class SafetyGuard:
         """
         self.require_motion_allowed()
         self.require_no_fault()
+        self.require_torque()
         target = np.asarray(target, dtype=float)
         require_finite(target, "pass-through positions")
         here = self.device.positions

@@ -102,6 +102,7 @@ class TeleopSessions:
                 raise Busy(f"{follower.name} already follows {t.leader.name} (teleoperation "
                            f"session {t.id}): stop it first (DELETE /api/v1/teleop/{t.id})")
         follower.require_motion_allowed()
+        follower.require_torque()
         if leader.estop:  # the session would end at its first tick
             raise EstopLatched(f"{leader.name}'s emergency stop is latched: a leader under "
                                f"estop drives nothing (DELETE /api/v1/arms/{leader.name}/estop)")

@@ -118,7 +118,8 @@ class DynamixelChainDriver(DynamixelBusDriver):
 
     def _note_written(self, item: ControlItem, values: dict[int, int]) -> None:
         """A pass-through Profile Velocity is what the power check expects back; a joint whose
-        torque went off is told nothing any more (as `set_torque`'s off: a hand may move it)."""
+        torque went off is told nothing any more (as `set_torque`'s off: a hand may move it),
+        and no command may move it until its torque is on again (`torque_off`)."""
         if item.name == "profile_velocity":
             for i, raw in values.items():
                 if i in self.servo_ids:
@@ -127,6 +128,9 @@ class DynamixelChainDriver(DynamixelBusDriver):
             off = [self.ids.index(i) for i, raw in values.items() if raw == 0 and i in self.ids]
             if off:
                 self.forget_commanded(off)
+                self.note_torque(off, False)
+            self.note_torque([self.ids.index(i) for i, raw in values.items()
+                              if raw != 0 and i in self.ids], True)
 
     def _note_sent(self, item: ControlItem, values: dict[int, int]) -> None:
         """Goal Position of the arm's joints is the arm's commanded state."""
@@ -324,6 +328,8 @@ class DynamixelChainDriver(DynamixelBusDriver):
             if k is not None:
                 self.forget_commanded([k])  # it holds where it is
             await self._write(i, t["torque_enable"], 1)
+            if k is not None:
+                self.note_torque([k], True)
         except DeviceError as exc:
             if isinstance(exc, CorruptReply):
                 raise

@@ -1,0 +1,142 @@
+"""Nothing is commanded to a joint whose torque is off. Before, a planned move was accepted with
+the angler's torque switched off (`PUT .../torque`): the executor streamed its goals for the
+whole plan (20 s) to servos that could not follow, each goal waiting in its servo for the
+torque to come back, and only the settle check at the end failed it. Now every command that
+moves an arm (a planned move, a pass-through goal, a teleoperation follower's start) is 409
+`torque_off` while a joint's torque is off through this server, and nothing is written; a
+motion that runs when a pass-through write switches a joint off fails at its next setpoint
+(the watchdog), not at its end. Judged on the device's side (the simulated servos' Goal
+Position and Torque Enable) and by the answers' codes."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from _wait import held_still, wait_for
+
+from app.service import ArmService
+from tests.conftest import make_settings, running_client
+
+API = "/api/v1"
+DX = f"{API}/arms/angler/dynamixel"
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "teleop_omx.toml"
+
+
+def goals(arm: ArmService) -> list[int]:
+    bus = arm.driver.link.device
+    return [bus.servo(j.motor_id).get("goal_position") for j in arm.profile.joints]
+
+
+async def test_moves_and_goals_are_refused_while_the_torque_is_off_then_run_once_it_is_on(
+        ) -> None:
+    async with running_client(make_settings()) as (app, c):
+        angler: ArmService = app.state.services["angler"]
+        r = await c.put(f"{API}/arms/angler/torque", json={"on": False, "load_supported": True})
+        assert r.status_code == 200, r.text
+        q = await held_still(lambda: angler.positions, 1e-4)  # (the winch has paid out)
+        before = goals(angler)
+        target = [q[0] + 0.01, q[1], q[2], max(q[3], 0.02)]
+        refused = [
+            await c.post(f"{API}/arms/angler/move/joints", json={"positions": target}),
+            await c.post(f"{API}/arms/angler/move/pose",
+                         json={"x": 0.0, "y": 0.1, "z": 0.0}),
+            await c.put(f"{DX}/2/registers/goal_position", json={"raw": before[0] + 40}),
+            await c.post(f"{DX}/sync-write", json={"name": "goal_position",
+                                                   "values": {"2": before[0] + 40}}),
+        ]
+        for r in refused:
+            assert r.status_code == 409 and r.json()["code"] == "torque_off", r.text
+            detail = r.json()["detail"]
+            assert "x, y, theta3, z" in detail and "/arms/angler/torque" in detail, detail
+        assert goals(angler) == before  # nothing written
+        assert angler.motion.current is None and not angler.motion.queued()
+
+        r = await c.put(f"{API}/arms/angler/torque", json={"on": True})
+        assert r.status_code == 200, r.text
+        r = await c.post(f"{API}/arms/angler/move/joints",
+                         json={"positions": target, "wait": True})
+        assert r.status_code == 200 and r.json()["status"] == "done", r.text
+        np.testing.assert_allclose(await held_still(lambda: angler.positions, 1e-4), target,
+                                   atol=2e-3)
+
+
+async def test_one_joint_off_through_passthrough_refuses_moves_until_its_reboot() -> None:
+    async with running_client(make_settings()) as (app, c):
+        angler: ArmService = app.state.services["angler"]
+        bus = angler.driver.link.device
+        q = await held_still(lambda: angler.positions, 1e-4)
+        r = await c.put(f"{DX}/3/registers/torque_enable", json={"raw": 0})  # theta3
+        assert r.status_code == 200, r.text
+        target = [q[0] + 0.01, q[1], q[2], q[3]]  # theta3 not among the joints moved
+        r = await c.post(f"{API}/arms/angler/move/joints", json={"positions": target})
+        assert r.status_code == 409 and r.json()["code"] == "torque_off", r.text
+        assert "torque of theta3 is off" in r.json()["detail"], r.text
+        assert bus.servo(2).get("goal_position") == bus.servo(2).get("present_position") or \
+            abs(bus.servo(2).get("goal_position") - bus.servo(2).get("present_position")) <= 1
+        r = await c.post(f"{DX}/3/reboot")  # set up again: goal = present, torque on
+        assert r.status_code == 200, r.text
+        assert bus.servo(3).torque
+        r = await c.post(f"{API}/arms/angler/move/joints",
+                         json={"positions": target, "wait": True})
+        assert r.status_code == 200 and r.json()["status"] == "done", r.text
+
+
+async def test_a_running_motion_fails_at_once_when_a_joint_goes_limp() -> None:
+    async with running_client(make_settings()) as (app, c):
+        angler: ArmService = app.state.services["angler"]
+        sub = angler.hub.subscribe()
+        try:
+            q = await held_still(lambda: angler.positions, 1e-4)
+            r = await c.post(f"{API}/arms/angler/move/joints",
+                             json={"positions": [q[0] + 0.03, q[1], q[2], q[3]],
+                                   "duration": 10.0})
+            assert r.status_code == 202, r.text
+            mid = r.json()["id"]
+            await wait_for(lambda: angler.motion.current is not None
+                           and angler.motion.current.status == "running", what="running")
+            t0 = time.monotonic()
+            r = await c.put(f"{DX}/3/registers/torque_enable", json={"raw": 0})
+            assert r.status_code == 200, r.text
+
+            async def ended() -> dict[str, Any] | None:
+                got = (await c.get(f"{API}/arms/angler/motions/{mid}")).json()
+                return got if got["status"] != "running" else None
+
+            m = await wait_for(ended, what="the motion's end")
+            took = time.monotonic() - t0
+            assert m["status"] == "failed" and m["code"] == "torque_off", m
+            assert "theta3" in m["reason"], m
+            assert took < 2.0, took  # at its next setpoint, not at the plan's end and settle
+            _samples, got, _dropped = sub.take()
+        finally:
+            sub.close()
+        import orjson
+
+        events = [orjson.loads(e) for e in got]
+        assert any(e.get("event") == "watchdog" and e["data"]["code"] == "torque_off"
+                   for e in events), events
+
+
+async def test_a_follower_with_its_torque_off_cannot_start_a_session() -> None:
+    async with running_client(make_settings(config=str(CONFIG))) as (app, c):
+        follower: ArmService = app.state.services["follower"]
+        bus = follower.driver.link.device
+        r = await c.put(f"{API}/arms/follower/world/hand", json={})  # the hand holds it first
+        assert r.status_code == 200, r.text
+        r = await c.put(f"{API}/arms/follower/torque", json={"on": False, "load_supported": True})
+        assert r.status_code == 200, r.text
+        r = await c.post(f"{API}/teleop", json={"leader": "leader", "follower": "follower",
+                                                "rate_hz": 50})
+        assert r.status_code == 409 and r.json()["code"] == "torque_off", r.text
+        assert (await c.get(f"{API}/teleop")).json() == []
+        assert not any(bus.servo(j.motor_id).torque for j in follower.profile.joints)
+        r = await c.put(f"{API}/arms/follower/torque", json={"on": True})
+        assert r.status_code == 200, r.text
+        r = await c.post(f"{API}/teleop", json={"leader": "leader", "follower": "follower",
+                                                "rate_hz": 50})
+        assert r.status_code == 201, r.text
+        r = await c.delete(f"{API}/teleop/{r.json()['id']}")
+        assert r.status_code == 200, r.text
