@@ -162,6 +162,8 @@ class ArmService:
                            faults=[s.Fault(**f) for f in self.driver.faults],
                            homed=list(self.driver.homed),
                            calibrated=list(self.driver.calibrated),
+                           torque=[k not in self.driver.torque_off
+                                   for k in range(len(self.profile.joints))],
                            firmware=self.driver.firmware_note, force=self.force_info(),
                            chain=s.ArmChain.model_validate(self.model.describe()),
                            telemetry=s.TelemetryStats(subscribers=self.hub.subscriber_count,

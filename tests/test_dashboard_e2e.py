@@ -581,6 +581,14 @@ def test_torque_off_by_hand_asks_for_the_winch_then_on_again_holding(
                    what="torque on shown")
         assert all(sv.torque for sv in servos)
         assert page.inner_text("#angler-faults-error") == ""
+        # another client's switch shows too (the `torque` event, then the arm's detail)
+        api(server, "PUT", "/arms/angler/torque", json={"on": False, "load_supported": True})
+        wait_until(lambda: page.locator("#angler-torque").get_attribute("data-on") == "false",
+                   what="another client's torque off shown")
+        assert "theta3" in page.inner_text("#angler-torque")
+        api(server, "PUT", "/arms/angler/torque", json={"on": True})
+        wait_until(lambda: page.locator("#angler-torque").get_attribute("data-on") == "true",
+                   what="another client's torque on shown")
     finally:
         api(server, "PUT", "/arms/angler/torque", json={"on": True})
         HTTP.delete(f"{server.url}/api/v1/arms/angler/world/hand", timeout=10)

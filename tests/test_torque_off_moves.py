@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import orjson
 from _wait import held_still, wait_for
 
 from app.service import ArmService
@@ -34,8 +35,10 @@ async def test_moves_and_goals_are_refused_while_the_torque_is_off_then_run_once
         ) -> None:
     async with running_client(make_settings()) as (app, c):
         angler: ArmService = app.state.services["angler"]
+        assert (await c.get(f"{API}/arms/angler")).json()["torque"] == [True] * 4
         r = await c.put(f"{API}/arms/angler/torque", json={"on": False, "load_supported": True})
         assert r.status_code == 200, r.text
+        assert (await c.get(f"{API}/arms/angler")).json()["torque"] == [False] * 4
         q = await held_still(lambda: angler.positions, 1e-4)  # (the winch has paid out)
         before = goals(angler)
         target = [q[0] + 0.01, q[1], q[2], max(q[3], 0.02)]
@@ -70,6 +73,8 @@ async def test_one_joint_off_through_passthrough_refuses_moves_until_its_reboot(
         q = await held_still(lambda: angler.positions, 1e-4)
         r = await c.put(f"{DX}/3/registers/torque_enable", json={"raw": 0})  # theta3
         assert r.status_code == 200, r.text
+        detail = (await c.get(f"{API}/arms/angler")).json()
+        assert detail["torque"] == [True, True, False, True], detail["torque"]
         target = [q[0] + 0.01, q[1], q[2], q[3]]  # theta3 not among the joints moved
         r = await c.post(f"{API}/arms/angler/move/joints", json={"positions": target})
         assert r.status_code == 409 and r.json()["code"] == "torque_off", r.text
@@ -79,6 +84,7 @@ async def test_one_joint_off_through_passthrough_refuses_moves_until_its_reboot(
         r = await c.post(f"{DX}/3/reboot")  # set up again: goal = present, torque on
         assert r.status_code == 200, r.text
         assert bus.servo(3).torque
+        assert (await c.get(f"{API}/arms/angler")).json()["torque"] == [True] * 4
         r = await c.post(f"{API}/arms/angler/move/joints",
                          json={"positions": target, "wait": True})
         assert r.status_code == 200 and r.json()["status"] == "done", r.text
@@ -110,14 +116,16 @@ async def test_a_running_motion_fails_at_once_when_a_joint_goes_limp() -> None:
             assert m["status"] == "failed" and m["code"] == "torque_off", m
             assert "theta3" in m["reason"], m
             assert took < 2.0, took  # at its next setpoint, not at the plan's end and settle
-            _samples, got, _dropped = sub.take()
+            events: list[dict[str, Any]] = []
+
+            def watchdog() -> bool:
+                events.extend(orjson.loads(e) for e in sub.take()[1])
+                return any(e.get("event") == "watchdog" and e["data"]["code"] == "torque_off"
+                           for e in events)
+
+            await wait_for(watchdog, what="the watchdog event, code torque_off")
         finally:
             sub.close()
-        import orjson
-
-        events = [orjson.loads(e) for e in got]
-        assert any(e.get("event") == "watchdog" and e["data"]["code"] == "torque_off"
-                   for e in events), events
 
 
 async def test_a_follower_with_its_torque_off_cannot_start_a_session() -> None:

@@ -140,6 +140,12 @@ class ArmDetail(ArmSummary):
     homed: list[bool] = Field(default_factory=list, description="one flag per joint")
     calibrated: list[bool] = Field(default_factory=list, description="one flag per joint: "
                                    "its zero is known on this hardware (API.md Calibration)")
+    torque: list[bool] = Field(default_factory=list, description="one flag per joint: its "
+                               "servo holds torque; false where it was switched off through "
+                               "this server (PUT .../torque, a teleoperation session's leader, "
+                               "a pass-through Torque Enable 0) and not on again, while "
+                               "everything that moves the arm is 409 `torque_off` (an addition "
+                               "to API.md)")
     firmware: str | None = Field(None, description="what the server found out about the "
                                  "device's firmware at connect, and what to do, where it "
                                  "matters (e.g. an rbe3001 build without STATUS)")

@@ -538,6 +538,9 @@ class Arm {
     if (msg.event === "link_lost") { this.link = "down"; this.pendingBreak = true; }
     if (msg.event === "link_back") this.link = "up";
     if (msg.event === "safety") this.safety?.refresh();
+    if (msg.event === "torque" || msg.event === "rebooted") {
+      this.el.card.dispatchEvent(new CustomEvent("arm-torque", { detail: d }));  // faults.js
+    }
     this.classroom?.onEvent(msg);
     const words = {
       motion_started: "motion started", motion_ended: "motion ended", estop: "emergency stop latched",

@@ -5,7 +5,7 @@
 // advice, which joints are homed, and offers reboot (per faulted servo), home, and the joints'
 // torque off and on (a Dynamixel arm; the tare is in app.js's Force panel). The
 // calls go through app.js's `api` (window.armDashboard.api), so tokens work as everywhere.
-import { CardPanel, el, panelPerCard } from "./panel.js";
+import { call, CardPanel, el, panelPerCard } from "./panel.js";
 
 class Panel extends CardPanel {
   constructor(name, card, detail) {
@@ -33,6 +33,8 @@ class Panel extends CardPanel {
       this.el.note, this.el.error);
     (card.querySelector(".controls") || card).append(this.el.section);
     card.addEventListener("arm-sample", (ev) => this.update(ev.detail));
+    card.addEventListener("arm-torque", () => this.refreshTorque());  // app.js: any client's
+    this.showTorque(detail.torque);
     this.render();
   }
 
@@ -67,10 +69,24 @@ class Panel extends CardPanel {
         && window.confirm(`${this.el.error.textContent}\n\nIs the load held or resting? OK switches the torque off.`)) {
       d = await this.run("PUT", path, { on, load_supported: true }, "torque off (load supported)");
     }
-    if (d && typeof d.on === "boolean") {
-      this.el.torque.dataset.on = String(d.on);
-      this.el.torque.textContent = d.on ? "torque on" : "torque off: move it by hand";
-    }
+    if (d && typeof d.on === "boolean") this.showTorque(this.detail.joints.map(() => d.on));
+  }
+
+  // Which joints hold torque (the arm's detail: false where it was switched off through the
+  // server, by this page, another client or a pass-through write; moves are refused then).
+  showTorque(flags) {
+    if (!this.el.torque || !Array.isArray(flags)) return;
+    const off = this.detail.joints.map((j) => j.name).filter((n, i) => flags[i] === false);
+    this.el.torque.dataset.on = String(off.length === 0);
+    this.el.torque.textContent = off.length === 0 ? "torque on"
+      : `torque off (${off.join(", ")}): move it by hand; moves are refused`;
+  }
+
+  // A `torque` or `rebooted` event (any client's): the detail says which joints hold torque.
+  async refreshTorque() {
+    if (!this.el.torque) return;
+    try { this.showTorque((await call("GET", `/arms/${encodeURIComponent(this.name)}`)).torque); }
+    catch (e) { /* the next event or the page's own request shows it */ }
   }
 
   render() {
