@@ -337,17 +337,29 @@ async def test_done_means_the_joints_are_where_they_were_sent(sim_app):
 
 
 async def test_a_joint_without_torque_is_never_done(sim_app):
+    """Torque switched off through the server refuses the move up front (409 `torque_off`,
+    tests/test_torque_off_moves.py); a servo whose torque went off behind the server's back (a
+    servo that reset after a brown-out: it comes up with torque off, as after a reboot without
+    the set-up) fails the motion at its settle check, naming the ways back that work."""
     app, c = sim_app
-    # servo 1 (y) torque off, as after a reboot without set-up
-    r = await c.put(f"{API}/dynamixel/1/registers/torque_enable", json={"raw": 0})
+    bus = app.state.services["angler"].driver.link.device
+    r = await c.put(f"{API}/dynamixel/1/registers/torque_enable", json={"raw": 0})  # y
     assert r.status_code == 200
+    r = await c.post(f"{API}/move/joints", json={"positions": [0.0, 0.0015, 0, 0.05],
+                                                 "wait": True})
+    assert r.status_code == 409 and r.json()["code"] == "torque_off", r.text
+    assert "torque of y is off" in r.json()["detail"], r.text
+    r = await c.put("/api/v1/arms/angler/torque", json={"on": True})
+    assert r.status_code == 200, r.text
+    bus.servo(1).set("torque_enable", 0)  # behind the server's back
     r = await c.post(f"{API}/move/joints", json={"positions": [0.0, 0.0015, 0, 0.05],
                                                  "wait": True})
     body = r.json()
     assert body["status"] == "failed" and body["code"] == "torque_off", body
     assert "y" in body["reason"]
-    # the way back it names is the one that works: torque on through pass-through is refused
+    # the ways back it names are the ones that work: torque on through pass-through is refused
     assert "/dynamixel/{id}/reboot" in body["reason"] and "enable torque" not in body["reason"]
+    assert "/arms/angler/torque" in body["reason"], body["reason"]
 
 
 async def test_a_reconnect_keeps_homing_unless_a_mode_change_reset_the_position():
