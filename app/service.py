@@ -671,6 +671,7 @@ class ArmService:
     async def _latch(self, latched: threading.Event | None = None) -> s.EstopState:
         fresh = self.guard.latch()
         if fresh:
+            self.driver.hold_coming()  # no poll goes before the hold queued below
             # The latch shows at once, in a sample of the latest reading: clients do not wait
             # a device round trip for it, and the hold goes to the device before any poll.
             self.driver.publish_state()

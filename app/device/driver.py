@@ -110,6 +110,7 @@ class Driver(OwnerTask, abc.ABC):
         self._task: asyncio.Task[None] | None = None
         self._idle: asyncio.Future[None] | None = None  # the owner task's idle wait
         self._poll_now = False  # a request asked for a poll next (`poll_after`)
+        self._hold_until = 0.0  # loop time until which no poll goes before the hold (owner.py)
         #: (positions, velocities, torques) of the last sample and its derived (tip, tip
         #: velocity, tip force): reused while the readings do not change.
         self._derived_key: tuple[list[float], list[float], list[float] | None] | None = None

@@ -49,6 +49,12 @@ LOOP_TICK_S = 0.001
 SCHEDULE_WAIT_MAX_S = 1.0
 #: Consecutive failed polls before samples are marked stale and an event is sent.
 STALE_AFTER = 3
+#: After an estop latches (`hold_coming`), the longest the owner task waits for the latch's
+#: hold before it polls again, s: the hold's task runs once the latch's step yields, a few
+#: hundred microseconds later; a poll started meanwhile held the hold back a whole device
+#: round trip (tests/test_estop_hold_first.py). Only a hold that does not come (no reading to
+#: hold at) or a loop held up that long lets the polls go on without it.
+HOLD_COMING_S = 0.005
 
 
 @dataclass
@@ -76,6 +82,7 @@ class OwnerTask:
     _queue: asyncio.Queue[_Request]
     _idle: asyncio.Future[None] | None
     _poll_now: bool
+    _hold_until: float
     _derived_key: tuple[list[float], list[float], list[float] | None] | None
     _derived: tuple[Any, Any, Any] | None
     _template: tuple[dict[str, Any], Any, tuple[Any, ...]] | None
@@ -199,12 +206,16 @@ class OwnerTask:
         polled = False  # the last thing done was a poll
         while True:
             now = loop.time()
+            if now < self._hold_until and self._queue.empty():
+                await self._idle_until(loop, self._hold_until)  # the estop's hold first
+                continue
             due = now >= next_poll - POLL_EARLY_S
             # A queued request goes between two polls even when the next one is already due:
             # polls that fall behind (a slow bus, a loaded machine) catch up back to back,
             # and a setpoint stream must not wait for the whole catch-up (it did: an executor
             # held up for hundreds of milliseconds behind its own arm's polls).
-            if self._poll_now or (due and not (polled and not self._queue.empty())):
+            if (self._poll_now or (due and not (polled and not self._queue.empty()))) \
+                    and now >= self._hold_until:
                 self._poll_now = False
                 await self._do_poll()
                 polled = True
@@ -358,7 +369,17 @@ class OwnerTask:
         else:
             loop.call_soon_threadsafe(resolve, fut)
 
+    def hold_coming(self) -> None:
+        """The estop just latched on this loop (`ArmService._latch`) and its hold will be
+        queued as soon as the latch's step yields: until then, or HOLD_COMING_S, the owner
+        task starts no poll (`_session`; over a link with a thread of its own the schedule's
+        pause does that job, app/links/threaded.py). The first command that is not gated (the
+        hold) ends the wait."""
+        self._hold_until = asyncio.get_running_loop().time() + HOLD_COMING_S
+
     async def _serve(self, req: _Request) -> None:
+        if not req.gated:
+            self._hold_until = 0.0
         if req.future.done():  # the caller gave up (cancelled) while queued
             return
         self.stats["requests"] += 1
