@@ -592,6 +592,26 @@ class ArmService:
         self.motion.forget_command()
         self.hub.event("rebooted", servo=dxl_id, homed=list(self.driver.homed))
 
+    async def torque_on_holding(self, hold: Callable[[], Awaitable[None]],
+                                send: Callable[[], Awaitable[T]]) -> T:
+        """Runs `_torque_on_holding` on the arm's control loop (its state changes only there)."""
+        return await on_home(self.home_loop, lambda: self._torque_on_holding(hold, send))
+
+    async def _torque_on_holding(self, hold: Callable[[], Awaitable[None]],
+                                 send: Callable[[], Awaitable[T]]) -> T:
+        """A pass-through Torque Enable 1 to joint servos (raw access): as the torque route,
+        `hold()` first writes each one's Goal Position as its Present Position, so that it
+        holds where a hand or gravity left it instead of driving to an older goal no check
+        has seen (the envelope holds with raw access too); then `send()` writes the Torque
+        Enable. 409 `busy` while a planned motion runs or is queued (it streams the commanded
+        state)."""
+        if self.motion.current is not None or self.motion.queued():
+            raise Busy(f"{self.name}: a motion is running or queued; stop it before switching "
+                       "the torque")
+        await hold()
+        self.motion.forget_command()
+        return await send()
+
     async def set_torque(self, on: bool) -> None:
         """Runs `_set_torque` on the arm's control loop (its state changes only there)."""
         return await on_home(self.home_loop, lambda: self._set_torque(on))

@@ -18,7 +18,11 @@ import numpy as np
 import orjson
 from _wait import held_still, wait_for
 
+from app.arms.loading import load_profile
+from app.config import homed_at_start
 from app.service import ArmService
+from protocol import dynamixel as dxl
+from protocol import mx28
 from tests.conftest import make_settings, running_client
 
 API = "/api/v1"
@@ -148,3 +152,78 @@ async def test_a_follower_with_its_torque_off_cannot_start_a_session() -> None:
         assert r.status_code == 201, r.text
         r = await c.delete(f"{API}/teleop/{r.json()['id']}")
         assert r.status_code == 200, r.text
+
+
+def watch_writes(arm: ArmService) -> list[tuple[str, dict[int, int]]]:
+    """(register, {id: raw}) of every WRITE and SYNC_WRITE the simulated bus receives, in the
+    order the owner task writes them."""
+    bus = arm.driver.link.device
+    names = {item.address: item for item in mx28.TABLE.values()}
+    seen: list[tuple[str, dict[int, int]]] = []
+    receive = bus.receive
+    parser = dxl.Parser()
+
+    def receiving(data: bytes, now: float) -> Any:
+        parser.feed(bytes(data))
+        while (p := parser.next_event()) is not None:
+            if isinstance(p, dxl.ParseError):
+                continue
+            if p.instruction == dxl.Instruction.SYNC_WRITE:
+                address, _size, items = dxl.decode_sync_write(p.params)
+                item = names[address]
+                seen.append((item.name, {i: dxl.from_bytes(v, item.signed)
+                                         for i, v in items.items()}))
+            elif p.instruction == dxl.Instruction.WRITE:
+                item = names[int.from_bytes(p.params[:2], "little")]
+                seen.append((item.name, {p.id: dxl.from_bytes(p.params[2:], item.signed)}))
+        return receive(data, now)
+
+    bus.receive = receiving
+    return seen
+
+
+async def test_raw_access_torque_on_writes_the_present_position_as_the_goal_first() -> None:
+    """With raw access a pass-through Torque Enable 1 to a joint's servo is allowed. A servo
+    whose torque comes on may drive to its Goal Position: the goal from before its torque went
+    off, where a hand has since moved the joint away from, a move no check has seen (the
+    envelope holds with raw access too). The e-manual does not say what the MX-28 (2.0) does
+    with that older goal (the simulated servo holds where it stands); the server does not rely
+    on it: as the torque route does, it writes each servo's present position as its goal
+    first, then the Torque Enable, and the arm's record says the joint holds there."""
+    raw = homed_at_start(load_profile("angler")).model_copy(update={"raw_access": True})
+    async with running_client(profiles=[raw]) as (app, c):
+        angler: ArmService = app.state.services["angler"]
+        bus = angler.driver.link.device
+        q0 = await held_still(lambda: angler.positions, 1e-4)
+        r = await c.put(f"{DX}/3/registers/torque_enable", json={"raw": 0})  # theta3
+        assert r.status_code == 200, r.text
+        moved = [q0[0], q0[1], q0[2] + 0.4, q0[3]]
+        r = await c.put(f"{API}/arms/angler/world/hand",
+                        json={"positions": moved, "speed": 0.5, "wait": True})
+        assert r.status_code == 200, r.text
+        r = await c.delete(f"{API}/arms/angler/world/hand")
+        assert r.status_code == 204, r.text
+        here = await held_still(lambda: angler.positions, 1e-4)
+        np.testing.assert_allclose(here, moved, atol=2e-3)
+        stale = bus.servo(3).get("goal_position")
+        present = bus.servo(3).get("present_position")
+        assert abs(stale - present) > 100  # the goal register still holds the older goal
+        writes = watch_writes(angler)
+        r = await c.put(f"{DX}/3/registers/torque_enable", json={"raw": 1})
+        assert r.status_code == 200, r.text
+        assert [w for w in writes if w[0] in ("goal_position", "torque_enable")] == [
+            ("goal_position", {3: present}), ("torque_enable", {3: 1})], writes
+        assert bus.servo(3).torque
+        told = angler.setpoint()
+        assert told is not None
+        np.testing.assert_allclose(told, here, atol=2e-3)  # the record: where it holds
+        assert (await c.get(f"{API}/arms/angler")).json()["torque"] == [True] * 4
+        # while a planned motion runs it is busy, as the torque route is
+        r = await c.post(f"{API}/arms/angler/move/joints",
+                         json={"positions": [here[0] + 0.03, here[1], here[2], here[3]],
+                               "duration": 10.0})
+        assert r.status_code == 202, r.text
+        await wait_for(lambda: angler.motion.current is not None, what="running")
+        r = await c.put(f"{DX}/3/registers/torque_enable", json={"raw": 1})
+        assert r.status_code == 409 and r.json()["code"] == "busy", r.text
+        assert (await c.post(f"{API}/arms/angler/stop")).status_code == 200

@@ -25,6 +25,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from app import schemas as s
 from app.arms import arm_type
 from app.arms.dynamixel.exchange import DynamixelBusDriver
+from app.arms.dynamixel.servos import DynamixelChainDriver
 from app.errors import ArmError, InUse, OutOfRange, ReadOnly, UnknownId, UnknownRegister
 from app.service import ArmService
 from app.web.deps import ControlArm, bearer_credentials, check_control
@@ -211,6 +212,13 @@ async def _send(svc: ArmService, item: mx28.ControlItem, values: dict[int, int],
         goals = {_joint_of(svc, i): float(raw) for i, raw in values.items()}
         await svc.command_passthrough(goals, lambda: send(True))
         return
+    chain = _driver(svc)
+    if item.name == "torque_enable" and isinstance(chain, DynamixelChainDriver):
+        joints = [i for i, raw in values.items() if raw and i in chain.ids]
+        if joints:  # (raw access: `_check_write` refuses it otherwise)
+            hold = chain.goal_at_present
+            await svc.torque_on_holding(lambda: hold(joints), lambda: send(True))
+            return
     await send(not all(_safe(item, raw) for raw in values.values()))
 
 

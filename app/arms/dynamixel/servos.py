@@ -200,10 +200,18 @@ class DynamixelChainDriver(DynamixelBusDriver):
         if not on:
             await self.sync_write(enable, {i: 0 for i in self.ids}, gated=False)
             return
+        await self.goal_at_present(list(self.ids), gated=False)
+        await self.sync_write(enable, {i: 1 for i in self.ids}, gated=False)
+
+    async def goal_at_present(self, ids: list[int], *, gated: bool = True) -> None:
+        """Goal Position of the joint servos `ids` written as their Present Position, read now
+        (the last polled positions if the bus fails the read TORQUE_ON_READS times), and noted
+        as the commanded state: what a servo whose torque comes on holds, instead of driving
+        to an older goal (`set_torque`; a pass-through Torque Enable 1 with raw access)."""
         here: dict[int, int] | None = None
         for _ in range(TORQUE_ON_READS):  # a late reply to a timed-out poll fails one read
             try:
-                here = await self.sync_read(mx28.TABLE["present_position"], list(self.ids))
+                here = await self.sync_read(mx28.TABLE["present_position"], ids)
                 break
             except (CorruptReply, DeviceTimeout):
                 continue
@@ -213,10 +221,10 @@ class DynamixelChainDriver(DynamixelBusDriver):
                 raise DeviceTimeout(f"{self.name}: no present position to hold at: torque "
                                     "stays off")
             ticks = self.model.transmission.to_ticks(np.asarray(q, dtype=float))
-            here = {i: int(round(t)) for i, t in zip(self.ids, ticks, strict=True)}
-        await self.sync_write(mx28.TABLE["goal_position"], {i: here[i] for i in self.ids},
-                              gated=False)
-        await self.sync_write(enable, {i: 1 for i in self.ids}, gated=False)
+            polled = {i: int(round(t)) for i, t in zip(self.ids, ticks, strict=True)}
+            here = {i: polled[i] for i in ids}
+        await self.sync_write(mx28.TABLE["goal_position"], {i: here[i] for i in ids},
+                              gated=gated)
 
     async def settle_state(self) -> SettleState:
         """Torque Enable read now from every servo; Moving / Moving Status from the last poll
