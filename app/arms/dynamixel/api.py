@@ -127,9 +127,11 @@ DRIVER_SETTINGS: dict[str, tuple[str, str]] = {
 
 
 #: Why torque on is not a pass-through write to the arm's own servos (torque off is: the
-#: README's homing by hand): a servo in a position mode drives to its Goal Position as its
-#: torque comes on (`DynamixelChainDriver.set_torque` writes the present position there
-#: first), and after a hand or gravity moved the joint that goal is an older one. The server's
+#: README's homing by hand): a servo in a position mode may drive to its Goal Position as its
+#: torque comes on (the e-manual does not say it does not; `DynamixelChainDriver.set_torque`
+#: writes the present position there first), and after a hand or gravity moved the joint that
+#: goal is an older one. With raw access the write goes through, after that same goal
+#: (`ArmService.torque_on_holding`). The server's
 #: record of what the arm was told (its last command) would not know of that move nor of the
 #: position the joint comes to hold: the next planned move started from that last command and
 #: drove the arm back towards it first, a path no check had seen (tests/test_api_passthrough.py).
@@ -137,7 +139,7 @@ DRIVER_SETTINGS: dict[str, tuple[str, str]] = {
 #: set the servos up to hold where they are and note it. As a DRIVER_SETTINGS entry, for
 #: `torque_enable` 1 only.
 TORQUE_ON = ("it goes off through pass-through, on again only as the driver sets the servo up: "
-             "as torque comes on, a servo in a position mode drives to its Goal Position, an "
+             "as torque comes on, a servo in a position mode may drive to its Goal Position, an "
              "older goal than where a hand or gravity left the joint, and the server's record "
              "of what the arm was told would not know of either",
              'PUT /api/v1/arms/{arm}/torque {{"on": true}}, which holds every joint where it '
