@@ -16,12 +16,11 @@ from typing import Any
 
 import httpx
 import numpy as np
+from _bus_watch import watch_writes
 from conftest import running_client
 
 from app.safety.guard import PASSTHROUGH_STEP_S
 from app.service import ArmService
-from protocol import dynamixel as dxl
-from protocol import mx28
 from protocol import rbe3001 as rb
 
 API = "/api/v1/arms"
@@ -49,28 +48,13 @@ def watch_rbe3001(svc: ArmService) -> list[tuple[bool, tuple[float, ...]]]:
 
 def watch_goals(svc: ArmService) -> list[tuple[bool, dict[int, int]]]:
     """(latched, {id: goal ticks}) of every Goal Position write the simulated bus receives."""
-    bus = svc.driver.link.device
     seen: list[tuple[bool, dict[int, int]]] = []
-    receive = bus.receive
-    goal = mx28.TABLE["goal_position"]
-    parser = dxl.Parser()
 
-    def receiving(data: bytes, now: float) -> Any:
-        parser.feed(bytes(data))
-        while (p := parser.next_event()) is not None:
-            if isinstance(p, dxl.ParseError):
-                continue
-            if p.instruction == dxl.Instruction.SYNC_WRITE:
-                address, _size, items = dxl.decode_sync_write(p.params)
-                if address == goal.address:
-                    seen.append((svc.guard.estop, {i: dxl.from_bytes(v, True)
-                                                   for i, v in items.items()}))
-            elif p.instruction == dxl.Instruction.WRITE and p.params[:2] == \
-                    goal.address.to_bytes(2, "little"):
-                seen.append((svc.guard.estop, {p.id: dxl.from_bytes(p.params[2:], True)}))
-        return receive(data, now)
+    def note(name: str, values: dict[int, int]) -> None:
+        if name == "goal_position":
+            seen.append((svc.guard.estop, values))
 
-    bus.receive = receiving
+    watch_writes(svc.driver.link.device, note)
     return seen
 
 

@@ -16,13 +16,12 @@ from typing import Any
 
 import numpy as np
 import orjson
+from _bus_watch import watch_writes
 from _wait import held_still, wait_for
 
 from app.arms.loading import load_profile
 from app.config import homed_at_start
 from app.service import ArmService
-from protocol import dynamixel as dxl
-from protocol import mx28
 from tests.conftest import make_settings, running_client
 
 API = "/api/v1"
@@ -154,34 +153,6 @@ async def test_a_follower_with_its_torque_off_cannot_start_a_session() -> None:
         assert r.status_code == 200, r.text
 
 
-def watch_writes(arm: ArmService) -> list[tuple[str, dict[int, int]]]:
-    """(register, {id: raw}) of every WRITE and SYNC_WRITE the simulated bus receives, in the
-    order the owner task writes them."""
-    bus = arm.driver.link.device
-    names = {item.address: item for item in mx28.TABLE.values()}
-    seen: list[tuple[str, dict[int, int]]] = []
-    receive = bus.receive
-    parser = dxl.Parser()
-
-    def receiving(data: bytes, now: float) -> Any:
-        parser.feed(bytes(data))
-        while (p := parser.next_event()) is not None:
-            if isinstance(p, dxl.ParseError):
-                continue
-            if p.instruction == dxl.Instruction.SYNC_WRITE:
-                address, _size, items = dxl.decode_sync_write(p.params)
-                item = names[address]
-                seen.append((item.name, {i: dxl.from_bytes(v, item.signed)
-                                         for i, v in items.items()}))
-            elif p.instruction == dxl.Instruction.WRITE:
-                item = names[int.from_bytes(p.params[:2], "little")]
-                seen.append((item.name, {p.id: dxl.from_bytes(p.params[2:], item.signed)}))
-        return receive(data, now)
-
-    bus.receive = receiving
-    return seen
-
-
 async def test_raw_access_torque_on_writes_the_present_position_as_the_goal_first() -> None:
     """With raw access a pass-through Torque Enable 1 to a joint's servo is allowed. A servo
     whose torque comes on may drive to its Goal Position: the goal from before its torque went
@@ -208,7 +179,8 @@ async def test_raw_access_torque_on_writes_the_present_position_as_the_goal_firs
         stale = bus.servo(3).get("goal_position")
         present = bus.servo(3).get("present_position")
         assert abs(stale - present) > 100  # the goal register still holds the older goal
-        writes = watch_writes(angler)
+        writes: list[tuple[str, dict[int, int]]] = []
+        watch_writes(bus, lambda name, values: writes.append((name, values)))
         r = await c.put(f"{DX}/3/registers/torque_enable", json={"raw": 1})
         assert r.status_code == 200, r.text
         assert [w for w in writes if w[0] in ("goal_position", "torque_enable")] == [
