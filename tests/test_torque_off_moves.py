@@ -199,3 +199,27 @@ async def test_raw_access_torque_on_writes_the_present_position_as_the_goal_firs
         r = await c.put(f"{DX}/3/registers/torque_enable", json={"raw": 1})
         assert r.status_code == 409 and r.json()["code"] == "busy", r.text
         assert (await c.post(f"{API}/arms/angler/stop")).status_code == 200
+
+
+async def test_a_torque_off_whose_status_is_lost_still_refuses_moves() -> None:
+    """The bus loses the status of a Torque Enable 0 (the servo got it: its torque is off) and
+    the write answers 504 `device_timeout`: the joint is taken as limp all the same, noted as
+    the write went out, and a move is 409 `torque_off`, not streamed to a servo that cannot
+    follow it."""
+    async with running_client(make_settings()) as (app, c):
+        angler: ArmService = app.state.services["angler"]
+        link = angler.driver.link
+        bus = link.device
+        q = await held_still(lambda: angler.positions, 1e-4)
+        link.set_faults(link.faults.model_copy(update={"drop": 1.0}))
+        try:
+            r = await c.put(f"{DX}/3/registers/torque_enable", json={"raw": 0})
+            assert r.status_code == 504 and r.json()["code"] == "device_timeout", r.text
+        finally:
+            link.set_faults(link.faults.model_copy(update={"drop": 0.0}))
+        assert not bus.servo(3).torque  # the servo got it
+        await wait_for(lambda: not angler.driver.stale, what="polls answered again")
+        r = await c.post(f"{API}/arms/angler/move/joints",
+                         json={"positions": [q[0] + 0.01, q[1], q[2], q[3]]})
+        assert r.status_code == 409 and r.json()["code"] == "torque_off", r.text
+        assert (await c.get(f"{API}/arms/angler")).json()["torque"] == [True, True, False, True]

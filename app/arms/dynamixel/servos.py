@@ -118,22 +118,27 @@ class DynamixelChainDriver(DynamixelBusDriver):
 
     def _note_written(self, item: ControlItem, values: dict[int, int]) -> None:
         """A pass-through Profile Velocity is what the power check expects back; a joint whose
-        torque went off is told nothing any more (as `set_torque`'s off: a hand may move it),
-        and no command may move it until its torque is on again (`torque_off`)."""
+        torque came on (its status answered) may be commanded again (`torque_off`)."""
         if item.name == "profile_velocity":
             for i, raw in values.items():
                 if i in self.servo_ids:
                     self.profile_velocity[i] = raw
         elif item.name == "torque_enable":
-            off = [self.ids.index(i) for i, raw in values.items() if raw == 0 and i in self.ids]
-            if off:
-                self.forget_commanded(off)
-                self.note_torque(off, False)
             self.note_torque([self.ids.index(i) for i, raw in values.items()
                               if raw != 0 and i in self.ids], True)
 
     def _note_sent(self, item: ControlItem, values: dict[int, int]) -> None:
-        """Goal Position of the arm's joints is the arm's commanded state."""
+        """Goal Position of the arm's joints is the arm's commanded state. A joint whose torque
+        goes off is told nothing any more (as `set_torque`'s off: a hand may move it), and no
+        command may move it until its torque is on again (`torque_off`): noted as the write
+        goes out, not once its status is in, so that a status the bus loses does not leave a
+        limp joint taken for one that holds."""
+        if item.name == "torque_enable":
+            off = [self.ids.index(i) for i, raw in values.items() if raw == 0 and i in self.ids]
+            if off:
+                self.forget_commanded(off)
+                self.note_torque(off, False)
+            return
         if item.name != "goal_position":
             return
         joints = [self.ids.index(i) for i in values if i in self.ids]
