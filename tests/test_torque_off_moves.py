@@ -223,3 +223,26 @@ async def test_a_torque_off_whose_status_is_lost_still_refuses_moves() -> None:
                          json={"positions": [q[0] + 0.01, q[1], q[2], q[3]]})
         assert r.status_code == 409 and r.json()["code"] == "torque_off", r.text
         assert (await c.get(f"{API}/arms/angler")).json()["torque"] == [True, True, False, True]
+
+
+async def test_an_estop_hold_on_a_limp_arm_leaves_it_told_where_the_hand_has_it() -> None:
+    """The estop's hold is sent to every joint servo, the limp ones too (it moves nothing
+    there). It is not what those joints are told: a hand moving the arm during the latch moves
+    what the arm is said to be headed for (`told`: a recording's action, a check's start)."""
+    async with running_client(make_settings()) as (app, c):
+        angler: ArmService = app.state.services["angler"]
+        q0 = await held_still(lambda: angler.positions, 1e-4)
+        r = await c.put(f"{API}/arms/angler/world/hand", json={"wait": True})  # hold where it is
+        assert r.status_code == 200, r.text
+        r = await c.put(f"{API}/arms/angler/torque", json={"on": False, "load_supported": True})
+        assert r.status_code == 200, r.text
+        assert (await c.post(f"{API}/arms/angler/estop")).status_code == 200
+        moved = [q0[0] + 0.02, q0[1], q0[2], q0[3]]
+        r = await c.put(f"{API}/arms/angler/world/hand",
+                        json={"positions": moved, "speed": 0.1, "wait": True})
+        assert r.status_code == 200, r.text
+        np.testing.assert_allclose(await held_still(lambda: angler.positions, 1e-4), moved,
+                                   atol=2e-3)
+        told = angler.setpoint()
+        assert told is not None
+        np.testing.assert_allclose(told, moved, atol=2e-3)

@@ -185,10 +185,16 @@ class DynamixelChainDriver(DynamixelBusDriver):
     # --------------------------------------------------------- motion interface
 
     async def command_joints(self, q: np.ndarray, *, hold: bool = False) -> None:
+        """Goal Position of every joint servo (SYNC_WRITE). An estop's hold (`hold`) leaves out
+        the joints whose torque is off (`torque_off`): it would move nothing there, and noted
+        as their commanded state it would say the arm is headed for the hold point while a
+        hand moves them (`told`: a recording's action, a check's start). Nothing else is sent
+        to such a joint (the guard's `require_torque`)."""
         ticks = self.model.transmission.to_ticks(np.asarray(q, dtype=float))
-        await self.sync_write(mx28.TABLE["goal_position"],
-                              {i: int(round(t)) for i, t in zip(self.ids, ticks, strict=True)},
-                              gated=not hold)
+        goals = {i: int(round(t)) for k, (i, t) in enumerate(zip(self.ids, ticks, strict=True))
+                 if not (hold and k in self.torque_off)}
+        if goals:
+            await self.sync_write(mx28.TABLE["goal_position"], goals, gated=not hold)
 
     async def set_torque(self, on: bool) -> None:
         """Torque Enable (64) of every joint servo. Off: the arm moves freely by hand, its
