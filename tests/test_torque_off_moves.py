@@ -74,8 +74,21 @@ async def test_one_joint_off_through_passthrough_refuses_moves_until_its_reboot(
         angler: ArmService = app.state.services["angler"]
         bus = angler.driver.link.device
         q = await held_still(lambda: angler.positions, 1e-4)
-        r = await c.put(f"{DX}/3/registers/torque_enable", json={"raw": 0})  # theta3
-        assert r.status_code == 200, r.text
+        sub = angler.hub.subscribe()
+        try:
+            r = await c.put(f"{DX}/3/registers/torque_enable", json={"raw": 0})  # theta3
+            assert r.status_code == 200, r.text
+            events: list[dict[str, Any]] = []
+
+            def torque_event() -> bool:  # (as the torque route's, with the joints switched)
+                events.extend(orjson.loads(e) for e in sub.take()[1])
+                return any(e.get("event") == "torque" for e in events)
+
+            await wait_for(torque_event, what="the torque event")
+            assert [e["data"] for e in events if e.get("event") == "torque"] == [
+                {"on": False, "joints": ["theta3"]}], events
+        finally:
+            sub.close()
         detail = (await c.get(f"{API}/arms/angler")).json()
         assert detail["torque"] == [True, True, False, True], detail["torque"]
         target = [q[0] + 0.01, q[1], q[2], q[3]]  # theta3 not among the joints moved

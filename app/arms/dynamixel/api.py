@@ -220,8 +220,21 @@ async def _send(svc: ArmService, item: mx28.ControlItem, values: dict[int, int],
         if joints:  # (raw access: `_check_write` refuses it otherwise)
             hold = chain.goal_at_present
             await svc.torque_on_holding(lambda: hold(joints), lambda: send(True))
-            return
+        else:
+            await send(not all(_safe(item, raw) for raw in values.values()))
+        _torque_event(svc, values)
+        return
     await send(not all(_safe(item, raw) for raw in values.values()))
+
+
+def _torque_event(svc: ArmService, values: dict[int, int]) -> None:
+    """A Torque Enable written to the arm's joint servos: the `torque` event the torque route
+    sends too, with the joints switched (a dashboard reads which from the arm's detail)."""
+    names = {j.motor_id: j.name for j in svc.profile.joints}
+    for on in (False, True):
+        joints = [names[i] for i, raw in values.items() if i in names and bool(raw) == on]
+        if joints:
+            svc.event("torque", on=on, joints=joints)
 
 
 def _value(svc: ArmService, dxl_id: int, item: mx28.ControlItem, raw: int) -> s.RegisterValue:
