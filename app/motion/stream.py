@@ -241,12 +241,10 @@ class MotionStream:
                 err = self.device.stale_error
             except ArmError as exc:
                 err = exc
-            if self.device.torque_off:  # a pass-through Torque Enable 0 while it runs
-                try:
-                    self.guard.require_torque()
-                except ArmError as exc:
-                    await self._watchdog(rec, exc)
-                    return "halt"
+            limp = self.guard.torque_refusal()  # a pass-through Torque Enable 0 while it runs
+            if limp is not None:
+                await self._watchdog(rec, limp)
+                return "halt"
             failures = failures + 1 if err is not None else 0
             if err is not None and (err.code == "link_down" or failures >= MAX_SETPOINT_FAILURES):
                 await self._watchdog(rec, err)

@@ -78,17 +78,24 @@ class SafetyGuard:
                                      for f in faults))
 
     def require_torque(self) -> None:
-        """409 `torque_off` while a joint's torque is off (switched off through this server and
-        not on again, `Actuator.torque_off`): a command would go to a servo that cannot follow
-        it, and its goal would wait there for the torque to come back, a move from wherever a
-        hand or gravity has taken the joint that no check has seen. Every joint: a limp one
-        can swing while the others move."""
+        """409 `torque_off` while a joint's torque is off (`torque_refusal`)."""
+        refusal = self.torque_refusal()
+        if refusal is not None:
+            raise refusal
+
+    def torque_refusal(self) -> TorqueOff | None:
+        """Why nothing may be commanded now, if a joint's torque is off (switched off through
+        this server and not on again, `Actuator.torque_off`): a command would go to a servo
+        that cannot follow it, and its goal would wait there for the torque to come back, a
+        move from wherever a hand or gravity has taken the joint that no check has seen. Every
+        joint: a limp one can swing while the others move. None while all hold torque."""
         off = self.device.torque_off
-        if off:
-            names = ", ".join(self.profile.joints[k].name for k in off)
-            raise TorqueOff(f"{self.name}: the torque of {names} is off, so no command can move "
-                            f"the arm; switch it on with PUT /api/v1/arms/{self.name}/torque "
-                            '{"on": true}, which holds every joint where it is')
+        if not off:
+            return None
+        names = ", ".join(self.profile.joints[k].name for k in off)
+        return TorqueOff(f"{self.name}: the torque of {names} is off, so no command can move "
+                         f"the arm; switch it on with PUT /api/v1/arms/{self.name}/torque "
+                         '{"on": true}, which holds every joint where it is')
 
     def tolerance(self) -> np.ndarray:
         """Per joint (rad or m): the profile's `settle_tolerance`, else 8 encoder ticks."""
