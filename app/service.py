@@ -271,6 +271,12 @@ class ArmService:
     def require_torque(self) -> None:
         self.guard.require_torque()
 
+    def _require_no_motion(self, then: str) -> None:
+        """409 `busy` while a planned motion runs or is queued (on the control loop): `then`
+        says when to stop it ("before homing", "first")."""
+        if self.motion.current is not None or self.motion.queued():
+            raise Busy(f"{self.name}: a motion is running or queued; stop it {then}")
+
     async def command_passthrough(self, goals: dict[int, float],
                                   send: Callable[[], Awaitable[T]]) -> T:
         """Runs `_command_passthrough` on the arm's control loop (its state changes only there).
@@ -372,8 +378,7 @@ class ArmService:
         measured pose. On an arm whose joints that need homing are all homed, a declaration
         would move the joint limits and the zones with it: 409 `already_homed` unless
         `rehome` (an instructor's) or the arm was un-homed first (`unhome`)."""
-        if self.motion.current is not None or self.motion.queued():
-            raise Busy(f"{self.name}: a motion is running or queued; stop it before homing")
+        self._require_no_motion("before homing")
         needs = [k for k, j in enumerate(self.profile.joints) if j.needs_homing]
         if needs and all(self.driver.homed[k] for k in needs) and not rehome:
             raise AlreadyHomed(
@@ -404,8 +409,7 @@ class ArmService:
     async def _unhome(self) -> s.ArmDetail:
         """Forget the zero of every joint that needs homing, on purpose: moves that would move
         them are refused (409 `not_homed`) until the arm is homed again."""
-        if self.motion.current is not None or self.motion.queued():
-            raise Busy(f"{self.name}: a motion is running or queued; stop it before un-homing")
+        self._require_no_motion("before un-homing")
         for k, j in enumerate(self.profile.joints):
             if j.needs_homing:
                 self.driver.homed[k] = False
@@ -473,9 +477,7 @@ class ArmService:
         if not self.profile.calibration_joints:
             raise NotSupported(f"every joint's zero is known to {self.name}'s hardware: "
                                "nothing to calibrate")
-        if self.motion.current is not None or self.motion.queued():
-            raise Busy(f"{self.name}: a motion is running or queued; stop it before "
-                       "calibrating")
+        self._require_no_motion("before calibrating")
         if self.driver.positions is None or self.driver.stale:
             raise LinkDown(f"{self.name}: no fresh joint positions from the device to "
                            "calibrate against")
@@ -497,8 +499,7 @@ class ArmService:
         """Drop the stored calibration of this hardware and go back to what the profile
         knows: joints whose zero the hardware does not know are not calibrated again, and
         the gravity fit is gone. 409 `busy` while a motion runs or is queued."""
-        if self.motion.current is not None or self.motion.queued():
-            raise Busy(f"{self.name}: a motion is running or queued; stop it first")
+        self._require_no_motion("first")
         self.calibration.forget()
         self.motion.forget_command()
         await self.calibration.drop()
@@ -586,8 +587,7 @@ class ArmService:
         """REBOOT one servo and set it up again (the driver); the commanded state is
         forgotten: the servo's goal is now its present position."""
         self.guard.require_motion_allowed()
-        if self.motion.current is not None or self.motion.queued():
-            raise Busy(f"{self.name}: a motion is running or queued; stop it before a reboot")
+        self._require_no_motion("before a reboot")
         await self.driver.reboot(dxl_id)
         self.motion.forget_command()
         self.hub.event("rebooted", servo=dxl_id, homed=list(self.driver.homed))
@@ -605,9 +605,7 @@ class ArmService:
         has seen (the envelope holds with raw access too); then `send()` writes the Torque
         Enable. 409 `busy` while a planned motion runs or is queued (it streams the commanded
         state)."""
-        if self.motion.current is not None or self.motion.queued():
-            raise Busy(f"{self.name}: a motion is running or queued; stop it before switching "
-                       "the torque")
+        self._require_no_motion("before switching the torque")
         await hold()
         self.motion.forget_command()
         return await send()
@@ -621,9 +619,7 @@ class ArmService:
         on again holding where it is (the driver's `set_torque`; 409 `not_supported` where
         the device cannot). 409 `busy` while a motion runs or is queued. The executor's last
         setpoint is forgotten: the arm is wherever the hand leaves it."""
-        if self.motion.current is not None or self.motion.queued():
-            raise Busy(f"{self.name}: a motion is running or queued; stop it before switching "
-                       "the torque")
+        self._require_no_motion("before switching the torque")
         await self.driver.set_torque(on)
         self.motion.forget_command()
         log.info("%s: torque %s", self.name, "on" if on else "off")
